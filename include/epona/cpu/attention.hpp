@@ -1,16 +1,18 @@
 // epona/cpu/attention.hpp — scaled-dot-product attention over strided, token-major data:
-// softmax(q kᵀ · scale + mask) v per sequence and head, never materialising more than one
-// row of scores. Strides let callers attend straight out of packed QKV buffers and across
-// frames (the MST's temporal attention) without transposes.
+// softmax(q kᵀ · scale + mask) v per sequence and head, flash-style: one tile of queries
+// walks the keys tile by tile with an online softmax, so no more than a tile of scores ever
+// exists. Strides let callers attend straight out of packed QKV buffers and across frames
+// (the MST's temporal attention) without transposes. Head dim 128 (and 64) is compiled in.
 #pragma once
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <limits>
-#include <vector>
 
+#include "epona/core/error.hpp"
 #include "epona/cpu/context.hpp"
+#include "epona/cpu/simd.hpp"
 
 namespace epona::cpu {
 
@@ -18,6 +20,8 @@ enum class Mask { None, Causal };
 
 // Element (s, i, h, d) of q lives at q[s * q_seq + i * q_row + h * head_dim + d]; same for k,
 // v and o. Causal: query i sees keys j <= i (queries and keys aligned at the start).
+// additive_mask (lq, lk), row-major, is added to the scaled scores (0 / −inf masks, or biases).
+// A query that sees no key (all −inf) gets a zero output, never NaN.
 struct AttentionShape {
   std::int64_t seqs = 1, heads = 1, lq = 0, lk = 0, head_dim = 0;
   std::int64_t q_seq = 0, q_row = 0, k_seq = 0, k_row = 0, v_seq = 0, v_row = 0, o_seq = 0, o_row = 0;
@@ -26,45 +30,221 @@ struct AttentionShape {
   const float* additive_mask = nullptr;  // optional (lq, lk), added to the scores
 };
 
-inline void attention(Context&, const float* q, const float* k, const float* v, float* o,
-                      const AttentionShape& a) {
+namespace detail::attn {
+
+using simd::Batch;
+inline constexpr std::int64_t kW = simd::kWidth;
+// Query tile: kQV SIMD vectors of queries side by side (queries live in the lanes while the
+// scores are computed, so the softmax statistics are plain vector ops). Key tile: kTileK keys.
+inline constexpr std::int64_t kQV = 2;
+inline constexpr std::int64_t kTileQ = kQV * kW;
+inline constexpr std::int64_t kTileK = 64;
+// Register blocking of the two micro-kernels (32 vector registers with AVX-512, 16 without).
+inline constexpr int kScoreKeys = kW >= 16 ? 8 : 4;   // keys per score block (× kQV accumulators)
+inline constexpr int kPvRows = 4;                     // query rows per P·V block
+inline constexpr int kPvVecs = kW >= 16 ? 4 : 2;      // head-dim vectors per P·V block
+inline constexpr float kNegInf = -std::numeric_limits<float>::infinity();
+
+inline std::int64_t round_up(std::int64_t n, std::int64_t m) { return (n + m - 1) / m * m; }
+
+// One thread's scratch, allocated once per call: the query tile transposed (d, query), one
+// tile of scores (key, query), the running output (query, d), running max / sum / rescale
+// factors, and V rows padded to whole vectors when head_dim is not a multiple of kW.
+struct Scratch {
+  std::int64_t dim, dpad;
+  simd::AlignedFloats qt, st, out, m, l, alpha, vpad;
+  Scratch(std::int64_t dim_, std::int64_t dpad_)
+      : dim(dim_), dpad(dpad_), qt(dim_ * kTileQ), st(kTileK * kTileQ), out(kTileQ * dpad_), m(kTileQ),
+        l(kTileQ), alpha(kTileQ), vpad(dim_ == dpad_ ? 0 : kTileK * dpad_) {}
+};
+
+// Where one (sequence, head, query tile) reads and writes.
+struct TileRef {
+  const float *q, *k, *v;  // row 0 of this sequence and head
+  float* o;
+  std::int64_t q0, nq;     // first query of the tile, queries in it
+};
+
+inline void pack_queries(const AttentionShape& a, const TileRef& t, Scratch& w) {
+  std::fill_n(w.qt.data(), w.dim * kTileQ, 0.f);
+  for (std::int64_t i = 0; i < t.nq; ++i) {
+    const float* qi = t.q + (t.q0 + i) * a.q_row;
+    for (std::int64_t d = 0; d < w.dim; ++d) w.qt[d * kTileQ + i] = qi[d];
+  }
+}
+
+// st[jj, :] = scale · (k_{j0+jj} · q_i) for JB keys and all queries of the tile.
+template <int D, int JB>
+inline void score_block(const float* qt, const float* k0, std::int64_t k_row, std::int64_t dim, float scale,
+                        float* st) {
+  const std::int64_t n = D > 0 ? D : dim;
+  Batch acc[JB][kQV];
+  for (int jj = 0; jj < JB; ++jj)
+    for (int v = 0; v < kQV; ++v) acc[jj][v] = Batch(0.f);
+  for (std::int64_t d = 0; d < n; ++d) {
+    Batch qv[kQV];
+    for (int v = 0; v < kQV; ++v) qv[v] = Batch::load_aligned(qt + d * kTileQ + v * kW);
+    for (int jj = 0; jj < JB; ++jj) {
+      const Batch kd(k0[jj * k_row + d]);
+      for (int v = 0; v < kQV; ++v) acc[jj][v] = xsimd::fma(kd, qv[v], acc[jj][v]);
+    }
+  }
+  const Batch sc(scale);
+  for (int jj = 0; jj < JB; ++jj)
+    for (int v = 0; v < kQV; ++v) (acc[jj][v] * sc).store_aligned(st + jj * kTileQ + v * kW);
+}
+
+template <int D>
+inline void score_tile(const AttentionShape& a, const TileRef& t, std::int64_t k0, std::int64_t nk, float scale,
+                       Scratch& w) {
+  const float* kb = t.k + k0 * a.k_row;
+  std::int64_t j = 0;
+  for (; j + kScoreKeys <= nk; j += kScoreKeys)
+    score_block<D, kScoreKeys>(w.qt.data(), kb + j * a.k_row, a.k_row, w.dim, scale, w.st.data() + j * kTileQ);
+  for (; j < nk; ++j) score_block<D, 1>(w.qt.data(), kb + j * a.k_row, a.k_row, w.dim, scale, w.st.data() + j * kTileQ);
+}
+
+// Adds the additive mask and applies causality to the tile of scores.
+inline void mask_tile(const AttentionShape& a, const TileRef& t, std::int64_t k0, std::int64_t nk, Scratch& w) {
+  if (a.additive_mask)
+    for (std::int64_t i = 0; i < t.nq; ++i) {
+      const float* mrow = a.additive_mask + (t.q0 + i) * a.lk + k0;
+      for (std::int64_t j = 0; j < nk; ++j) w.st[j * kTileQ + i] += mrow[j];
+    }
+  if (a.mask == Mask::Causal && k0 + nk - 1 > t.q0)
+    for (std::int64_t j = 0; j < nk; ++j)
+      for (std::int64_t i = 0; i < kTileQ && t.q0 + i < k0 + j; ++i) w.st[j * kTileQ + i] = kNegInf;
+}
+
+// Online softmax over one tile: new running max, scores -> exp(score - max), running sum
+// rescaled, and alpha = exp(old max - new max) for rescaling the running output. While a
+// query has seen only −inf its max stays −inf and exp is taken against 0, so nothing is NaN.
+inline void softmax_tile(std::int64_t nk, Scratch& w) {
+  for (std::int64_t v = 0; v < kQV; ++v) {
+    float* st = w.st.data() + v * kW;
+    const Batch m_old = Batch::load_aligned(w.m.data() + v * kW);
+    Batch m_new = m_old;
+    for (std::int64_t j = 0; j < nk; ++j) m_new = xsimd::max(m_new, Batch::load_aligned(st + j * kTileQ));
+    const Batch base = xsimd::select(m_new == Batch(kNegInf), Batch(0.f), m_new);
+    Batch sum(0.f);
+    for (std::int64_t j = 0; j < nk; ++j) {
+      const Batch p = xsimd::exp(Batch::load_aligned(st + j * kTileQ) - base);
+      p.store_aligned(st + j * kTileQ);
+      sum += p;
+    }
+    const Batch alpha = xsimd::exp(m_old - base);
+    alpha.store_aligned(w.alpha.data() + v * kW);
+    (Batch::load_aligned(w.l.data() + v * kW) * alpha + sum).store_aligned(w.l.data() + v * kW);
+    m_new.store_aligned(w.m.data() + v * kW);
+  }
+}
+
+// out[i0..i0+kPvRows, d0..d0+NV·kW) = alpha_i · out + Σ_j p[j, i] · v_j over the tile's keys.
+template <int NV>
+inline void pv_block(const Scratch& w, const float* vb, std::int64_t v_stride, std::int64_t nk, std::int64_t i0,
+                     std::int64_t d0) {
+  Batch acc[kPvRows][NV];
+  for (int r = 0; r < kPvRows; ++r) {
+    const Batch al(w.alpha[i0 + r]);
+    for (int c = 0; c < NV; ++c) acc[r][c] = Batch::load_aligned(w.out.data() + (i0 + r) * w.dpad + d0 + c * kW) * al;
+  }
+  for (std::int64_t j = 0; j < nk; ++j) {
+    Batch vv[NV];
+    for (int c = 0; c < NV; ++c) vv[c] = simd::load(vb + j * v_stride + d0 + c * kW);
+    for (int r = 0; r < kPvRows; ++r) {
+      const Batch p(w.st[j * kTileQ + i0 + r]);
+      for (int c = 0; c < NV; ++c) acc[r][c] = xsimd::fma(p, vv[c], acc[r][c]);
+    }
+  }
+  for (int r = 0; r < kPvRows; ++r)
+    for (int c = 0; c < NV; ++c) acc[r][c].store_aligned(w.out.data() + (i0 + r) * w.dpad + d0 + c * kW);
+}
+
+template <int D>
+inline void pv_tile(const AttentionShape& a, const TileRef& t, std::int64_t k0, std::int64_t nk, Scratch& w) {
+  const std::int64_t dpad = D > 0 && D % kW == 0 ? D : w.dpad;
+  const float* vb = t.v + k0 * a.v_row;
+  std::int64_t v_stride = a.v_row;
+  if (w.dim != dpad) {  // head_dim not a multiple of kW: copy V rows into zero-padded rows
+    for (std::int64_t j = 0; j < nk; ++j) {
+      std::copy_n(vb + j * a.v_row, w.dim, w.vpad.data() + j * dpad);
+      std::fill(w.vpad.data() + j * dpad + w.dim, w.vpad.data() + (j + 1) * dpad, 0.f);
+    }
+    vb = w.vpad.data();
+    v_stride = dpad;
+  }
+  const std::int64_t rows = round_up(t.nq, kPvRows);
+  for (std::int64_t i0 = 0; i0 < rows; i0 += kPvRows) {
+    std::int64_t d0 = 0;
+    for (; d0 + kPvVecs * kW <= dpad; d0 += kPvVecs * kW) pv_block<kPvVecs>(w, vb, v_stride, nk, i0, d0);
+    for (; d0 < dpad; d0 += kW) pv_block<1>(w, vb, v_stride, nk, i0, d0);
+  }
+}
+
+inline void write_output(const AttentionShape& a, const TileRef& t, const Scratch& w) {
+  for (std::int64_t i = 0; i < t.nq; ++i) {
+    const float l = w.l[i];
+    const Batch inv(l > 0 ? 1.0f / l : 0.f);
+    simd::map(w.dim, t.o + (t.q0 + i) * a.o_row, [inv](const Batch& x) { return x * inv; },
+              w.out.data() + i * w.dpad);
+  }
+}
+
+template <int D>
+inline void attend_tile(const AttentionShape& a, const TileRef& t, float scale, Scratch& w) {
+  pack_queries(a, t, w);
+  std::fill_n(w.m.data(), kTileQ, kNegInf);
+  std::fill_n(w.l.data(), kTileQ, 0.f);
+  std::fill_n(w.out.data(), kTileQ * w.dpad, 0.f);
+  // Causal: keys beyond the tile's last query are never seen.
+  const std::int64_t nkeys = a.mask == Mask::Causal ? std::min(a.lk, t.q0 + t.nq) : a.lk;
+  for (std::int64_t k0 = 0; k0 < nkeys; k0 += kTileK) {
+    const std::int64_t nk = std::min(kTileK, nkeys - k0);
+    score_tile<D>(a, t, k0, nk, scale, w);
+    mask_tile(a, t, k0, nk, w);
+    softmax_tile(nk, w);
+    pv_tile<D>(a, t, k0, nk, w);
+  }
+  write_output(a, t, w);
+}
+
+template <int D>
+inline void attention_impl(const float* q, const float* k, const float* v, float* o, const AttentionShape& a) {
   const float scale = a.scale != 0 ? a.scale : 1.0f / std::sqrt(static_cast<float>(a.head_dim));
-  const std::int64_t D = a.head_dim;
-#pragma omp parallel
+  const std::int64_t dim = a.head_dim, dpad = round_up(dim, kW);
+  const std::int64_t qtiles = (a.lq + kTileQ - 1) / kTileQ;
+  const std::int64_t tasks = a.seqs * a.heads * qtiles;
+  const double work = static_cast<double>(a.seqs * a.heads) * static_cast<double>(a.lq) * static_cast<double>(a.lk) *
+                      static_cast<double>(dim);
+#pragma omp parallel if (tasks > 1 && work > 1e5)
   {
-    std::vector<float> score(static_cast<std::size_t>(a.lk));
-    std::vector<float> acc(static_cast<std::size_t>(D));
-#pragma omp for collapse(2)
-    for (std::int64_t s = 0; s < a.seqs; ++s)
-      for (std::int64_t h = 0; h < a.heads; ++h)
-        for (std::int64_t i = 0; i < a.lq; ++i) {
-          const float* qi = q + s * a.q_seq + i * a.q_row + h * D;
-          const std::int64_t nk = a.mask == Mask::Causal ? std::min(a.lk, i + 1) : a.lk;
-          float mx = -std::numeric_limits<float>::infinity();
-          for (std::int64_t j = 0; j < nk; ++j) {
-            const float* kj = k + s * a.k_seq + j * a.k_row + h * D;
-            float dot = 0;
-            for (std::int64_t d = 0; d < D; ++d) dot += qi[d] * kj[d];
-            float sc = dot * scale;
-            if (a.additive_mask) sc += a.additive_mask[i * a.lk + j];
-            score[j] = sc;
-            mx = std::max(mx, sc);
-          }
-          float denom = 0;
-          for (std::int64_t j = 0; j < nk; ++j) {
-            score[j] = mx == -std::numeric_limits<float>::infinity() ? 0.f : std::exp(score[j] - mx);
-            denom += score[j];
-          }
-          std::fill(acc.begin(), acc.end(), 0.f);
-          for (std::int64_t j = 0; j < nk; ++j) {
-            const float* vj = v + s * a.v_seq + j * a.v_row + h * D;
-            const float p = score[j];
-            for (std::int64_t d = 0; d < D; ++d) acc[d] += p * vj[d];
-          }
-          float* oi = o + s * a.o_seq + i * a.o_row + h * D;
-          const float inv = denom > 0 ? 1.0f / denom : 0.f;
-          for (std::int64_t d = 0; d < D; ++d) oi[d] = acc[d] * inv;
-        }
+    Scratch w(dim, dpad);
+#pragma omp for schedule(dynamic)
+    for (std::int64_t task = 0; task < tasks; ++task) {
+      const std::int64_t s = task / (a.heads * qtiles), h = task / qtiles % a.heads, qt = task % qtiles;
+      const std::int64_t col = h * dim;
+      const TileRef t{q + s * a.q_seq + col, k + s * a.k_seq + col, v + s * a.v_seq + col, o + s * a.o_seq + col,
+                      qt * kTileQ, std::min(kTileQ, a.lq - qt * kTileQ)};
+      attend_tile<D>(a, t, scale, w);
+    }
+  }
+}
+
+inline void check_shape(const AttentionShape& a) {
+  EPONA_CHECK(a.seqs >= 0 && a.heads >= 0 && a.lq >= 0 && a.lk >= 0, "attention: negative extent (seqs ", a.seqs,
+              ", heads ", a.heads, ", lq ", a.lq, ", lk ", a.lk, ")");
+  EPONA_CHECK(a.head_dim > 0, "attention: head_dim must be positive, got ", a.head_dim);
+}
+
+}  // namespace detail::attn
+
+// o = softmax(q kᵀ · scale + mask) v for every sequence and head (see AttentionShape).
+inline void attention(Context&, const float* q, const float* k, const float* v, float* o, const AttentionShape& a) {
+  detail::attn::check_shape(a);
+  switch (a.head_dim) {
+    case 128: detail::attn::attention_impl<128>(q, k, v, o, a); break;
+    case 64: detail::attn::attention_impl<64>(q, k, v, o, a); break;
+    default: detail::attn::attention_impl<0>(q, k, v, o, a); break;
   }
 }
 

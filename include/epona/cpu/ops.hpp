@@ -8,3 +8,5 @@
 #include "epona/cpu/gemm.hpp"
 #include "epona/cpu/norm.hpp"
 #include "epona/cpu/rope.hpp"
+#include "epona/cpu/simd.hpp"
+#include "epona/cpu/softmax.hpp"
