@@ -1,0 +1,409 @@
+// epona/cuda/attention.cuh — fused scaled-dot-product attention on the GPU (flash attention:
+// online softmax over key tiles, no score matrix in memory) over strided, token-major data,
+// as the CPU's attention(): packed QKV, the MST's frame-strided temporal attention, causal
+// and additive masks. bf16 runs on tensor cores (mma.sync m16n8k16, float32 accumulation and
+// softmax); float32 runs a float32 SIMT kernel so it matches the CPU to float32 rounding.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <limits>
+
+#include "epona/cuda/context.hpp"
+#include "epona/cuda/device.cuh"
+
+namespace epona::cuda {
+
+enum class Mask { None, Causal };
+
+// Element (s, i, h, d) of q lives at q[s * q_seq + i * q_row + h * head_dim + d]; same for k,
+// v and o. Causal: query i sees keys j <= i (queries and keys aligned at the start).
+// additive_mask: optional device float32 (lq, lk), added to the scaled scores.
+struct AttentionShape {
+  std::int64_t seqs = 1, heads = 1, lq = 0, lk = 0, head_dim = 0;
+  std::int64_t q_seq = 0, q_row = 0, k_seq = 0, k_row = 0, v_seq = 0, v_row = 0, o_seq = 0, o_row = 0;
+  float scale = 0;  // 0: 1/sqrt(head_dim)
+  Mask mask = Mask::None;
+  const float* additive_mask = nullptr;
+};
+
+namespace detail {
+
+inline constexpr int kMaxHeadDim = 128;
+
+template <class T>
+struct FlashParams {
+  const T *q, *k, *v;
+  T* o;
+  std::int64_t q_seq, q_row, k_seq, k_row, v_seq, v_row, o_seq, o_row;
+  int lq, lk, head_dim;
+  float scale;  // bf16 kernel: scale * log2(e) (softmax in base 2); float32 kernel: scale
+  bool causal;
+  const float* mask;
+};
+
+// Number of key tiles query rows [q0, q0 + rows) need: all of them, or up to the diagonal.
+__device__ __forceinline__ int key_tiles(int q0, int rows, int lq, int lk, bool causal, int tile) {
+  int keys = lk;
+  if (causal) keys = min(lk, min(q0 + rows, lq));
+  return (keys + tile - 1) / tile;
+}
+
+// ---------------------------------------------------------------------------------------
+// bf16 tensor-core kernel. A block of 4 warps owns 64 query rows (16 per warp) of one
+// (sequence, head); K and V tiles of 64 keys stream through shared memory (V(t) loads while
+// S = Q K(t)ᵀ is computed, K(t+1) while O += P V(t) is), rows padded by 16 bytes so that
+// ldmatrix is free of bank conflicts. kExactDim: head_dim == 128 with 16-byte aligned rows
+// (cp.async loads); otherwise any head_dim <= 128, zero-padded, with guarded loads.
+namespace fa {
+constexpr int kRows = 64, kKeys = 64, kWarps = 4, kThreads = kWarps * 32;
+constexpr int kStride = kMaxHeadDim + 8;  // shared-memory row stride, in bf16 elements
+constexpr int kSmemBytes = (kRows + 2 * kKeys) * kStride * 2;
+
+__device__ __forceinline__ unsigned smem_addr(const void* p) {
+  return static_cast<unsigned>(__cvta_generic_to_shared(p));
+}
+__device__ __forceinline__ void cp_async_16(void* dst, const void* src) {
+  asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" ::"r"(smem_addr(dst)), "l"(src));
+}
+__device__ __forceinline__ void cp_async_commit() { asm volatile("cp.async.commit_group;\n" ::); }
+__device__ __forceinline__ void cp_async_wait_all() { asm volatile("cp.async.wait_group 0;\n" ::: "memory"); }
+
+__device__ __forceinline__ void ldmatrix_x4(unsigned (&r)[4], const void* p) {
+  asm volatile("ldmatrix.sync.aligned.m8n8.x4.shared.b16 {%0, %1, %2, %3}, [%4];\n"
+               : "=r"(r[0]), "=r"(r[1]), "=r"(r[2]), "=r"(r[3])
+               : "r"(smem_addr(p)));
+}
+__device__ __forceinline__ void ldmatrix_x4_trans(unsigned (&r)[4], const void* p) {
+  asm volatile("ldmatrix.sync.aligned.m8n8.x4.trans.shared.b16 {%0, %1, %2, %3}, [%4];\n"
+               : "=r"(r[0]), "=r"(r[1]), "=r"(r[2]), "=r"(r[3])
+               : "r"(smem_addr(p)));
+}
+// d (16x8, f32) += a (16x16 bf16, row) * b (16x8 bf16, col).
+__device__ __forceinline__ void mma_bf16(float (&d)[4], const unsigned (&a)[4], unsigned b0, unsigned b1) {
+  asm volatile(
+      "mma.sync.aligned.m16n8k16.row.col.f32.bf16.bf16.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
+      "{%0, %1, %2, %3};\n"
+      : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
+      : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b0), "r"(b1));
+}
+__device__ __forceinline__ unsigned pack_bf16(float lo, float hi) {
+  const __nv_bfloat162 v = __floats2bfloat162_rn(lo, hi);
+  return *reinterpret_cast<const unsigned*>(&v);
+}
+
+// Rows [row0, row0 + 64) of one head (row i at src + i * stride) into shared memory; rows
+// past `valid` and channels past head_dim become zeros.
+template <bool kExactDim>
+__device__ __forceinline__ void load_tile(bf16* dst, const bf16* src, std::int64_t stride, int row0, int valid,
+                                          int head_dim) {
+  if constexpr (kExactDim) {
+    constexpr int kChunks = kMaxHeadDim / 8;  // 16-byte chunks per row
+    for (int c = threadIdx.x; c < kRows * kChunks; c += kThreads) {
+      const int r = c / kChunks, col = (c % kChunks) * 8;
+      bf16* d = dst + r * kStride + col;
+      if (row0 + r < valid)
+        cp_async_16(d, src + (row0 + r) * stride + col);
+      else
+        *reinterpret_cast<uint4*>(d) = make_uint4(0, 0, 0, 0);
+    }
+  } else {
+    for (int e = threadIdx.x; e < kRows * kMaxHeadDim; e += kThreads) {
+      const int r = e / kMaxHeadDim, col = e % kMaxHeadDim;
+      bf16 val{};
+      if (row0 + r < valid && col < head_dim) val = src[(row0 + r) * stride + col];
+      dst[r * kStride + col] = val;
+    }
+  }
+}
+
+template <bool kExactDim>
+__global__ void __launch_bounds__(kThreads) flash_bf16_kernel(const FlashParams<bf16> p) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  bf16* sQ = reinterpret_cast<bf16*>(smem);
+  bf16* sK = sQ + kRows * kStride;
+  bf16* sV = sK + kKeys * kStride;
+
+  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
+  const int g = lane / 4, tq = lane % 4;  // mma fragment row group and column pair
+  const int q0 = blockIdx.x * kRows, h = blockIdx.y;
+  const std::int64_t s = blockIdx.z;
+  const int D = kExactDim ? kMaxHeadDim : p.head_dim;
+  const bf16* qg = p.q + s * p.q_seq + std::int64_t{h} * D;
+  const bf16* kg = p.k + s * p.k_seq + std::int64_t{h} * D;
+  const bf16* vg = p.v + s * p.v_seq + std::int64_t{h} * D;
+
+  load_tile<kExactDim>(sQ, qg, p.q_row, q0, p.lq, D);
+  load_tile<kExactDim>(sK, kg, p.k_row, 0, p.lk, D);
+  cp_async_commit();
+
+  constexpr int kDimTiles = kMaxHeadDim / 8, kKeyTiles = kKeys / 8;
+  float o[kDimTiles][4] = {};
+  float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
+  const int rows[2] = {q0 + warp * 16 + g, q0 + warp * 16 + g + 8};
+  const int tiles = key_tiles(q0, kRows, p.lq, p.lk, p.causal, kKeys);
+
+  for (int t = 0; t < tiles; ++t) {
+    const int k0 = t * kKeys;
+    cp_async_wait_all();
+    __syncthreads();  // K(t) (and Q) landed; every warp is done with V(t-1)
+    load_tile<kExactDim>(sV, vg, p.v_row, k0, p.lk, D);
+    cp_async_commit();
+
+    // S = Q K(t)ᵀ for this warp's 16 rows: 16 x 64 in 8 accumulator tiles.
+    float sc[kKeyTiles][4] = {};
+#pragma unroll
+    for (int kk = 0; kk < kMaxHeadDim / 16; ++kk) {
+      if (!kExactDim && kk * 16 >= D) break;
+      unsigned a[4];
+      ldmatrix_x4(a, sQ + (warp * 16 + (lane & 15)) * kStride + kk * 16 + (lane >> 4) * 8);
+#pragma unroll
+      for (int n2 = 0; n2 < kKeys / 16; ++n2) {
+        unsigned b[4];
+        ldmatrix_x4(b, sK + (n2 * 16 + (lane & 7) + ((lane >> 4) << 3)) * kStride + kk * 16 + ((lane >> 3) & 1) * 8);
+        mma_bf16(sc[2 * n2], a, b[0], b[1]);
+        mma_bf16(sc[2 * n2 + 1], a, b[2], b[3]);
+      }
+    }
+
+    // Scale (base 2), masks, and the online softmax update per row.
+#pragma unroll
+    for (int i = 0; i < 2; ++i) {
+      float mx = -INFINITY;
+#pragma unroll
+      for (int nt = 0; nt < kKeyTiles; ++nt)
+#pragma unroll
+        for (int e = 0; e < 2; ++e) {
+          const int col = k0 + nt * 8 + 2 * tq + e;
+          float x = sc[nt][2 * i + e] * p.scale;
+          if (p.mask && rows[i] < p.lq && col < p.lk)
+            x += p.mask[std::int64_t{rows[i]} * p.lk + col] * 1.4426950408889634f;
+          if (col >= p.lk || (p.causal && col > rows[i])) x = -INFINITY;
+          sc[nt][2 * i + e] = x;
+          mx = fmaxf(mx, x);
+        }
+      mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 1));
+      mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 2));
+      const float m_new = fmaxf(m[i], mx);
+      const float base = m_new == -INFINITY ? 0.f : m_new;  // a fully masked row so far stays all zero
+      const float alpha = exp2f(m[i] - base);
+      m[i] = m_new;
+      float sum = 0;
+#pragma unroll
+      for (int nt = 0; nt < kKeyTiles; ++nt)
+#pragma unroll
+        for (int e = 0; e < 2; ++e) {
+          const float pr = exp2f(sc[nt][2 * i + e] - base);
+          sc[nt][2 * i + e] = pr;
+          sum += pr;
+        }
+      l[i] = l[i] * alpha + sum;  // this thread's share of the row; reduced over the quad at the end
+#pragma unroll
+      for (int nt = 0; nt < kDimTiles; ++nt) {
+        o[nt][2 * i] *= alpha;
+        o[nt][2 * i + 1] *= alpha;
+      }
+    }
+
+    cp_async_wait_all();
+    __syncthreads();  // V(t) landed; every warp is done with K(t)
+    if (t + 1 < tiles) load_tile<kExactDim>(sK, kg, p.k_row, k0 + kKeys, p.lk, D);
+    cp_async_commit();
+
+    // O += P V(t): the S accumulators of two adjacent key tiles are one A fragment of P.
+#pragma unroll
+    for (int kk = 0; kk < kKeys / 16; ++kk) {
+      const unsigned a[4] = {pack_bf16(sc[2 * kk][0], sc[2 * kk][1]), pack_bf16(sc[2 * kk][2], sc[2 * kk][3]),
+                             pack_bf16(sc[2 * kk + 1][0], sc[2 * kk + 1][1]),
+                             pack_bf16(sc[2 * kk + 1][2], sc[2 * kk + 1][3])};
+#pragma unroll
+      for (int n2 = 0; n2 < kMaxHeadDim / 16; ++n2) {
+        if (!kExactDim && n2 * 16 >= D) break;
+        unsigned b[4];
+        ldmatrix_x4_trans(b, sV + (kk * 16 + (lane & 7) + ((lane >> 3) & 1) * 8) * kStride + n2 * 16 + (lane >> 4) * 8);
+        mma_bf16(o[2 * n2], a, b[0], b[1]);
+        mma_bf16(o[2 * n2 + 1], a, b[2], b[3]);
+      }
+    }
+  }
+  cp_async_wait_all();
+
+  // Normalise and store rows g and g + 8 of this warp; columns 2 tq, 2 tq + 1 of each tile.
+#pragma unroll
+  for (int i = 0; i < 2; ++i) {
+    float sum = l[i];
+    sum += __shfl_xor_sync(0xffffffffu, sum, 1);
+    sum += __shfl_xor_sync(0xffffffffu, sum, 2);
+    const float inv = sum > 0.f ? 1.0f / sum : 0.f;
+    if (rows[i] >= p.lq) continue;
+    bf16* og = p.o + s * p.o_seq + std::int64_t{rows[i]} * p.o_row + std::int64_t{h} * D;
+#pragma unroll
+    for (int nt = 0; nt < kDimTiles; ++nt) {
+      const int col = nt * 8 + 2 * tq;
+      const float v0 = o[nt][2 * i] * inv, v1 = o[nt][2 * i + 1] * inv;
+      if constexpr (kExactDim) {
+        *reinterpret_cast<unsigned*>(og + col) = pack_bf16(v0, v1);
+      } else {
+        if (col < D) og[col] = from_f32<bf16>(v0);
+        if (col + 1 < D) og[col + 1] = from_f32<bf16>(v1);
+      }
+    }
+  }
+}
+}  // namespace fa
+
+// ---------------------------------------------------------------------------------------
+// float32 SIMT kernel: 128 threads own 32 query rows, 4 threads per row; each thread scores
+// 8 of the 32 keys of a tile and accumulates 32 of the (at most 128) output channels
+// (channel c = quad lane + 4 i). Rows padded by one float against bank conflicts.
+namespace fa32 {
+constexpr int kRows = 32, kKeys = 32, kThreads = 128, kStride = kMaxHeadDim + 1;
+constexpr int kSmemBytes = (kRows + 2 * kKeys) * kStride * 4 + kRows * (kKeys + 1) * 4;
+
+__device__ __forceinline__ void load_tile(float* dst, const float* src, std::int64_t stride, int row0, int valid,
+                                          int head_dim) {
+  for (int e = threadIdx.x; e < kRows * head_dim; e += kThreads) {
+    const int r = e / head_dim, col = e % head_dim;
+    dst[r * kStride + col] = row0 + r < valid ? src[(row0 + r) * stride + col] : 0.f;
+  }
+}
+
+__global__ void __launch_bounds__(kThreads) flash_f32_kernel(const FlashParams<float> p) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  float* sQ = reinterpret_cast<float*>(smem);
+  float* sK = sQ + kRows * kStride;
+  float* sV = sK + kKeys * kStride;
+  float* sP = sV + kKeys * kStride;  // (kRows, kKeys + 1)
+
+  const int r = threadIdx.x / 4, quad = threadIdx.x % 4;
+  const int q0 = blockIdx.x * kRows, h = blockIdx.y, D = p.head_dim;
+  const std::int64_t s = blockIdx.z;
+  const int row = q0 + r;
+  const float* kg = p.k + s * p.k_seq + std::int64_t{h} * D;
+  const float* vg = p.v + s * p.v_seq + std::int64_t{h} * D;
+  load_tile(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, q0, p.lq, D);
+
+  constexpr int kPerThread = kKeys / 4, kChannels = kMaxHeadDim / 4;
+  float acc[kChannels] = {};
+  float m = -INFINITY, l = 0.f;
+  const int tiles = key_tiles(q0, kRows, p.lq, p.lk, p.causal, kKeys);
+  for (int t = 0; t < tiles; ++t) {
+    const int k0 = t * kKeys;
+    __syncthreads();  // everyone is done with the previous K, V tiles
+    load_tile(sK, kg, p.k_row, k0, p.lk, D);
+    load_tile(sV, vg, p.v_row, k0, p.lk, D);
+    __syncthreads();
+
+    float sc[kPerThread] = {};
+    for (int d = 0; d < D; ++d) {
+      const float qd = sQ[r * kStride + d];
+#pragma unroll
+      for (int j = 0; j < kPerThread; ++j) sc[j] += qd * sK[(quad + 4 * j) * kStride + d];
+    }
+    float mx = -INFINITY;
+#pragma unroll
+    for (int j = 0; j < kPerThread; ++j) {
+      const int col = k0 + quad + 4 * j;
+      float x = sc[j] * p.scale;
+      if (p.mask && row < p.lq && col < p.lk) x += p.mask[std::int64_t{row} * p.lk + col];
+      if (col >= p.lk || (p.causal && col > row)) x = -INFINITY;
+      sc[j] = x;
+      mx = fmaxf(mx, x);
+    }
+    mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 1));
+    mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 2));
+    const float m_new = fmaxf(m, mx);
+    const float base = m_new == -INFINITY ? 0.f : m_new;
+    const float alpha = expf(m - base);
+    m = m_new;
+    float sum = 0;
+#pragma unroll
+    for (int j = 0; j < kPerThread; ++j) {
+      const float pr = expf(sc[j] - base);
+      sum += pr;
+      sP[r * (kKeys + 1) + quad + 4 * j] = pr;
+    }
+    l = l * alpha + sum;
+    __syncwarp();  // the row's four threads share one warp
+#pragma unroll
+    for (int i = 0; i < kChannels; ++i) acc[i] *= alpha;
+    for (int j = 0; j < kKeys; ++j) {
+      const float pr = sP[r * (kKeys + 1) + j];
+#pragma unroll
+      for (int i = 0; i < kChannels; ++i) {
+        const int c = quad + 4 * i;
+        if (c < D) acc[i] += pr * sV[j * kStride + c];
+      }
+    }
+    __syncwarp();  // sP is rewritten by the next tile
+  }
+  l += __shfl_xor_sync(0xffffffffu, l, 1);
+  l += __shfl_xor_sync(0xffffffffu, l, 2);
+  if (row >= p.lq) return;
+  const float inv = l > 0.f ? 1.0f / l : 0.f;
+  float* og = p.o + s * p.o_seq + std::int64_t{row} * p.o_row + std::int64_t{h} * D;
+#pragma unroll
+  for (int i = 0; i < kChannels; ++i) {
+    const int c = quad + 4 * i;
+    if (c < D) og[c] = acc[i] * inv;
+  }
+}
+}  // namespace fa32
+
+// Lets `Kernel` use `bytes` (> 48 KiB) of dynamic shared memory; set once per kernel.
+template <auto Kernel>
+void allow_smem(int bytes) {
+  static const bool done = [bytes] {
+    EPONA_CUDA_CHECK(cudaFuncSetAttribute(Kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, bytes));
+    return true;
+  }();
+  (void)done;
+}
+
+inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std::int64_t elems) {
+  return reinterpret_cast<std::uintptr_t>(p) % 16 == 0 && seq % elems == 0 && row % elems == 0;
+}
+
+}  // namespace detail
+
+template <class T>
+void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const AttentionShape& a) {
+  static_assert(is_device_float<T>, "attention takes float or bf16");
+  EPONA_CHECK(a.seqs >= 0 && a.heads >= 0 && a.lq >= 0 && a.lk >= 0, "attention: negative extent");
+  EPONA_CHECK(a.head_dim >= 1 && a.head_dim <= detail::kMaxHeadDim, "attention: head_dim ", a.head_dim,
+              " unsupported (1..", detail::kMaxHeadDim, ")");
+  EPONA_CHECK(a.lq <= INT32_MAX && a.lk <= INT32_MAX, "attention: sequence too long (lq ", a.lq, ", lk ", a.lk, ")");
+  EPONA_CHECK(a.heads <= 65535 && a.seqs <= 65535, "attention: ", a.seqs, " sequences x ", a.heads,
+              " heads exceed one launch (65535 each)");
+  EPONA_CHECK(q && k && v && o, "attention: null tensor");
+  if (a.seqs == 0 || a.heads == 0 || a.lq == 0) return;
+
+  const float scale = a.scale != 0 ? a.scale : 1.0f / std::sqrt(static_cast<float>(a.head_dim));
+  detail::FlashParams<T> p{q,       k,       v,       o,       a.q_seq, a.q_row, a.k_seq, a.k_row, a.v_seq,
+                           a.v_row, a.o_seq, a.o_row, static_cast<int>(a.lq), static_cast<int>(a.lk),
+                           static_cast<int>(a.head_dim), scale, a.mask == Mask::Causal, a.additive_mask};
+  const auto heads = static_cast<unsigned>(a.heads), seqs = static_cast<unsigned>(a.seqs);
+  if constexpr (std::is_same_v<T, bf16>) {
+    namespace fa = detail::fa;
+    p.scale = scale * 1.4426950408889634f;  // softmax in base 2: exp(x) = exp2(x log2 e)
+    const dim3 grid(static_cast<unsigned>((a.lq + fa::kRows - 1) / fa::kRows), heads, seqs);
+    const bool exact = a.head_dim == detail::kMaxHeadDim && detail::aligned_rows(q, a.q_seq, a.q_row, 8) &&
+                       detail::aligned_rows(k, a.k_seq, a.k_row, 8) && detail::aligned_rows(v, a.v_seq, a.v_row, 8) &&
+                       detail::aligned_rows(o, a.o_seq, a.o_row, 8);
+    if (exact) {
+      detail::allow_smem<fa::flash_bf16_kernel<true>>(fa::kSmemBytes);
+      fa::flash_bf16_kernel<true><<<grid, fa::kThreads, fa::kSmemBytes, ctx.stream()>>>(p);
+    } else {
+      detail::allow_smem<fa::flash_bf16_kernel<false>>(fa::kSmemBytes);
+      fa::flash_bf16_kernel<false><<<grid, fa::kThreads, fa::kSmemBytes, ctx.stream()>>>(p);
+    }
+  } else {
+    namespace fa32 = detail::fa32;
+    const dim3 grid(static_cast<unsigned>((a.lq + fa32::kRows - 1) / fa32::kRows), heads, seqs);
+    detail::allow_smem<fa32::flash_f32_kernel>(fa32::kSmemBytes);
+    fa32::flash_f32_kernel<<<grid, fa32::kThreads, fa32::kSmemBytes, ctx.stream()>>>(p);
+  }
+  EPONA_CUDA_CHECK_LAUNCH();
+}
+
+}  // namespace epona::cuda

@@ -1,0 +1,13 @@
+// epona/cuda/ops.cuh — umbrella for the CUDA backend's kernels (include from .cu files only;
+// host-only builds never see CUDA headers).
+#pragma once
+
+#include "epona/cuda/activation.cuh"
+#include "epona/cuda/attention.cuh"
+#include "epona/cuda/check.hpp"
+#include "epona/cuda/context.hpp"
+#include "epona/cuda/elementwise.cuh"
+#include "epona/cuda/gemm.cuh"
+#include "epona/cuda/memory.hpp"
+#include "epona/cuda/norm.cuh"
+#include "epona/cuda/rope.cuh"

@@ -1,0 +1,143 @@
+// Shared helpers of the GPU tests (tests/cuda/*.cu): skip without a GPU, random inputs,
+// bf16 rounding of host data, upload/download with conversion, output poisoning, and the
+// error measures every cross-backend check reports (relative L2 and scale-relative max).
+#pragma once
+
+#include <doctest/doctest.h>
+
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <random>
+#include <string>
+#include <type_traits>
+#include <vector>
+
+#include "epona/cpu/ops.hpp"
+#include "epona/cuda/ops.cuh"
+
+// Every GPU test case starts with this: on a machine without a GPU it passes with a message.
+#define EPONA_REQUIRE_GPU()                    \
+  do {                                         \
+    if (!::epona::cuda::has_gpu()) {           \
+      MESSAGE("no CUDA device: skipping");     \
+      return;                                  \
+    }                                          \
+  } while (0)
+
+namespace epona::test {
+
+using HostF = Tensor<float, Cpu>;
+template <class T> using Dev = Tensor<T, Cuda>;
+
+inline const char* type_name(float*) { return "f32"; }
+inline const char* type_name(bf16*) { return "bf16"; }
+template <class T> const char* type_name() { return type_name(static_cast<T*>(nullptr)); }
+
+// Uniform values in [lo, hi); a fresh generator per call so each case has its own data.
+inline HostF random_tensor(Shape shape, std::uint32_t seed, float lo = -1.f, float hi = 1.f) {
+  HostF t(std::move(shape));
+  std::mt19937 gen(seed);
+  std::uniform_real_distribution<float> dist(lo, hi);
+  for (std::int64_t i = 0; i < t.numel(); ++i) t.data()[i] = dist(gen);
+  return t;
+}
+
+// Rounds every value to what T can hold (bf16: nearest even), in place; returns t.
+template <class T>
+HostF& round_to(HostF& t) {
+  if constexpr (std::is_same_v<T, bf16>)
+    for (std::int64_t i = 0; i < t.numel(); ++i) t.data()[i] = float(bf16(t.data()[i]));
+  return t;
+}
+
+// Converts to T and copies to the device. offset > 0 places the data `offset` elements into
+// a larger allocation, so the tensor is deliberately misaligned (alignment fallbacks).
+template <class T>
+Dev<T> upload(cuda::Context& ctx, const HostF& src, std::int64_t offset = 0) {
+  Tensor<T, Cpu> host(src.shape());
+  for (std::int64_t i = 0; i < src.numel(); ++i) host.data()[i] = T(src.data()[i]);
+  if (offset == 0) return cuda::to_device(ctx, host);
+  Dev<T> block({src.numel() + offset});
+  auto view = Dev<T>::view(block.data() + offset, src.shape(), block.storage());
+  cuda::copy(ctx, view, host);
+  return view;
+}
+
+template <class T>
+HostF download(cuda::Context& ctx, const Dev<T>& src) {
+  const auto host = cuda::to_host(ctx, src);
+  HostF out(src.shape());
+  for (std::int64_t i = 0; i < src.numel(); ++i) out.data()[i] = float(host.data()[i]);
+  return out;
+}
+
+// NaN in both float32 and bf16: an element the kernel failed to write stays NaN.
+template <class T>
+void poison(cuda::Context& ctx, Dev<T>& t) {
+  cuda::fill_bytes(ctx, t, 0xFF);
+}
+
+struct Diff {
+  double rel_l2 = 0, max_abs = 0, max_ref = 0;
+  std::int64_t nans = 0, n = 0;
+};
+
+// Compares out with ref over the elements where `keep(i)` (default: all).
+template <class Keep>
+Diff measure(const float* out, const float* ref, std::int64_t n, Keep keep) {
+  Diff e;
+  double num = 0, den = 0;
+  for (std::int64_t i = 0; i < n; ++i) {
+    if (!keep(i)) continue;
+    ++e.n;
+    if (!std::isfinite(out[i])) {
+      ++e.nans;
+      continue;
+    }
+    const double d = double(out[i]) - double(ref[i]);
+    num += d * d;
+    den += double(ref[i]) * ref[i];
+    e.max_abs = std::max(e.max_abs, std::abs(d));
+    e.max_ref = std::max(e.max_ref, std::abs(double(ref[i])));
+  }
+  e.rel_l2 = den > 0 ? std::sqrt(num / den) : std::sqrt(num);
+  return e;
+}
+inline Diff measure(const HostF& out, const HostF& ref) {
+  REQUIRE(out.numel() == ref.numel());
+  return measure(out.data(), ref.data(), out.numel(), [](std::int64_t) { return true; });
+}
+
+// Bounds: rel_l2 <= rel, and max |out - ref| <= abs_of_scale * scale (scale: the largest
+// magnitude that bounds the result's rounding, e.g. max |ref| or max |v| for attention).
+struct Bound {
+  double rel;
+  double abs_of_scale;
+};
+
+inline void check_error(const Diff& e, const Bound& b, double scale, const std::string& what) {
+  std::printf("  %-58s rel_l2 %.2e  max_abs %.2e  (scale %.3g, n %lld)\n", what.c_str(), e.rel_l2, e.max_abs, scale,
+              static_cast<long long>(e.n));
+  INFO(what, ": rel_l2 ", e.rel_l2, " max_abs ", e.max_abs, " scale ", scale, " nans ", e.nans);
+  CHECK(e.n > 0);
+  CHECK(e.nans == 0);
+  CHECK(e.rel_l2 <= b.rel);
+  CHECK(e.max_abs <= b.abs_of_scale * scale);
+}
+
+// float32 paths must match the CPU to float32 rounding (accumulation order only).
+inline constexpr Bound kF32{1e-5, 1e-5};
+// bf16 with one rounding of the result: |err| <= 2^-9 |ref| per element; twice that allows
+// for fp32 accumulation-order differences and a second rounding of an intermediate.
+inline constexpr Bound kBf16{1.0 / 256, 1.0 / 256};  // 2^-8
+
+template <class T> constexpr Bound bound_for() { return std::is_same_v<T, float> ? kF32 : kBf16; }
+
+inline double max_abs(const HostF& t) {
+  double m = 0;
+  for (std::int64_t i = 0; i < t.numel(); ++i) m = std::max(m, double(std::abs(t.data()[i])));
+  return m;
+}
+
+}  // namespace epona::test

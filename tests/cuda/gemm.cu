@@ -1,0 +1,105 @@
+// GPU tests for epona/cuda/gemm.cuh: linear() with every epilogue, with and without bias,
+// float32 and bf16, odd and model-like sizes, misaligned operands, against cpu::linear on the
+// same (bf16-rounded) inputs. float32 within 1e-5 (TF32 must be off); bf16 within 2^-8.
+#include "cuda_test_util.cuh"
+
+using namespace epona;
+using namespace epona::test;
+
+namespace {
+
+cpu::Epilogue cpu_epilogue(cuda::Epilogue e) {
+  switch (e) {
+    case cuda::Epilogue::None: return cpu::Epilogue::None;
+    case cuda::Epilogue::GeluErf: return cpu::Epilogue::GeluErf;
+    case cuda::Epilogue::GeluTanh: return cpu::Epilogue::GeluTanh;
+    case cuda::Epilogue::Silu: return cpu::Epilogue::Silu;
+  }
+  return cpu::Epilogue::None;
+}
+const char* epilogue_name(cuda::Epilogue e) {
+  switch (e) {
+    case cuda::Epilogue::None: return "none";
+    case cuda::Epilogue::GeluErf: return "gelu_erf";
+    case cuda::Epilogue::GeluTanh: return "gelu_tanh";
+    case cuda::Epilogue::Silu: return "silu";
+  }
+  return "?";
+}
+
+struct Case {
+  std::int64_t M, N, K;
+  bool bias;
+  cuda::Epilogue epi;
+  std::int64_t misalign = 0;  // elements: shifts x, w, bias and y off their 256-byte alignment
+};
+
+template <class T>
+void check_linear(cuda::Context& ctx, const Case& c, std::uint32_t seed) {
+  cpu::Context cctx;
+  HostF x = random_tensor({c.M, c.K}, seed);
+  HostF w = random_tensor({c.N, c.K}, seed + 1, -1.f / std::sqrt(float(c.K)), 1.f / std::sqrt(float(c.K)));
+  HostF b = c.bias ? random_tensor({c.N}, seed + 2) : HostF();
+  round_to<T>(x), round_to<T>(w);
+  if (c.bias) round_to<T>(b);
+  HostF ref({c.M, c.N});
+  cpu::linear(cctx, x, w, b, ref, cpu_epilogue(c.epi));
+
+  auto dx = upload<T>(ctx, x, c.misalign), dw = upload<T>(ctx, w, c.misalign);
+  auto db = c.bias ? upload<T>(ctx, b, c.misalign) : Dev<T>();
+  auto dy = upload<T>(ctx, ref, c.misalign);
+  poison(ctx, dy);
+  cuda::linear(ctx, dx, dw, db, dy, c.epi);
+  const HostF out = download(ctx, dy);
+
+  const std::string what = std::string("linear ") + type_name<T>() + " M=" + std::to_string(c.M) + " N=" +
+                           std::to_string(c.N) + " K=" + std::to_string(c.K) + (c.bias ? " +bias " : " ") +
+                           epilogue_name(c.epi) + (c.misalign ? " misaligned" : "");
+  check_error(measure(out, ref), bound_for<T>(), max_abs(ref), what);
+}
+
+template <class T>
+void check_all_epilogues(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int64_t K, std::uint32_t seed,
+                         std::int64_t misalign = 0) {
+  for (auto epi : {cuda::Epilogue::None, cuda::Epilogue::GeluErf, cuda::Epilogue::GeluTanh, cuda::Epilogue::Silu})
+    for (bool bias : {false, true}) check_linear<T>(ctx, {M, N, K, bias, epi, misalign}, seed++);
+}
+
+}  // namespace
+
+TEST_CASE_TEMPLATE("cuda linear matches cpu::linear on odd and small sizes", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  check_all_epilogues<T>(ctx, 1, 1, 1, 100);
+  check_all_epilogues<T>(ctx, 3, 5, 7, 200);
+  check_all_epilogues<T>(ctx, 37, 53, 29, 300);
+  check_all_epilogues<T>(ctx, 130, 257, 200, 400);
+}
+
+TEST_CASE_TEMPLATE("cuda linear with misaligned operands (bias added outside cuBLASLt)", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  check_all_epilogues<T>(ctx, 33, 96, 64, 500, /*misalign=*/1);
+  check_all_epilogues<T>(ctx, 16, 40, 24, 600, /*misalign=*/3);
+}
+
+TEST_CASE_TEMPLATE("cuda linear at model-like sizes", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  check_linear<T>(ctx, {530, 3072, 1024, true, cuda::Epilogue::GeluTanh}, 700);  // TrajDiT linear1-like
+  check_linear<T>(ctx, {515, 2048, 2048, true, cuda::Epilogue::None}, 701);      // cond_in
+  check_linear<T>(ctx, {257, 8192, 2048, true, cuda::Epilogue::GeluErf}, 702);   // MST c_fc (fewer rows)
+  // Plans are cached per shape: a second call with other data must still be right.
+  check_linear<T>(ctx, {530, 3072, 1024, true, cuda::Epilogue::GeluTanh}, 703);
+}
+
+TEST_CASE("cuda linear rejects bad shapes with epona::Error") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  Dev<float> x({4, 8}), w({6, 8}), w_bad({6, 7}), b({6}), b_bad({5}), y({4, 6}), y_bad({4, 5});
+  Dev<float> none;
+  CHECK_THROWS_WITH_AS(cuda::linear(ctx, x, w_bad, none, y), doctest::Contains("does not end in K=7"), epona::Error);
+  CHECK_THROWS_WITH_AS(cuda::linear(ctx, x, w, b_bad, y), doctest::Contains("bias"), epona::Error);
+  CHECK_THROWS_WITH_AS(cuda::linear(ctx, x, w, none, y_bad), doctest::Contains("output"), epona::Error);
+  CHECK_THROWS_AS(cuda::linear(ctx, x.data(), w.data(), b.data(), y.data(), 4, 6, 0), epona::Error);
+}
