@@ -1,0 +1,46 @@
+// epona/flow/euler.hpp — explicit Euler integration of dx/dt = v(x, t) over a time grid
+// (`FluxDiT.sample` / `TrajDiT.sample`): x += (t_{i+1} - t_i)·v(x, t_i), the step formed in
+// double from the two fp32 grid values and rounded to fp32 where it multiplies v. Written
+// once against any velocity callable; the state and velocity buffers are the caller's.
+#pragma once
+
+#include <cstdint>
+#include <utility>
+#include <vector>
+
+#include "epona/core/error.hpp"
+#include "epona/core/tensor.hpp"
+#include "epona/nn/backend_context.hpp"
+
+namespace epona::flow {
+
+template <class B>
+struct RectifiedFlowEuler {
+  using Context = BackendContext<B>;
+
+  std::vector<float> grid;  // t_0 = 0 (noise) .. t_N = 1 (data)
+
+  explicit RectifiedFlowEuler(std::vector<float> time_grid) : grid(std::move(time_grid)) {
+    EPONA_CHECK(grid.size() >= 2, "an Euler sampler needs at least 2 grid points, got ", grid.size());
+  }
+
+  std::int64_t steps() const { return static_cast<std::int64_t>(grid.size()) - 1; }
+
+  // The fp32 factor that multiplies v at step i.
+  float step_size(std::int64_t i) const {
+    return static_cast<float>(static_cast<double>(grid[i + 1]) - static_cast<double>(grid[i]));
+  }
+
+  // Integrates x in place. velocity(i, t_i, x, v) must write v(x, t_i) into v (same shape as x).
+  template <class Velocity>
+  void sample(Context& ctx, Tensor<float, B>& x, Tensor<float, B>& v, Velocity&& velocity) const {
+    EPONA_CHECK(x.numel() == v.numel(), "Euler: state ", shape_str(x.shape()), " and velocity ",
+                shape_str(v.shape()), " differ in size");
+    for (std::int64_t i = 0; i < steps(); ++i) {
+      velocity(i, grid[i], static_cast<const Tensor<float, B>&>(x), v);
+      axpy(ctx, x.data(), v.data(), step_size(i), x.numel());
+    }
+  }
+};
+
+}  // namespace epona::flow

@@ -1,0 +1,249 @@
+// epona/model/dit_blocks.hpp — the FLUX-style blocks shared by Epona's two DiTs
+// (models/modules/dit_modules/layers.py): DoubleStreamBlock (separate condition and target
+// streams, joint attention), SingleStreamBlock (one stream, fused qkv+MLP projection) and
+// LastLayer (adaLN + Linear). All blocks work on one residual buffer z whose rows are
+// [condition tokens | target tokens], so the streams' concatenation costs nothing.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "epona/core/arena.hpp"
+#include "epona/core/tensor.hpp"
+#include "epona/io/tensor_map.hpp"
+#include "epona/model/config.hpp"
+#include "epona/nn/attention.hpp"
+#include "epona/nn/backend_context.hpp"
+#include "epona/nn/layer_norm.hpp"
+#include "epona/nn/linear.hpp"
+#include "epona/nn/mlp.hpp"
+#include "epona/nn/modulation.hpp"
+#include "epona/nn/rope.hpp"
+
+namespace epona::model {
+
+struct DitWidths {
+  std::int64_t hidden = 0, heads = 0, mlp_hidden = 0;
+  float ln_eps = static_cast<float>(constants::dit_layernorm_eps);
+  float rms_eps = static_cast<float>(constants::dit_rmsnorm_eps);
+  std::int64_t head_dim() const { return hidden / heads; }
+};
+
+// Activation buffers of one DiT evaluation of one batch item (`rows` = condition + target
+// tokens), shared by all blocks.
+template <class B>
+struct DitScratch {
+  Tensor<float, B> z;         // (rows, D) residual stream: condition rows, then target rows
+  Tensor<float, B> modulated; // (rows, D) (1 + scale)·LN(z) + shift
+  Tensor<float, B> qkv;       // (rows, 3D) [q | k | v], heads contiguous inside each
+  Tensor<float, B> attn;      // (rows, D) attention output (double blocks)
+  Tensor<float, B> mlp;       // (rows, Dm) MLP hidden
+  Tensor<float, B> cat;       // (rows, D + Dm) single blocks: [attention | GELU(mlp)]
+  Tensor<float, B> sub;       // (rows, D) a sublayer's output before its gate
+  Tensor<float, B> mod_a, mod_b;  // (1, 6D) modulation vectors
+  Tensor<float, B> vec, silu_vec, vec_hidden;  // (1, D)
+
+  template <class Alloc>
+  static DitScratch plan(Alloc& a, std::int64_t rows, const DitWidths& w) {
+    const std::int64_t D = w.hidden, Dm = w.mlp_hidden;
+    DitScratch s;
+    s.z = a.template take<float>({rows, D});
+    s.modulated = a.template take<float>({rows, D});
+    s.qkv = a.template take<float>({rows, 3 * D});
+    s.attn = a.template take<float>({rows, D});
+    s.mlp = a.template take<float>({rows, Dm});
+    s.cat = a.template take<float>({rows, D + Dm});
+    s.sub = a.template take<float>({rows, D});
+    s.mod_a = a.template take<float>({1, 6 * D});
+    s.mod_b = a.template take<float>({1, 6 * D});
+    s.vec = a.template take<float>({1, D});
+    s.silu_vec = a.template take<float>({1, D});
+    s.vec_hidden = a.template take<float>({1, D});
+    return s;
+  }
+};
+
+// Token ranges of the joint sequence.
+struct JointRows {
+  std::int64_t cond = 0, target = 0;
+  std::int64_t total() const { return cond + target; }
+};
+
+namespace detail {
+// y = (1 + scale) ⊙ LN(x) + shift over `rows` rows of x starting at `first`.
+template <class Context, class B>
+void modulate_rows(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& y, std::int64_t first,
+                   std::int64_t rows, const float* shift, const float* scale, float eps) {
+  const std::int64_t D = x.size(-1);
+  layer_norm_modulate(ctx, x.data() + first * D, y.data() + first * D, rows, D, shift, scale, eps);
+}
+// Joint attention over all rows of the packed qkv buffer, output row stride out_stride.
+template <class Context>
+void joint_attention(Context& ctx, const float* qkv, std::int64_t rows, const DitWidths& w, float* out,
+                     std::int64_t out_stride, std::int64_t in_stride) {
+  const std::int64_t D = w.hidden;
+  nn::PackedAttention p{1, rows, w.heads, w.head_dim(), 0, in_stride, 0, out_stride, false};
+  nn::packed_attention(ctx, qkv, qkv + D, qkv + 2 * D, out, p);
+}
+}  // namespace detail
+
+// One stream of a double block: its modulation, attention projections and MLP.
+template <class B, class W>
+struct DoubleStream {
+  using Context = BackendContext<B>;
+  nn::Modulation<B, W> mod;
+  nn::Linear<B, W> qkv, proj;
+  nn::QkNorm<B> norm;
+  nn::SequentialMlp<B, W> mlp;
+
+  DoubleStream() = default;
+  explicit DoubleStream(const DitWidths& w)
+      : mod(w.hidden, 6), qkv(w.hidden, 3 * w.hidden, true), proj(w.hidden, w.hidden, true),
+        norm(w.head_dim(), w.rms_eps), mlp(w.hidden, w.mlp_hidden, w.hidden, true, nn::Gelu::Tanh) {}
+
+  // s ∈ {"img", "cond"}: "<s>_mod.lin.", "<s>_attn.qkv.", "<s>_attn.norm.", "<s>_attn.proj.", "<s>_mlp."
+  void bind(const io::TensorMap& w, const std::string& p, const std::string& s, io::BindReport& r) {
+    mod.bind(w, p + s + "_mod.lin.", r);
+    qkv.bind(w, p + s + "_attn.qkv.", r);
+    norm.bind(w, p + s + "_attn.norm.", r);
+    proj.bind(w, p + s + "_attn.proj.", r);
+    mlp.bind(w, p + s + "_mlp.", r);
+  }
+
+  // Modulation, then q/k/v of rows [first, first+rows) into the joint qkv buffer, QK-normed.
+  void project(Context& ctx, DitScratch<B>& s, Tensor<float, B>& m, std::int64_t first, std::int64_t rows,
+               const DitWidths& w) const {
+    mod(ctx, s.silu_vec, m);
+    const float* mv = m.data();
+    const std::int64_t D = w.hidden;
+    detail::modulate_rows(ctx, s.z, s.modulated, first, rows, mv + 0 * D, mv + 1 * D, w.ln_eps);
+    auto out = s.qkv.slice(first, first + rows);
+    qkv(ctx, s.modulated.slice(first, first + rows), out);
+    norm(ctx, out.data(), out.data() + D, rows, 3 * D, w.heads);
+  }
+
+  // Gated attention projection and gated MLP on the stream's rows.
+  void finish(Context& ctx, DitScratch<B>& s, const Tensor<float, B>& m, std::int64_t first, std::int64_t rows,
+              const DitWidths& w) const {
+    const std::int64_t D = w.hidden;
+    const float* mv = m.data();
+    auto z = s.z.slice(first, first + rows);
+    auto sub = s.sub.slice(first, first + rows);
+    proj(ctx, s.attn.slice(first, first + rows), sub);
+    add_gated(ctx, z.data(), sub.data(), mv + 2 * D, rows, D);
+    detail::modulate_rows(ctx, s.z, s.modulated, first, rows, mv + 3 * D, mv + 4 * D, w.ln_eps);
+    auto hidden = s.mlp.slice(first, first + rows);
+    mlp(ctx, s.modulated.slice(first, first + rows), hidden, sub);
+    add_gated(ctx, z.data(), sub.data(), mv + 5 * D, rows, D);
+  }
+
+  double flops(std::int64_t rows) const {
+    return mod.flops() + qkv.flops(rows) + proj.flops(rows) + mlp.flops(rows);
+  }
+};
+
+template <class B, class W>
+struct DoubleStreamBlock {
+  using Context = BackendContext<B>;
+  DitWidths widths;
+  DoubleStream<B, W> img, cond;  // "img" is the target stream (latents or trajectory)
+
+  DoubleStreamBlock() = default;
+  explicit DoubleStreamBlock(const DitWidths& w) : widths(w), img(w), cond(w) {}
+
+  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
+    img.bind(w, p, "img", r);
+    cond.bind(w, p, "cond", r);
+  }
+
+  void operator()(Context& ctx, DitScratch<B>& s, const JointRows& rows, const nn::RopeTable<B>& rope) const {
+    const std::int64_t D = widths.hidden;
+    cond.project(ctx, s, s.mod_b, 0, rows.cond, widths);
+    img.project(ctx, s, s.mod_a, rows.cond, rows.target, widths);
+    nn::apply_rope_qk(ctx, s.qkv.data(), s.qkv.data() + D, rows.total(), 3 * D, widths.heads, rope);
+    detail::joint_attention(ctx, s.qkv.data(), rows.total(), widths, s.attn.data(), D, 3 * D);
+    img.finish(ctx, s, s.mod_a, rows.cond, rows.target, widths);
+    cond.finish(ctx, s, s.mod_b, 0, rows.cond, widths);
+  }
+
+  double flops(const JointRows& rows) const {
+    const nn::PackedAttention p{1, rows.total(), widths.heads, widths.head_dim(), 0, 0, 0, 0, false};
+    return img.flops(rows.target) + cond.flops(rows.cond) + nn::attention_flops(p);
+  }
+};
+
+template <class B, class W>
+struct SingleStreamBlock {
+  using Context = BackendContext<B>;
+  DitWidths widths;
+  nn::Linear<B, W> linear1, linear2;  // (3D + Dm, D), (D, D + Dm)
+  nn::QkNorm<B> norm;
+  nn::Modulation<B, W> modulation;
+  nn::Linear<B, W> qkv_part, mlp_part;  // row views of linear1, set by bind
+
+  SingleStreamBlock() = default;
+  explicit SingleStreamBlock(const DitWidths& w)
+      : widths(w), linear1(w.hidden, 3 * w.hidden + w.mlp_hidden, true),
+        linear2(w.hidden + w.mlp_hidden, w.hidden, true), norm(w.head_dim(), w.rms_eps), modulation(w.hidden, 3) {}
+
+  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
+    linear1.bind(w, p + "linear1.", r);
+    linear2.bind(w, p + "linear2.", r);
+    norm.bind(w, p + "norm.", r);
+    modulation.bind(w, p + "modulation.lin.", r);
+    if (!linear1.weight.empty() && (!linear1.has_bias || !linear1.bias.empty())) {
+      qkv_part = linear1.rows(0, 3 * widths.hidden);
+      mlp_part = linear1.rows(3 * widths.hidden, 3 * widths.hidden + widths.mlp_hidden);
+    }
+  }
+
+  void operator()(Context& ctx, DitScratch<B>& s, const JointRows& rows, const nn::RopeTable<B>& rope) const {
+    const std::int64_t D = widths.hidden, Dm = widths.mlp_hidden, n = rows.total();
+    modulation(ctx, s.silu_vec, s.mod_a);
+    const float* mv = s.mod_a.data();
+    detail::modulate_rows(ctx, s.z, s.modulated, 0, n, mv, mv + D, widths.ln_eps);
+    // linear1 in two parts (same rows of W): [q | k | v] and the MLP input, GELU fused.
+    qkv_part(ctx, s.modulated, s.qkv);
+    mlp_part(ctx, s.modulated, s.mlp, BackendEpilogue<B>::GeluTanh);
+    norm(ctx, s.qkv.data(), s.qkv.data() + D, n, 3 * D, widths.heads);
+    nn::apply_rope_qk(ctx, s.qkv.data(), s.qkv.data() + D, n, 3 * D, widths.heads, rope);
+    detail::joint_attention(ctx, s.qkv.data(), n, widths, s.cat.data(), D + Dm, 3 * D);
+    copy_rows(ctx, s.mlp.data(), Dm, s.cat.data() + D, D + Dm, n, Dm);
+    linear2(ctx, s.cat, s.sub);
+    add_gated(ctx, s.z.data(), s.sub.data(), mv + 2 * D, n, D);
+  }
+
+  double flops(const JointRows& rows) const {
+    const nn::PackedAttention p{1, rows.total(), widths.heads, widths.head_dim(), 0, 0, 0, 0, false};
+    return modulation.flops() + linear1.flops(rows.total()) + linear2.flops(rows.total()) + nn::attention_flops(p);
+  }
+};
+
+template <class B, class W>
+struct LastLayer {
+  using Context = BackendContext<B>;
+  DitWidths widths;
+  nn::Modulation<B, W> adaLN_modulation;  // "adaLN_modulation.1." (index 0 is the SiLU)
+  nn::Linear<B, W> linear;
+
+  LastLayer() = default;
+  LastLayer(const DitWidths& w, std::int64_t out_channels)
+      : widths(w), adaLN_modulation(w.hidden, 2), linear(w.hidden, out_channels, true) {}
+
+  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
+    adaLN_modulation.bind(w, p + "adaLN_modulation.1.", r);
+    linear.bind(w, p + "linear.", r);
+  }
+
+  // out (target, out_channels) = linear((1 + scale)·LN(z_target) + shift); (shift, scale) halves.
+  void operator()(Context& ctx, DitScratch<B>& s, const JointRows& rows, Tensor<float, B>& out) const {
+    adaLN_modulation(ctx, s.silu_vec, s.mod_a);
+    const float* mv = s.mod_a.data();
+    detail::modulate_rows(ctx, s.z, s.modulated, rows.cond, rows.target, mv, mv + widths.hidden, widths.ln_eps);
+    linear(ctx, s.modulated.slice(rows.cond, rows.total()), out);
+  }
+
+  double flops(const JointRows& rows) const { return adaLN_modulation.flops() + linear.flops(rows.target); }
+};
+
+}  // namespace epona::model

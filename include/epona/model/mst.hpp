@@ -1,0 +1,373 @@
+// epona/model/mst.hpp — the Multimodal Spatiotemporal Transformer (models/stt.py
+// `SpatialTemporalTransformer`, checkpoint prefix `module.model.`): action and image
+// projectors, time_emb, CausalTimeSpaceBlocks (causal time attention, then space attention
+// with 2-D RoPE on the image tokens), `evaluate` and `get_pose_emb`.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "epona/core/arena.hpp"
+#include "epona/core/error.hpp"
+#include "epona/core/tensor.hpp"
+#include "epona/io/tensor_map.hpp"
+#include "epona/model/config.hpp"
+#include "epona/nn/attention.hpp"
+#include "epona/nn/backend_context.hpp"
+#include "epona/nn/embeddings.hpp"
+#include "epona/nn/layer_norm.hpp"
+#include "epona/nn/linear.hpp"
+#include "epona/nn/mlp.hpp"
+#include "epona/nn/parameter.hpp"
+#include "epona/nn/rope.hpp"
+
+namespace epona::model {
+
+// Sizes of the MST; everything at run time.
+struct MstConfig {
+  std::int64_t n_embd = 2048, n_head = 16, n_layer = 12;
+  std::int64_t condition_frames = 10;  // F (frames of the window)
+  std::int64_t latent_h = 16, latent_w = 32, token_dim = 32;
+  std::int64_t x_vocab = 128, y_vocab = 128, yaw_vocab = 512;
+  std::int64_t fourier_dim = constants::fourier_embed_dim;
+  std::int64_t projector_hidden = constants::pose_projector_hidden;
+  std::int64_t time_emb_rows = constants::mst_time_emb_rows;
+  float fourier_max_period = static_cast<float>(constants::fourier_max_period);
+  float rope_theta = static_cast<float>(constants::mst_rope_theta);
+  float ln_eps = static_cast<float>(constants::mst_layernorm_eps);
+
+  static MstConfig from(const WorldModelConfig& c) {
+    MstConfig m;
+    m.n_embd = c.n_embd;
+    m.n_head = c.n_head;
+    m.n_layer = c.mst_depth();
+    m.condition_frames = c.condition_frames;
+    m.latent_h = c.latent_h();
+    m.latent_w = c.latent_w();
+    m.token_dim = c.token_dim();
+    m.x_vocab = c.pose_x_vocab_size;
+    m.y_vocab = c.pose_y_vocab_size;
+    m.yaw_vocab = c.yaw_vocab_size;
+    return m;
+  }
+  std::int64_t head_dim() const { return n_embd / n_head; }
+  std::int64_t img_tokens() const { return latent_h * latent_w; }                        // L
+  std::int64_t tokens_per_frame() const { return constants::action_tokens + img_tokens(); }  // T
+  std::int64_t img_hidden() const { return n_embd / 2; }
+  std::int64_t mlp_hidden() const { return 4 * n_embd; }
+};
+
+// Action slots inside a frame's token list (and inside the projector outputs).
+enum ActionSlot : std::int64_t { kYaw = 0, kPoseX = 1, kPoseY = 2 };
+
+// nn.Sequential(Linear(in, hidden, no bias), GELU, Linear(hidden, C, no bias), LayerNorm(C)).
+template <class B, class W>
+struct Projector {
+  using Context = BackendContext<B>;
+  nn::SequentialMlp<B, W> mlp;  // indices 0 and 2
+  nn::LayerNorm<B> norm;        // index 3
+
+  Projector() = default;
+  Projector(std::int64_t in, std::int64_t hidden, std::int64_t out, float eps)
+      : mlp(in, hidden, out, false, nn::Gelu::Erf), norm(out, eps, true) {}
+
+  void bind(const io::TensorMap& w, const std::string& prefix, io::BindReport& r) {
+    mlp.bind(w, prefix, r);
+    norm.bind(w, prefix + "3.", r);
+  }
+  // x (n, in) -> y (n, C); hidden (n, hidden) scratch.
+  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& hidden, Tensor<float, B>& y) const {
+    mlp(ctx, x, hidden, y);
+    norm(ctx, y, y);
+  }
+};
+
+// One pre-LN transformer layer of the MST (`CausalTimeBlock` and `SpaceBlock` share the
+// parameter layout): QK-LayerNorm over the full width before the head split, no biases.
+template <class B, class W>
+struct MstLayer {
+  using Context = BackendContext<B>;
+  nn::LayerNorm<B> ln1, ln2, q_norm, k_norm;
+  nn::Linear<B, W> query, key, value, proj;
+  nn::SequentialMlp<B, W> mlp;
+
+  MstLayer() = default;
+  explicit MstLayer(const MstConfig& c)
+      : ln1(c.n_embd, c.ln_eps, true), ln2(c.n_embd, c.ln_eps, true), q_norm(c.n_embd, c.ln_eps, true),
+        k_norm(c.n_embd, c.ln_eps, true), query(c.n_embd, c.n_embd, false), key(c.n_embd, c.n_embd, false),
+        value(c.n_embd, c.n_embd, false), proj(c.n_embd, c.n_embd, false),
+        mlp(c.n_embd, c.mlp_hidden(), c.n_embd, false, nn::Gelu::Erf) {}
+
+  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
+    ln1.bind(w, p + "ln1.", r);
+    ln2.bind(w, p + "ln2.", r);
+    query.bind(w, p + "attn.query.", r);
+    key.bind(w, p + "attn.key.", r);
+    value.bind(w, p + "attn.value.", r);
+    proj.bind(w, p + "attn.proj.", r);
+    q_norm.bind(w, p + "attn.q_norm.", r);
+    k_norm.bind(w, p + "attn.k_norm.", r);
+    mlp.bind(w, p + "mlp.", r);
+  }
+
+  // Scratch of one layer over n tokens of width C.
+  struct Scratch {
+    Tensor<float, B> u, q, k, v;  // (n, C)
+    Tensor<float, B> hidden;      // (n, 4C)
+  };
+  template <class Alloc>
+  static Scratch plan(Alloc& a, std::int64_t n, const MstConfig& c) {
+    return {a.template take<float>({n, c.n_embd}), a.template take<float>({n, c.n_embd}),
+            a.template take<float>({n, c.n_embd}), a.template take<float>({n, c.n_embd}),
+            a.template take<float>({n, c.mlp_hidden()})};
+  }
+
+  // x (n, C) += attn(ln1 x); x += mlp(ln2 x). `before_attention(q, k)` may rotate q and k;
+  // `attend(q, k, v, o)` arranges the tokens into sequences.
+  template <class Rotate, class Attend>
+  void operator()(Context& ctx, Tensor<float, B>& x, Scratch& s, Rotate&& before_attention, Attend&& attend) const {
+    ln1(ctx, x, s.u);
+    query(ctx, s.u, s.q);
+    key(ctx, s.u, s.k);
+    value(ctx, s.u, s.v);
+    q_norm(ctx, s.q, s.q);
+    k_norm(ctx, s.k, s.k);
+    before_attention(s.q, s.k);
+    attend(s.q, s.k, s.v, s.u);  // the attention output reuses u
+    proj(ctx, s.u, s.q);         // ... and the projection reuses q
+    add_inplace(ctx, x.data(), s.q.data(), x.numel());
+    ln2(ctx, x, s.u);
+    mlp(ctx, s.u, s.hidden, s.q);
+    add_inplace(ctx, x.data(), s.q.data(), x.numel());
+  }
+};
+
+template <class B, class W>
+struct CausalTimeSpaceBlock {
+  MstLayer<B, W> causal_time_block, space_block;
+
+  CausalTimeSpaceBlock() = default;
+  explicit CausalTimeSpaceBlock(const MstConfig& c) : causal_time_block(c), space_block(c) {}
+  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
+    causal_time_block.bind(w, p + "causal_time_block.", r);
+    space_block.bind(w, p + "space_block.", r);
+  }
+};
+
+// Called with (batch item, stage, X (F, T, C)) at "tokens_in" and "block{i}_out".
+template <class B>
+using MstObserver = std::function<void(std::int64_t, const std::string&, const Tensor<float, B>&)>;
+
+template <class B, class W>
+class SpatialTemporalTransformer {
+ public:
+  using Context = BackendContext<B>;
+
+  SpatialTemporalTransformer() = default;
+  explicit SpatialTemporalTransformer(const MstConfig& c)
+      : cfg_(c),
+        img_projector_(c.token_dim, c.img_hidden(), c.n_embd, c.ln_eps),
+        pose_x_projector_(c.fourier_dim, c.projector_hidden, c.n_embd, c.ln_eps),
+        pose_y_projector_(c.fourier_dim, c.projector_hidden, c.n_embd, c.ln_eps),
+        yaw_projector_(c.fourier_dim, c.projector_hidden, c.n_embd, c.ln_eps) {
+    EPONA_CHECK(c.n_head > 0 && c.n_embd % c.n_head == 0, "MST: n_head ", c.n_head, " does not divide n_embd ",
+                c.n_embd);
+    EPONA_CHECK(c.condition_frames >= 1 && c.condition_frames <= c.time_emb_rows, "MST: condition_frames ",
+                c.condition_frames, " outside [1, ", c.time_emb_rows, "]");
+    for (std::int64_t i = 0; i < c.n_layer; ++i) blocks_.emplace_back(c);
+    rope_ = nn::upload<B>(nn::axial_rope_table(c.head_dim(), c.latent_h, c.latent_w, c.rope_theta));
+  }
+
+  const MstConfig& config() const { return cfg_; }
+
+  void bind(const io::TensorMap& w, const std::string& prefix, io::BindReport& r) {
+    time_emb_ = nn::bind_param<B, float>(r, prefix + "time_emb", {cfg_.time_emb_rows, cfg_.n_embd});
+    img_projector_.bind(w, prefix + "img_projector.", r);
+    pose_x_projector_.bind(w, prefix + "pose_x_projector.", r);
+    pose_y_projector_.bind(w, prefix + "pose_y_projector.", r);
+    yaw_projector_.bind(w, prefix + "yaw_projector.", r);
+    for (std::size_t i = 0; i < blocks_.size(); ++i)
+      blocks_[i].bind(w, prefix + "causal_time_space_blocks." + std::to_string(i) + ".", r);
+  }
+
+  // Arena bytes evaluate() needs besides its outputs (scratch of one batch item).
+  std::size_t evaluate_workspace_bytes() const {
+    ArenaCounter<B> counter;
+    plan_evaluate(counter);
+    plan_actions(counter, cfg_.condition_frames + 1);  // embed_actions' scratch sits on top
+    return counter.bytes();
+  }
+  std::size_t pose_emb_workspace_bytes() const {
+    ArenaCounter<B> counter;
+    counter.template take<float>({3, 1, cfg_.n_embd});
+    plan_actions(counter, 1);
+    return counter.bytes();
+  }
+
+  // evaluate(latents, pose_idx, yaw_idx, sample_last=True):
+  //   latents (Bt, F, L, token_dim) backend; pose_idx (Bt, F+1, 2), yaw_idx (Bt, F+1, 1) host
+  //   -> stt_features (Bt, T, C): the last frame's tokens after the last block;
+  //      pose_emb (Bt, 3C): [pose_x, pose_y, yaw] projections of action entry F.
+  void evaluate(Context& ctx, Arena<B>& arena, const Tensor<float, B>& latents, const Tensor<float, Cpu>& pose_idx,
+                const Tensor<float, Cpu>& yaw_idx, Tensor<float, B>& stt_features, Tensor<float, B>& pose_emb,
+                const MstObserver<B>& observe = {}) const {
+    const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
+    EPONA_CHECK(latents.dim() == 4, "MST latents must be (B, F, L, C_vae), got ", shape_str(latents.shape()));
+    const std::int64_t batch = latents.size(0);
+    check_shape(latents, {batch, F, cfg_.img_tokens(), cfg_.token_dim}, "MST latents");
+    check_shape(pose_idx, {batch, F + 1, 2}, "MST pose indices");
+    check_shape(yaw_idx, {batch, F + 1, 1}, "MST yaw indices");
+    check_shape(stt_features, {batch, T, C}, "MST stt_features output");
+    check_shape(pose_emb, {batch, 3 * C}, "MST pose_emb output");
+    for (std::int64_t b = 0; b < batch; ++b) {
+      ArenaScope<B> scope(arena);
+      auto s = plan_evaluate(arena);
+      embed_actions(ctx, arena, pose_idx[b], yaw_idx[b], s.actions);
+      assemble_tokens(ctx, latents[b], s);
+      if (observe) observe(b, "tokens_in", s.x);
+      for (std::size_t i = 0; i < blocks_.size(); ++i) {
+        run_block(ctx, blocks_[i], s);
+        if (observe) observe(b, "block" + std::to_string(i) + "_out", s.x);
+      }
+      auto last = s.x[F - 1];
+      auto out = stt_features[b];
+      copy(ctx, last.data(), out.data(), T * C);
+      auto emb = pose_emb[b];
+      write_pose_emb(ctx, s.actions, F, emb);
+    }
+  }
+
+  // get_pose_emb: pose_idx (Bt, 1, 2), yaw_idx (Bt, 1, 1) host -> (Bt, 3C) [pose_x, pose_y, yaw].
+  void get_pose_emb(Context& ctx, Arena<B>& arena, const Tensor<float, Cpu>& pose_idx,
+                    const Tensor<float, Cpu>& yaw_idx, Tensor<float, B>& pose_emb) const {
+    const std::int64_t batch = pose_emb.size(0);
+    check_shape(pose_idx, {batch, 1, 2}, "get_pose_emb pose indices");
+    check_shape(yaw_idx, {batch, 1, 1}, "get_pose_emb yaw indices");
+    check_shape(pose_emb, {batch, 3 * cfg_.n_embd}, "get_pose_emb output");
+    for (std::int64_t b = 0; b < batch; ++b) {
+      ArenaScope<B> scope(arena);
+      auto actions = arena.template take<float>({3, 1, cfg_.n_embd});
+      embed_actions(ctx, arena, pose_idx[b], yaw_idx[b], actions);
+      auto emb = pose_emb[b];
+      write_pose_emb(ctx, actions, 0, emb);
+    }
+  }
+
+  // FLOPs of one evaluate (batch 1), counted as compute-budget.md §3.1 does.
+  double evaluate_flops() const {
+    const double F = double(cfg_.condition_frames), T = double(cfg_.tokens_per_frame()), C = double(cfg_.n_embd);
+    const double L = double(cfg_.img_tokens()), E = double(cfg_.fourier_dim), P = double(cfg_.projector_hidden);
+    const double img = 2 * F * L * (double(cfg_.token_dim) * double(cfg_.img_hidden()) + double(cfg_.img_hidden()) * C);
+    const double act = 2 * 3 * (F + 1) * (E * P + P * C);
+    const double layers = double(cfg_.n_layer) * 2 * 2 * F * T * 12 * C * C;
+    const double d = double(cfg_.head_dim()), H = double(cfg_.n_head);
+    const double attn = double(cfg_.n_layer) * (4 * T * H * F * F * d + 4 * F * H * T * T * d);
+    return img + act + layers + attn;
+  }
+
+ private:
+  struct EvaluateScratch {
+    Tensor<float, B> actions;       // (3, F+1, C): projector outputs, slots yaw, pose_x, pose_y
+    Tensor<float, B> img_hidden;    // (F·L, C/2)
+    Tensor<float, B> x;             // (F, T, C) residual stream
+    typename MstLayer<B, W>::Scratch layer;  // (F·T) tokens
+  };
+  struct ActionScratch {
+    Tensor<float, B> fourier;  // (3, n, E)
+    Tensor<float, B> hidden;   // (n, P)
+  };
+
+  template <class Alloc>
+  EvaluateScratch plan_evaluate(Alloc& a) const {
+    const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
+    EvaluateScratch s;
+    s.actions = a.template take<float>({3, F + 1, C});
+    s.img_hidden = a.template take<float>({F * cfg_.img_tokens(), cfg_.img_hidden()});
+    s.x = a.template take<float>({F, T, C});
+    s.layer = MstLayer<B, W>::plan(a, F * T, cfg_);
+    return s;
+  }
+  template <class Alloc>
+  ActionScratch plan_actions(Alloc& a, std::int64_t n) const {
+    return {a.template take<float>({3, n, cfg_.fourier_dim}), a.template take<float>({n, cfg_.projector_hidden})};
+  }
+
+  // Coordinates [yaw_idx/yaw_vocab, x_idx/x_vocab, y_idx/y_vocab] -> Fourier -> projectors.
+  // pose_idx (n, 2), yaw_idx (n, 1) -> actions (3, n, C) in slot order yaw, pose_x, pose_y.
+  void embed_actions(Context& ctx, Arena<B>& arena, const Tensor<float, Cpu>& pose_idx,
+                     const Tensor<float, Cpu>& yaw_idx, Tensor<float, B>& actions) const {
+    const std::int64_t n = yaw_idx.size(0), E = cfg_.fourier_dim;
+    ArenaScope<B> scope(arena);
+    auto s = plan_actions(arena, n);
+    Tensor<float, Cpu> coords({3, n}), fourier({3, n, E});
+    for (std::int64_t i = 0; i < n; ++i) {
+      coords.at(kYaw, i) = yaw_idx.at(i, 0) / static_cast<float>(cfg_.yaw_vocab);
+      coords.at(kPoseX, i) = pose_idx.at(i, 0) / static_cast<float>(cfg_.x_vocab);
+      coords.at(kPoseY, i) = pose_idx.at(i, 1) / static_cast<float>(cfg_.y_vocab);
+    }
+    nn::fourier_embed(coords.data(), 3 * n, E, cfg_.fourier_max_period, fourier.data());
+    BackendTraits<B>::upload_into(ctx, fourier, s.fourier);
+    const Projector<B, W>* projectors[3] = {&yaw_projector_, &pose_x_projector_, &pose_y_projector_};
+    for (std::int64_t slot = 0; slot < 3; ++slot) {
+      auto out = actions[slot];
+      (*projectors[slot])(ctx, s.fourier[slot], s.hidden, out);
+    }
+  }
+
+  // pose_emb = [pose_x, pose_y, yaw] of action entry `entry`.
+  void write_pose_emb(Context& ctx, const Tensor<float, B>& actions, std::int64_t entry, Tensor<float, B>& emb) const {
+    const std::int64_t C = cfg_.n_embd;
+    const std::int64_t order[3] = {kPoseX, kPoseY, kYaw};
+    for (int i = 0; i < 3; ++i) copy(ctx, actions[order[i]][entry].data(), emb.data() + i * C, C);
+  }
+
+  // X[f] = [yaw_f, pose_x_f, pose_y_f, img_projector(latents_f)] + time_emb[f].
+  void assemble_tokens(Context& ctx, const Tensor<float, B>& latents, EvaluateScratch& s) const {
+    const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
+    const std::int64_t L = cfg_.img_tokens();
+    auto flat = latents.reshape({F * L, cfg_.token_dim});
+    img_projector_.mlp.fc1(ctx, flat, s.img_hidden, BackendEpilogue<B>::GeluErf);
+    for (std::int64_t f = 0; f < F; ++f) {
+      auto frame = s.x[f];                  // (T, C)
+      auto image_rows = frame.slice(3, T);  // (L, C)
+      img_projector_.mlp.fc2(ctx, s.img_hidden.slice(f * L, (f + 1) * L), image_rows);
+      img_projector_.norm(ctx, image_rows, image_rows);
+      for (std::int64_t slot = 0; slot < 3; ++slot) copy(ctx, s.actions[slot][f].data(), frame[slot].data(), C);
+      add_row_broadcast(ctx, frame.data(), time_emb_[f].data(), T, C);
+    }
+  }
+
+  void run_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s) const {
+    const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
+    const std::int64_t H = cfg_.n_head, d = cfg_.head_dim(), L = cfg_.img_tokens();
+    auto x = s.x.reshape({F * T, C});
+    // (a) time: each of the T token positions is a causal sequence over the F frames; no RoPE.
+    nn::PackedAttention time{T, F, H, d, C, T * C, C, T * C, true};
+    block.causal_time_block(ctx, x, s.layer, [](auto&, auto&) {},
+                            [&](const auto& q, const auto& k, const auto& v, auto& o) {
+                              nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), time);
+                            });
+    // (b) space: each frame is one unmasked sequence of T tokens; RoPE on the image tokens only.
+    nn::PackedAttention space{F, T, H, d, T * C, C, T * C, C, false};
+    block.space_block(ctx, x, s.layer,
+                      [&](auto& q, auto& k) {
+                        for (std::int64_t f = 0; f < F; ++f) {
+                          const std::int64_t first = f * T + constants::action_tokens;
+                          nn::apply_rope_qk(ctx, q.data() + first * C, k.data() + first * C, L, C, H, rope_);
+                        }
+                      },
+                      [&](const auto& q, const auto& k, const auto& v, auto& o) {
+                        nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), space);
+                      });
+  }
+
+  MstConfig cfg_;
+  Tensor<float, B> time_emb_;  // (rows, C)
+  Projector<B, W> img_projector_, pose_x_projector_, pose_y_projector_, yaw_projector_;
+  std::vector<CausalTimeSpaceBlock<B, W>> blocks_;
+  nn::RopeTable<B> rope_;  // (L, head_dim/2)
+};
+
+}  // namespace epona::model

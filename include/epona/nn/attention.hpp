@@ -1,0 +1,73 @@
+// epona/nn/attention.hpp — multi-head softmax attention over token-major packed buffers
+// (one call per sequence group, no transposes), and the per-head QK RMSNorm of the FLUX
+// blocks (`QKNorm`: query_norm/key_norm `scale` vectors, eps 1e-6). Heads own contiguous
+// channel ranges [h·d, (h+1)·d), as in the official reshapes.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "epona/core/tensor.hpp"
+#include "epona/cpu/attention.hpp"
+#include "epona/io/tensor_map.hpp"
+#include "epona/nn/backend_context.hpp"
+#include "epona/nn/parameter.hpp"
+
+namespace epona::nn {
+
+// Where q, k, v and the output of one attention call live: `seqs` independent sequences of
+// `len` tokens; token i of sequence s starts at base + s*seq_stride + i*token_stride.
+struct PackedAttention {
+  std::int64_t seqs = 1, len = 0, heads = 1, head_dim = 0;
+  std::int64_t in_seq_stride = 0, in_token_stride = 0;    // q, k and v share their strides
+  std::int64_t out_seq_stride = 0, out_token_stride = 0;
+  bool causal = false;
+};
+
+template <class Context>
+void packed_attention(Context& ctx, const float* q, const float* k, const float* v, float* o,
+                      const PackedAttention& p) {
+  cpu::AttentionShape a;
+  a.seqs = p.seqs;
+  a.heads = p.heads;
+  a.lq = a.lk = p.len;
+  a.head_dim = p.head_dim;
+  a.q_seq = a.k_seq = a.v_seq = p.in_seq_stride;
+  a.q_row = a.k_row = a.v_row = p.in_token_stride;
+  a.o_seq = p.out_seq_stride;
+  a.o_row = p.out_token_stride;
+  a.mask = p.causal ? cpu::Mask::Causal : cpu::Mask::None;
+  attention(ctx, q, k, v, o, a);
+}
+
+// FLOPs of one attention call as compute-budget.md counts them (4·H·Lq·Lk·d per sequence).
+inline double attention_flops(const PackedAttention& p) {
+  return 4.0 * double(p.seqs) * double(p.heads) * double(p.len) * double(p.len) * double(p.head_dim);
+}
+
+// QKNorm: RMSNorm per token and head with separate learned scales for queries and keys.
+template <class B>
+struct QkNorm {
+  using Context = BackendContext<B>;
+
+  std::int64_t head_dim = 0;
+  float eps = 1e-6f;
+  Tensor<float, B> query_scale, key_scale;  // (head_dim) each
+
+  QkNorm() = default;
+  QkNorm(std::int64_t d, float epsilon) : head_dim(d), eps(epsilon) {}
+
+  void bind(const io::TensorMap&, const std::string& prefix, io::BindReport& report) {
+    query_scale = bind_param<B, float>(report, prefix + "query_norm.scale", {head_dim});
+    key_scale = bind_param<B, float>(report, prefix + "key_norm.scale", {head_dim});
+  }
+
+  // In place on `rows` tokens; q of token r starts at q + r*stride (heads side by side), k too.
+  void operator()(Context& ctx, float* q, float* k, std::int64_t rows, std::int64_t stride,
+                  std::int64_t heads) const {
+    rms_norm_heads(ctx, q, rows, stride, heads, head_dim, query_scale.data(), eps);
+    rms_norm_heads(ctx, k, rows, stride, heads, head_dim, key_scale.data(), eps);
+  }
+};
+
+}  // namespace epona::nn

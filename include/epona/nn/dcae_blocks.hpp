@@ -1,0 +1,134 @@
+// epona/nn/dcae_blocks.hpp — the residual blocks of DC-AE stages (efficientvit ResidualBlock
+// wrappers, `main` = the branch): ResBlock (conv-act-conv-norm + x), EfficientViTBlock (LiteMLA
+// then GLUMBConv, each + x), and the 2x resampling pairs ConvPixelUnshuffle + channel-averaging
+// shortcut (down) and ConvPixelShuffle + channel-duplicating shortcut (up).
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "epona/core/tensor.hpp"
+#include "epona/cpu/conv.hpp"
+#include "epona/cpu/elementwise.hpp"
+#include "epona/nn/conv2d.hpp"
+#include "epona/nn/glu_mbconv.hpp"
+#include "epona/nn/lite_mla.hpp"
+#include "epona/nn/norm2d.hpp"
+#include "epona/nn/pixel_shuffle.hpp"
+
+namespace epona::nn {
+
+// ResBlock: out = x + norm(conv2(act(conv1(x) + b1))); conv2 has no bias, no act after the add.
+// Names (under the op prefix): `main.conv1.conv.{weight,bias}`, `main.conv2.conv.weight`, `main.conv2.norm.*`.
+template <class B, class T>
+struct ResBlock : Bindable<ResBlock<B, T>> {
+  Conv2d<B, T> conv1, conv2;
+  Norm2d<B, T> norm;
+  ConvAct act = ConvAct::Silu;
+
+  ResBlock() = default;
+  ResBlock(std::int64_t c, Norm2dKind n, ConvAct a)
+      : conv1(c, c, 3), conv2(c, c, 3, 1, false), norm(n, c), act(a) {}
+
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    conv1.visit_params(prefix + "main.conv1.conv.", v);
+    conv2.visit_params(prefix + "main.conv2.conv.", v);
+    norm.visit_params(prefix + "main.conv2.norm.", v);
+  }
+
+  // x (N, C, H, W), updated in place.
+  template <class Ctx>
+  void forward_inplace(Ctx& ctx, Tensor<float, B>& x) const {
+    Tensor<float, B> h = conv1.forward(ctx, x, act);
+    Tensor<float, B> branch = conv2.forward(ctx, h);
+    norm.forward_inplace(ctx, branch);
+    add_inplace(ctx, x.data(), branch.data(), x.numel());
+  }
+};
+
+// EfficientViTBlock (EViT_GLU): x += LiteMLA(x) (`context_module.main.*`), then
+// x += GLUMBConv(x) (`local_module.main.*`).
+template <class B, class T>
+struct EfficientViTBlock : Bindable<EfficientViTBlock<B, T>> {
+  LiteMLA<B, T> context;
+  GLUMBConv<B, T> local;
+
+  EfficientViTBlock() = default;
+  EfficientViTBlock(std::int64_t c, Norm2dKind n, ConvAct a, std::int64_t head_dim = 32, float mla_eps = 1e-15f,
+                    std::int64_t expand = 4)
+      : context(c, n, head_dim, mla_eps), local(c, n, a, expand) {}
+
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    context.visit_params(prefix + "context_module.main.", v);
+    local.visit_params(prefix + "local_module.main.", v);
+  }
+
+  template <class Ctx>
+  void forward_inplace(Ctx& ctx, Tensor<float, B>& x) const {
+    Tensor<float, B> attended = context.forward(ctx, x);
+    add_inplace(ctx, x.data(), attended.data(), x.numel());
+    Tensor<float, B> mixed = local.forward(ctx, x);
+    add_inplace(ctx, x.data(), mixed.data(), x.numel());
+  }
+};
+
+// ConvPixelUnshuffleDownSampleLayer(in -> out): 3x3 conv in -> out/4 (bias), unshuffle(2); with
+// the averaging shortcut (a ResidualBlock) the names sit under `main.`: `[main.]conv.conv.*`.
+template <class B, class T>
+struct DownsampleBlock : Bindable<DownsampleBlock<B, T>> {
+  static constexpr std::int64_t factor = 2;
+  Conv2d<B, T> conv;
+  std::int64_t out_channels = 0;
+  bool shortcut = true;
+
+  DownsampleBlock() = default;
+  DownsampleBlock(std::int64_t in, std::int64_t out, bool with_shortcut)
+      : conv(in, out / (factor * factor), 3), out_channels(out), shortcut(with_shortcut) {
+    EPONA_CHECK(out % (factor * factor) == 0, "ConvPixelUnshuffle: ", out, " output channels are not divisible by ",
+                factor * factor);
+  }
+
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    conv.visit_params(prefix + (shortcut ? "main.conv.conv." : "conv.conv."), v);
+  }
+
+  // (N, in, H, W) -> (N, out, H/2, W/2)
+  template <class Ctx>
+  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& x) const {
+    Tensor<float, B> y = pixel_unshuffle(ctx, conv.forward(ctx, x), factor);
+    if (shortcut) add_channel_average_down(ctx, x, y, factor);
+    return y;
+  }
+};
+
+// ConvPixelShuffleUpSampleLayer(in -> out): 3x3 conv in -> 4·out (bias), shuffle(2); with the
+// duplicating shortcut the names sit under `main.`: `[main.]conv.conv.*`.
+template <class B, class T>
+struct UpsampleBlock : Bindable<UpsampleBlock<B, T>> {
+  static constexpr std::int64_t factor = 2;
+  Conv2d<B, T> conv;
+  std::int64_t out_channels = 0;
+  bool shortcut = true;
+
+  UpsampleBlock() = default;
+  UpsampleBlock(std::int64_t in, std::int64_t out, bool with_shortcut)
+      : conv(in, out * factor * factor, 3), out_channels(out), shortcut(with_shortcut) {}
+
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    conv.visit_params(prefix + (shortcut ? "main.conv.conv." : "conv.conv."), v);
+  }
+
+  // (N, in, H, W) -> (N, out, 2H, 2W)
+  template <class Ctx>
+  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& x) const {
+    Tensor<float, B> y = pixel_shuffle(ctx, conv.forward(ctx, x), factor);
+    if (shortcut) add_channel_duplicate_up(ctx, x, y, factor);
+    return y;
+  }
+};
+
+}  // namespace epona::nn

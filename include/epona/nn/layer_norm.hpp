@@ -1,0 +1,43 @@
+// epona/nn/layer_norm.hpp — nn.LayerNorm over the last dimension, affine (weight, bias; the
+// MST's eps 1e-5) or parameter-free (the DiTs' eps 1e-6 norms, elementwise_affine=False).
+// The affine parameters stay float32 whatever the weight dtype (they are tiny).
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "epona/core/tensor.hpp"
+#include "epona/io/tensor_map.hpp"
+#include "epona/nn/backend_context.hpp"
+#include "epona/nn/parameter.hpp"
+
+namespace epona::nn {
+
+template <class B>
+struct LayerNorm {
+  using Context = BackendContext<B>;
+
+  std::int64_t width = 0;
+  float eps = 1e-5f;
+  bool affine = true;
+  Tensor<float, B> weight, bias;  // (width) each, empty when not affine
+
+  LayerNorm() = default;
+  LayerNorm(std::int64_t n, float epsilon, bool with_affine) : width(n), eps(epsilon), affine(with_affine) {}
+
+  void bind(const io::TensorMap&, const std::string& prefix, io::BindReport& report) {
+    if (!affine) return;
+    weight = bind_param<B, float>(report, prefix + "weight", {width});
+    bias = bind_param<B, float>(report, prefix + "bias", {width});
+  }
+
+  // y = LN(x) row by row over the last dimension; x and y may be the same tensor.
+  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& y) const {
+    EPONA_CHECK(x.dim() >= 1 && x.size(-1) == width && y.numel() == x.numel(), "LayerNorm(", width,
+                "): input ", shape_str(x.shape()), ", output ", shape_str(y.shape()));
+    layer_norm(ctx, x.data(), y.data(), x.numel() / width, width, affine ? weight.data() : nullptr,
+               affine ? bias.data() : nullptr, eps);
+  }
+};
+
+}  // namespace epona::nn

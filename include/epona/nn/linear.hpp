@@ -1,0 +1,54 @@
+// epona/nn/linear.hpp — nn.Linear: y = x·Wᵀ (+ b) with PyTorch's weight layout W (out, in),
+// optionally followed by an activation fused into the GEMM epilogue. Weights in T (float or
+// bf16), activations float. Mirrors torch.nn.Linear (keys `<prefix>weight`, `<prefix>bias`).
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "epona/core/tensor.hpp"
+#include "epona/io/tensor_map.hpp"
+#include "epona/nn/backend_context.hpp"
+#include "epona/nn/parameter.hpp"
+
+namespace epona::nn {
+
+template <class B, class T>
+struct Linear {
+  using Context = BackendContext<B>;
+  using Epilogue = BackendEpilogue<B>;
+
+  std::int64_t in = 0, out = 0;
+  bool has_bias = false;
+  Tensor<T, B> weight;  // (out, in)
+  Tensor<T, B> bias;    // (out) or empty
+
+  Linear() = default;
+  Linear(std::int64_t in_features, std::int64_t out_features, bool with_bias)
+      : in(in_features), out(out_features), has_bias(with_bias) {}
+
+  // prefix names the module ("img_in." → "img_in.weight", "img_in.bias").
+  void bind(const io::TensorMap&, const std::string& prefix, io::BindReport& report) {
+    weight = bind_param<B, T>(report, prefix + "weight", {out, in});
+    if (has_bias) bias = bind_param<B, T>(report, prefix + "bias", {out});
+  }
+
+  // x (..., in) -> y (..., out); y preallocated.
+  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& y,
+                  Epilogue epilogue = Epilogue::None) const {
+    linear(ctx, x, weight, bias, y, epilogue);
+  }
+
+  // The layer restricted to output features [begin, end): the rows of W and b (contiguous),
+  // so a fused projection (qkv + mlp) can be evaluated in parts.
+  Linear rows(std::int64_t begin, std::int64_t end) const {
+    Linear part(in, end - begin, has_bias);
+    part.weight = weight.slice(begin, end);
+    if (has_bias) part.bias = bias.slice(begin, end);
+    return part;
+  }
+
+  double flops(std::int64_t tokens) const { return 2.0 * double(tokens) * double(in) * double(out); }
+};
+
+}  // namespace epona::nn

@@ -1,0 +1,69 @@
+// epona/nn/mlp.hpp — the two-layer perceptrons of the world model: Linear → GELU → Linear as
+// an nn.Sequential with indices 0 and 2 (the MST's exact-GELU MLPs without bias, the DiTs'
+// tanh-GELU MLPs with bias), and FLUX's MLPEmbedder (in_layer → SiLU → out_layer). The
+// activation runs in the first GEMM's epilogue.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "epona/core/tensor.hpp"
+#include "epona/io/tensor_map.hpp"
+#include "epona/nn/backend_context.hpp"
+#include "epona/nn/linear.hpp"
+
+namespace epona::nn {
+
+enum class Gelu { Erf, Tanh };
+
+template <class B, class T>
+struct SequentialMlp {
+  using Context = BackendContext<B>;
+  using Epilogue = BackendEpilogue<B>;
+
+  Linear<B, T> fc1, fc2;  // "<prefix>0.", "<prefix>2."
+  Gelu gelu = Gelu::Erf;
+
+  SequentialMlp() = default;
+  SequentialMlp(std::int64_t in, std::int64_t hidden, std::int64_t out, bool bias, Gelu g)
+      : fc1(in, hidden, bias), fc2(hidden, out, bias), gelu(g) {}
+
+  void bind(const io::TensorMap& w, const std::string& prefix, io::BindReport& report) {
+    fc1.bind(w, prefix + "0.", report);
+    fc2.bind(w, prefix + "2.", report);
+  }
+
+  // x (rows, in) -> y (rows, out); hidden (rows, hidden) is scratch.
+  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& hidden, Tensor<float, B>& y) const {
+    fc1(ctx, x, hidden, gelu == Gelu::Erf ? Epilogue::GeluErf : Epilogue::GeluTanh);
+    fc2(ctx, hidden, y);
+  }
+
+  std::int64_t hidden_width() const { return fc1.out; }
+  double flops(std::int64_t tokens) const { return fc1.flops(tokens) + fc2.flops(tokens); }
+};
+
+template <class B, class T>
+struct MlpEmbedder {
+  using Context = BackendContext<B>;
+  using Epilogue = BackendEpilogue<B>;
+
+  Linear<B, T> in_layer, out_layer;
+
+  MlpEmbedder() = default;
+  MlpEmbedder(std::int64_t in, std::int64_t hidden) : in_layer(in, hidden, true), out_layer(hidden, hidden, true) {}
+
+  void bind(const io::TensorMap& w, const std::string& prefix, io::BindReport& report) {
+    in_layer.bind(w, prefix + "in_layer.", report);
+    out_layer.bind(w, prefix + "out_layer.", report);
+  }
+
+  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& hidden, Tensor<float, B>& y) const {
+    in_layer(ctx, x, hidden, Epilogue::Silu);
+    out_layer(ctx, hidden, y);
+  }
+
+  double flops(std::int64_t tokens) const { return in_layer.flops(tokens) + out_layer.flops(tokens); }
+};
+
+}  // namespace epona::nn

@@ -1,0 +1,45 @@
+// epona/nn/modulation.hpp — adaLN modulation of the FLUX blocks (`Modulation`, and the final
+// layer's `adaLN_modulation`): m = Linear(SiLU(vec)) split into `chunks` consecutive vectors
+// of width dim — (shift, scale, gate)[×2] for the blocks, (shift, scale) for the final layer.
+// SiLU(vec) is shared by every modulation of a forward, so callers pass it in once computed.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "epona/core/tensor.hpp"
+#include "epona/io/tensor_map.hpp"
+#include "epona/nn/backend_context.hpp"
+#include "epona/nn/linear.hpp"
+
+namespace epona::nn {
+
+template <class B, class T>
+struct Modulation {
+  using Context = BackendContext<B>;
+
+  std::int64_t dim = 0;
+  int chunks = 0;
+  Linear<B, T> lin;
+
+  Modulation() = default;
+  Modulation(std::int64_t d, int n_chunks) : dim(d), chunks(n_chunks), lin(d, n_chunks * d, true) {}
+
+  // `linear_prefix` is the Linear's own prefix: "img_mod.lin." or "adaLN_modulation.1.".
+  void bind(const io::TensorMap& w, const std::string& linear_prefix, io::BindReport& report) {
+    lin.bind(w, linear_prefix, report);
+  }
+
+  // silu_vec (1, dim) = SiLU(vec); the chunks*dim outputs go to the front of `out` (a buffer
+  // of at least that many floats, so one buffer serves modulations of any chunk count).
+  void operator()(Context& ctx, const Tensor<float, B>& silu_vec, const Tensor<float, B>& out) const {
+    EPONA_CHECK(out.numel() >= chunks * dim, "modulation output buffer of ", out.numel(), " floats, needs ",
+                chunks * dim);
+    auto m = Tensor<float, B>::view(out.data(), {1, chunks * dim}, out.storage());
+    lin(ctx, silu_vec, m);
+  }
+
+  double flops() const { return lin.flops(1); }
+};
+
+}  // namespace epona::nn

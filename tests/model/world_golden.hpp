@@ -1,0 +1,73 @@
+// Shared by the world-model golden tests: the golden set (EPONA_GOLDEN_DIR, default the copy
+// in tests/data/golden) loaded once — world weights, cases, configs.json — and the metric
+// every comparison states its tolerance in: rel = max|ours - golden| / max|golden| (NaN fails).
+#pragma once
+
+#include <doctest/doctest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <limits>
+#include <string>
+
+#include "epona/core/tensor.hpp"
+#include "epona/io/config_json.hpp"
+#include "epona/io/safetensors.hpp"
+#include "epona/io/tensor_map.hpp"
+
+namespace epona::test {
+
+inline std::string golden_dir() {
+  const char* env = std::getenv("EPONA_GOLDEN_DIR");
+  return env && *env ? std::string(env) : std::string(EPONA_GOLDEN_DEFAULT_DIR);
+}
+
+struct WorldGolden {
+  io::TensorMap weights, cases;
+  io::ModelConfigs configs;
+
+  bool has(const std::string& name) const { return cases.contains(name); }
+  Tensor<float, Cpu> tensor(const std::string& name) const { return io::to_tensor<float>(cases.at(name)); }
+  const WorldModelConfig& world() const { return configs.world; }
+};
+
+inline const WorldGolden& world_golden() {
+  static const WorldGolden g{io::load_safetensors(golden_dir() + "/weights_world.safetensors"),
+                             io::load_safetensors(golden_dir() + "/cases.safetensors"),
+                             io::load_configs(golden_dir() + "/configs.json")};
+  return g;
+}
+
+// max|ours - golden| / max|golden|; NaN anywhere in ours gives NaN (which fails every bound).
+inline double rel_error(const Tensor<float, Cpu>& ours, const Tensor<float, Cpu>& golden) {
+  double err = 0, scale = 0;
+  for (std::int64_t i = 0; i < golden.numel(); ++i) {
+    const double o = ours.data()[i], g = golden.data()[i];
+    if (std::isnan(o) || std::isnan(g)) return std::numeric_limits<double>::quiet_NaN();
+    err = std::max(err, std::abs(o - g));
+    scale = std::max(scale, std::abs(g));
+  }
+  return scale > 0 ? err / scale : err;
+}
+
+// Tolerances of the golden README for the float32 path.
+inline double golden_tolerance(const std::string& name) {
+  const auto starts = [&](const char* p) { return name.rfind(p, 0) == 0; };
+  if (starts("ids.") || starts("sched.") || starts("tok.") || name == "mst.pose_idx" || name == "mst.yaw_idx")
+    return 1e-6;
+  if (starts("rollout.")) return 1e-3;
+  return 1e-4;
+}
+
+// Compares with the golden tensor `name` (same shape required) and prints the figure.
+inline void expect_golden(const std::string& name, const Tensor<float, Cpu>& ours) {
+  const auto golden = world_golden().tensor(name);
+  REQUIRE_MESSAGE(ours.shape() == golden.shape(), name, ": ours ", shape_str(ours.shape()), ", golden ",
+                  shape_str(golden.shape()));
+  const double rel = rel_error(ours, golden), tol = golden_tolerance(name);
+  MESSAGE(name, ": rel ", rel, " (limit ", tol, ")");
+  CHECK_MESSAGE(rel <= tol, name, ": rel ", rel, " exceeds ", tol);
+}
+
+}  // namespace epona::test

@@ -1,0 +1,178 @@
+// Parity of the CPU world model with the official Epona code: every world-model case of the
+// golden set (emb.*, temb.*, tok.*, mst.*, ids.*, sched.*, traj.*, vis.*, rollout.*), each
+// stage fed with the stored golden inputs, sizes from configs.json. Tolerances per the golden
+// README: rel <= 1e-4 (float32), 1e-3 (rollout.*), 1e-6 (ids, schedules, token indices).
+#include <doctest/doctest.h>
+
+#include <string>
+
+#include "epona/core/arena.hpp"
+#include "epona/flow/schedule.hpp"
+#include "epona/model/flux_dit.hpp"
+#include "epona/model/mst.hpp"
+#include "epona/model/pose_tokenizer.hpp"
+#include "epona/nn/embeddings.hpp"
+#include "world_golden.hpp"
+
+using namespace epona;
+using epona::test::expect_golden;
+using epona::test::world_golden;
+
+namespace {
+
+cpu::Context& context() {
+  static cpu::Context ctx;
+  return ctx;
+}
+
+template <class Model>
+void bind_checked(Model& m, const std::string& prefix) {
+  const auto& g = world_golden();
+  io::BindReport report(g.weights);
+  m.bind(g.weights, prefix, report);
+  report.finish(true, [&](const std::string& k) { return k.rfind(prefix, 0) != 0; });
+}
+
+const model::SpatialTemporalTransformer<Cpu, float>& mst() {
+  static const auto m = [] {
+    model::SpatialTemporalTransformer<Cpu, float> s(model::MstConfig::from(world_golden().world()));
+    bind_checked(s, "module.model.");
+    return s;
+  }();
+  return m;
+}
+
+const model::FluxDiT<Cpu, float>& dit(bool vis) {
+  static const auto make = [](bool v) {
+    const auto& w = world_golden().world();
+    model::FluxDiT<Cpu, float> d(v ? model::FluxDitConfig::vis(w) : model::FluxDitConfig::traj(w));
+    bind_checked(d, v ? "module.dit." : "module.traj_dit.");
+    return d;
+  };
+  static const auto traj = make(false), visual = make(true);
+  return vis ? visual : traj;
+}
+
+std::int64_t batch() { return world_golden().tensor("mst.latents").size(0); }
+
+model::DitIds golden_ids() {
+  const auto& w = world_golden().world();
+  return model::prepare_ids(batch(), w.latent_h(), w.latent_w(), w.tokens_per_frame(), w.traj_len);
+}
+
+}  // namespace
+
+TEST_CASE("embeddings: Fourier (emb.*) and timestep (temb.*)") {
+  const auto& g = world_golden();
+  const auto coords = g.tensor("emb.fourier.coords");
+  Shape fourier_shape = coords.shape();
+  fourier_shape.push_back(constants::fourier_embed_dim);
+  Tensor<float, Cpu> fourier(fourier_shape);
+  nn::fourier_embed(coords.data(), coords.numel(), constants::fourier_embed_dim,
+                    static_cast<float>(constants::fourier_max_period), fourier.data());
+  expect_golden("emb.fourier.out", fourier);
+
+  const auto t = g.tensor("temb.t");
+  Tensor<float, Cpu> temb({t.numel(), constants::timestep_embed_dim});
+  nn::timestep_embedding(t.data(), t.numel(), constants::timestep_embed_dim, constants::timestep_max_period,
+                         static_cast<float>(constants::timestep_time_factor), temb.data());
+  expect_golden("temb.out", temb);
+}
+
+TEST_CASE("pose tokenizer (tok.*, mst.pose_idx, mst.yaw_idx)") {
+  const auto& g = world_golden();
+  const auto tok = model::PoseTokenizer::from(g.world());
+  expect_golden("tok.pose_idx", tok.poses_to_indices(g.tensor("tok.rel_pose")));
+  expect_golden("tok.yaw_idx", tok.yaws_to_indices(g.tensor("tok.rel_yaw")));
+  expect_golden("mst.pose_idx", tok.poses_to_indices(g.tensor("mst.rel_pose")));
+  expect_golden("mst.yaw_idx", tok.yaws_to_indices(g.tensor("mst.rel_yaw")));
+}
+
+TEST_CASE("DiT position ids (ids.*)") {
+  const auto ids = golden_ids();
+  expect_golden("ids.img", ids.img);
+  expect_golden("ids.cond", ids.cond);
+  expect_golden("ids.traj", ids.traj);
+}
+
+TEST_CASE("sampling schedules (sched.*), bit-exact") {
+  const auto& w = world_golden().world();
+  const WorldModelConfig real;  // the shipped configuration
+  const auto check = [](const std::string& name, const std::vector<float>& ours) {
+    const auto golden = world_golden().tensor(name);
+    REQUIRE(golden.numel() == static_cast<std::int64_t>(ours.size()));
+    Tensor<float, Cpu> t({golden.numel()});
+    std::copy(ours.begin(), ours.end(), t.data());
+    expect_golden(name, t);
+    int differing_bits = 0;
+    for (std::size_t i = 0; i < ours.size(); ++i) differing_bits += ours[i] != golden.data()[i];
+    CHECK_MESSAGE(differing_bits == 0, name, ": ", differing_bits, " values differ from the official fp32 grid");
+  };
+  check("sched.traj", flow::get_schedule(w.num_sampling_steps, w.traj_len));
+  check("sched.img", flow::get_schedule(w.num_sampling_steps, w.img_tokens()));
+  check("sched.real_traj_100", flow::get_schedule(100, real.traj_len));
+  check("sched.real_img_100", flow::get_schedule(100, real.img_tokens()));
+}
+
+TEST_CASE("MST evaluate (mst.*), every block's output") {
+  const auto& g = world_golden();
+  const auto& m = mst();
+  const auto& c = m.config();
+  const auto latents = g.tensor("mst.latents");
+  const std::int64_t B = latents.size(0);
+  Tensor<float, Cpu> stt({B, c.tokens_per_frame(), c.n_embd}), pose_emb({B, 3 * c.n_embd});
+  Arena<Cpu> arena(m.evaluate_workspace_bytes());
+  int observed_blocks = 0;
+  m.evaluate(context(), arena, latents, g.tensor("mst.pose_idx"), g.tensor("mst.yaw_idx"), stt, pose_emb,
+             [&](std::int64_t b, const std::string& stage, const Tensor<float, Cpu>& x) {
+               const std::string name = "mst." + stage;
+               if (!g.has(name)) return;
+               auto golden = g.tensor(name)[b];  // (F, T, C) of batch item b
+               const double rel = test::rel_error(x, golden);
+               MESSAGE(name, "[", b, "]: rel ", rel, " (limit 1e-4)");
+               CHECK(rel <= 1e-4);
+               observed_blocks += stage.rfind("block", 0) == 0;
+             });
+  CHECK(arena.high_water() == m.evaluate_workspace_bytes());
+  expect_golden("mst.stt_features", stt);
+  expect_golden("mst.pose_emb", pose_emb);
+  // Every mst.block{i}_out present in the set was checked.
+  int golden_blocks = 0;
+  while (g.has("mst.block" + std::to_string(golden_blocks) + "_out")) ++golden_blocks;
+  CHECK(observed_blocks == golden_blocks * B);
+  CHECK(g.has("mst.tokens_in"));
+}
+
+TEST_CASE("TrajDiT and VisDiT: one velocity and a full sample (traj.*, vis.*)") {
+  const auto& g = world_golden();
+  const auto& w = g.world();
+  const auto ids = golden_ids();
+  const auto cond = g.tensor("mst.stt_features"), y = g.tensor("mst.pose_emb");
+  for (const bool vis : {false, true}) {
+    const std::string name = vis ? "vis" : "traj";
+    const auto& d = dit(vis);
+    const auto& target_ids = vis ? ids.img : ids.traj;
+    const auto x = g.tensor(name + ".x");
+    const model::JointRows rows{cond.size(1), x.size(1)};
+    const std::int64_t steps = w.num_sampling_steps;
+    Arena<Cpu> arena(std::max(d.forward_bytes(x.size(0), rows),
+                              d.conditioning_bytes(x.size(0), rows) + d.sample_bytes(x.size(0), rows, steps)));
+    Tensor<float, Cpu> v(x.shape());
+    d.forward(context(), arena, x, target_ids, cond, ids.cond, g.tensor(name + ".t"), y, v);
+    expect_golden(name + ".velocity", v);
+
+    const auto grid = flow::get_schedule(steps, vis ? w.img_tokens() : w.traj_len);
+    auto state = g.tensor(name + ".sample.noise");
+    {
+      ArenaScope<Cpu> scope(arena);
+      const auto c = d.prepare(context(), arena, cond, ids.cond, target_ids, y);
+      d.sample(context(), arena, c, grid, state);
+    }
+    CHECK(arena.high_water() <= arena.capacity());
+    expect_golden(name + ".sample.out", state);
+    if (!vis) {
+      model::TrajectoryScale::from(w).denormalize(state);
+      expect_golden("traj.sample.out_denorm", state);
+    }
+  }
+}
