@@ -1,0 +1,277 @@
+// epona/cpu/conv.hpp — the NCHW float32 kernels of the convolutional autoencoder (DC-AE):
+// 2-D convolution (stride 1, "same" zero padding, groups) as Eigen GEMMs over im2col panels,
+// depthwise convolution as direct loops, ReLU/SiLU epilogues, per-pixel channel norms
+// (RMSNorm2d, eval BatchNorm2d), the GLU gate and LiteMLA's ReLU linear attention.
+#pragma once
+
+#include <Eigen/Core>
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <type_traits>
+#include <vector>
+
+#include "epona/cpu/activation.hpp"
+#include "epona/cpu/context.hpp"
+
+namespace epona {
+
+// Activation fused after a convolution or norm (the DC-AE uses ReLU and SiLU only). Backend
+// neutral, like the shape structs below, so that every backend's kernels take the same types.
+enum class ConvAct { None, Relu, Silu };
+
+// Geometry of a stride-1 convolution with zero padding kernel/2 on every side.
+// Weight layout [out, in/groups, kernel, kernel] (PyTorch), bias [out] or null.
+struct Conv2dShape {
+  std::int64_t batch = 1, in_channels = 0, height = 0, width = 0;
+  std::int64_t out_channels = 0, kernel = 1, groups = 1;
+};
+
+}  // namespace epona
+
+namespace epona::cpu {
+
+inline void apply_conv_act(Context& ctx, float* x, std::int64_t n, ConvAct act) {
+  switch (act) {
+    case ConvAct::None: return;
+    case ConvAct::Silu: silu(ctx, x, n); return;
+    case ConvAct::Relu:
+#pragma omp parallel for
+      for (std::int64_t i = 0; i < n; ++i) x[i] = x[i] > 0.f ? x[i] : 0.f;
+      return;
+  }
+}
+
+namespace conv_detail {
+using RowMat = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+using CMap = Eigen::Map<const RowMat>;
+using StridedMap = Eigen::Map<RowMat, 0, Eigen::OuterStride<>>;
+
+// Upper bound on one im2col panel (floats): keeps the panel in a few tens of MB whatever the
+// image size, while leaving each GEMM wide enough (thousands of columns) to run at full speed.
+inline constexpr std::int64_t kPanelFloats = std::int64_t{1} << 22;
+
+inline void check_shape(const Conv2dShape& s) {
+  EPONA_CHECK(s.batch >= 0 && s.in_channels > 0 && s.out_channels > 0 && s.height > 0 && s.width > 0,
+              "conv2d: bad geometry N=", s.batch, " C=", s.in_channels, " H=", s.height, " W=", s.width,
+              " O=", s.out_channels);
+  EPONA_CHECK(s.kernel >= 1 && s.kernel % 2 == 1, "conv2d: kernel size must be odd (same padding), got ",
+              s.kernel);
+  EPONA_CHECK(s.groups >= 1 && s.in_channels % s.groups == 0 && s.out_channels % s.groups == 0,
+              "conv2d: groups=", s.groups, " must divide in_channels=", s.in_channels, " and out_channels=",
+              s.out_channels);
+}
+
+// Weights as float32: a view for float, a widened copy for bf16 (accumulation stays fp32).
+template <class W>
+const float* weights_as_float(const W* w, std::int64_t n, std::vector<float>& storage) {
+  if constexpr (std::is_same_v<W, float>) {
+    return w;
+  } else {
+    storage.resize(static_cast<std::size_t>(n));
+#pragma omp parallel for
+    for (std::int64_t i = 0; i < n; ++i) storage[static_cast<std::size_t>(i)] = float(w[i]);
+    return storage.data();
+  }
+}
+
+// panel[(c*k + dy)*k + dx, (y - y0)*W + x] = in[c, y + dy - k/2, x + dx - k/2] (0 outside),
+// for output rows y in [y0, y0 + rows) of one image and channels c of one group.
+inline void im2col(const float* in, std::int64_t channels, std::int64_t H, std::int64_t W, std::int64_t k,
+                   std::int64_t y0, std::int64_t rows, float* panel) {
+  const std::int64_t pad = k / 2, P = rows * W, K = channels * k * k;
+#pragma omp parallel for
+  for (std::int64_t kr = 0; kr < K; ++kr) {
+    const std::int64_t c = kr / (k * k), dy = (kr / k) % k - pad, dx = kr % k - pad;
+    const float* plane = in + c * H * W;
+    float* dst = panel + kr * P;
+    const std::int64_t x_lo = std::max<std::int64_t>(0, -dx), x_hi = std::min(W, W - dx);
+    for (std::int64_t r = 0; r < rows; ++r) {
+      const std::int64_t ys = y0 + r + dy;
+      float* d = dst + r * W;
+      if (ys < 0 || ys >= H || x_lo >= x_hi) {
+        std::fill_n(d, W, 0.f);
+        continue;
+      }
+      const float* src = plane + ys * W + dx;
+      std::fill_n(d, x_lo, 0.f);
+      std::copy(src + x_lo, src + x_hi, d + x_lo);
+      std::fill(d + x_hi, d + W, 0.f);
+    }
+  }
+}
+
+// out[o, p] = bias[o] + Σ_k W[o, k] · in[k, p] for one group of one image: a 1x1 convolution
+// is one GEMM on the image itself; larger kernels go through im2col panels of whole rows.
+inline void conv_group(const float* in, std::int64_t cin, std::int64_t H, std::int64_t W, std::int64_t k,
+                       const float* w, std::int64_t cout, float* out, std::vector<float>& panel) {
+  const std::int64_t HW = H * W, K = cin * k * k;
+  const CMap Wm(w, cout, K);
+  if (k == 1) {
+    StridedMap Y(out, cout, HW, Eigen::OuterStride<>(HW));
+    Y.noalias() = Wm * CMap(in, cin, HW);
+    return;
+  }
+  const std::int64_t rows_per_panel = std::clamp<std::int64_t>(kPanelFloats / (K * W), 1, H);
+  panel.resize(static_cast<std::size_t>(K * rows_per_panel * W));
+  for (std::int64_t y0 = 0; y0 < H; y0 += rows_per_panel) {
+    const std::int64_t rows = std::min(rows_per_panel, H - y0), P = rows * W;
+    im2col(in, cin, H, W, k, y0, rows, panel.data());
+    StridedMap Y(out + y0 * W, cout, P, Eigen::OuterStride<>(HW));
+    Y.noalias() = Wm * CMap(panel.data(), K, P);
+  }
+}
+
+// Depthwise (one input channel per output channel): direct shifted multiply-adds per plane.
+inline void conv_depthwise(const float* in, std::int64_t planes, std::int64_t channels, std::int64_t H,
+                           std::int64_t W, std::int64_t k, const float* w, const float* bias, float* out) {
+  const std::int64_t pad = k / 2;
+#pragma omp parallel for
+  for (std::int64_t p = 0; p < planes; ++p) {
+    const std::int64_t c = p % channels;
+    const float* src = in + p * H * W;
+    float* dst = out + p * H * W;
+    const float* wc = w + c * k * k;
+    std::fill_n(dst, H * W, bias ? bias[c] : 0.f);
+    for (std::int64_t y = 0; y < H; ++y)
+      for (std::int64_t dy = 0; dy < k; ++dy) {
+        const std::int64_t ys = y + dy - pad;
+        if (ys < 0 || ys >= H) continue;
+        for (std::int64_t dx = 0; dx < k; ++dx) {
+          const float wt = wc[dy * k + dx];
+          const std::int64_t off = dx - pad;
+          const std::int64_t x_lo = std::max<std::int64_t>(0, -off), x_hi = std::min(W, W - off);
+          const float* s = src + ys * W + off;
+          float* d = dst + y * W;
+          for (std::int64_t x = x_lo; x < x_hi; ++x) d[x] += wt * s[x];
+        }
+      }
+  }
+}
+
+inline void add_bias_act(Context& ctx, float* y, const float* bias, std::int64_t planes, std::int64_t channels,
+                         std::int64_t HW, ConvAct act) {
+  if (bias) {
+#pragma omp parallel for
+    for (std::int64_t p = 0; p < planes; ++p) {
+      const float b = bias[p % channels];
+      float* d = y + p * HW;
+      for (std::int64_t i = 0; i < HW; ++i) d[i] += b;
+    }
+  }
+  apply_conv_act(ctx, y, planes * HW, act);
+}
+}  // namespace conv_detail
+
+// y = act(conv(x) + bias), x (N, C, H, W), y (N, O, H, W) preallocated (must not alias x).
+// W: float or bf16 weights; activations and accumulation are float32.
+template <class W>
+void conv2d(Context& ctx, const float* x, const W* weight, const float* bias, float* y, const Conv2dShape& s,
+            ConvAct act = ConvAct::None) {
+  conv_detail::check_shape(s);
+  const std::int64_t cin_g = s.in_channels / s.groups, cout_g = s.out_channels / s.groups;
+  const std::int64_t HW = s.height * s.width, k = s.kernel;
+  std::vector<float> widened;
+  const float* w = conv_detail::weights_as_float(weight, s.out_channels * cin_g * k * k, widened);
+  if (cin_g == 1 && cout_g == 1) {
+    conv_detail::conv_depthwise(x, s.batch * s.in_channels, s.in_channels, s.height, s.width, k, w, bias, y);
+    apply_conv_act(ctx, y, s.batch * s.out_channels * HW, act);
+    return;
+  }
+  std::vector<float> panel;
+  for (std::int64_t n = 0; n < s.batch; ++n)
+    for (std::int64_t g = 0; g < s.groups; ++g)
+      conv_detail::conv_group(x + (n * s.in_channels + g * cin_g) * HW, cin_g, s.height, s.width, k,
+                              w + g * cout_g * cin_g * k * k, cout_g, y + (n * s.out_channels + g * cout_g) * HW,
+                              panel);
+  conv_detail::add_bias_act(ctx, y, bias, s.batch * s.out_channels, s.out_channels, HW, act);
+}
+
+// RMSNorm2d (the DC-AE's "trms2d"): per pixel over the C channels, no mean subtraction,
+//   y[n,c,p] = x[n,c,p] · 1/sqrt(mean_c x² + eps) · weight[c] + bias[c].
+// Sums of squares in float32 in channel order, as the reference Triton kernel. In place allowed.
+inline void rms_norm_2d(Context&, const float* x, float* y, std::int64_t N, std::int64_t C, std::int64_t HW,
+                        const float* weight, const float* bias, float eps) {
+  constexpr std::int64_t block = 256;  // pixels per task, as the reference kernel's tile
+  const std::int64_t blocks = (HW + block - 1) / block;
+#pragma omp parallel for collapse(2)
+  for (std::int64_t n = 0; n < N; ++n)
+    for (std::int64_t b = 0; b < blocks; ++b) {
+      const std::int64_t p0 = b * block, np = std::min(block, HW - p0);
+      float r[block];
+      std::fill_n(r, np, 0.f);
+      const float* xn = x + n * C * HW + p0;
+      for (std::int64_t c = 0; c < C; ++c)
+        for (std::int64_t i = 0; i < np; ++i) r[i] += xn[c * HW + i] * xn[c * HW + i];
+      for (std::int64_t i = 0; i < np; ++i) r[i] = 1.0f / std::sqrt(r[i] / static_cast<float>(C) + eps);
+      float* yn = y + n * C * HW + p0;
+      for (std::int64_t c = 0; c < C; ++c)
+        for (std::int64_t i = 0; i < np; ++i) yn[c * HW + i] = (xn[c * HW + i] * r[i]) * weight[c] + bias[c];
+    }
+}
+
+// BatchNorm2d in eval mode: y = (x - mean[c]) / sqrt(var[c] + eps) · weight[c] + bias[c]. In place allowed.
+inline void batch_norm_2d(Context&, const float* x, float* y, std::int64_t N, std::int64_t C, std::int64_t HW,
+                          const float* weight, const float* bias, const float* mean, const float* var, float eps) {
+#pragma omp parallel for
+  for (std::int64_t p = 0; p < N * C; ++p) {
+    const std::int64_t c = p % C;
+    const float inv = 1.0f / std::sqrt(var[c] + eps), w = weight[c], b = bias[c], m = mean[c];
+    const float* s = x + p * HW;
+    float* d = y + p * HW;
+    for (std::int64_t i = 0; i < HW; ++i) d[i] = (s[i] - m) * inv * w + b;
+  }
+}
+
+// out[r*out_stride + i] = value[r*in_stride + i] · act(gate[r*in_stride + i]) for i < width:
+// GLUMBConv's `x * act(gate)` and SwiGLU's `silu(w1 x) * (w3 x)`.
+inline void gated_act(Context&, const float* value, const float* gate, float* out, std::int64_t rows,
+                      std::int64_t width, std::int64_t in_stride, std::int64_t out_stride, ConvAct act) {
+#pragma omp parallel for collapse(2)
+  for (std::int64_t r = 0; r < rows; ++r)
+    for (std::int64_t i = 0; i < width; ++i) {
+      const float g = gate[r * in_stride + i];
+      const float a = act == ConvAct::Silu ? g / (1.0f + std::exp(-g)) : act == ConvAct::Relu ? (g > 0.f ? g : 0.f) : g;
+      out[r * out_stride + i] = value[r * in_stride + i] * a;
+    }
+}
+
+// LiteMLA's ReLU linear attention. qkv (N, heads·3·d, HW) holds, per head a, q in channels
+// [3da, 3da+d), k in [3da+d, 3da+2d), v in [3da+2d, 3da+3d); out (N, heads·d, HW), head a in
+// channels [da, da+d). With q, k ← ReLU(q, k) and S(m, n) = Σ_j k[j,m] q[j,n]:
+//   out[i, n] = Σ_m v[i,m] S(m,n) / (Σ_m S(m,n) + eps).
+// Like the reference, HW > d evaluates ([v; 1] kᵀ) q (linear in HW), otherwise (v (kᵀ q)) with
+// the column sums of kᵀ q (quadratic). ReLU is applied to q and k in place inside qkv.
+inline void relu_linear_attention(Context& ctx, float* qkv, float* out, std::int64_t N, std::int64_t heads,
+                                  std::int64_t d, std::int64_t HW, float eps) {
+  using conv_detail::RowMat;
+  using Map = Eigen::Map<RowMat>;
+  for (std::int64_t n = 0; n < N; ++n)
+    for (std::int64_t a = 0; a < heads; ++a) {
+      float* q = qkv + (n * heads * 3 + 3 * a) * d * HW;
+      apply_conv_act(ctx, q, 2 * d * HW, ConvAct::Relu);  // q and k are adjacent
+    }
+  const bool linear = HW > d;
+#pragma omp parallel for collapse(2)
+  for (std::int64_t n = 0; n < N; ++n)
+    for (std::int64_t a = 0; a < heads; ++a) {
+      const float* base = qkv + (n * heads * 3 + 3 * a) * d * HW;
+      const Map Q(const_cast<float*>(base), d, HW), K(const_cast<float*>(base + d * HW), d, HW),
+          V(const_cast<float*>(base + 2 * d * HW), d, HW);
+      Map O(out + (n * heads + a) * d * HW, d, HW);
+      if (linear) {
+        const RowMat vk = V * K.transpose();                                         // (d, d)
+        const Eigen::RowVectorXf ksum = K.rowwise().sum().transpose();               // the ones row
+        const Eigen::RowVectorXf den = (ksum * Q).array() + eps;                     // (1, HW)
+        O.noalias() = vk * Q;
+        O.array().rowwise() /= den.array();
+      } else {
+        RowMat att = K.transpose() * Q;                                              // (HW, HW) [m, n]
+        const Eigen::RowVectorXf den = att.colwise().sum().array() + eps;
+        att.array().rowwise() /= den.array();
+        O.noalias() = V * att;
+      }
+    }
+}
+
+}  // namespace epona::cpu

@@ -1,0 +1,340 @@
+// epona/model/dcae.hpp — Epona's DC-AE f32c32 (mix-1.0 architecture, `models/modules/dcae.py`):
+// the deterministic encoder (image (N, 3, H, W) in [-1, 1] -> latent (N, 32, H/32, W/32)), the
+// temporal-aware front (5 x [causal time block, space block] on the latent tokens) and the
+// decoder. Sizes, depths, norms and activations come from DcaeConfig; weights bind by official name.
+#pragma once
+
+#include <algorithm>
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <variant>
+#include <vector>
+
+#include "epona/core/tensor.hpp"
+#include "epona/io/tensor_map.hpp"
+#include "epona/model/config.hpp"
+#include "epona/model/latent_layout.hpp"
+#include "epona/nn/conv2d.hpp"
+#include "epona/nn/dcae_blocks.hpp"
+#include "epona/nn/llama_block.hpp"
+#include "epona/nn/norm2d.hpp"
+#include "epona/nn/pixel_shuffle.hpp"
+
+namespace epona {
+
+// Where an observer is called (stage = DC-AE stage id 1..5 for the *Stage points, else 0).
+enum class DcaePoint {
+  EncoderProjectIn,  // after project_in (conv + unshuffle), (1, width[1], H/2, W/2)
+  EncoderStage,      // after stage s including its downsample (stage 5 has none)
+  EncoderLatent,     // the latent, after project_out
+  DecoderTemporal,   // the latent after the temporal blocks (only with add_decoder_temporal)
+  DecoderProjectIn,  // after project_in (conv + duplicating shortcut)
+  DecoderStage,      // after stage s including its upsample (run from s = 5 down to 1)
+  DecoderImage,      // the decoded image, after project_out (no clamp)
+};
+
+// Sees every intermediate of one image (1, C, h, w); `image` is its index in the batch.
+template <class B>
+using DcaeObserver = std::function<void(DcaePoint point, int stage, std::int64_t image, const Tensor<float, B>&)>;
+
+namespace dcae_detail {
+inline nn::Norm2dKind norm_kind(DcaeNorm n) {
+  return n == DcaeNorm::BatchNorm2d ? nn::Norm2dKind::Batch : nn::Norm2dKind::Rms;
+}
+inline ConvAct conv_act(DcaeAct a) { return a == DcaeAct::ReLU ? ConvAct::Relu : ConvAct::Silu; }
+inline std::string stage_prefix(const std::string& side, std::size_t s) {
+  return side + "stages." + std::to_string(s) + ".op_list.";
+}
+
+template <class B, class T>
+using StageBlock = std::variant<nn::ResBlock<B, T>, nn::EfficientViTBlock<B, T>>;
+
+// `depth` main blocks of one stage, all of one type/norm/act, named op_list.{first + i}.
+template <class B, class T>
+struct StageBlocks {
+  std::vector<StageBlock<B, T>> blocks;
+  std::size_t first_index = 0;
+
+  StageBlocks() = default;
+  StageBlocks(DcaeBlockType type, std::int64_t width, std::int64_t depth, DcaeNorm norm, DcaeAct act,
+              std::size_t first) : first_index(first) {
+    for (std::int64_t i = 0; i < depth; ++i) {
+      auto n = norm_kind(norm);
+      if (type == DcaeBlockType::ResBlock)
+        blocks.emplace_back(nn::ResBlock<B, T>(width, n, conv_act(act)));
+      else
+        blocks.emplace_back(nn::EfficientViTBlock<B, T>(width, n, conv_act(act), constants::dcae_litemla_head_dim,
+                                                        static_cast<float>(constants::dcae_litemla_eps),
+                                                        constants::dcae_glu_expand));
+    }
+  }
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    for (std::size_t i = 0; i < blocks.size(); ++i)
+      std::visit([&](auto& b) { b.visit_params(prefix + std::to_string(first_index + i) + ".", v); }, blocks[i]);
+  }
+  template <class Ctx>
+  void forward_inplace(Ctx& ctx, Tensor<float, B>& x) const {
+    for (const auto& block : blocks) std::visit([&](const auto& b) { b.forward_inplace(ctx, x); }, block);
+  }
+};
+
+template <class B>
+void notify(const DcaeObserver<B>& obs, DcaePoint p, int stage, std::int64_t image, const Tensor<float, B>& t) {
+  if (obs) obs(p, stage, image, t);
+}
+}  // namespace dcae_detail
+
+// DC-AE encoder: project_in (conv 3 -> width[1]/4 + unshuffle), stages 1..5 (blocks, then a
+// downsample pair for s < 5), project_out (conv width[5] -> latent + channel-averaging shortcut).
+template <class B, class T>
+struct DcaeEncoder : nn::Bindable<DcaeEncoder<B, T>> {
+  nn::DownsampleBlock<B, T> project_in;
+  std::vector<dcae_detail::StageBlocks<B, T>> stages;      // index s = stage id (0 is empty)
+  std::vector<nn::DownsampleBlock<B, T>> downsample;        // index s, for s < 5 with depth > 0
+  nn::Conv2d<B, T> project_out;
+  std::int64_t latent_channels = 0;
+
+  DcaeEncoder() = default;
+  explicit DcaeEncoder(const DcaeConfig& c)
+      : project_in(c.in_channels, c.encoder_width_list[1], false),
+        project_out(c.encoder_width_list[5], c.latent_channels, 3),
+        latent_channels(c.latent_channels) {
+    const auto& w = c.encoder_width_list;
+    for (std::size_t s = 0; s < w.size(); ++s) {
+      const std::int64_t depth = c.encoder_depth_list[s];
+      stages.emplace_back(c.encoder_block_type[s], w[s], depth, c.encoder_norm, c.encoder_act, 0);
+      const bool down = s + 1 < w.size() && depth > 0;
+      downsample.emplace_back(down ? nn::DownsampleBlock<B, T>(w[s], w[s + 1], true) : nn::DownsampleBlock<B, T>());
+    }
+  }
+
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    project_in.visit_params(prefix + "project_in.", v);
+    for (std::size_t s = 0; s < stages.size(); ++s) {
+      const std::string p = dcae_detail::stage_prefix(prefix, s);
+      stages[s].visit_params(p, v);
+      if (has_downsample(s)) downsample[s].visit_params(p + std::to_string(stages[s].blocks.size()) + ".", v);
+    }
+    project_out.visit_params(prefix + "project_out.main.op_list.0.conv.", v);
+  }
+
+  // image (1, in, H, W) -> latent (1, latent, H/32, W/32)
+  template <class Ctx>
+  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& image, std::int64_t index,
+                           const DcaeObserver<B>& obs) const {
+    using dcae_detail::notify;
+    Tensor<float, B> x = project_in.forward(ctx, image);
+    notify(obs, DcaePoint::EncoderProjectIn, 0, index, x);
+    for (std::size_t s = 1; s < stages.size(); ++s) {
+      stages[s].forward_inplace(ctx, x);
+      if (has_downsample(s)) x = downsample[s].forward(ctx, x);
+      notify(obs, DcaePoint::EncoderStage, static_cast<int>(s), index, x);
+    }
+    Tensor<float, B> z = project_out.forward(ctx, x);
+    nn::add_channel_average_down(ctx, x, z, 1);
+    notify(obs, DcaePoint::EncoderLatent, 0, index, z);
+    return z;
+  }
+
+ private:
+  bool has_downsample(std::size_t s) const { return downsample[s].conv.out_channels > 0; }
+};
+
+// DC-AE decoder: project_in (conv latent -> width[5] + duplicating shortcut), stages 5..1 (an
+// upsample pair as op_list.0 for s < 5, then the blocks), project_out (norm, act, conv width[1]
+// -> 4·in + shuffle; no clamp).
+template <class B, class T>
+struct DcaeDecoder : nn::Bindable<DcaeDecoder<B, T>> {
+  nn::Conv2d<B, T> project_in;
+  std::vector<nn::UpsampleBlock<B, T>> upsample;            // index s, for s < 5 with depth > 0
+  std::vector<dcae_detail::StageBlocks<B, T>> stages;       // index s = stage id (0 is empty)
+  nn::Norm2d<B, T> out_norm;
+  ConvAct out_act = ConvAct::Relu;
+  nn::UpsampleBlock<B, T> project_out;
+
+  DcaeDecoder() = default;
+  explicit DcaeDecoder(const DcaeConfig& c)
+      : project_in(c.latent_channels, c.decoder_width_list[5], 3),
+        out_norm(dcae_detail::norm_kind(c.decoder_out_norm), c.decoder_width_list[1]),
+        out_act(dcae_detail::conv_act(c.decoder_out_act)),
+        project_out(c.decoder_width_list[1], c.in_channels, false) {
+    const auto& w = c.decoder_width_list;
+    for (std::size_t s = 0; s < w.size(); ++s) {
+      const std::int64_t depth = c.decoder_depth_list[s];
+      const bool up = s + 1 < w.size() && depth > 0;
+      upsample.emplace_back(up ? nn::UpsampleBlock<B, T>(w[s + 1], w[s], true) : nn::UpsampleBlock<B, T>());
+      stages.emplace_back(c.decoder_block_type[s], w[s], depth, c.decoder_norm[s], c.decoder_act[s], up ? 1 : 0);
+    }
+  }
+
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    project_in.visit_params(prefix + "project_in.main.conv.", v);
+    for (std::size_t s = 0; s < stages.size(); ++s) {
+      const std::string p = dcae_detail::stage_prefix(prefix, s);
+      if (has_upsample(s)) upsample[s].visit_params(p + "0.", v);
+      stages[s].visit_params(p, v);
+    }
+    out_norm.visit_params(prefix + "project_out.op_list.0.", v);
+    project_out.visit_params(prefix + "project_out.op_list.2.", v);  // op_list.1 is the activation
+  }
+
+  // latent (1, latent, h, w) -> image (1, in, 32h, 32w)
+  template <class Ctx>
+  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& z, std::int64_t index, const DcaeObserver<B>& obs) const {
+    using dcae_detail::notify;
+    Tensor<float, B> x = project_in.forward(ctx, z);
+    nn::add_channel_duplicate_up(ctx, z, x, 1);
+    notify(obs, DcaePoint::DecoderProjectIn, 0, index, x);
+    for (std::size_t s = stages.size(); s-- > 1;) {
+      if (has_upsample(s)) x = upsample[s].forward(ctx, x);
+      stages[s].forward_inplace(ctx, x);
+      notify(obs, DcaePoint::DecoderStage, static_cast<int>(s), index, x);
+    }
+    out_norm.forward_inplace(ctx, x, out_act);
+    Tensor<float, B> image = project_out.forward(ctx, x);
+    notify(obs, DcaePoint::DecoderImage, 0, index, image);
+    return image;
+  }
+
+ private:
+  bool has_upsample(std::size_t s) const { return upsample[s].conv.out_channels > 0; }
+};
+
+// Epona's temporal-aware front: for i = 0..n-1, `causal_time_block.{i}` over the frames of each
+// clip (per latent token, causal, RoPE position = frame), then `space_block.{i}` over the tokens
+// of each frame (full, RoPE position = y·w + x).
+template <class B, class T>
+struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
+  std::vector<nn::TransformerBlock<B, T>> time_blocks, space_blocks;
+
+  DcaeTemporalBlocks() = default;
+  explicit DcaeTemporalBlocks(const DcaeConfig& c) {
+    const nn::TransformerBlock<B, T> block(c.temporal_dim, c.temporal_heads, c.temporal_ffn_hidden,
+                                           static_cast<float>(c.temporal_rmsnorm_eps),
+                                           static_cast<float>(c.temporal_rope_theta));
+    time_blocks.assign(static_cast<std::size_t>(c.temporal_blocks), block);
+    space_blocks.assign(static_cast<std::size_t>(c.temporal_blocks), block);
+  }
+
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    for (std::size_t i = 0; i < time_blocks.size(); ++i) {
+      time_blocks[i].visit_params(prefix + "causal_time_block." + std::to_string(i) + ".", v);
+      space_blocks[i].visit_params(prefix + "space_block." + std::to_string(i) + ".", v);
+    }
+  }
+
+  // latent (N, C, h, w) with N = clips · frames (clip-major) -> same shape.
+  template <class Ctx>
+  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& latent, std::int64_t frames) const {
+    const std::int64_t N = latent.size(0), L = latent.size(2) * latent.size(3);
+    EPONA_CHECK(frames > 0 && N % frames == 0, "temporal blocks: ", N, " latents are not whole clips of ", frames,
+                " frames");
+    const std::int64_t clips = N / frames;
+    Tensor<float, B> x = latent_to_tokens(ctx, latent).reshape({N * L, latent.size(1)});  // rows (clip, f, l)
+    const nn::TokenSequences time{clips, L, frames, 1, L, true}, space{clips, frames, L, L, 1, false};
+    std::vector<float> time_cos, time_sin, space_cos, space_sin;
+    if (!time_blocks.empty()) {
+      const auto& b = time_blocks.front();
+      nn::rope_table_1d(time, b.head_dim(), b.rope_theta, time_cos, time_sin);
+      nn::rope_table_1d(space, b.head_dim(), b.rope_theta, space_cos, space_sin);
+    }
+    for (std::size_t i = 0; i < time_blocks.size(); ++i) {
+      time_blocks[i].forward_inplace(ctx, x, time, time_cos.data(), time_sin.data());
+      space_blocks[i].forward_inplace(ctx, x, space, space_cos.data(), space_sin.data());
+    }
+    return tokens_to_latent(ctx, x.reshape({N, L, latent.size(1)}), latent.size(2), latent.size(3));
+  }
+};
+
+// The whole autoencoder. encode: (N, 3, H, W) in [-1, 1] -> (N, 32, H/32, W/32); decode: the
+// inverse, with the temporal front over single frames (is_video = false) or over clips of
+// condition_frames consecutive latents (is_video = true, N a multiple of it). H and W may be any
+// multiples of 32 (the reference's RoPE tables fix them to the config's image size).
+// Images are processed one at a time through the convolutional parts (bounded memory).
+template <class B, class T>
+class Dcae : public nn::Bindable<Dcae<B, T>> {
+ public:
+  explicit Dcae(DcaeConfig config) : config_((config.validate(), std::move(config))) {
+    encoder = DcaeEncoder<B, T>(config_);
+    decoder = DcaeDecoder<B, T>(config_);
+    if (config_.add_decoder_temporal) temporal = DcaeTemporalBlocks<B, T>(config_);
+  }
+
+  // Binds every parameter from `weights` (official names, no prefix); throws one error naming
+  // every missing / mis-shaped key, and with `strict` every unexpected one. BatchNorm's
+  // `num_batches_tracked` counters are accepted and ignored.
+  static Dcae load(const io::TensorMap& weights, const DcaeConfig& config, bool strict = true) {
+    Dcae model(config);
+    io::BindReport report(weights);
+    model.bind(weights, "", report);
+    report.finish(strict, [](const std::string& name) {
+      const std::string counter = "num_batches_tracked";
+      return name.size() >= counter.size() && name.compare(name.size() - counter.size(), counter.size(), counter) == 0;
+    });
+    return model;
+  }
+
+  const DcaeConfig& config() const { return config_; }
+
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    encoder.visit_params(prefix + "encoder.", v);
+    decoder.visit_params(prefix + "decoder.", v);
+    temporal.visit_params(prefix, v);
+  }
+
+  template <class Ctx>
+  Tensor<float, B> encode(Ctx& ctx, const Tensor<float, B>& images, const DcaeObserver<B>& obs = {}) const {
+    EPONA_CHECK(images.dim() == 4 && images.size(1) == config_.in_channels, "Dcae::encode: images must be (N, ",
+                config_.in_channels, ", H, W), got ", shape_str(images.shape()));
+    check_multiple(images.size(2), images.size(3), "Dcae::encode: image");
+    const std::int64_t N = images.size(0), f = constants::dcae_downsample;
+    Tensor<float, B> latents({N, config_.latent_channels, images.size(2) / f, images.size(3) / f});
+    for (std::int64_t n = 0; n < N; ++n) copy_into(latents, n, encoder.forward(ctx, images.slice(n, n + 1), n, obs));
+    return latents;
+  }
+
+  template <class Ctx>
+  Tensor<float, B> decode(Ctx& ctx, const Tensor<float, B>& latents, bool is_video,
+                          const DcaeObserver<B>& obs = {}) const {
+    EPONA_CHECK(latents.dim() == 4 && latents.size(1) == config_.latent_channels, "Dcae::decode: latents must be (N, ",
+                config_.latent_channels, ", h, w), got ", shape_str(latents.shape()));
+    const std::int64_t N = latents.size(0), f = constants::dcae_downsample;
+    const std::int64_t frames = is_video ? config_.condition_frames : 1;
+    EPONA_CHECK(N % frames == 0, "Dcae::decode(is_video): ", N, " latents are not whole clips of condition_frames = ",
+                frames);
+    Tensor<float, B> z = latents;
+    if (config_.add_decoder_temporal) {
+      z = temporal.forward(ctx, latents, frames);
+      for (std::int64_t n = 0; n < N; ++n) dcae_detail::notify(obs, DcaePoint::DecoderTemporal, 0, n, z.slice(n, n + 1));
+    }
+    Tensor<float, B> images({N, config_.in_channels, latents.size(2) * f, latents.size(3) * f});
+    for (std::int64_t n = 0; n < N; ++n) copy_into(images, n, decoder.forward(ctx, z.slice(n, n + 1), n, obs));
+    return images;
+  }
+
+  DcaeEncoder<B, T> encoder;
+  DcaeDecoder<B, T> decoder;
+  DcaeTemporalBlocks<B, T> temporal;  // empty without add_decoder_temporal
+
+ private:
+  static void check_multiple(std::int64_t h, std::int64_t w, const char* what) {
+    const std::int64_t f = constants::dcae_downsample;
+    EPONA_CHECK(h > 0 && w > 0 && h % f == 0 && w % f == 0, what, " size ", h, "x", w, " is not a multiple of ", f);
+  }
+  static void copy_into(Tensor<float, B>& batch, std::int64_t n, const Tensor<float, B>& one) {
+    static_assert(is_host_backend<B>, "Dcae batches are assembled on the host backend");
+    Tensor<float, B> dst = batch.slice(n, n + 1);
+    check_shape(one, dst.shape(), "Dcae: per-image result");
+    std::copy_n(one.data(), one.numel(), dst.data());
+  }
+
+  DcaeConfig config_;
+};
+
+}  // namespace epona
