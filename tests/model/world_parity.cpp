@@ -11,6 +11,8 @@
 #include "epona/model/flux_dit.hpp"
 #include "epona/model/mst.hpp"
 #include "epona/model/pose_tokenizer.hpp"
+#include "epona/model/rollout.hpp"
+#include "epona/model/world_model.hpp"
 #include "epona/nn/embeddings.hpp"
 #include "world_golden.hpp"
 
@@ -175,4 +177,64 @@ TEST_CASE("TrajDiT and VisDiT: one velocity and a full sample (traj.*, vis.*)") 
       expect_golden("traj.sample.out_denorm", state);
     }
   }
+}
+
+namespace {
+// The first `n` entries along dim 1 of a (B, N, k) tensor.
+Tensor<float, Cpu> first_entries(const Tensor<float, Cpu>& t, std::int64_t n) {
+  Tensor<float, Cpu> out({t.size(0), n, t.size(2)});
+  for (std::int64_t b = 0; b < t.size(0); ++b) std::copy_n(t[b].data(), n * t.size(2), out[b].data());
+  return out;
+}
+// Stacks per-step tensors into (S, ...) with `shape` per step.
+struct Stack {
+  Tensor<float, Cpu> t;
+  Stack(std::int64_t steps, Shape shape) {
+    shape.insert(shape.begin(), steps);
+    t = Tensor<float, Cpu>(shape);
+  }
+  void put(std::int64_t s, const Tensor<float, Cpu>& x) {
+    REQUIRE(x.numel() == t[s].numel());
+    std::copy_n(x.data(), x.numel(), t[s].data());
+  }
+};
+}  // namespace
+
+TEST_CASE("autoregressive rollout with self-predicted actions (rollout.*)") {
+  const auto& g = world_golden();
+  const auto& w = g.world();
+  auto wm = WorldModel<Cpu, float>::load(g.weights, w);
+  const std::int64_t F = w.condition_frames;
+  const History start{g.tensor("mst.latents"), first_entries(g.tensor("mst.rel_pose"), F),
+                      first_entries(g.tensor("mst.rel_yaw"), F)};
+  const auto noise_traj = g.tensor("rollout.noise_traj"), noise_img = g.tensor("rollout.noise_img");
+  const std::int64_t S = noise_traj.size(0), B = noise_traj.size(1);
+  RolloutOptions opt;
+  opt.frames = S;
+  opt.sample.noise = NoiseSource::supplied(noise_traj, noise_img);
+  const std::int64_t C = w.n_embd;
+  Stack stt(S, {B, w.tokens_per_frame(), C}), pose_idx(S, {B, 1, 2}), yaw_idx(S, {B, 1, 1}),
+      pose_emb(S, {B, w.pose_emb_dim()}), traj(S, {B, w.traj_len, 3}),
+      latents(S, {B, w.latent_h(), w.latent_w(), w.token_dim()}), rel_pose(S, {B, F + 1, 2}), rel_yaw(S, {B, F + 1, 1});
+  const auto result = rollout(wm, start, opt, [&](const RolloutFrame<Cpu>& f) {
+    stt.put(f.index, f.details.stt_features);
+    pose_idx.put(f.index, f.details.pred_pose_idx);
+    yaw_idx.put(f.index, f.details.pred_yaw_idx);
+    pose_emb.put(f.index, f.details.pose_emb);
+    traj.put(f.index, f.result.trajectory);
+    latents.put(f.index, f.result.latent);
+    rel_pose.put(f.index, f.rel_pose_window);
+    rel_yaw.put(f.index, f.rel_yaw_window);
+  });
+  expect_golden("rollout.stt_features", stt.t);
+  expect_golden("rollout.pred_pose_idx", pose_idx.t);
+  expect_golden("rollout.pred_yaw_idx", yaw_idx.t);
+  expect_golden("rollout.pose_emb", pose_emb.t);
+  expect_golden("rollout.predict_traj", traj.t);
+  expect_golden("rollout.predict_latents", latents.t);
+  expect_golden("rollout.rel_pose_after", rel_pose.t);
+  expect_golden("rollout.rel_yaw_after", rel_yaw.t);
+  // The returned stacks hold the same per-step results.
+  CHECK(test::rel_error(result.trajectories, traj.t.reshape(result.trajectories.shape())) == 0);
+  CHECK(test::rel_error(result.latents, latents.t.reshape(result.latents.shape())) == 0);
 }

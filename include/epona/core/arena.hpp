@@ -7,6 +7,7 @@
 #include <cstddef>
 #include <memory>
 #include <string>
+#include <utility>
 
 #include "epona/core/backend.hpp"
 #include "epona/core/error.hpp"
@@ -48,6 +49,18 @@ class Arena {
  public:
   Arena() = default;
   explicit Arena(std::size_t bytes) { reserve(bytes); }
+  // One owner of the buffer: a copy would hand out the same bytes twice.
+  Arena(const Arena&) = delete;
+  Arena& operator=(const Arena&) = delete;
+  Arena(Arena&& o) noexcept { *this = std::move(o); }
+  Arena& operator=(Arena&& o) noexcept {
+    storage_ = std::move(o.storage_);
+    base_ = std::exchange(o.base_, nullptr);
+    capacity_ = std::exchange(o.capacity_, 0);
+    used_ = std::exchange(o.used_, 0);
+    high_water_ = std::exchange(o.high_water_, 0);
+    return *this;
+  }
 
   // Makes the capacity at least `bytes`. Only when nothing is allocated (a bigger buffer
   // replaces the old one; views handed out earlier keep the old one alive).

@@ -1,0 +1,318 @@
+// epona/model/world_model.hpp — the Epona world model (models/model.py
+// `TrainTransformersDiT`): MST + TrajDiT + VisDiT bound from one checkpoint (prefixes
+// `module.model.`, `module.traj_dit.`, `module.dit.`), and the inference entry points:
+// plan (traj_only), predict_next with a given action (`generate_gt_pose_gt_yaw`) or a
+// self-predicted one (`step_eval(self_pred_traj=True)`). Noise from a seed (torch-compatible
+// draws, trajectory noise then latent noise per step) or supplied by the caller.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "epona/core/arena.hpp"
+#include "epona/core/error.hpp"
+#include "epona/core/rng.hpp"
+#include "epona/core/tensor.hpp"
+#include "epona/flow/schedule.hpp"
+#include "epona/io/tensor_map.hpp"
+#include "epona/model/config.hpp"
+#include "epona/model/flux_dit.hpp"
+#include "epona/model/mst.hpp"
+#include "epona/model/pose_tokenizer.hpp"
+#include "epona/nn/backend_context.hpp"
+
+namespace epona {
+
+// The conditioning window of a batch of Bt scenes, oldest frame first.
+struct History {
+  Tensor<float, Cpu> latents;   // (Bt, F, L, C_vae) DC-AE latents, tokens row-major over (h, w)
+  Tensor<float, Cpu> rel_pose;  // (Bt, F, 2) motion (x fwd, y left; metres) into each window frame
+  Tensor<float, Cpu> rel_yaw;   // (Bt, F, 1) heading change (degrees) into each window frame
+};
+
+// The motion from the last window frame into the frame to generate.
+struct NextAction {
+  Tensor<float, Cpu> rel_pose;  // (Bt, 1, 2)
+  Tensor<float, Cpu> rel_yaw;   // (Bt, 1, 1)
+};
+
+// Where the sampler's starting noise comes from: a torch-compatible generator (draw order
+// of step_eval: trajectory noise (Bt, traj_len, 3), then latent noise (Bt, L, C) per step), or
+// tensors supplied per step ((S, Bt, traj_len, 3) and (S, Bt, L, C); draw s takes [s]).
+class NoiseSource {
+ public:
+  static NoiseSource seeded(std::uint64_t seed) {
+    NoiseSource n;
+    n.generator_.emplace(seed);
+    return n;
+  }
+  static NoiseSource supplied(Tensor<float, Cpu> trajectory, Tensor<float, Cpu> latent) {
+    NoiseSource n;
+    n.traj_ = std::move(trajectory);
+    n.latent_ = std::move(latent);
+    return n;
+  }
+  Tensor<float, Cpu> trajectory(const Shape& shape) { return draw(traj_, traj_drawn_, shape, "trajectory"); }
+  Tensor<float, Cpu> latent(const Shape& shape) { return draw(latent_, latent_drawn_, shape, "latent"); }
+
+  // Throws unless `count` more draws of each shape are available (checked before any work).
+  void require(std::int64_t traj_count, const Shape& traj_shape, std::int64_t latent_count,
+               const Shape& latent_shape) const {
+    if (generator_) return;
+    require_one(traj_, traj_drawn_, traj_count, traj_shape, "trajectory");
+    require_one(latent_, latent_drawn_, latent_count, latent_shape, "latent");
+  }
+
+ private:
+  Tensor<float, Cpu> draw(const Tensor<float, Cpu>& supplied, std::int64_t& drawn, const Shape& shape,
+                          const char* what) {
+    if (generator_) return generator_->randn(shape);
+    require_one(supplied, drawn, 1, shape, what);
+    return supplied[drawn++].clone();
+  }
+  static void require_one(const Tensor<float, Cpu>& supplied, std::int64_t drawn, std::int64_t count,
+                          const Shape& shape, const char* what) {
+    if (count <= 0) return;
+    EPONA_CHECK(!supplied.empty(), "no ", what, " noise supplied (", count, " draw(s) of ", shape_str(shape),
+                " needed)");
+    Shape per_step(supplied.shape().begin() + 1, supplied.shape().end());
+    EPONA_CHECK(supplied.dim() >= 1 && per_step == shape, what, " noise has shape ", shape_str(supplied.shape()),
+                "; each step needs ", shape_str(shape), " (steps first)");
+    EPONA_CHECK(drawn + count <= supplied.size(0), what, " noise for ", supplied.size(0), " step(s) supplied, ",
+                drawn + count, " needed");
+    for (std::int64_t i = 0; i < supplied.numel(); ++i)
+      EPONA_CHECK(std::isfinite(supplied.data()[i]), what, " noise has a non-finite value at flat index ", i);
+  }
+
+  std::optional<TorchGenerator> generator_;
+  Tensor<float, Cpu> traj_, latent_;
+  std::int64_t traj_drawn_ = 0, latent_drawn_ = 0;
+};
+
+struct SampleOptions {
+  std::optional<std::int64_t> steps;  // Euler steps of each DiT; default the config's num_sampling_steps
+  std::uint64_t seed = 0;             // noise from TorchGenerator(seed) ...
+  std::optional<NoiseSource> noise;   // ... unless a source is given
+};
+
+struct StepResult {
+  Tensor<float, Cpu> trajectory;  // (Bt, traj_len, 3) metres/degrees; empty when the action was given
+  Tensor<float, Cpu> latent;      // (Bt, L, C_vae); empty for plan()
+};
+
+// Intermediate values of one step, for observers (parity tests, diagnostics).
+template <class B>
+struct StepDetails {
+  Tensor<float, B> stt_features;    // (Bt, T, C) MST output of the last window frame
+  Tensor<float, B> pose_emb;        // (Bt, 3C) the action embedding given to the VisDiT
+  Tensor<float, Cpu> pred_pose_idx; // (Bt, 1, 2) tokenized first predicted waypoint (self-predicted)
+  Tensor<float, Cpu> pred_yaw_idx;  // (Bt, 1, 1)
+};
+
+namespace model {
+
+template <class B = Cpu, class W = float>
+class WorldModel {
+ public:
+  using Context = BackendContext<B>;
+  using StepObserver = std::function<void(const StepDetails<B>&)>;
+
+  // Binds the three networks from one weight map (all keys under "module." must be used;
+  // other keys, e.g. a merged DC-AE, are ignored). Every problem is reported at once.
+  static WorldModel load(const io::TensorMap& weights, const WorldModelConfig& config = {}) {
+    config.validate();
+    WorldModel m(config);
+    io::BindReport report(weights);
+    m.mst_.bind(weights, "module.model.", report);
+    m.vis_.bind(weights, "module.dit.", report);
+    m.traj_.bind(weights, "module.traj_dit.", report);
+    bool any_traj = false;
+    for (const auto& name : weights.names()) any_traj = any_traj || name.rfind("module.traj_dit.", 0) == 0;
+    if (!any_traj)
+      report.problem("no TrajDiT weights (no key starts with 'module.traj_dit.'; the official loader would "
+                     "silently keep random ones)");
+    report.finish(true, [](const std::string& k) { return k.rfind("module.", 0) != 0; });
+    return m;
+  }
+
+  const WorldModelConfig& config() const { return cfg_; }
+  Context& context() { return ctx_; }
+  const SpatialTemporalTransformer<B, W>& mst() const { return mst_; }
+  const FluxDiT<B, W>& vis_dit() const { return vis_; }
+  const FluxDiT<B, W>& traj_dit() const { return traj_; }
+
+  // traj_only: the planned trajectory (Bt, traj_len, 3) in metres/degrees.
+  Tensor<float, Cpu> plan(const History& h, const SampleOptions& opt = {}) {
+    NoiseSource noise = noise_for(opt);
+    return run_step(h, nullptr, /*want_latent=*/false, steps_of(opt), noise, {}).trajectory;
+  }
+
+  // The next frame's latent. With `action`: the VisDiT is conditioned on it and no trajectory is
+  // sampled; without: the TrajDiT plans first and its first waypoint is the action.
+  StepResult predict_next(const History& h, const std::optional<NextAction>& action, const SampleOptions& opt = {}) {
+    NoiseSource noise = noise_for(opt);
+    return run_step(h, action ? &*action : nullptr, true, steps_of(opt), noise, {});
+  }
+
+  // One generation step drawing from `noise` (the rollout's shared source).
+  StepResult run_step(const History& h, const NextAction* action, bool want_latent, std::int64_t steps,
+                      NoiseSource& noise, const StepObserver& observe) {
+    const std::int64_t Bt = validate(h, action, steps);
+    const bool want_traj = action == nullptr;
+    noise.require(want_traj ? 1 : 0, traj_noise_shape(Bt), want_latent ? 1 : 0, latent_noise_shape(Bt));
+    reserve_arena(Bt, steps);
+    arena_.reset();
+    StepResult result;
+    StepDetails<B> details;
+    auto latents = arena_.template take<float>(h.latents.shape());
+    BackendTraits<B>::upload_into(ctx_, h.latents, latents);
+    details.stt_features = arena_.template take<float>({Bt, cfg_.tokens_per_frame(), cfg_.n_embd});
+    details.pose_emb = arena_.template take<float>({Bt, cfg_.pose_emb_dim()});
+    const auto [pose_idx, yaw_idx] = window_indices(h, action);
+    mst_.evaluate(ctx_, arena_, latents, pose_idx, yaw_idx, details.stt_features, details.pose_emb);
+    const auto ids = prepare_ids(Bt, cfg_.latent_h(), cfg_.latent_w(), cfg_.tokens_per_frame(), cfg_.traj_len);
+    if (want_traj) {
+      result.trajectory = sample(traj_, details, ids.cond, ids.traj, noise.trajectory(traj_noise_shape(Bt)),
+                                 cfg_.traj_len, steps);
+      TrajectoryScale::from(cfg_).denormalize(result.trajectory);
+    }
+    if (want_latent) {
+      if (want_traj) embed_first_waypoint(result.trajectory, details);
+      result.latent = sample(vis_, details, ids.cond, ids.img, noise.latent(latent_noise_shape(Bt)),
+                             cfg_.img_tokens(), steps);
+    }
+    if (observe) observe(details);
+    return result;
+  }
+
+  std::int64_t steps_of(const SampleOptions& opt) const {
+    const std::int64_t steps = opt.steps.value_or(cfg_.num_sampling_steps);
+    EPONA_CHECK(steps >= 1, "sampling steps must be at least 1, got ", steps);
+    return steps;
+  }
+  static NoiseSource noise_for(const SampleOptions& opt) {
+    return opt.noise ? *opt.noise : NoiseSource::seeded(opt.seed);
+  }
+  Shape traj_noise_shape(std::int64_t Bt) const { return {Bt, cfg_.traj_len, constants::traj_token_size}; }
+  Shape latent_noise_shape(std::int64_t Bt) const { return {Bt, cfg_.img_tokens(), cfg_.token_dim()}; }
+
+  // Checks a window (and action) against the configuration; returns the batch size. Throws
+  // (naming the problem) on any wrong shape or non-finite value, before any work.
+  std::int64_t validate(const History& h, const NextAction* action, std::int64_t steps) const {
+    EPONA_CHECK(steps >= 1, "sampling steps must be at least 1, got ", steps);
+    EPONA_CHECK(!h.latents.empty() && h.latents.dim() == 4, "history latents must be (B, F, L, C), got ",
+                shape_str(h.latents.shape()));
+    const std::int64_t Bt = h.latents.size(0), F = cfg_.condition_frames;
+    EPONA_CHECK(Bt >= 1, "history batch is empty");
+    EPONA_CHECK(h.latents.size(1) == F, "history has ", h.latents.size(1), " latent frames; the model needs ", F,
+                " (condition_frames)");
+    check_shape(h.latents, {Bt, F, cfg_.img_tokens(), cfg_.token_dim()}, "history latents");
+    check_shape(h.rel_pose, {Bt, F, 2}, "history rel_pose");
+    check_shape(h.rel_yaw, {Bt, F, 1}, "history rel_yaw");
+    check_finite(h.latents, "history latents");
+    check_finite(h.rel_pose, "history rel_pose");
+    check_finite(h.rel_yaw, "history rel_yaw");
+    if (action) {
+      check_shape(action->rel_pose, {Bt, 1, 2}, "next action rel_pose");
+      check_shape(action->rel_yaw, {Bt, 1, 1}, "next action rel_yaw");
+      check_finite(action->rel_pose, "next action rel_pose");
+      check_finite(action->rel_yaw, "next action rel_yaw");
+    }
+    return Bt;
+  }
+
+ private:
+  explicit WorldModel(const WorldModelConfig& c)
+      : cfg_(c), mst_(MstConfig::from(c)), vis_(FluxDitConfig::vis(c)), traj_(FluxDitConfig::traj(c)) {}
+
+  static void check_finite(const Tensor<float, Cpu>& t, const char* what) {
+    for (std::int64_t i = 0; i < t.numel(); ++i)
+      EPONA_CHECK(std::isfinite(t.data()[i]), what, " has a non-finite value (", t.data()[i], ") at flat index ", i);
+  }
+
+  // Arena bytes of one step: the step's persistent tensors plus its largest stage.
+  std::size_t step_bytes(std::int64_t Bt, std::int64_t steps) const {
+    ArenaCounter<B> persistent;
+    persistent.template take<float>({Bt, cfg_.condition_frames, cfg_.img_tokens(), cfg_.token_dim()});
+    persistent.template take<float>({Bt, cfg_.tokens_per_frame(), cfg_.n_embd});
+    persistent.template take<float>({Bt, cfg_.pose_emb_dim()});
+    persistent.template take<float>(traj_noise_shape(Bt));
+    persistent.template take<float>(latent_noise_shape(Bt));
+    const JointRows traj_rows{cfg_.tokens_per_frame(), cfg_.traj_len}, img_rows{cfg_.tokens_per_frame(), cfg_.img_tokens()};
+    const std::size_t stages[] = {
+        mst_.evaluate_workspace_bytes(), mst_.pose_emb_workspace_bytes(),
+        traj_.conditioning_bytes(Bt, traj_rows) + traj_.sample_bytes(Bt, traj_rows, steps),
+        vis_.conditioning_bytes(Bt, img_rows) + vis_.sample_bytes(Bt, img_rows, steps)};
+    std::size_t largest = 0;
+    for (auto s : stages) largest = std::max(largest, s);
+    return persistent.bytes() + largest;
+  }
+  // Grows the arena only when the batch or step count grows (never inside a sampling loop).
+  void reserve_arena(std::int64_t Bt, std::int64_t steps) {
+    arena_.reset();
+    arena_.reserve(step_bytes(Bt, steps));
+  }
+
+  // Indices of the F+1 action entries: the window's F, then the given action or (self-predicted,
+  // where entry F only feeds a pose_emb that gets replaced) a repeat of the last entry.
+  std::pair<Tensor<float, Cpu>, Tensor<float, Cpu>> window_indices(const History& h, const NextAction* action) const {
+    const std::int64_t Bt = h.rel_pose.size(0), F = cfg_.condition_frames;
+    Tensor<float, Cpu> pose({Bt, F + 1, 2}), yaw({Bt, F + 1, 1});
+    for (std::int64_t b = 0; b < Bt; ++b) {
+      std::copy_n(h.rel_pose[b].data(), 2 * F, pose[b].data());
+      std::copy_n(h.rel_yaw[b].data(), F, yaw[b].data());
+      const float* next_pose = action ? action->rel_pose[b].data() : h.rel_pose[b][F - 1].data();
+      const float* next_yaw = action ? action->rel_yaw[b].data() : h.rel_yaw[b][F - 1].data();
+      std::copy_n(next_pose, 2, pose[b][F].data());
+      yaw.at(b, F, 0) = *next_yaw;
+    }
+    const auto tok = PoseTokenizer::from(cfg_);
+    return {tok.poses_to_indices(pose), tok.yaws_to_indices(yaw)};
+  }
+
+  // Self-predicted action: tokenize waypoint 0 and replace pose_emb by get_pose_emb of it.
+  void embed_first_waypoint(const Tensor<float, Cpu>& traj, StepDetails<B>& d) {
+    const std::int64_t Bt = traj.size(0);
+    Tensor<float, Cpu> pose({Bt, 1, 2}), yaw({Bt, 1, 1});
+    for (std::int64_t b = 0; b < Bt; ++b) {
+      pose.at(b, 0, 0) = traj.at(b, 0, 0);
+      pose.at(b, 0, 1) = traj.at(b, 0, 1);
+      yaw.at(b, 0, 0) = traj.at(b, 0, 2);
+    }
+    const auto tok = PoseTokenizer::from(cfg_);
+    d.pred_pose_idx = tok.poses_to_indices(pose);
+    d.pred_yaw_idx = tok.yaws_to_indices(yaw);
+    mst_.get_pose_emb(ctx_, arena_, d.pred_pose_idx, d.pred_yaw_idx, d.pose_emb);
+  }
+
+  // Samples one DiT from `noise` over get_schedule(steps, seq_len); returns the host result.
+  Tensor<float, Cpu> sample(const FluxDiT<B, W>& dit, const StepDetails<B>& d, const Tensor<float, Cpu>& cond_ids,
+                            const Tensor<float, Cpu>& target_ids, const Tensor<float, Cpu>& noise,
+                            std::int64_t seq_len, std::int64_t steps) {
+    auto state = arena_.template take<float>(noise.shape());
+    BackendTraits<B>::upload_into(ctx_, noise, state);
+    ArenaScope<B> scope(arena_);
+    const auto c = dit.prepare(ctx_, arena_, d.stt_features, cond_ids, target_ids, d.pose_emb);
+    dit.sample(ctx_, arena_, c, flow::get_schedule(steps, seq_len), state);
+    Tensor<float, Cpu> out(noise.shape());
+    BackendTraits<B>::download_into(ctx_, state, out);
+    return out;
+  }
+
+  WorldModelConfig cfg_;
+  Context ctx_;
+  Arena<B> arena_;
+  SpatialTemporalTransformer<B, W> mst_;
+  FluxDiT<B, W> vis_, traj_;
+};
+
+}  // namespace model
+
+using model::WorldModel;
+
+}  // namespace epona
