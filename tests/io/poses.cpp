@@ -220,7 +220,15 @@ TEST_CASE("load_poses dispatch errors") {
   CHECK_THROWS_WITH_AS(io::load_poses(dir.write("p.yaml", "x: 1")), doctest::Contains("unknown pose file type '.yaml'"),
                        Error);
   CHECK_THROWS_WITH_AS(io::load_poses(kData / "npy" / "f4_v1.npy"),
-                       doctest::Contains("f4_v1.npy: a .npy of shape (3, 4) is neither absolute poses"), Error);
+                       doctest::Contains("f4_v1.npy: a .npy of shape (3, 4) is none of: absolute poses"), Error);
+  // (N, 3) rows of x, y, yaw
+  Tensor<float> rows({2, 3});
+  for (int i = 0; i < 6; ++i) rows.data()[i] = 0.5f * float(i);
+  io::write_npy(dir.path / "rows.npy", rows);
+  check_sequence(io::load_poses(dir.path / "rows.npy"), {0, 1.5}, {0.5, 2}, {1, 2.5});
+  rows.at(1, 2) = NAN;
+  io::write_npy(dir.path / "rows.npy", rows);
+  CHECK_THROWS_WITH_AS(io::load_poses(dir.path / "rows.npy"), doctest::Contains("rows.npy: row 1: yaw = nan"), Error);
   CHECK_THROWS_WITH_AS(io::load_poses(dir.path / "missing.csv"), doctest::Contains("missing.csv: not found"), Error);
   check_sequence(io::load_poses(dir.write("p.CSV", "x,y,yaw\n1,2,3\n")), {1}, {2}, {3});
   check_sequence(io::load_poses(dir.write("p.txt", "1 2 3\n")), {1}, {2}, {3});

@@ -53,15 +53,23 @@ struct PoseSequence {
 
 namespace poses_detail {
 
-// Appends one motion after checking that every value is finite in fp32; `where` says which
-// file and row it came from (built only on error).
+inline constexpr const char* kMotionNames[3] = {"x", "y", "yaw"};
+
+// Checks that x, y, yaw are finite in fp32; `where` says which file and row they came from
+// (called only on error).
+// Doubles below this magnitude round to a finite float (FLT_MAX plus half its ulp, exclusive).
+inline constexpr double kFloatOverflow = 0x1.ffffffp+127;
+
+template <class Where>
+void check_motion(const double (&v)[3], Where&& where) {
+  for (int k = 0; k < 3; ++k)
+    EPONA_CHECK(std::isfinite(v[k]) && std::fabs(v[k]) < kFloatOverflow, where(), ": ", kMotionNames[k], " = ", v[k],
+                " is not a finite number in float32");
+}
+
 template <class Where>
 void push_motion(PoseSequence& s, double x, double y, double yaw, Where&& where) {
-  const double v[3] = {x, y, yaw};
-  static constexpr const char* names[3] = {"x", "y", "yaw"};
-  for (int k = 0; k < 3; ++k)
-    EPONA_CHECK(std::isfinite(v[k]) && std::fabs(v[k]) <= std::numeric_limits<float>::max(), where(), ": ",
-                names[k], " = ", v[k], " is not a finite number");
+  check_motion({x, y, yaw}, where);
   s.x.push_back(static_cast<float>(x));
   s.y.push_back(static_cast<float>(y));
   s.yaw.push_back(static_cast<float>(yaw));
@@ -103,6 +111,22 @@ inline bool parse_number(std::string_view field, double& out) {
   return r.ec == std::errc() && r.ptr == field.data() + field.size();
 }
 
+// Calls fn(line_number, content) for every line that is not blank once its '#' comment and
+// surrounding blanks are removed (a UTF-8 byte-order mark is skipped); fn returns false to stop.
+template <class Fn>
+void for_each_csv_line(std::string_view text, Fn&& fn) {
+  if (text.substr(0, 3) == "\xEF\xBB\xBF") text.remove_prefix(3);
+  std::size_t line_no = 0;
+  for (std::size_t pos = 0; pos <= text.size();) {
+    const auto nl = std::min(text.find('\n', pos), text.size());
+    const std::string_view raw = text.substr(pos, nl - pos);
+    pos = nl + 1;
+    ++line_no;
+    const std::string_view line = trim(raw.substr(0, raw.find('#')));
+    if (!line.empty() && !fn(line_no, line)) return;
+  }
+}
+
 inline std::string lower(std::string_view s) {
   std::string out(s);
   for (auto& c : out) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
@@ -113,12 +137,12 @@ inline std::string lower(std::string_view s) {
 inline std::array<int, 3> header_columns(const std::vector<std::string_view>& fields, std::string_view line,
                                          const std::string& where) {
   std::array<int, 3> col{-1, -1, -1};
-  static constexpr std::string_view names[3] = {"x", "y", "yaw"};
   bool ok = fields.size() == 3;
   for (std::size_t f = 0; ok && f < fields.size(); ++f) {
-    const auto it = std::find(std::begin(names), std::end(names), lower(fields[f]));
-    ok = it != std::end(names) && col[it - std::begin(names)] < 0;
-    if (ok) col[it - std::begin(names)] = static_cast<int>(f);
+    const std::string name = lower(fields[f]);
+    const auto k = std::find(std::begin(kMotionNames), std::end(kMotionNames), name) - std::begin(kMotionNames);
+    ok = k < 3 && col[k] < 0;
+    if (ok) col[k] = static_cast<int>(f);
   }
   EPONA_CHECK(ok, where, ": the header must name the three columns x, y, yaw (got '", line,
               "'); or leave the header out and give x, y, yaw in that order");
@@ -152,18 +176,10 @@ inline void check_not_empty(const PoseSequence& s, const std::string& source) {
 
 inline PoseSequence parse_pose_csv(std::string_view text, const std::string& source) {
   using namespace poses_detail;
-  if (text.substr(0, 3) == "\xEF\xBB\xBF") text.remove_prefix(3);  // UTF-8 byte-order mark
   PoseSequence s;
   std::array<int, 3> col{0, 1, 2};
   bool first_row = true;
-  std::size_t line_no = 0;
-  for (std::size_t pos = 0; pos <= text.size();) {
-    const auto nl = std::min(text.find('\n', pos), text.size());
-    std::string_view line = text.substr(pos, nl - pos);
-    pos = nl + 1;
-    ++line_no;
-    line = trim(line.substr(0, line.find('#')));
-    if (line.empty()) continue;
+  for_each_csv_line(text, [&](std::size_t line_no, std::string_view line) {
     const auto where = [&] { return detail::concat(source, ": line ", line_no); };
     const auto fields = split_fields(line);
     double v[3];
@@ -171,19 +187,18 @@ inline PoseSequence parse_pose_csv(std::string_view text, const std::string& sou
                          parse_number(fields[2], v[2]);
     const bool header = first_row && !numeric && std::isalpha(static_cast<unsigned char>(line.front())) &&
                         !parse_number(fields[0], v[0]);  // "nan,..." is a (bad) data row
+    first_row = false;
     if (header) {
       col = header_columns(fields, line, where());
-      first_row = false;
-      continue;
+      return true;
     }
-    first_row = false;
     EPONA_CHECK(fields.size() == 3, where(), ": expected 3 values (x, y, yaw), got ", fields.size(), ": '", line, "'");
-    static constexpr const char* names[3] = {"x", "y", "yaw"};
     for (int k = 0; k < 3; ++k)
-      EPONA_CHECK(parse_number(fields[col[k]], v[k]), where(), ": ", names[k], " = '", fields[col[k]],
+      EPONA_CHECK(parse_number(fields[col[k]], v[k]), where(), ": ", kMotionNames[k], " = '", fields[col[k]],
                   "' is not a number");
     push_motion(s, v[0], v[1], v[2], where);
-  }
+    return true;
+  });
   check_not_empty(s, source);
   return s;
 }
@@ -304,7 +319,7 @@ inline PoseSequence read_demo_poses(const std::filesystem::path& pose_npy, const
 // ---- one entry point: by folder or extension ------------------------------------------
 
 // A folder -> pose.npy + yaw.npy inside it; .csv/.txt -> CSV; .json -> JSON; .npy -> absolute
-// poses (N, 4, 4) / (1, N, 4, 4), or a demo pose.npy whose yaw.npy sits next to it.
+// poses (N, 4, 4) / (1, N, 4, 4), x, y, yaw rows (N, 3), or a demo pose.npy with yaw.npy beside it.
 inline PoseSequence load_poses(const std::filesystem::path& path) {
   namespace fs = std::filesystem;
   std::error_code ec;
@@ -315,9 +330,18 @@ inline PoseSequence load_poses(const std::filesystem::path& path) {
   if (ext == ".npy") {
     const auto a = read_npy<double>(path).values;
     if (a.dim() >= 3 && a.size(-1) == 4 && a.size(-2) == 4) return poses_from_absolute(a, path.string());
+    if (a.dim() == 2 && a.size(1) == 3) {  // (N, 3): x, y, yaw rows, like the CSV
+      PoseSequence s;
+      for (std::int64_t i = 0; i < a.size(0); ++i)
+        poses_detail::push_motion(s, a.at(i, 0), a.at(i, 1), a.at(i, 2),
+                                  [&] { return detail::concat(path.string(), ": row ", i); });
+      poses_detail::check_not_empty(s, path.string());
+      return s;
+    }
     const auto yaw = path.parent_path() / "yaw.npy";
     EPONA_CHECK(path.filename() == "pose.npy" && fs::exists(yaw, ec), path.string(), ": a .npy of shape ",
-                shape_str(a.shape()), " is neither absolute poses (N, 4, 4) nor a demo pose.npy with yaw.npy beside it");
+                shape_str(a.shape()),
+                " is none of: absolute poses (N, 4, 4), x, y, yaw rows (N, 3), a demo pose.npy with yaw.npy beside it");
     return read_demo_poses(path, yaw);
   }
   fail(path.string(), ": unknown pose file type '", ext,
