@@ -34,13 +34,14 @@ namespace detail::attn {
 
 using simd::Batch;
 inline constexpr std::int64_t kW = simd::kWidth;
-// Query tile: kQV SIMD vectors of queries side by side (queries live in the lanes while the
-// scores are computed, so the softmax statistics are plain vector ops). Key tile: kTileK keys.
-inline constexpr std::int64_t kQV = 2;
-inline constexpr std::int64_t kTileQ = kQV * kW;
+// Query tile: QV SIMD vectors of queries side by side (queries live in the lanes while the
+// scores are computed, so the softmax statistics are plain vector ops): 2 vectors, or 1 when
+// a sequence is that short (the MST's temporal attention over 10 frames). Key tile: kTileK.
+inline constexpr int kMaxQV = 2;
+inline constexpr std::int64_t kMaxTileQ = kMaxQV * kW;
 inline constexpr std::int64_t kTileK = 64;
 // Register blocking of the two micro-kernels (32 vector registers with AVX-512, 16 without).
-inline constexpr int kScoreKeys = kW >= 16 ? 8 : 4;   // keys per score block (× kQV accumulators)
+inline constexpr int kScoreKeys = kW >= 16 ? 8 : 4;   // keys per score block with 2 query vectors
 inline constexpr int kPvRows = 4;                     // query rows per P·V block
 inline constexpr int kPvVecs = kW >= 16 ? 4 : 2;      // head-dim vectors per P·V block
 inline constexpr float kNegInf = -std::numeric_limits<float>::infinity();
@@ -49,13 +50,15 @@ inline std::int64_t round_up(std::int64_t n, std::int64_t m) { return (n + m - 1
 
 // One thread's scratch, allocated once per call: the query tile transposed (d, query), one
 // tile of scores (key, query), the running output (query, d), running max / sum / rescale
-// factors, and V rows padded to whole vectors when head_dim is not a multiple of kW.
+// factors, V rows padded to whole vectors when head_dim is not a multiple of kW, and the
+// keys of a partial score block.
 struct Scratch {
   std::int64_t dim, dpad;
-  simd::AlignedFloats qt, st, out, m, l, alpha, vpad;
+  simd::AlignedFloats qt, st, out, m, l, alpha, vpad, kspare;
   Scratch(std::int64_t dim_, std::int64_t dpad_)
-      : dim(dim_), dpad(dpad_), qt(dim_ * kTileQ), st(kTileK * kTileQ), out(kTileQ * dpad_), m(kTileQ),
-        l(kTileQ), alpha(kTileQ), vpad(dim_ == dpad_ ? 0 : kTileK * dpad_) {}
+      : dim(dim_), dpad(dpad_), qt(dim_ * kMaxTileQ), st(kTileK * kMaxTileQ), out(kMaxTileQ * dpad_),
+        m(kMaxTileQ), l(kMaxTileQ), alpha(kMaxTileQ), vpad(dim_ == dpad_ ? 0 : kTileK * dpad_),
+        kspare(kScoreKeys * kMaxQV * dim_) {}
 };
 
 // Where one (sequence, head, query tile) reads and writes.
@@ -65,7 +68,9 @@ struct TileRef {
   std::int64_t q0, nq;     // first query of the tile, queries in it
 };
 
+template <int QV>
 inline void pack_queries(const AttentionShape& a, const TileRef& t, Scratch& w) {
+  constexpr std::int64_t kTileQ = QV * kW;
   std::fill_n(w.qt.data(), w.dim * kTileQ, 0.f);
   for (std::int64_t i = 0; i < t.nq; ++i) {
     const float* qi = t.q + (t.q0 + i) * a.q_row;
@@ -73,39 +78,58 @@ inline void pack_queries(const AttentionShape& a, const TileRef& t, Scratch& w) 
   }
 }
 
-// st[jj, :] = scale · (k_{j0+jj} · q_i) for JB keys and all queries of the tile.
-template <int D, int JB>
+// st[jj, :] = scale · (k_{j0+jj} · q_i) for JB keys (rows k_row apart) and all queries of
+// the tile; only the first nvalid rows are stored.
+template <int D, int QV, int JB>
 inline void score_block(const float* qt, const float* k0, std::int64_t k_row, std::int64_t dim, float scale,
-                        float* st) {
+                        float* st, int nvalid = JB) {
+  constexpr std::int64_t kTileQ = QV * kW;
   const std::int64_t n = D > 0 ? D : dim;
-  Batch acc[JB][kQV];
+  Batch acc[JB][QV];
   for (int jj = 0; jj < JB; ++jj)
-    for (int v = 0; v < kQV; ++v) acc[jj][v] = Batch(0.f);
+    for (int v = 0; v < QV; ++v) acc[jj][v] = Batch(0.f);
   for (std::int64_t d = 0; d < n; ++d) {
-    Batch qv[kQV];
-    for (int v = 0; v < kQV; ++v) qv[v] = Batch::load_aligned(qt + d * kTileQ + v * kW);
+    Batch qv[QV];
+    for (int v = 0; v < QV; ++v) qv[v] = Batch::load_aligned(qt + d * kTileQ + v * kW);
     for (int jj = 0; jj < JB; ++jj) {
       const Batch kd(k0[jj * k_row + d]);
-      for (int v = 0; v < kQV; ++v) acc[jj][v] = xsimd::fma(kd, qv[v], acc[jj][v]);
+      for (int v = 0; v < QV; ++v) acc[jj][v] = xsimd::fma(kd, qv[v], acc[jj][v]);
     }
   }
   const Batch sc(scale);
-  for (int jj = 0; jj < JB; ++jj)
-    for (int v = 0; v < kQV; ++v) (acc[jj][v] * sc).store_aligned(st + jj * kTileQ + v * kW);
+  for (int jj = 0; jj < nvalid; ++jj)
+    for (int v = 0; v < QV; ++v) (acc[jj][v] * sc).store_aligned(st + jj * kTileQ + v * kW);
 }
 
-template <int D>
+// Keys [j, nk) of the tile in blocks of JB. The remainder goes in one block of JB or of a
+// smaller power of two (at least 4: one accumulator chain alone would wait on the FMA latency),
+// its rows copied to `spare` with the last key repeated to fill the block.
+template <int D, int QV, int JB>
+inline void score_keys(const float* qt, const float* kb, std::int64_t k_row, std::int64_t dim, float scale, float* st,
+                       std::int64_t j, std::int64_t nk, float* spare) {
+  constexpr std::int64_t kTileQ = QV * kW;
+  for (; j + JB <= nk; j += JB) score_block<D, QV, JB>(qt, kb + j * k_row, k_row, dim, scale, st + j * kTileQ);
+  const auto rest = static_cast<int>(nk - j);
+  if (rest == 0) return;
+  if constexpr (JB > 4) {
+    if (rest <= JB / 2) return score_keys<D, QV, JB / 2>(qt, kb, k_row, dim, scale, st, j, nk, spare);
+  }
+  for (int jj = 0; jj < JB; ++jj) std::copy_n(kb + (j + std::min(jj, rest - 1)) * k_row, dim, spare + jj * dim);
+  score_block<D, QV, JB>(qt, spare, dim, dim, scale, st + j * kTileQ, rest);
+}
+
+template <int D, int QV>
 inline void score_tile(const AttentionShape& a, const TileRef& t, std::int64_t k0, std::int64_t nk, float scale,
                        Scratch& w) {
-  const float* kb = t.k + k0 * a.k_row;
-  std::int64_t j = 0;
-  for (; j + kScoreKeys <= nk; j += kScoreKeys)
-    score_block<D, kScoreKeys>(w.qt.data(), kb + j * a.k_row, a.k_row, w.dim, scale, w.st.data() + j * kTileQ);
-  for (; j < nk; ++j) score_block<D, 1>(w.qt.data(), kb + j * a.k_row, a.k_row, w.dim, scale, w.st.data() + j * kTileQ);
+  constexpr int kKeys = kScoreKeys * kMaxQV / QV;  // same register budget for either tile
+  score_keys<D, QV, kKeys>(w.qt.data(), t.k + k0 * a.k_row, a.k_row, w.dim, scale, w.st.data(), 0, nk,
+                           w.kspare.data());
 }
 
 // Adds the additive mask and applies causality to the tile of scores.
+template <int QV>
 inline void mask_tile(const AttentionShape& a, const TileRef& t, std::int64_t k0, std::int64_t nk, Scratch& w) {
+  constexpr std::int64_t kTileQ = QV * kW;
   if (a.additive_mask)
     for (std::int64_t i = 0; i < t.nq; ++i) {
       const float* mrow = a.additive_mask + (t.q0 + i) * a.lk + k0;
@@ -119,8 +143,10 @@ inline void mask_tile(const AttentionShape& a, const TileRef& t, std::int64_t k0
 // Online softmax over one tile: new running max, scores -> exp(score - max), running sum
 // rescaled, and alpha = exp(old max - new max) for rescaling the running output. While a
 // query has seen only −inf its max stays −inf and exp is taken against 0, so nothing is NaN.
+template <int QV>
 inline void softmax_tile(std::int64_t nk, Scratch& w) {
-  for (std::int64_t v = 0; v < kQV; ++v) {
+  constexpr std::int64_t kTileQ = QV * kW;
+  for (std::int64_t v = 0; v < QV; ++v) {
     float* st = w.st.data() + v * kW;
     const Batch m_old = Batch::load_aligned(w.m.data() + v * kW);
     Batch m_new = m_old;
@@ -140,9 +166,10 @@ inline void softmax_tile(std::int64_t nk, Scratch& w) {
 }
 
 // out[i0..i0+kPvRows, d0..d0+NV·kW) = alpha_i · out + Σ_j p[j, i] · v_j over the tile's keys.
-template <int NV>
+template <int QV, int NV>
 inline void pv_block(const Scratch& w, const float* vb, std::int64_t v_stride, std::int64_t nk, std::int64_t i0,
                      std::int64_t d0) {
+  constexpr std::int64_t kTileQ = QV * kW;
   Batch acc[kPvRows][NV];
   for (int r = 0; r < kPvRows; ++r) {
     const Batch al(w.alpha[i0 + r]);
@@ -160,7 +187,7 @@ inline void pv_block(const Scratch& w, const float* vb, std::int64_t v_stride, s
     for (int c = 0; c < NV; ++c) acc[r][c].store_aligned(w.out.data() + (i0 + r) * w.dpad + d0 + c * kW);
 }
 
-template <int D>
+template <int D, int QV>
 inline void pv_tile(const AttentionShape& a, const TileRef& t, std::int64_t k0, std::int64_t nk, Scratch& w) {
   const std::int64_t dpad = D > 0 && D % kW == 0 ? D : w.dpad;
   const float* vb = t.v + k0 * a.v_row;
@@ -176,8 +203,8 @@ inline void pv_tile(const AttentionShape& a, const TileRef& t, std::int64_t k0, 
   const std::int64_t rows = round_up(t.nq, kPvRows);
   for (std::int64_t i0 = 0; i0 < rows; i0 += kPvRows) {
     std::int64_t d0 = 0;
-    for (; d0 + kPvVecs * kW <= dpad; d0 += kPvVecs * kW) pv_block<kPvVecs>(w, vb, v_stride, nk, i0, d0);
-    for (; d0 < dpad; d0 += kW) pv_block<1>(w, vb, v_stride, nk, i0, d0);
+    for (; d0 + kPvVecs * kW <= dpad; d0 += kPvVecs * kW) pv_block<QV, kPvVecs>(w, vb, v_stride, nk, i0, d0);
+    for (; d0 < dpad; d0 += kW) pv_block<QV, 1>(w, vb, v_stride, nk, i0, d0);
   }
 }
 
@@ -190,9 +217,10 @@ inline void write_output(const AttentionShape& a, const TileRef& t, const Scratc
   }
 }
 
-template <int D>
+template <int D, int QV>
 inline void attend_tile(const AttentionShape& a, const TileRef& t, float scale, Scratch& w) {
-  pack_queries(a, t, w);
+  constexpr std::int64_t kTileQ = QV * kW;
+  pack_queries<QV>(a, t, w);
   std::fill_n(w.m.data(), kTileQ, kNegInf);
   std::fill_n(w.l.data(), kTileQ, 0.f);
   std::fill_n(w.out.data(), kTileQ * w.dpad, 0.f);
@@ -200,16 +228,17 @@ inline void attend_tile(const AttentionShape& a, const TileRef& t, float scale, 
   const std::int64_t nkeys = a.mask == Mask::Causal ? std::min(a.lk, t.q0 + t.nq) : a.lk;
   for (std::int64_t k0 = 0; k0 < nkeys; k0 += kTileK) {
     const std::int64_t nk = std::min(kTileK, nkeys - k0);
-    score_tile<D>(a, t, k0, nk, scale, w);
-    mask_tile(a, t, k0, nk, w);
-    softmax_tile(nk, w);
-    pv_tile<D>(a, t, k0, nk, w);
+    score_tile<D, QV>(a, t, k0, nk, scale, w);
+    mask_tile<QV>(a, t, k0, nk, w);
+    softmax_tile<QV>(nk, w);
+    pv_tile<D, QV>(a, t, k0, nk, w);
   }
   write_output(a, t, w);
 }
 
-template <int D>
+template <int D, int QV>
 inline void attention_impl(const float* q, const float* k, const float* v, float* o, const AttentionShape& a) {
+  constexpr std::int64_t kTileQ = QV * kW;
   const float scale = a.scale != 0 ? a.scale : 1.0f / std::sqrt(static_cast<float>(a.head_dim));
   const std::int64_t dim = a.head_dim, dpad = round_up(dim, kW);
   const std::int64_t qtiles = (a.lq + kTileQ - 1) / kTileQ;
@@ -225,7 +254,7 @@ inline void attention_impl(const float* q, const float* k, const float* v, float
       const std::int64_t col = h * dim;
       const TileRef t{q + s * a.q_seq + col, k + s * a.k_seq + col, v + s * a.v_seq + col, o + s * a.o_seq + col,
                       qt * kTileQ, std::min(kTileQ, a.lq - qt * kTileQ)};
-      attend_tile<D>(a, t, scale, w);
+      attend_tile<D, QV>(a, t, scale, w);
     }
   }
 }
@@ -240,11 +269,13 @@ inline void check_shape(const AttentionShape& a) {
 
 // o = softmax(q kᵀ · scale + mask) v for every sequence and head (see AttentionShape).
 inline void attention(Context&, const float* q, const float* k, const float* v, float* o, const AttentionShape& a) {
-  detail::attn::check_shape(a);
+  using namespace detail::attn;
+  check_shape(a);
+  const bool short_seq = a.lq <= kW;  // one vector of queries per tile suffices
   switch (a.head_dim) {
-    case 128: detail::attn::attention_impl<128>(q, k, v, o, a); break;
-    case 64: detail::attn::attention_impl<64>(q, k, v, o, a); break;
-    default: detail::attn::attention_impl<0>(q, k, v, o, a); break;
+    case 128: short_seq ? attention_impl<128, 1>(q, k, v, o, a) : attention_impl<128, 2>(q, k, v, o, a); break;
+    case 64: short_seq ? attention_impl<64, 1>(q, k, v, o, a) : attention_impl<64, 2>(q, k, v, o, a); break;
+    default: short_seq ? attention_impl<0, 1>(q, k, v, o, a) : attention_impl<0, 2>(q, k, v, o, a); break;
   }
 }
 

@@ -4,15 +4,14 @@
 // fused into one vectorised pass over the output.
 #pragma once
 
-#include <Eigen/Core>
 #include <algorithm>
 #include <cstdint>
 #include <cstring>
 #include <type_traits>
 #include <vector>
 
+#include "epona/cpu/context.hpp"  // first: includes Eigen with GCC 12's false positives silenced
 #include "epona/cpu/activation.hpp"
-#include "epona/cpu/context.hpp"
 #include "epona/cpu/simd.hpp"
 
 namespace epona::cpu {
