@@ -128,14 +128,14 @@ class WorldModel {
     config.validate();
     WorldModel m(config);
     io::BindReport report(weights);
-    m.mst_.bind(weights, "module.model.", report);
-    m.vis_.bind(weights, "module.dit.", report);
-    m.traj_.bind(weights, "module.traj_dit.", report);
-    bool any_traj = false;
+    bool any_traj = false;  // named first: the list of its missing keys may get truncated
     for (const auto& name : weights.names()) any_traj = any_traj || name.rfind("module.traj_dit.", 0) == 0;
     if (!any_traj)
       report.problem("no TrajDiT weights (no key starts with 'module.traj_dit.'; the official loader would "
                      "silently keep random ones)");
+    m.mst_.bind(weights, "module.model.", report);
+    m.vis_.bind(weights, "module.dit.", report);
+    m.traj_.bind(weights, "module.traj_dit.", report);
     report.finish(true, [](const std::string& k) { return k.rfind("module.", 0) != 0; });
     return m;
   }
