@@ -3,6 +3,9 @@
 // same (bf16-rounded) inputs. float32 within 1e-5 (TF32 must be off); bf16 within 2^-8.
 #include "cuda_test_util.cuh"
 
+#include <algorithm>
+#include <limits>
+
 using namespace epona;
 using namespace epona::test;
 
@@ -93,6 +96,34 @@ TEST_CASE_TEMPLATE("cuda linear at model-like sizes", T, float, bf16) {
   check_linear<T>(ctx, {530, 3072, 1024, true, cuda::Epilogue::GeluTanh}, 703);
 }
 
+// y as a column block of a wider buffer and x read with a row stride (the pointer form):
+// exactly the block is written, the other columns keep their poison.
+TEST_CASE_TEMPLATE("cuda linear with row strides writes only its column block", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  cpu::Context cctx;
+  const std::int64_t M = 45, N = 72, K = 40, ldx = 56, ldy = 100, col0 = 16;
+  for (auto epi : {cuda::Epilogue::None, cuda::Epilogue::GeluErf, cuda::Epilogue::GeluTanh}) {
+    HostF xw = random_tensor({M, ldx}, 800), w = random_tensor({N, K}, 801, -0.2f, 0.2f), b = random_tensor({N}, 802);
+    round_to<T>(xw), round_to<T>(w), round_to<T>(b);
+    HostF ref({M, ldy});
+    std::fill_n(ref.data(), ref.numel(), std::numeric_limits<float>::quiet_NaN());
+    cpu::linear(cctx, xw.data(), ldx, w.data(), b.data(), ref.data() + col0, ldy, M, N, K,
+                cpu_epilogue(epi));
+    auto dx = upload<T>(ctx, xw), dw = upload<T>(ctx, w), db = upload<T>(ctx, b);
+    Dev<T> dy({M, ldy});
+    poison(ctx, dy);
+    cuda::linear(ctx, dx.data(), ldx, dw.data(), db.data(), dy.data() + col0, ldy, M, N, K, epi);
+    const HostF out = download(ctx, dy);
+    const auto inside = [&](std::int64_t i) { return i % ldy >= col0 && i % ldy < col0 + N; };
+    const auto d = measure(out.data(), ref.data(), out.numel(), inside);
+    check_error(d, bound_for<T>(), d.max_ref, std::string("linear strided ") + type_name<T>() + " " + epilogue_name(epi));
+    std::int64_t touched = 0;
+    for (std::int64_t i = 0; i < out.numel(); ++i) touched += !inside(i) && !std::isnan(out.data()[i]);
+    CHECK(touched == 0);
+  }
+}
+
 TEST_CASE("cuda linear rejects bad shapes with epona::Error") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
@@ -101,5 +132,7 @@ TEST_CASE("cuda linear rejects bad shapes with epona::Error") {
   CHECK_THROWS_WITH_AS(cuda::linear(ctx, x, w_bad, none, y), doctest::Contains("does not end in K=7"), epona::Error);
   CHECK_THROWS_WITH_AS(cuda::linear(ctx, x, w, b_bad, y), doctest::Contains("bias"), epona::Error);
   CHECK_THROWS_WITH_AS(cuda::linear(ctx, x, w, none, y_bad), doctest::Contains("output"), epona::Error);
-  CHECK_THROWS_AS(cuda::linear(ctx, x.data(), w.data(), b.data(), y.data(), 4, 6, 0), epona::Error);
+  CHECK_THROWS_AS(cuda::linear(ctx, x.data(), 8, w.data(), b.data(), y.data(), 6, 4, 6, 0), epona::Error);
+  CHECK_THROWS_WITH_AS(cuda::linear(ctx, x.data(), 7, w.data(), b.data(), y.data(), 6, 4, 6, 8),
+                       doctest::Contains("row strides"), epona::Error);
 }

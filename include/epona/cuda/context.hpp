@@ -66,6 +66,9 @@ struct LtPlan {
   cublasLtMatmulDesc_t op = nullptr;
   cublasLtMatrixLayout_t a = nullptr, b = nullptr, c = nullptr;
   cublasLtMatmulAlgo_t algo{};
+  cublasLtEpilogue_t epilogue = CUBLASLT_EPILOGUE_DEFAULT;  // what cuBLASLt fuses in this plan
+  bool fuses_bias() const { return epilogue == CUBLASLT_EPILOGUE_BIAS || epilogue == CUBLASLT_EPILOGUE_GELU_BIAS; }
+  bool fuses_gelu() const { return epilogue == CUBLASLT_EPILOGUE_GELU || epilogue == CUBLASLT_EPILOGUE_GELU_BIAS; }
   LtPlan() = default;
   LtPlan(const LtPlan&) = delete;
   LtPlan& operator=(const LtPlan&) = delete;
@@ -77,8 +80,8 @@ struct LtPlan {
   }
 };
 
-// dtype, M, N, K, epilogue, bias present, alignment of x, w, y, bias (bytes).
-using LtPlanKey = std::array<std::int64_t, 9>;
+// dtype, M, N, K, ldx, ldy, wanted cuBLASLt epilogue, alignment of x, w, y (bytes).
+using LtPlanKey = std::array<std::int64_t, 10>;
 
 }  // namespace detail
 

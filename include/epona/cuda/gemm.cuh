@@ -9,7 +9,6 @@
 #include <type_traits>
 
 #include "epona/cuda/activation.cuh"
-#include "epona/cuda/elementwise.cuh"
 #include "epona/cuda/memory.hpp"
 
 namespace epona::cuda {
@@ -36,86 +35,126 @@ void set_desc(cublasLtMatmulDesc_t d, cublasLtMatmulDescAttributes_t attr, const
 }
 
 // Row-major y (M, N) = x (M, K) · w (N, K)ᵀ is, in cuBLASLt's column-major terms,
-// yᵀ (N, M) = op_T(w stored K×N) · (x stored K×M).
+// yᵀ (N, M) = op_T(w stored K×N) · (x stored K×M). Returns null when cuBLASLt has no
+// algorithm for this epilogue.
 template <class T>
-std::unique_ptr<LtPlan> make_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t epilogue) {
-  const auto [dt, M, N, K, epi, has_bias, ax, aw, ay] = key;
-  (void)dt, (void)epi, (void)has_bias;
+std::unique_ptr<LtPlan> try_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t epilogue) {
+  const auto [dt, M, N, K, ldx, ldy, wanted, ax, aw, ay] = key;
+  (void)dt, (void)wanted;
   const cudaDataType_t type = cuda_dtype<T>();
   auto plan = std::make_unique<LtPlan>();
+  plan->epilogue = epilogue;
   EPONA_CUBLAS_CHECK(cublasLtMatmulDescCreate(&plan->op, CUBLAS_COMPUTE_32F, CUDA_R_32F));
   set_desc(plan->op, CUBLASLT_MATMUL_DESC_TRANSA, CUBLAS_OP_T);
   set_desc(plan->op, CUBLASLT_MATMUL_DESC_TRANSB, CUBLAS_OP_N);
   set_desc(plan->op, CUBLASLT_MATMUL_DESC_EPILOGUE, epilogue);
-  if (epilogue == CUBLASLT_EPILOGUE_BIAS || epilogue == CUBLASLT_EPILOGUE_GELU_BIAS)
-    set_desc(plan->op, CUBLASLT_MATMUL_DESC_BIAS_DATA_TYPE, type);
+  if (plan->fuses_bias()) set_desc(plan->op, CUBLASLT_MATMUL_DESC_BIAS_DATA_TYPE, type);
   EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->a, type, K, N, K));
-  EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->b, type, K, M, K));
-  EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->c, type, N, M, N));
+  EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->b, type, K, M, ldx));
+  EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->c, type, N, M, ldy));
 
   cublasLtMatmulPreference_t pref = nullptr;
   EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceCreate(&pref));
   std::unique_ptr<cublasLtMatmulPreferenceOpaque_t, decltype(&cublasLtMatmulPreferenceDestroy)> pref_guard(
       pref, &cublasLtMatmulPreferenceDestroy);
-  const std::uint64_t ws = ctx.workspace_bytes();
-  const auto a32 = [](std::int64_t v) { return static_cast<std::uint32_t>(v); };
-  const std::uint32_t align_w = a32(aw), align_x = a32(ax), align_y = a32(ay);
-  EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceSetAttribute(pref, CUBLASLT_MATMUL_PREF_MAX_WORKSPACE_BYTES, &ws, sizeof ws));
-  EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceSetAttribute(pref, CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_A_BYTES, &align_w,
-                                                          sizeof align_w));
-  EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceSetAttribute(pref, CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_B_BYTES, &align_x,
-                                                          sizeof align_x));
-  EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceSetAttribute(pref, CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_C_BYTES, &align_y,
-                                                          sizeof align_y));
-  EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceSetAttribute(pref, CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_D_BYTES, &align_y,
-                                                          sizeof align_y));
+  const auto set_pref = [pref](cublasLtMatmulPreferenceAttributes_t attr, auto value) {
+    EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceSetAttribute(pref, attr, &value, sizeof value));
+  };
+  set_pref(CUBLASLT_MATMUL_PREF_MAX_WORKSPACE_BYTES, static_cast<std::uint64_t>(ctx.workspace_bytes()));
+  set_pref(CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_A_BYTES, static_cast<std::uint32_t>(aw));
+  set_pref(CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_B_BYTES, static_cast<std::uint32_t>(ax));
+  set_pref(CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_C_BYTES, static_cast<std::uint32_t>(ay));
+  set_pref(CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_D_BYTES, static_cast<std::uint32_t>(ay));
   cublasLtMatmulHeuristicResult_t result{};
   int found = 0;
-  EPONA_CUBLAS_CHECK(cublasLtMatmulAlgoGetHeuristic(ctx.lt(), plan->op, plan->a, plan->b, plan->c, plan->c, pref, 1,
-                                                    &result, &found));
-  EPONA_CHECK(found > 0, "linear: cuBLASLt has no algorithm for M=", M, " N=", N, " K=", K, " (",
-              std::is_same_v<T, float> ? "float32" : "bf16", ", alignments x ", ax, " w ", aw, " y ", ay, " bytes)");
+  const cublasStatus_t status = cublasLtMatmulAlgoGetHeuristic(ctx.lt(), plan->op, plan->a, plan->b, plan->c,
+                                                               plan->c, pref, 1, &result, &found);
+  if (status == CUBLAS_STATUS_NOT_SUPPORTED || found == 0) return nullptr;
+  EPONA_CUBLAS_CHECK(status);
   plan->algo = result.algo;
   return plan;
 }
 
+// The wanted fused epilogue if cuBLASLt has it for this problem, else a plain product (the
+// caller then applies bias and activation itself).
+template <class T>
+std::unique_ptr<LtPlan> make_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted) {
+  auto plan = try_plan<T>(ctx, key, wanted);
+  if (!plan && wanted != CUBLASLT_EPILOGUE_DEFAULT) plan = try_plan<T>(ctx, key, CUBLASLT_EPILOGUE_DEFAULT);
+  EPONA_CHECK(plan != nullptr, "linear: cuBLASLt has no algorithm for M=", key[1], " N=", key[2], " K=", key[3],
+              " ldx=", key[4], " ldy=", key[5], " (", std::is_same_v<T, float> ? "float32" : "bf16",
+              ", alignments x ", key[7], " w ", key[8], " y ", key[9], " bytes)");
+  return plan;
+}
+
+template <class T, class Op>
+__global__ void bias_activation_kernel(T* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const T* bias,
+                                       Op op) {
+  const std::int64_t total = rows * n;
+  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
+       i += std::int64_t{gridDim.x} * blockDim.x) {
+    const std::int64_t r = i / n, c = i - r * n;
+    T& out = y[r * ldy + c];
+    float v = to_f32(out);
+    // A bias that is not fused rounds like cuBLASLt's output would before the activation.
+    if (bias) v = round_to<T>(v + to_f32(bias[c]));
+    out = from_f32<T>(op(v));
+  }
+}
+
+struct Identity {
+  __device__ float operator()(float v) const { return v; }
+};
+
+// y[r, :] = act(y[r, :] + bias) on rows ldy apart, as one pass over y.
+template <class T, class Op>
+void bias_activation(Context& ctx, T* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const T* bias, Op op) {
+  bias_activation_kernel<<<grid_for(rows * n, 256), 256, 0, ctx.stream()>>>(y, ldy, rows, n, bias, op);
+  EPONA_CUDA_CHECK_LAUNCH();
+}
+
 }  // namespace detail
 
-// Dense row-major y (M, N) = act(x (M, K) · w (N, K)ᵀ + bias (N)); bias may be null.
+// Pointer form with row strides (x rows ldx apart, y rows ldy apart, so y can be a column
+// block of a wider buffer): y[M, N] = act(x[M, K] · w[N, K]ᵀ + bias[N]); bias may be null.
 // Asynchronous on ctx's stream.
 template <class T>
-void linear(Context& ctx, const T* x, const T* w, const T* bias, T* y, std::int64_t M, std::int64_t N, std::int64_t K,
-            Epilogue epi = Epilogue::None) {
+void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bias, T* y, std::int64_t ldy,
+            std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi = Epilogue::None) {
   static_assert(is_device_float<T>, "linear takes float or bf16");
-  EPONA_CHECK(M >= 0 && N > 0 && K > 0, "linear: bad extent M=", M, " N=", N, " K=", K);
+  EPONA_CHECK(M >= 0 && N > 0 && K > 0, "linear: bad extent (M ", M, ", N ", N, ", K ", K, ")");
+  EPONA_CHECK(ldx >= K && ldy >= N, "linear: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K, ", N ", N);
   if (M == 0) return;
   // cuBLASLt's bias epilogue needs a 16-byte aligned bias; otherwise the bias is added apart.
-  const bool fused_bias = bias && detail::pointer_alignment(bias) >= 16;
-  cublasLtEpilogue_t lt_epi = CUBLASLT_EPILOGUE_DEFAULT;
-  if (epi == Epilogue::GeluTanh && (fused_bias || !bias))
-    lt_epi = fused_bias ? CUBLASLT_EPILOGUE_GELU_BIAS : CUBLASLT_EPILOGUE_GELU;  // cuBLASLt's GELU is the tanh form
-  else if (fused_bias)
-    lt_epi = CUBLASLT_EPILOGUE_BIAS;
+  const bool bias_fusable = bias && detail::pointer_alignment(bias) >= 16;
+  cublasLtEpilogue_t wanted = CUBLASLT_EPILOGUE_DEFAULT;
+  if (epi == Epilogue::GeluTanh && (bias_fusable || !bias))
+    wanted = bias ? CUBLASLT_EPILOGUE_GELU_BIAS : CUBLASLT_EPILOGUE_GELU;  // cuBLASLt's GELU is the tanh form
+  else if (bias_fusable)
+    wanted = CUBLASLT_EPILOGUE_BIAS;
 
-  const detail::LtPlanKey key{std::is_same_v<T, float> ? 0 : 1, M, N, K, static_cast<std::int64_t>(lt_epi),
-                              fused_bias ? 1 : 0, detail::pointer_alignment(x), detail::pointer_alignment(w),
+  const detail::LtPlanKey key{std::is_same_v<T, float> ? 0 : 1, M, N, K, ldx, ldy, static_cast<std::int64_t>(wanted),
+                              detail::pointer_alignment(x), detail::pointer_alignment(w),
                               detail::pointer_alignment(y)};
-  auto& slot = ctx.gemm_plans()[key];
-  if (!slot) slot = detail::make_plan<T>(ctx, key, lt_epi);
-  if (fused_bias) detail::set_desc(slot->op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
+  auto& plan = ctx.gemm_plans()[key];
+  if (!plan) plan = detail::make_plan<T>(ctx, key, wanted);
+  if (plan->fuses_bias()) detail::set_desc(plan->op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
   const float alpha = 1.0f, beta = 0.0f;
-  EPONA_CUBLAS_CHECK(cublasLtMatmul(ctx.lt(), slot->op, &alpha, w, slot->a, x, slot->b, &beta, y, slot->c, y, slot->c,
-                                    &slot->algo, ctx.workspace(), ctx.workspace_bytes(), ctx.stream()));
+  EPONA_CUBLAS_CHECK(cublasLtMatmul(ctx.lt(), plan->op, &alpha, w, plan->a, x, plan->b, &beta, y, plan->c, y, plan->c,
+                                    &plan->algo, ctx.workspace(), ctx.workspace_bytes(), ctx.stream()));
 
-  const std::int64_t n = M * N;
-  if (bias && !fused_bias) add_row_broadcast(ctx, y, bias, M, N);
+  // What cuBLASLt did not do, in one pass: the bias when unfused, then the activation
+  // (always for the erf GELU and SiLU, which cuBLASLt lacks).
+  const T* rest_bias = plan->fuses_bias() ? nullptr : bias;
   switch (epi) {
-    case Epilogue::None: break;
-    case Epilogue::GeluTanh:
-      if (lt_epi == CUBLASLT_EPILOGUE_DEFAULT) gelu_tanh(ctx, y, n);
+    case Epilogue::None:
+      if (rest_bias) detail::bias_activation(ctx, y, ldy, M, N, rest_bias, detail::Identity{});
       break;
-    case Epilogue::GeluErf: gelu_erf(ctx, y, n); break;
-    case Epilogue::Silu: silu(ctx, y, n); break;
+    case Epilogue::GeluTanh:
+      if (!plan->fuses_gelu()) detail::bias_activation(ctx, y, ldy, M, N, rest_bias, detail::GeluTanhOp{});
+      break;
+    case Epilogue::GeluErf: detail::bias_activation(ctx, y, ldy, M, N, rest_bias, detail::GeluErfOp{}); break;
+    case Epilogue::Silu: detail::bias_activation(ctx, y, ldy, M, N, rest_bias, detail::SiluOp{}); break;
   }
 }
 
@@ -130,7 +169,7 @@ void linear(Context& ctx, const Tensor<T, Cuda>& x, const Tensor<T, Cuda>& w, co
   EPONA_CHECK(y.numel() == M * N && y.size(-1) == N, "linear: output ", shape_str(y.shape()), " is not (", M, ", ",
               N, ")");
   EPONA_CHECK(bias.empty() || bias.numel() == N, "linear: bias ", shape_str(bias.shape()), " is not (", N, ")");
-  linear(ctx, x.data(), w.data(), bias.empty() ? nullptr : bias.data(), y.data(), M, N, K, epi);
+  linear(ctx, x.data(), K, w.data(), bias.empty() ? nullptr : bias.data(), y.data(), N, M, N, K, epi);
 }
 
 }  // namespace epona::cuda

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <type_traits>
 
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
@@ -87,8 +88,8 @@ void launch_layer_norm(Context& ctx, const TX* x, TY* y, std::int64_t rows, std:
 // y[m, :] = (x[m, :] - mean) * rstd * weight + bias over rows of width n. weight/bias may be
 // null (no affine). x and y may alias.
 template <class TX, class TY, class TP = float>
-void layer_norm(Context& ctx, const TX* x, TY* y, std::int64_t rows, std::int64_t n, const TP* weight, const TP* bias,
-                float eps) {
+void layer_norm(Context& ctx, const TX* x, TY* y, std::int64_t rows, std::int64_t n, const TP* weight,
+                const std::type_identity_t<TP>* bias, float eps) {
   detail::launch_layer_norm<false>(ctx, x, y, rows, n, weight, bias, eps, "layer_norm");
 }
 

@@ -1,0 +1,231 @@
+// Micro-benchmarks of the CUDA backend's kernels (plain CUDA events, no Google Benchmark, so
+// the binary runs on a bare GPU machine): the measured ceilings (device copy bandwidth, bf16
+// GEMM 8192³), cuBLASLt at the model's GEMM shapes with their epilogues, flash attention at
+// the MST-spatial and VisDiT-joint sizes, and the fused norm/RoPE/residual kernels. Medians of
+// event-timed repetitions after warm-up; GEMM inputs rotate over several buffer sets so that
+// the 50-60 MB L2 cannot hold them. Random (never zero) data.
+#include <algorithm>
+#include <cstdint>
+#include <cstdio>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "epona/cuda/ops.cuh"
+
+using namespace epona;
+
+namespace {
+
+__global__ void fill_uniform_kernel(float* f, bf16* b, std::int64_t n, std::uint32_t seed, float lo, float hi) {
+  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < n;
+       i += std::int64_t{gridDim.x} * blockDim.x) {
+    std::uint32_t h = static_cast<std::uint32_t>(i) * 2654435761u ^ seed * 2246822519u ^
+                      static_cast<std::uint32_t>(i >> 32) * 3266489917u;
+    h ^= h >> 15, h *= 2246822519u, h ^= h >> 13, h *= 3266489917u, h ^= h >> 16;
+    const float v = lo + (hi - lo) * (h >> 8) * (1.0f / 16777216.0f);
+    if (f) f[i] = v;
+    if (b) b[i] = cuda::detail::from_f32<bf16>(v);
+  }
+}
+
+template <class T>
+Tensor<T, Cuda> random_device(cuda::Context& ctx, Shape shape, std::uint32_t seed, float lo = -1.f, float hi = 1.f) {
+  Tensor<T, Cuda> t(std::move(shape));
+  float* f = nullptr;
+  bf16* b = nullptr;
+  if constexpr (std::is_same_v<T, float>) f = t.data(); else b = t.data();
+  fill_uniform_kernel<<<1024, 256, 0, ctx.stream()>>>(f, b, t.numel(), seed, lo, hi);
+  EPONA_CUDA_CHECK_LAUNCH();
+  return t;
+}
+
+// Median milliseconds of `reps` event-timed calls after `warmup` untimed ones.
+double median_ms(cuda::Context& ctx, int reps, const std::function<void(int)>& fn, int warmup = 3) {
+  for (int i = 0; i < warmup; ++i) fn(i);
+  std::vector<cudaEvent_t> ev(2 * reps);
+  for (auto& e : ev) EPONA_CUDA_CHECK(cudaEventCreate(&e));
+  for (int i = 0; i < reps; ++i) {
+    EPONA_CUDA_CHECK(cudaEventRecord(ev[2 * i], ctx.stream()));
+    fn(i);
+    EPONA_CUDA_CHECK(cudaEventRecord(ev[2 * i + 1], ctx.stream()));
+  }
+  ctx.synchronize();
+  std::vector<double> ms(reps);
+  for (int i = 0; i < reps; ++i) {
+    float m = 0;
+    EPONA_CUDA_CHECK(cudaEventElapsedTime(&m, ev[2 * i], ev[2 * i + 1]));
+    ms[i] = m;
+  }
+  for (auto& e : ev) cudaEventDestroy(e);
+  std::sort(ms.begin(), ms.end());
+  return ms[reps / 2];
+}
+
+double g_gemm_ceiling = 0;  // TFLOP/s of the bf16 8192³ product, the reference for the rest
+
+void row(const std::string& name, double ms, double flop, double bytes) {
+  std::printf("%-58s %9.4f ms", name.c_str(), ms);
+  if (flop > 0) {
+    const double tf = flop / ms / 1e9;
+    std::printf(" %8.1f TFLOP/s", tf);
+    if (g_gemm_ceiling > 0) std::printf(" (%5.1f%% of ceiling)", 100.0 * tf / g_gemm_ceiling);
+  }
+  if (bytes > 0) std::printf(" %8.1f GB/s", bytes / ms / 1e6);
+  std::printf("\n");
+  std::fflush(stdout);
+}
+
+const char* epi_name(cuda::Epilogue e) {
+  switch (e) {
+    case cuda::Epilogue::None: return "bias";
+    case cuda::Epilogue::GeluErf: return "bias+gelu_erf";
+    case cuda::Epilogue::GeluTanh: return "bias+gelu_tanh";
+    case cuda::Epilogue::Silu: return "bias+silu";
+  }
+  return "?";
+}
+
+// y = act(x wᵀ + b) with `sets` independent operand sets used round robin.
+template <class T>
+double bench_linear(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int64_t K, bool bias, cuda::Epilogue epi,
+                    int reps, const char* label) {
+  const double bytes_per_set = double(M * K + N * K + M * N) * sizeof(T);
+  const int sets = std::clamp(static_cast<int>(240e6 / bytes_per_set) + 1, 1, 8);
+  std::vector<Tensor<T, Cuda>> xs, ws, bs, ys;
+  for (int s = 0; s < sets; ++s) {
+    xs.push_back(random_device<T>(ctx, {M, K}, 10 * s + 1));
+    ws.push_back(random_device<T>(ctx, {N, K}, 10 * s + 2, -0.03f, 0.03f));
+    bs.push_back(bias ? random_device<T>(ctx, {N}, 10 * s + 3) : Tensor<T, Cuda>());
+    ys.push_back(Tensor<T, Cuda>({M, N}));
+  }
+  const double ms = median_ms(ctx, reps, [&](int i) {
+    const int s = i % sets;
+    cuda::linear(ctx, xs[s], ws[s], bs[s], ys[s], epi);
+  });
+  char name[160];
+  std::snprintf(name, sizeof name, "%s %s M=%lld N=%lld K=%lld %s", label,
+                std::is_same_v<T, float> ? "f32" : "bf16", static_cast<long long>(M), static_cast<long long>(N),
+                static_cast<long long>(K), bias ? epi_name(epi) : "");
+  row(name, ms, 2.0 * M * N * K, 0);
+  return ms;
+}
+
+// Self-attention over packed (seqs, L, 3, heads, 128) QKV into (seqs, L, heads, 128).
+template <class T>
+void bench_attention(cuda::Context& ctx, std::int64_t seqs, std::int64_t heads, std::int64_t len, bool causal,
+                     int reps, const char* label) {
+  const std::int64_t D = 128, c = heads * D;
+  auto qkv = random_device<T>(ctx, {seqs, len, 3 * c}, 77, -2.f, 2.f);
+  Tensor<T, Cuda> out({seqs, len, c});
+  cuda::AttentionShape a;
+  a.seqs = seqs, a.heads = heads, a.lq = a.lk = len, a.head_dim = D;
+  a.q_seq = a.k_seq = a.v_seq = len * 3 * c;
+  a.q_row = a.k_row = a.v_row = 3 * c;
+  a.o_seq = len * c, a.o_row = c;
+  a.mask = causal ? cuda::Mask::Causal : cuda::Mask::None;
+  const double ms = median_ms(ctx, reps, [&](int) {
+    cuda::attention(ctx, qkv.data(), qkv.data() + c, qkv.data() + 2 * c, out.data(), a);
+  });
+  char name[160];
+  std::snprintf(name, sizeof name, "attention %s %s %lld x %lld heads x %lld x 128%s", label,
+                std::is_same_v<T, float> ? "f32" : "bf16", static_cast<long long>(seqs),
+                static_cast<long long>(heads), static_cast<long long>(len), causal ? " causal" : "");
+  // Full-square FLOP (compute-budget.md convention), also for causal.
+  row(name, ms, 4.0 * seqs * heads * len * len * D, 0);
+}
+
+}  // namespace
+
+int main() {
+  if (!cuda::has_gpu()) {
+    std::printf("no CUDA device: skipping\n");
+    return 0;
+  }
+  try {
+    cuda::Context ctx;
+    const auto& d = ctx.info();
+    std::printf("device: %s (sm_%d%d, %d SMs, %.1f GiB, L2 %.0f MiB)\n\n", d.name.c_str(), d.major, d.minor,
+                d.multiprocessors, d.global_bytes / 1073741824.0, d.l2_bytes / 1048576.0);
+
+    {  // Ceiling 1: device-to-device copy of 2 GiB, bytes read + written.
+      const std::int64_t n = std::int64_t{1} << 29;
+      auto a = random_device<float>(ctx, {n}, 1);
+      Tensor<float, Cuda> b({n});
+      const double ms = median_ms(ctx, 10, [&](int) { cuda::copy(ctx, b, a); });
+      row("device copy 2 GiB (read + write)", ms, 0, 2.0 * n * 4);
+    }
+    // Ceiling 2: bf16 8192³.
+    {
+      const double ms = bench_linear<bf16>(ctx, 8192, 8192, 8192, false, cuda::Epilogue::None, 20, "ceiling");
+      g_gemm_ceiling = 2.0 * 8192.0 * 8192.0 * 8192.0 / ms / 1e9;
+      std::printf("  -> measured bf16 GEMM ceiling %.1f TFLOP/s\n", g_gemm_ceiling);
+    }
+    bench_linear<float>(ctx, 4096, 4096, 4096, false, cuda::Epilogue::None, 10, "fp32 (no TF32)");
+
+    std::printf("\nmodel GEMM shapes (bf16, bias fused; the activation each layer uses)\n");
+    struct Shape3 { std::int64_t M, N, K; cuda::Epilogue epi; const char* what; };
+    const Shape3 shapes[] = {
+        {5150, 2048, 2048, cuda::Epilogue::None, "MST q/k/v/proj"},
+        {5150, 8192, 2048, cuda::Epilogue::GeluErf, "MST c_fc"},
+        {5150, 8192, 2048, cuda::Epilogue::None, "MST c_fc (no act)"},
+        {5150, 2048, 8192, cuda::Epilogue::None, "MST c_proj"},
+        {1027, 6144, 2048, cuda::Epilogue::None, "VisDiT qkv"},
+        {1027, 8192, 2048, cuda::Epilogue::GeluTanh, "VisDiT mlp.0"},
+        {1027, 14336, 2048, cuda::Epilogue::None, "VisDiT single linear1"},
+        {530, 3072, 1024, cuda::Epilogue::None, "TrajDiT qkv"},
+        {530, 7168, 1024, cuda::Epilogue::None, "TrajDiT single linear1"},
+    };
+    for (const auto& s : shapes) bench_linear<bf16>(ctx, s.M, s.N, s.K, true, s.epi, 30, s.what);
+
+    std::printf("\nflash attention (head dim 128, packed QKV)\n");
+    bench_attention<bf16>(ctx, 10, 16, 515, false, 30, "MST spatial");
+    bench_attention<bf16>(ctx, 1, 16, 1027, false, 30, "VisDiT joint");
+    bench_attention<bf16>(ctx, 1, 8, 530, false, 30, "TrajDiT joint");
+    bench_attention<bf16>(ctx, 1, 16, 4096, false, 10, "long (fill check)");
+    bench_attention<bf16>(ctx, 1, 16, 4096, true, 10, "long (fill check)");
+    bench_attention<float>(ctx, 10, 16, 515, false, 5, "MST spatial");
+
+    std::printf("\nmemory-bound kernels (bf16 activations; bytes = reads + writes)\n");
+    {
+      const std::int64_t rows = 5150, n = 2048;
+      auto x = random_device<float>(ctx, {rows, n}, 5);  // the MST's float32 residual
+      auto xb = random_device<bf16>(ctx, {rows, n}, 6);
+      auto shift = random_device<bf16>(ctx, {n}, 7), scale = random_device<bf16>(ctx, {n}, 8);
+      Tensor<bf16, Cuda> y({rows, n});
+      double ms = median_ms(ctx, 30, [&](int) {
+        cuda::layer_norm(ctx, x.data(), y.data(), rows, n, static_cast<const float*>(nullptr), nullptr, 1e-6f);
+      });
+      row("layer_norm f32->bf16 5150 x 2048", ms, 0, rows * n * (4.0 + 2.0));
+      ms = median_ms(ctx, 30, [&](int) {
+        cuda::layer_norm_modulate(ctx, xb.data(), y.data(), rows, n, shift.data(), scale.data(), 1e-6f);
+      });
+      row("layer_norm_modulate bf16 5150 x 2048", ms, 0, rows * n * 4.0);
+      ms = median_ms(ctx, 30, [&](int) { cuda::add_gated(ctx, xb.data(), y.data(), shift.data(), rows, n); });
+      row("add_gated bf16 5150 x 2048", ms, 0, rows * n * 6.0);
+      ms = median_ms(ctx, 30, [&](int) { cuda::add_inplace(ctx, x.data(), y.data(), rows * n); });
+      row("add_inplace f32 += bf16 5150 x 2048", ms, 0, rows * n * 10.0);
+      ms = median_ms(ctx, 30, [&](int) { cuda::gelu_erf(ctx, xb.data(), rows * n); });
+      row("gelu_erf bf16 5150 x 2048", ms, 0, rows * n * 4.0);
+    }
+    {
+      const std::int64_t rows = 1027, heads = 16, D = 128, stride = 3 * heads * D;
+      auto qkv = random_device<bf16>(ctx, {rows, stride}, 9);
+      auto cs = random_device<float>(ctx, {rows, D / 2}, 10), sn = random_device<float>(ctx, {rows, D / 2}, 11);
+      auto sc = random_device<float>(ctx, {D}, 12, 0.5f, 1.5f);
+      double ms = median_ms(ctx, 30, [&](int) {
+        cuda::rms_norm_heads(ctx, qkv.data(), rows, stride, heads, D, sc.data(), 1e-6f);
+      });
+      row("rms_norm_heads bf16 (q of 1027 x 16 x 128)", ms, 0, rows * heads * D * 4.0);
+      ms = median_ms(ctx, 30, [&](int) {
+        cuda::apply_rope(ctx, qkv.data(), rows, stride, heads, D, cs.data(), sn.data());
+      });
+      row("apply_rope bf16 (q of 1027 x 16 x 128)", ms, 0, rows * heads * D * 4.0 + rows * D * 4.0);
+    }
+    ctx.synchronize();
+  } catch (const epona::Error& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 1;
+  }
+  return 0;
+}

@@ -1,0 +1,190 @@
+// GPU tests for epona/cuda/attention.cuh: flash attention (bf16 tensor-core kernel with head
+// dim 128 specialised and the generic zero-padded path; float32 kernel) against cpu::attention
+// on the same (bf16-rounded) inputs: dense, causal, cross (lq != lk), additive masks with a
+// fully masked row, packed QKV, the MST's frame-strided temporal layout and its spatial one,
+// head dims 4/24/32/64/128, unaligned strides. Outputs are poisoned first; elements outside
+// the output layout must stay poisoned.
+// Bounds. float32: rel_l2 and max|err| / max|v| <= 1e-5. bf16: P is rounded to bf16 before
+// P·V (|δp| <= 2^-9 p, so |err| <= 2^-9 max|v|) and the output once more (2^-9 |o| <= 2^-9
+// max|v|): max|err| <= 2^-8 max|v|, rel_l2 <= 1e-2.
+#include "cuda_test_util.cuh"
+
+#include <algorithm>
+#include <limits>
+
+using namespace epona;
+using namespace epona::test;
+
+namespace {
+
+// Where q, k, v (one input buffer, at offsets) and o (one output buffer) live.
+struct Layout {
+  std::int64_t seqs, heads, lq, lk, dim;
+  std::int64_t q_off, q_seq, q_row, k_off, k_seq, k_row, v_off, v_seq, v_row, o_seq, o_row;
+  bool causal = false;
+  bool additive = false;
+};
+
+std::int64_t extent(std::int64_t off, std::int64_t seq, std::int64_t row, std::int64_t seqs, std::int64_t len,
+                    const Layout& l) {
+  if (seqs == 0 || len == 0) return off;
+  return off + (seqs - 1) * seq + (len - 1) * row + l.heads * l.dim;
+}
+
+// Separate dense (seqs, L, heads, dim) tensors for q, k, v and o.
+Layout dense(std::int64_t seqs, std::int64_t heads, std::int64_t lq, std::int64_t lk, std::int64_t dim) {
+  const std::int64_t w = heads * dim;
+  return {seqs, heads, lq, lk, dim, 0, lq * w, w, seqs * lq * w, lk * w, w, seqs * lq * w + seqs * lk * w, lk * w, w,
+          lq * w, w};
+}
+
+// Packed (seqs, L, 3, heads, dim) QKV as the DiTs' qkv Linear writes it; o rows `o_pad` wider.
+Layout packed(std::int64_t seqs, std::int64_t heads, std::int64_t len, std::int64_t dim, std::int64_t o_pad = 0) {
+  const std::int64_t w = heads * dim, row = 3 * w;
+  return {seqs, heads, len, len, dim, 0, len * row, row, w, len * row, row, 2 * w, len * row, row,
+          len * (w + o_pad), w + o_pad};
+}
+
+// The MST's temporal attention: tokens (frames, spatial, 3C); one sequence per spatial
+// position runs over the frames, so the row stride is a whole frame.
+Layout temporal(std::int64_t frames, std::int64_t spatial, std::int64_t heads, std::int64_t dim) {
+  const std::int64_t c = heads * dim, row = 3 * c;
+  return {spatial, heads, frames, frames, dim, 0, row, spatial * row, c, row, spatial * row, 2 * c, row,
+          spatial * row, c, spatial * c, true, false};
+}
+
+template <class T>
+void check_attention(cuda::Context& ctx, const Layout& l, std::uint32_t seed, const std::string& name) {
+  cpu::Context cctx;
+  const std::int64_t in_elems = std::max({extent(l.q_off, l.q_seq, l.q_row, l.seqs, l.lq, l),
+                                          extent(l.k_off, l.k_seq, l.k_row, l.seqs, l.lk, l),
+                                          extent(l.v_off, l.v_seq, l.v_row, l.seqs, l.lk, l), std::int64_t{1}});
+  const std::int64_t out_elems = std::max(extent(0, l.o_seq, l.o_row, l.seqs, l.lq, l), std::int64_t{1});
+  HostF in = random_tensor({in_elems}, seed, -2.f, 2.f);
+  round_to<T>(in);
+  HostF mask;
+  if (l.additive) {
+    mask = random_tensor({std::max<std::int64_t>(l.lq * l.lk, 1)}, seed + 1, -3.f, 3.f);
+    const float inf = std::numeric_limits<float>::infinity();
+    for (std::int64_t i = 0; i < l.lq; ++i)
+      for (std::int64_t j = 0; j < l.lk; ++j)
+        if ((i + 2 * j) % 7 == 3 || i == std::min<std::int64_t>(5, l.lq - 1)) mask.data()[i * l.lk + j] = -inf;
+  }
+
+  cpu::AttentionShape ca;
+  ca.seqs = l.seqs, ca.heads = l.heads, ca.lq = l.lq, ca.lk = l.lk, ca.head_dim = l.dim;
+  ca.q_seq = l.q_seq, ca.q_row = l.q_row, ca.k_seq = l.k_seq, ca.k_row = l.k_row;
+  ca.v_seq = l.v_seq, ca.v_row = l.v_row, ca.o_seq = l.o_seq, ca.o_row = l.o_row;
+  ca.mask = l.causal ? cpu::Mask::Causal : cpu::Mask::None;
+  ca.additive_mask = l.additive ? mask.data() : nullptr;
+  HostF ref({out_elems});
+  std::fill_n(ref.data(), ref.numel(), std::numeric_limits<float>::quiet_NaN());
+  cpu::attention(cctx, in.data() + l.q_off, in.data() + l.k_off, in.data() + l.v_off, ref.data(), ca);
+
+  auto din = upload<T>(ctx, in);
+  auto dmask = l.additive ? upload<float>(ctx, mask) : Dev<float>();
+  Dev<T> dout({out_elems});
+  poison(ctx, dout);
+  cuda::AttentionShape ga;
+  ga.seqs = l.seqs, ga.heads = l.heads, ga.lq = l.lq, ga.lk = l.lk, ga.head_dim = l.dim;
+  ga.q_seq = l.q_seq, ga.q_row = l.q_row, ga.k_seq = l.k_seq, ga.k_row = l.k_row;
+  ga.v_seq = l.v_seq, ga.v_row = l.v_row, ga.o_seq = l.o_seq, ga.o_row = l.o_row;
+  ga.mask = l.causal ? cuda::Mask::Causal : cuda::Mask::None;
+  ga.additive_mask = l.additive ? dmask.data() : nullptr;
+  cuda::attention(ctx, din.data() + l.q_off, din.data() + l.k_off, din.data() + l.v_off, dout.data(), ga);
+  const HostF out = download(ctx, dout);
+
+  // The CPU writes exactly the output layout's elements: those are compared, the rest must
+  // still hold the GPU's poison.
+  const auto written = [&](std::int64_t i) { return !std::isnan(ref.data()[i]); };
+  const auto d = measure(out.data(), ref.data(), out.numel(), written);
+  std::int64_t stray = 0;
+  for (std::int64_t i = 0; i < out.numel(); ++i) stray += !written(i) && !std::isnan(out.data()[i]);
+  const Bound b = std::is_same_v<T, float> ? kF32 : Bound{1e-2, 1.0 / 256};
+  const std::string what = std::string("attention ") + type_name<T>() + " " + name + " d=" + std::to_string(l.dim) +
+                           (l.causal ? " causal" : "") + (l.additive ? " +mask" : "");
+  if (l.lq > 0 && l.seqs > 0) {
+    check_error(d, b, /*max|v|=*/2.0, what);
+  } else {
+    CHECK(d.n == 0);
+  }
+  CHECK(stray == 0);
+}
+
+}  // namespace
+
+TEST_CASE_TEMPLATE("cuda attention head dim 128: dense, causal, cross, masked", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  check_attention<T>(ctx, dense(2, 3, 77, 77, 128), 10, "dense");
+  Layout c = dense(1, 2, 100, 100, 128);
+  c.causal = true;
+  check_attention<T>(ctx, c, 11, "dense");
+  check_attention<T>(ctx, dense(2, 2, 33, 70, 128), 12, "cross lq<lk");
+  check_attention<T>(ctx, dense(1, 2, 130, 20, 128), 13, "cross lq>lk");
+  Layout cc = dense(1, 1, 33, 70, 128);
+  cc.causal = true;
+  check_attention<T>(ctx, cc, 14, "cross lq<lk");
+  Layout m = dense(2, 2, 90, 90, 128);
+  m.additive = true;
+  check_attention<T>(ctx, m, 15, "dense");
+  m.causal = true;
+  check_attention<T>(ctx, m, 16, "dense");
+  check_attention<T>(ctx, dense(1, 1, 1, 1, 128), 17, "single");
+  check_attention<T>(ctx, dense(3, 2, 1, 65, 128), 18, "one query");
+  check_attention<T>(ctx, dense(1, 2, 5, 0, 128), 19, "no keys (zeros)");
+}
+
+TEST_CASE_TEMPLATE("cuda attention on packed QKV, MST temporal and spatial layouts", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  check_attention<T>(ctx, packed(2, 2, 131, 128, /*o_pad=*/40), 20, "packed qkv, padded o");
+  Layout pc = packed(1, 3, 67, 128);
+  pc.causal = true;
+  check_attention<T>(ctx, pc, 21, "packed qkv");
+  check_attention<T>(ctx, temporal(10, 37, 2, 128), 22, "MST temporal (10 frames x 37)");
+  // MST spatial: one sequence per frame, rows are tokens of the frame.
+  const std::int64_t frames = 3, tokens = 131, heads = 2, c = heads * 128, row = 3 * c;
+  Layout sp{frames, heads, tokens, tokens, 128, 0, tokens * row, row, c, tokens * row, row, 2 * c, tokens * row, row,
+            tokens * c, c};
+  check_attention<T>(ctx, sp, 23, "MST spatial (3 frames x 131)");
+  check_attention<T>(ctx, dense(2, 2, 515, 515, 128), 24, "515 tokens");
+}
+
+TEST_CASE_TEMPLATE("cuda attention generic head dims and unaligned strides", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  std::uint32_t seed = 30;
+  for (std::int64_t dim : {4, 24, 32, 64}) {
+    check_attention<T>(ctx, dense(2, 2, 45, 45, dim), seed++, "dense");
+    Layout p = packed(1, 3, 70, dim, 8);
+    p.causal = true;
+    check_attention<T>(ctx, p, seed++, "packed qkv");
+    Layout m = dense(1, 2, 40, 75, dim);
+    m.additive = true;
+    check_attention<T>(ctx, m, seed++, "cross");
+    check_attention<T>(ctx, temporal(10, 9, 2, dim), seed++, "MST temporal");
+  }
+  // Head dim 128 with rows not 16-byte aligned: the generic path at 128.
+  Layout u = dense(1, 2, 70, 70, 128);
+  u.q_row = u.k_row = u.v_row = u.o_row = 2 * 128 + 4;
+  u.q_seq = u.o_seq = 70 * u.q_row;
+  u.k_seq = u.v_seq = 70 * u.k_row;
+  u.k_off = u.q_seq, u.v_off = 2 * u.q_seq;
+  u.causal = true;
+  check_attention<T>(ctx, u, seed++, "unaligned rows");
+}
+
+TEST_CASE("cuda attention rejects unsupported shapes with epona::Error") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  Dev<bf16> buf({1024});
+  cuda::AttentionShape a;
+  a.lq = a.lk = 2, a.head_dim = 130;
+  CHECK_THROWS_WITH_AS(cuda::attention(ctx, buf.data(), buf.data(), buf.data(), buf.data(), a),
+                       doctest::Contains("head_dim 130"), epona::Error);
+  a.head_dim = 64, a.heads = 70000;
+  CHECK_THROWS_AS(cuda::attention(ctx, buf.data(), buf.data(), buf.data(), buf.data(), a), epona::Error);
+  a.heads = 1, a.lq = -1;
+  CHECK_THROWS_AS(cuda::attention(ctx, buf.data(), buf.data(), buf.data(), buf.data(), a), epona::Error);
+}

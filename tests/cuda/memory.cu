@@ -1,0 +1,104 @@
+// GPU tests for epona/cuda/{check,context,memory}.hpp: the context's device info, host <->
+// device copies of float32 and bf16 tensors (bit-exact round trips), device copies and
+// fills, the device arena (alignment, exhaustion, rewind), and that CUDA, launch and cuBLASLt
+// failures surface as epona::Error naming the failing call.
+#include "cuda_test_util.cuh"
+
+#include <cstring>
+
+using namespace epona;
+using namespace epona::test;
+
+namespace {
+__global__ void noop_kernel() {}
+}  // namespace
+
+TEST_CASE("cuda context reports the device") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  const auto& d = ctx.info();
+  std::printf("  device %d: %s, sm_%d%d, %d SMs, %.1f GiB, L2 %.1f MiB, smem/block opt-in %zu KiB\n", d.device,
+              d.name.c_str(), d.major, d.minor, d.multiprocessors, d.global_bytes / 1073741824.0,
+              d.l2_bytes / 1048576.0, d.smem_per_block_optin / 1024);
+  CHECK(d.multiprocessors > 0);
+  CHECK(!d.name.empty());
+  CHECK(ctx.stream() != nullptr);
+  CHECK(ctx.lt() != nullptr);
+  CHECK(ctx.workspace_bytes() == cuda::Context::default_workspace_bytes);
+  CHECK_THROWS_WITH_AS(cuda::Context(1000), doctest::Contains("does not exist"), epona::Error);
+}
+
+TEST_CASE_TEMPLATE("cuda host <-> device copies are bit-exact", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  HostF src = random_tensor({7, 143}, 1);
+  auto d = upload<T>(ctx, src);
+  CHECK(d.shape() == Shape{7, 143});
+  Dev<T> d2(d.shape());
+  cuda::fill_bytes(ctx, d2, 0xFF);
+  cuda::copy(ctx, d2, d);
+  const auto back = cuda::to_host(ctx, d2);
+  Tensor<T, Cpu> expect(src.shape());
+  for (std::int64_t i = 0; i < src.numel(); ++i) expect.data()[i] = T(src.data()[i]);
+  CHECK(std::memcmp(back.data(), expect.data(), expect.nbytes()) == 0);
+
+  // Views (slices) copy only their rows.
+  auto rows = d2.slice(2, 4);
+  const auto part = cuda::to_host(ctx, rows);
+  CHECK(std::memcmp(part.data(), expect.data() + 2 * 143, part.nbytes()) == 0);
+
+  Tensor<T, Cpu> wrong({7, 142});
+  CHECK_THROWS_WITH_AS(cuda::copy(ctx, wrong, d), doctest::Contains("differ"), epona::Error);
+  Dev<T> empty({0, 5});
+  CHECK(cuda::to_host(ctx, empty).numel() == 0);
+}
+
+TEST_CASE("cuda device arena hands out aligned views and reports exhaustion") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  cuda::DeviceArena arena(1 << 20);
+  auto a = arena.alloc<float>({3, 5});
+  auto b = arena.alloc<bf16>({7});
+  auto c = arena.alloc<float>({100});
+  for (const void* p : {static_cast<const void*>(a.data()), static_cast<const void*>(b.data()),
+                        static_cast<const void*>(c.data())})
+    CHECK(reinterpret_cast<std::uintptr_t>(p) % 256 == 0);
+  CHECK(static_cast<void*>(b.data()) != static_cast<void*>(a.data()));
+  const auto mark = arena.mark();
+  auto big = arena.alloc<float>({100000});
+  CHECK(arena.used() > mark);
+  CHECK_THROWS_WITH_AS(arena.alloc<float>({1 << 20}), doctest::Contains("device arena exhausted"), epona::Error);
+  arena.rewind(mark);
+  auto again = arena.alloc<float>({100000});
+  CHECK(again.data() == big.data());
+  CHECK(arena.peak() >= arena.used());
+  // Arena memory is ordinary device memory: copies work.
+  HostF src = random_tensor({3, 5}, 2);
+  cuda::copy(ctx, a, src);
+  CHECK(measure(cuda::to_host(ctx, a), src).max_abs == 0);
+  arena.reset();
+  CHECK(arena.used() == 0);
+  CHECK_THROWS_AS(arena.rewind(10), epona::Error);
+}
+
+TEST_CASE("cuda failures surface as epona::Error naming the call") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  CHECK_THROWS_WITH_AS(EPONA_CUDA_CHECK(cudaSetDevice(100000)), doctest::Contains("cudaSetDevice(100000)"),
+                       epona::Error);
+  CHECK_THROWS_WITH_AS(EPONA_CUDA_CHECK(cudaSetDevice(100000)), doctest::Contains("memory.cu"), epona::Error);
+  EPONA_CUDA_CHECK(cudaSetDevice(0));
+
+  noop_kernel<<<1, 4096, 0, ctx.stream()>>>();  // more threads than a block may have
+  CHECK_THROWS_WITH_AS(EPONA_CUDA_CHECK_LAUNCH(), doctest::Contains("kernel launch"), epona::Error);
+  noop_kernel<<<1, 32, 0, ctx.stream()>>>();
+  EPONA_CUDA_CHECK_LAUNCH();  // the launch error did not stick
+  ctx.synchronize();
+
+  cublasLtMatrixLayout_t layout = nullptr;
+  CHECK_THROWS_WITH_AS(EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&layout, CUDA_R_32F, 4, 4, 2)),
+                       doctest::Contains("CUBLAS_STATUS_INVALID_VALUE"), epona::Error);
+  if (layout) cublasLtMatrixLayoutDestroy(layout);
+
+  CHECK_THROWS_WITH_AS(Dev<float>({std::int64_t{1} << 48}), doctest::Contains("out of device memory"), epona::Error);
+}

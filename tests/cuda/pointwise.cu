@@ -1,0 +1,250 @@
+// GPU tests for the memory-bound kernels: epona/cuda/norm.cuh (LayerNorm, LayerNorm +
+// modulation, per-head RMSNorm), rope.cuh, activation.cuh and elementwise.cuh, in float32,
+// bf16 and the mixed storage combinations the model uses, against the CPU backend on the same
+// (bf16-rounded) inputs. Outputs are poisoned first; in-place ops on packed buffers must leave
+// every channel outside their heads bit-identical.
+// Bounds: float32 1e-5 (rel_l2 and max|err|/max|ref|); bf16 2^-8 (one rounding of the
+// result is 2^-9 relative; the rest covers an intermediate rounding PyTorch also does).
+#include "cuda_test_util.cuh"
+
+#include <cstring>
+
+using namespace epona;
+using namespace epona::test;
+
+namespace {
+
+template <class TX, class TY, class TP>
+std::string types() {
+  return std::string(type_name<TX>()) + "->" + type_name<TY>() + " params " + type_name<TP>();
+}
+
+template <class TX, class TY, class TP>
+void check_layer_norm(cuda::Context& ctx, std::int64_t rows, std::int64_t n, bool weight, bool bias, std::uint32_t seed) {
+  cpu::Context cctx;
+  HostF x = random_tensor({rows, n}, seed, 2.f, 4.f);  // a large mean tests the two-pass variance
+  HostF w = random_tensor({n}, seed + 1, 0.5f, 1.5f), b = random_tensor({n}, seed + 2);
+  round_to<TX>(x), round_to<TP>(w), round_to<TP>(b);
+  HostF ref({rows, n});
+  cpu::layer_norm(cctx, x.data(), ref.data(), rows, n, weight ? w.data() : nullptr, bias ? b.data() : nullptr, 1e-6f);
+  auto dx = upload<TX>(ctx, x);
+  auto dw = upload<TP>(ctx, w), db = upload<TP>(ctx, b);
+  Dev<TY> dy({rows, n});
+  poison(ctx, dy);
+  cuda::layer_norm(ctx, dx.data(), dy.data(), rows, n, weight ? dw.data() : nullptr, bias ? db.data() : nullptr, 1e-6f);
+  check_error(measure(download(ctx, dy), ref), bound_for<TY>(), max_abs(ref),
+              "layer_norm " + types<TX, TY, TP>() + " " + std::to_string(rows) + "x" + std::to_string(n) +
+                  (weight ? " w" : "") + (bias ? " b" : ""));
+}
+
+template <class TX, class TY, class TP>
+void check_modulate(cuda::Context& ctx, std::int64_t rows, std::int64_t n, std::uint32_t seed) {
+  cpu::Context cctx;
+  HostF x = random_tensor({rows, n}, seed, -3.f, 5.f);
+  HostF shift = random_tensor({n}, seed + 1), scale = random_tensor({n}, seed + 2, -0.5f, 0.5f);
+  round_to<TX>(x), round_to<TP>(shift), round_to<TP>(scale);
+  HostF ref({rows, n});
+  cpu::layer_norm_modulate(cctx, x.data(), ref.data(), rows, n, shift.data(), scale.data(), 1e-6f);
+  auto dx = upload<TX>(ctx, x);
+  auto dshift = upload<TP>(ctx, shift), dscale = upload<TP>(ctx, scale);
+  Dev<TY> dy({rows, n});
+  poison(ctx, dy);
+  cuda::layer_norm_modulate(ctx, dx.data(), dy.data(), rows, n, dshift.data(), dscale.data(), 1e-6f);
+  check_error(measure(download(ctx, dy), ref), bound_for<TY>(), max_abs(ref),
+              "layer_norm_modulate " + types<TX, TY, TP>() + " " + std::to_string(rows) + "x" + std::to_string(n));
+}
+
+// An in-place per-head op on `heads` heads at the front of rows `stride` wide (packed QKV):
+// the heads must match the CPU, every other channel must be untouched.
+template <class T, class GpuOp, class CpuOp>
+void check_heads_inplace(cuda::Context& ctx, std::int64_t rows, std::int64_t stride, std::int64_t heads,
+                         std::int64_t head_dim, std::uint32_t seed, const std::string& name, GpuOp gpu, CpuOp cpu_op) {
+  HostF x = random_tensor({rows, stride}, seed, -2.f, 2.f);
+  round_to<T>(x);
+  HostF ref = x.clone();
+  cpu_op(ref.data());
+  auto dx = upload<T>(ctx, x);
+  gpu(dx.data());
+  const HostF out = download(ctx, dx);
+  const auto in_heads = [&](std::int64_t i) { return i % stride < heads * head_dim; };
+  check_error(measure(out.data(), ref.data(), out.numel(), in_heads), bound_for<T>(), max_abs(ref),
+              name + " " + type_name<T>() + " rows " + std::to_string(rows) + " heads " + std::to_string(heads) +
+                  " x " + std::to_string(head_dim) + " stride " + std::to_string(stride));
+  std::int64_t changed = 0;
+  for (std::int64_t i = 0; i < out.numel(); ++i)
+    changed += !in_heads(i) && std::memcmp(&out.data()[i], &x.data()[i], sizeof(float)) != 0;
+  CHECK(changed == 0);
+}
+
+template <class T>
+void check_rms_and_rope(cuda::Context& ctx, std::int64_t rows, std::int64_t heads, std::int64_t head_dim,
+                        std::uint32_t seed) {
+  cpu::Context cctx;
+  const std::int64_t stride = 3 * heads * head_dim + 6;
+  HostF scale = random_tensor({head_dim}, seed + 10, 0.5f, 1.5f);
+  auto dscale = upload<float>(ctx, scale);
+  check_heads_inplace<T>(
+      ctx, rows, stride, heads, head_dim, seed, "rms_norm_heads",
+      [&](T* p) { cuda::rms_norm_heads(ctx, p, rows, stride, heads, head_dim, dscale.data(), 1e-6f); },
+      [&](float* p) { cpu::rms_norm_heads(cctx, p, rows, stride, heads, head_dim, scale.data(), 1e-6f); });
+
+  HostF angle = random_tensor({rows, head_dim / 2}, seed + 11, -20.f, 20.f);
+  HostF cos({rows, head_dim / 2}), sin({rows, head_dim / 2});
+  for (std::int64_t i = 0; i < angle.numel(); ++i) {
+    cos.data()[i] = std::cos(angle.data()[i]);
+    sin.data()[i] = std::sin(angle.data()[i]);
+  }
+  auto dcos = upload<float>(ctx, cos), dsin = upload<float>(ctx, sin);
+  check_heads_inplace<T>(
+      ctx, rows, stride, heads, head_dim, seed + 20, "apply_rope",
+      [&](T* p) { cuda::apply_rope(ctx, p, rows, stride, heads, head_dim, dcos.data(), dsin.data()); },
+      [&](float* p) { cpu::apply_rope(cctx, p, rows, stride, heads, head_dim, cos.data(), sin.data()); });
+}
+
+// An in-place op over the first n of n + 1 elements: the guard element past n must survive.
+template <class T, class GpuOp, class CpuOp>
+void check_map_inplace(cuda::Context& ctx, std::int64_t n, std::uint32_t seed, const std::string& name, GpuOp gpu,
+                       CpuOp cpu_op) {
+  HostF x = random_tensor({n + 1}, seed, -6.f, 6.f);
+  round_to<T>(x);
+  HostF ref = x.clone();
+  cpu_op(ref.data(), n);
+  auto dx = upload<T>(ctx, x);
+  gpu(dx.data(), n);
+  const HostF out = download(ctx, dx);
+  check_error(measure(out.data(), ref.data(), n, [](std::int64_t) { return true; }), bound_for<T>(), max_abs(ref),
+              name + " " + type_name<T>() + " n " + std::to_string(n));
+  CHECK(std::memcmp(&out.data()[n], &x.data()[n], sizeof(float)) == 0);
+}
+
+template <class T>
+void check_activations(cuda::Context& ctx, std::int64_t n, std::uint32_t seed) {
+  cpu::Context cctx;
+  check_map_inplace<T>(
+      ctx, n, seed, "gelu_erf", [&](T* p, std::int64_t m) { cuda::gelu_erf(ctx, p, m); },
+      [&](float* p, std::int64_t m) { cpu::gelu_erf(cctx, p, m); });
+  check_map_inplace<T>(
+      ctx, n, seed + 1, "gelu_tanh", [&](T* p, std::int64_t m) { cuda::gelu_tanh(ctx, p, m); },
+      [&](float* p, std::int64_t m) { cpu::gelu_tanh(cctx, p, m); });
+  check_map_inplace<T>(
+      ctx, n, seed + 2, "silu", [&](T* p, std::int64_t m) { cuda::silu(ctx, p, m); },
+      [&](float* p, std::int64_t m) { cpu::silu(cctx, p, m); });
+  // silu_to writes a separate (poisoned) buffer and leaves its input alone.
+  HostF x = random_tensor({n}, seed + 3, -6.f, 6.f);
+  round_to<T>(x);
+  HostF ref({n});
+  cpu::silu_to(cctx, x.data(), ref.data(), n);
+  auto dx = upload<T>(ctx, x);
+  Dev<T> dy({n});
+  poison(ctx, dy);
+  cuda::silu_to(ctx, dx.data(), dy.data(), n);
+  check_error(measure(download(ctx, dy), ref), bound_for<T>(), max_abs(ref), std::string("silu_to ") + type_name<T>());
+  CHECK(measure(download(ctx, dx), x).max_abs == 0);
+}
+
+// x (TX) += [gate (TG) ⊙] y (TY) over rows x n, and x += b (TG) per row.
+template <class TX, class TY, class TG>
+void check_residuals(cuda::Context& ctx, std::int64_t rows, std::int64_t n, std::uint32_t seed) {
+  cpu::Context cctx;
+  HostF x = random_tensor({rows, n}, seed), y = random_tensor({rows, n}, seed + 1), g = random_tensor({n}, seed + 2);
+  round_to<TX>(x), round_to<TY>(y), round_to<TG>(g);
+  const std::string t = types<TX, TY, TG>();
+  {
+    HostF ref = x.clone();
+    cpu::add_inplace(cctx, ref.data(), y.data(), rows * n);
+    auto dx = upload<TX>(ctx, x);
+    auto dy = upload<TY>(ctx, y);
+    cuda::add_inplace(ctx, dx.data(), dy.data(), rows * n);
+    check_error(measure(download(ctx, dx), ref), bound_for<TX>(), max_abs(ref), "add_inplace " + t);
+  }
+  {
+    HostF ref = x.clone();
+    cpu::add_gated(cctx, ref.data(), y.data(), g.data(), rows, n);
+    auto dx = upload<TX>(ctx, x);
+    auto dy = upload<TY>(ctx, y);
+    auto dg = upload<TG>(ctx, g);
+    cuda::add_gated(ctx, dx.data(), dy.data(), dg.data(), rows, n);
+    check_error(measure(download(ctx, dx), ref), bound_for<TX>(), max_abs(ref), "add_gated " + t);
+  }
+  {
+    HostF ref = x.clone();
+    cpu::add_row_broadcast(cctx, ref.data(), g.data(), rows, n);
+    auto dx = upload<TX>(ctx, x);
+    auto dg = upload<TG>(ctx, g);
+    cuda::add_row_broadcast(ctx, dx.data(), dg.data(), rows, n);
+    check_error(measure(download(ctx, dx), ref), bound_for<TX>(), max_abs(ref), "add_row_broadcast " + t);
+  }
+}
+
+}  // namespace
+
+TEST_CASE("cuda layer_norm matches cpu::layer_norm") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  std::uint32_t seed = 1;
+  for (std::int64_t n : {2048, 1000, 33})
+    for (int affine = 0; affine < 4; ++affine) {
+      check_layer_norm<float, float, float>(ctx, 7, n, affine & 1, affine & 2, seed++);
+      check_layer_norm<bf16, bf16, float>(ctx, 7, n, affine & 1, affine & 2, seed++);
+      check_layer_norm<float, bf16, float>(ctx, 7, n, affine & 1, affine & 2, seed++);
+    }
+  check_layer_norm<float, float, float>(ctx, 5150, 2048, false, false, seed++);  // the MST's rows
+  // In place (x and y alias), as the CPU allows.
+  cpu::Context cctx;
+  HostF x = random_tensor({9, 300}, 99, -1.f, 3.f);
+  HostF ref({9, 300});
+  cpu::layer_norm(cctx, x.data(), ref.data(), 9, 300, nullptr, nullptr, 1e-5f);
+  auto dx = upload<float>(ctx, x);
+  cuda::layer_norm(ctx, dx.data(), dx.data(), 9, 300, static_cast<const float*>(nullptr), nullptr, 1e-5f);
+  check_error(measure(download(ctx, dx), ref), kF32, max_abs(ref), "layer_norm in place");
+}
+
+TEST_CASE("cuda layer_norm_modulate matches cpu::layer_norm_modulate") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  std::uint32_t seed = 200;
+  for (std::int64_t n : {2048, 64, 45}) {
+    check_modulate<float, float, float>(ctx, 11, n, seed++);
+    check_modulate<bf16, bf16, bf16>(ctx, 11, n, seed++);
+    check_modulate<float, bf16, bf16>(ctx, 11, n, seed++);
+    check_modulate<bf16, bf16, float>(ctx, 11, n, seed++);
+  }
+}
+
+TEST_CASE_TEMPLATE("cuda rms_norm_heads and apply_rope on packed QKV", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  check_rms_and_rope<T>(ctx, 19, 3, 24, 300);
+  check_rms_and_rope<T>(ctx, 33, 2, 128, 310);
+  check_rms_and_rope<T>(ctx, 5, 1, 4, 320);
+  check_rms_and_rope<T>(ctx, 515, 16, 128, 330);
+}
+
+TEST_CASE_TEMPLATE("cuda activations match the CPU", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  check_activations<T>(ctx, 1001, 400);
+  check_activations<T>(ctx, 1 << 20, 410);
+}
+
+TEST_CASE("cuda residual updates match the CPU (PyTorch promotion for mixed types)") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  check_residuals<float, float, float>(ctx, 13, 2048, 500);
+  check_residuals<bf16, bf16, bf16>(ctx, 13, 2048, 510);
+  check_residuals<float, bf16, bf16>(ctx, 13, 2048, 520);
+  check_residuals<float, float, float>(ctx, 3, 7, 530);
+  check_residuals<bf16, bf16, bf16>(ctx, 3, 7, 540);
+}
+
+TEST_CASE("cuda pointwise kernels reject bad arguments with epona::Error") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  Dev<float> x({64}), t({8});
+  CHECK_THROWS_WITH_AS(cuda::apply_rope(ctx, x.data(), 2, 32, 2, 5, t.data(), t.data()),
+                       doctest::Contains("even"), epona::Error);
+  CHECK_THROWS_WITH_AS(cuda::rms_norm_heads(ctx, x.data(), 2, 10, 2, 8, t.data(), 1e-6f),
+                       doctest::Contains("row stride"), epona::Error);
+  CHECK_THROWS_AS(cuda::layer_norm(ctx, x.data(), x.data(), 2, 0, t.data(), t.data(), 1e-6f), epona::Error);
+  CHECK_THROWS_AS(cuda::add_gated(ctx, x.data(), x.data(), t.data(), -1, 8), epona::Error);
+}
