@@ -236,6 +236,10 @@ inline void gated_act(Context&, const float* value, const float* gate, float* ou
     }
 }
 
+// Evaluation order of the linear attention: Auto is the reference's choice (Linear when
+// H·W > d, else Quadratic); the others force one order (tests compare the two).
+enum class AttentionOrder { Auto, Linear, Quadratic };
+
 // LiteMLA's ReLU linear attention. qkv (N, heads·3·d, HW) holds, per head a, q in channels
 // [3da, 3da+d), k in [3da+d, 3da+2d), v in [3da+2d, 3da+3d); out (N, heads·d, HW), head a in
 // channels [da, da+d). With q, k ← ReLU(q, k) and S(m, n) = Σ_j k[j,m] q[j,n]:
@@ -243,7 +247,8 @@ inline void gated_act(Context&, const float* value, const float* gate, float* ou
 // Like the reference, HW > d evaluates ([v; 1] kᵀ) q (linear in HW), otherwise (v (kᵀ q)) with
 // the column sums of kᵀ q (quadratic). ReLU is applied to q and k in place inside qkv.
 inline void relu_linear_attention(Context& ctx, float* qkv, float* out, std::int64_t N, std::int64_t heads,
-                                  std::int64_t d, std::int64_t HW, float eps) {
+                                  std::int64_t d, std::int64_t HW, float eps,
+                                  AttentionOrder order = AttentionOrder::Auto) {
   using conv_detail::RowMat;
   using Map = Eigen::Map<RowMat>;
   for (std::int64_t n = 0; n < N; ++n)
@@ -251,7 +256,7 @@ inline void relu_linear_attention(Context& ctx, float* qkv, float* out, std::int
       float* q = qkv + (n * heads * 3 + 3 * a) * d * HW;
       apply_conv_act(ctx, q, 2 * d * HW, ConvAct::Relu);  // q and k are adjacent
     }
-  const bool linear = HW > d;
+  const bool linear = order == AttentionOrder::Auto ? HW > d : order == AttentionOrder::Linear;
 #pragma omp parallel for collapse(2)
   for (std::int64_t n = 0; n < N; ++n)
     for (std::int64_t a = 0; a < heads; ++a) {

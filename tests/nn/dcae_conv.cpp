@@ -1,0 +1,124 @@
+// Tests for epona/cpu/conv.hpp conv2d and epona/nn/conv2d.hpp against a float64 loop written
+// from the definition (cross-correlation, zero padding k/2): 3x3 / 1x1 / 5x5 kernels, groups,
+// depthwise, widths that are no multiple of any SIMD width, images split over several im2col
+// panels, bf16 weights, fused ReLU/SiLU, binding by name, and refused geometries.
+// Tolerance: rel_max <= 2e-6 (float32 accumulation of at most ~600 terms against float64).
+#include <doctest/doctest.h>
+
+#include "dcae_reference.hpp"
+#include "epona/cpu/conv.hpp"
+#include "epona/nn/conv2d.hpp"
+
+using namespace epona;
+using dcae_ref::HostTensor;
+using dcae_ref::i64;
+
+namespace {
+
+struct Case {
+  i64 N, C, H, W, O, k, groups;
+};
+
+// Runs conv2d on random data and returns rel_max against the float64 loop (act applied to both).
+double conv_error(const Case& c, ConvAct act = ConvAct::None, bool with_bias = true) {
+  cpu::Context ctx;
+  const HostTensor x = dcae_ref::random_tensor({c.N, c.C, c.H, c.W}, 1);
+  const HostTensor w = dcae_ref::random_tensor({c.O, c.C / c.groups, c.k, c.k}, 2);
+  const HostTensor b = dcae_ref::random_tensor({c.O}, 3);
+  HostTensor y({c.N, c.O, c.H, c.W});
+  cpu::conv2d(ctx, x.data(), w.data(), with_bias ? b.data() : nullptr, y.data(),
+              Conv2dShape{c.N, c.C, c.H, c.W, c.O, c.k, c.groups}, act);
+  const auto bias = dcae_ref::to_vec(b);
+  auto ref = dcae_ref::conv2d(dcae_ref::to_vec(x), c.N, c.C, c.H, c.W, dcae_ref::to_vec(w), with_bias ? &bias : nullptr,
+                              c.O, c.k, c.groups);
+  for (auto& v : ref) v = act == ConvAct::Relu ? dcae_ref::relu(v) : act == ConvAct::Silu ? dcae_ref::silu(v) : v;
+  return dcae_ref::rel_max(y, ref);
+}
+
+}  // namespace
+
+TEST_CASE("conv2d 3x3 / 1x1 / 5x5, odd sizes, batch > 1") {
+  for (const Case& c : {Case{2, 5, 6, 11, 7, 3, 1}, Case{2, 13, 7, 9, 3, 1, 1}, Case{1, 3, 9, 17, 4, 5, 1},
+                        Case{1, 3, 1, 1, 2, 3, 1}, Case{1, 2, 2, 3, 5, 5, 1}}) {
+    INFO("C=" << c.C << " O=" << c.O << " k=" << c.k << " H=" << c.H << " W=" << c.W);
+    CHECK(conv_error(c) <= 2e-6);
+  }
+}
+
+TEST_CASE("conv2d groups and depthwise") {
+  CHECK(conv_error({2, 4, 5, 7, 6, 3, 2}) <= 2e-6);     // 2 groups of 2 -> 3
+  CHECK(conv_error({1, 6, 4, 5, 6, 3, 6}) <= 2e-6);     // depthwise (GLUMBConv's depth_conv)
+  CHECK(conv_error({2, 33, 9, 19, 33, 3, 33}) <= 2e-6);  // depthwise, tails
+  CHECK(conv_error({1, 4, 3, 3, 8, 1, 4}) <= 2e-6);     // grouped 1x1, 2 outputs per group
+  CHECK(conv_error({1, 6, 5, 5, 6, 5, 6}) <= 2e-6);     // depthwise 5x5 (padding 2)
+}
+
+TEST_CASE("conv2d over several im2col panels with a remainder panel") {
+  // K = 64·9 = 576 and W = 128 give 56 rows per panel: 120 rows = 56 + 56 + 8.
+  CHECK(conv_error({1, 64, 120, 128, 8, 3, 1}) <= 2e-6);
+}
+
+TEST_CASE("conv2d fused activations, no bias") {
+  CHECK(conv_error({1, 5, 6, 7, 4, 3, 1}, ConvAct::Relu) <= 2e-6);
+  CHECK(conv_error({1, 5, 6, 7, 4, 3, 1}, ConvAct::Silu) <= 2e-6);
+  CHECK(conv_error({1, 6, 6, 7, 6, 3, 6}, ConvAct::Silu) <= 2e-6);
+  CHECK(conv_error({1, 5, 6, 7, 4, 3, 1}, ConvAct::None, false) <= 2e-6);
+}
+
+TEST_CASE("conv2d with bf16 weights equals the float conv of the rounded weights") {
+  cpu::Context ctx;
+  const i64 N = 1, C = 6, H = 5, W = 9, O = 4, k = 3;
+  const HostTensor x = dcae_ref::random_tensor({N, C, H, W}, 4);
+  const HostTensor wf = dcae_ref::random_tensor({O, C, k, k}, 5);
+  Tensor<bf16, Cpu> wb(wf.shape());
+  HostTensor wr(wf.shape());
+  for (i64 i = 0; i < wf.numel(); ++i) wb.data()[i] = bf16(wf.data()[i]), wr.data()[i] = float(wb.data()[i]);
+  HostTensor y({N, O, H, W});
+  cpu::conv2d(ctx, x.data(), wb.data(), nullptr, y.data(), Conv2dShape{N, C, H, W, O, k, 1});
+  const auto ref = dcae_ref::conv2d(dcae_ref::to_vec(x), N, C, H, W, dcae_ref::to_vec(wr), nullptr, O, k, 1);
+  CHECK(dcae_ref::rel_max(y, ref) <= 2e-6);
+}
+
+TEST_CASE("conv2d refuses geometries it cannot compute") {
+  cpu::Context ctx;
+  float buf[64] = {};
+  CHECK_THROWS_WITH_AS(cpu::conv2d(ctx, buf, buf, nullptr, buf, Conv2dShape{1, 2, 2, 2, 2, 2, 1}),
+                       doctest::Contains("odd"), Error);
+  CHECK_THROWS_WITH_AS(cpu::conv2d(ctx, buf, buf, nullptr, buf, Conv2dShape{1, 3, 2, 2, 2, 1, 2}),
+                       doctest::Contains("groups"), Error);
+  CHECK_THROWS_WITH_AS(cpu::conv2d(ctx, buf, buf, nullptr, buf, Conv2dShape{1, 0, 2, 2, 2, 1, 1}),
+                       doctest::Contains("bad geometry"), Error);
+}
+
+TEST_CASE("nn::Conv2d binds `weight`/`bias` by name and checks its input") {
+  cpu::Context ctx;
+  HostTensor w = dcae_ref::random_tensor({4, 3, 3, 3}, 6), b = dcae_ref::random_tensor({4}, 7);
+  io::TensorMap map("test.safetensors");
+  auto raw = [](const HostTensor& t) {
+    return io::RawTensor{DType::F32, t.shape(), {reinterpret_cast<const std::byte*>(t.data()), t.nbytes()}};
+  };
+  map.add("layer.conv.weight", raw(w));
+  map.add("layer.conv.bias", raw(b));
+
+  nn::Conv2d<Cpu, float> conv(3, 4, 3);
+  io::BindReport report(map);
+  conv.bind(map, "layer.conv.", report);
+  CHECK_NOTHROW(report.finish());
+  const HostTensor x = dcae_ref::random_tensor({1, 3, 4, 5}, 8);
+  const HostTensor y = conv.forward(ctx, x);
+  const auto bias = dcae_ref::to_vec(b);
+  CHECK(dcae_ref::rel_max(y, dcae_ref::conv2d(dcae_ref::to_vec(x), 1, 3, 4, 5, dcae_ref::to_vec(w), &bias, 4, 3, 1)) <=
+        2e-6);
+  CHECK_THROWS_WITH_AS(conv.forward(ctx, dcae_ref::random_tensor({1, 2, 4, 5}, 9)), doctest::Contains("(N, 3, H, W)"),
+                       Error);
+
+  nn::Conv2d<Cpu, float> wrong(3, 5, 3);  // 5 outputs: both tensors mis-shaped
+  io::BindReport bad(map);
+  wrong.bind(map, "layer.conv.", bad);
+  CHECK_THROWS_WITH_AS(bad.finish(), doctest::Contains("'layer.conv.weight' has shape (4, 3, 3, 3), expected (5, 3, 3, 3)"),
+                       Error);
+  nn::Conv2d<Cpu, float> missing(3, 4, 3);
+  io::BindReport absent(map);
+  missing.bind(map, "other.", absent);
+  CHECK_THROWS_WITH_AS(absent.finish(false), doctest::Contains("missing 'other.weight'"), Error);
+}
