@@ -233,3 +233,39 @@ TEST_CASE("load_poses dispatch errors") {
   check_sequence(io::load_poses(dir.write("p.CSV", "x,y,yaw\n1,2,3\n")), {1}, {2}, {3});
   check_sequence(io::load_poses(dir.write("p.txt", "1 2 3\n")), {1}, {2}, {3});
 }
+
+TEST_CASE("random corruption of CSV and JSON pose files: a PoseSequence or an epona::Error, nothing else") {
+  const std::string seeds[] = {
+      "# drive\nx,y,yaw\n0,0,0\n1.5,-0.25,2\n3e-1 , 4 , -5\n",
+      R"({"poses": [[0, 0, 0], [1.25, -0.5, 3]]})",
+      R"([{"x": 1, "y": 2, "yaw": 3}])",
+      R"({"absolute": [[[1, 0, 0, 5], [0, 1, 0, 6], [0, 0, 1, 7], [0, 0, 0, 1]], [[0, -1, 0, 5], [1, 0, 0, 6], [0, 0, 1, 7], [0, 0, 0, 1]]]})",
+  };
+  std::mt19937 gen(11);
+  const std::string alphabet = "0123456789.,-+eE#\n\r \t[]{}\":xyawbsolutepn\x01\xff";
+  int ok = 0, refused = 0;
+  for (int trial = 0; trial < 4000; ++trial) {
+    std::string text = seeds[trial % 4];
+    const int edits = 1 + int(gen() % 4);
+    for (int e = 0; e < edits; ++e) {
+      const std::size_t at = gen() % (text.size() + 1);
+      switch (gen() % 3) {
+        case 0: if (at < text.size()) text[at] = alphabet[gen() % alphabet.size()]; break;
+        case 1: text.insert(at, 1, alphabet[gen() % alphabet.size()]); break;
+        default: if (at < text.size()) text.erase(at, 1); break;
+      }
+    }
+    try {
+      const auto s = trial % 4 == 0 ? io::parse_pose_csv(text, "f.csv") : io::parse_pose_json(text, "f.json");
+      CHECK((s.size() >= 1 && s.y.size() == s.size() && s.yaw.size() == s.size()));
+      for (std::size_t i = 0; i < s.size(); ++i) CHECK((std::isfinite(s.x[i]) && std::isfinite(s.y[i]) && std::isfinite(s.yaw[i])));
+      ++ok;
+    } catch (const Error& e) {
+      CHECK(std::string(e.what()).find("f.") == 0);  // names the file first
+      ++refused;
+    }
+  }
+  MESSAGE("corrupted pose files: ", ok, " parsed, ", refused, " refused");
+  CHECK(ok > 0);
+  CHECK(refused > 0);
+}

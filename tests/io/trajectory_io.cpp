@@ -178,3 +178,30 @@ TEST_CASE("writing refuses what it could not read back") {
   CHECK_THROWS_WITH_AS(io::read_trajectory(dir.path / "bad.npy"), doctest::Contains("bad.npy: a trajectory has shape"),
                        Error);
 }
+
+TEST_CASE("random corruption of trajectory files: a (S, W, 3) tensor or an epona::Error, nothing else") {
+  const auto t = random_trajectory(2, 3, 9);
+  const std::string seeds[] = {io::trajectory_to_csv(t), io::trajectory_to_json(t)};
+  std::mt19937 gen(12);
+  const std::string alphabet = "0123456789.,-+eE#\n \t[]{}\":stepwaypointxy\x01\xff";
+  int ok = 0, refused = 0;
+  for (int trial = 0; trial < 3000; ++trial) {
+    std::string text = seeds[trial % 2];
+    for (int e = 0, edits = 1 + int(gen() % 3); e < edits; ++e) {
+      const std::size_t at = gen() % text.size();
+      if (gen() % 2) text[at] = alphabet[gen() % alphabet.size()];
+      else text.erase(at, 1);
+    }
+    try {
+      const auto r = trial % 2 ? js(text) : csv(text);
+      CHECK((r.dim() == 3 && r.size(0) >= 1 && r.size(1) >= 1 && r.size(2) == 3));
+      ++ok;
+    } catch (const Error& e) {
+      CHECK(std::string(e.what()).find("t.") == 0);
+      ++refused;
+    }
+  }
+  MESSAGE("corrupted trajectory files: ", ok, " parsed, ", refused, " refused");
+  CHECK(ok > 0);
+  CHECK(refused > 0);
+}

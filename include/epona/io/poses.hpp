@@ -55,11 +55,11 @@ namespace poses_detail {
 
 inline constexpr const char* kMotionNames[3] = {"x", "y", "yaw"};
 
-// Checks that x, y, yaw are finite in fp32; `where` says which file and row they came from
-// (called only on error).
 // Doubles below this magnitude round to a finite float (FLT_MAX plus half its ulp, exclusive).
 inline constexpr double kFloatOverflow = 0x1.ffffffp+127;
 
+// Checks that x, y, yaw are finite in fp32; `where` says which file and row they came from
+// (called only on error).
 template <class Where>
 void check_motion(const double (&v)[3], Where&& where) {
   for (int k = 0; k < 3; ++k)
@@ -103,7 +103,7 @@ inline std::vector<std::string_view> split_fields(std::string_view line) {
   return out;
 }
 
-// A whole field as a number (a leading '+' allowed); nullopt-like: returns false if it is not one.
+// A whole field as a number (a leading '+' allowed); false if it is not one.
 inline bool parse_number(std::string_view field, double& out) {
   if (!field.empty() && field.front() == '+') field.remove_prefix(1);
   if (field.empty()) return false;
