@@ -95,10 +95,13 @@ TEST_CASE("cuda failures surface as epona::Error naming the call") {
   EPONA_CUDA_CHECK_LAUNCH();  // the launch error did not stick
   ctx.synchronize();
 
-  cublasLtMatrixLayout_t layout = nullptr;
-  CHECK_THROWS_WITH_AS(EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&layout, CUDA_R_32F, 4, 4, 2)),
+  // An attribute written with the wrong size is refused (documented INVALID_VALUE).
+  cublasLtMatmulDesc_t desc = nullptr;
+  EPONA_CUBLAS_CHECK(cublasLtMatmulDescCreate(&desc, CUBLAS_COMPUTE_32F, CUDA_R_32F));
+  const char one_byte = 0;
+  CHECK_THROWS_WITH_AS(EPONA_CUBLAS_CHECK(cublasLtMatmulDescSetAttribute(desc, CUBLASLT_MATMUL_DESC_TRANSA, &one_byte, 1)),
                        doctest::Contains("CUBLAS_STATUS_INVALID_VALUE"), epona::Error);
-  if (layout) cublasLtMatrixLayoutDestroy(layout);
+  cublasLtMatmulDescDestroy(desc);
 
   CHECK_THROWS_WITH_AS(Dev<float>({std::int64_t{1} << 48}), doctest::Contains("out of device memory"), epona::Error);
 }

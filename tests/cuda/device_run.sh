@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Runs the prebuilt GPU tests, compute-sanitizer (memcheck on every GPU test, racecheck on
+# attention) and the kernel micro-benchmark on a GPU machine, in one go. Binaries are built
+# elsewhere (no doctest/Eigen needed here). Logs go to <out>; a compact summary to stdout.
+# Usage: tests/cuda/device_run.sh <dir with test_cuda_* and bench_cuda_kernels> <out dir>
+set -u
+BIN=$(cd "$1" && pwd)
+OUT=$2
+mkdir -p "$OUT"
+lt=$(find /usr/local /opt /usr/lib -name 'libcublasLt.so.13' 2>/dev/null | head -1)
+export LD_LIBRARY_PATH="$(dirname "${lt:-/usr/local/cuda/lib64/x}"):/usr/local/cuda/lib64:${LD_LIBRARY_PATH:-}:$BIN/lib"
+SAN=$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)
+summary() { echo "$*" | tee -a "$OUT/summary.txt"; }
+
+nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.mem,temperature.gpu,power.draw --format=csv \
+  | tee -a "$OUT/summary.txt"
+summary "cublasLt: ${lt:-not found}"
+
+for t in memory gemm pointwise attention; do
+  start=$(date +%s%N)
+  timeout 180 "$BIN/test_cuda_$t" >>"$OUT/tests.log" 2>&1
+  rc=$?
+  ms=$(( ($(date +%s%N) - start) / 1000000 ))
+  summary "test_cuda_$t rc=$rc (${ms} ms): $(grep -E 'test cases:' "$OUT/tests.log" | tail -1)"
+done
+grep -E "^  (linear|attention|layer_norm|rms|apply|gelu|silu|add)" "$OUT/tests.log" \
+  | awk '{ if ($0 ~ /rel_l2/) n++ } END { print "  measured checks:", n }' | tee -a "$OUT/summary.txt"
+grep -A12 -E "ERROR|FAILED|CHECK\(" "$OUT/tests.log" | head -60
+
+timeout 150 "$BIN/bench_cuda_kernels" >"$OUT/bench.log" 2>&1
+summary "bench rc=$?"
+cat "$OUT/bench.log"
+
+for t in gemm pointwise attention memory; do
+  extra=""
+  [ "$t" = memory ] && extra="--report-api-errors no"  # that test provokes API errors on purpose
+  timeout 120 "$SAN" --tool memcheck --leak-check full $extra "$BIN/test_cuda_$t" >>"$OUT/sanitizer.log" 2>&1
+  summary "memcheck test_cuda_$t rc=$? $(grep -E 'ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
+done
+timeout 150 "$SAN" --tool racecheck --racecheck-report all "$BIN/test_cuda_attention" >>"$OUT/sanitizer.log" 2>&1
+summary "racecheck test_cuda_attention rc=$? $(grep -E 'RACECHECK SUMMARY|ERROR SUMMARY' "$OUT/sanitizer.log" | tail -1)"
