@@ -167,10 +167,15 @@ struct FakeTensor {
 
 // One entry `name: tensor` of a state dict, exactly as torch.save pickles it.
 void write_tensor(PickleWriter& p, const FakeTensor& t) {
-  std::int64_t n = 1;
-  for (auto d : t.shape) n *= d;
+  std::int64_t numel = t.numel;
+  if (numel < 0) {  // default: exactly what the tensor needs (tests with huge shapes set it)
+    numel = t.offset;
+    std::int64_t n = 1;
+    for (auto d : t.shape) n *= d;
+    numel += n;
+  }
   p.str(t.name).global("torch._utils", "_rebuild_tensor_v2").raw("((");
-  p.str("storage").global("torch", t.storage_type).str(t.key).str("cpu").integer(t.numel >= 0 ? t.numel : t.offset + n);
+  p.str("storage").global("torch", t.storage_type).str(t.key).str("cpu").integer(numel);
   p.raw("tQ").integer(t.offset).int_tuple(t.shape).int_tuple(t.stride);
   p.raw("\x89").global("collections", "OrderedDict").raw(")Rt").raw("R");
 }

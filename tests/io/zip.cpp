@@ -202,6 +202,19 @@ TEST_CASE("structural corruptions are named") {
                    {"data of entry 'arc/data/0'", "runs into the central directory"});
 }
 
+TEST_CASE("data descriptors: local CRC and sizes may be zero, never different") {
+  ZipSpec s = two_entries();
+  for (auto& e : s.entries) e.descriptor = true;
+  const auto L = layout_zip(s);
+  std::string b = L.bytes();
+  poke<std::uint32_t>(b, L.local_offsets[1] + 14, epona::io::crc32({reinterpret_cast<const std::byte*>(b.data()) +
+                                                                         L.data_offsets[1], 40}));
+  poke<std::uint32_t>(b, L.local_offsets[1] + 22, 40);  // CRC and size filled in, compressed size left 0
+  CHECK(open_zip(b).entries().size() == 2);
+  poke<std::uint32_t>(b, L.local_offsets[1] + 18, 39);
+  expect_zip_error(b, {"local header of 'arc/data/0'", "disagrees with the central directory on the CRC or sizes"});
+}
+
 TEST_CASE("duplicate names are refused") {
   ZipSpec s = two_entries();
   s.entries.push_back({"arc/data/0", "again"});

@@ -103,8 +103,10 @@ struct Limits {
   std::size_t max_stack = std::size_t{1} << 20;       // values on the unpickling stack
   std::size_t max_marks = 1024;                       // open MARKs
   std::size_t max_depth = 256;                        // container nesting
-  std::uint64_t max_memo_index = std::uint64_t{1} << 24;
-  std::size_t max_objects = std::size_t{1} << 24;     // strings, containers, storages, tensors
+  // ~10 objects and memo entries per tensor: room for 400k tensors, while a hostile pickle
+  // cannot make the reader hold more than a few hundred MB.
+  std::uint64_t max_memo_index = std::uint64_t{1} << 22;
+  std::size_t max_objects = std::size_t{1} << 22;     // strings, containers, storages, tensors
   std::size_t max_dims = 64;
 };
 

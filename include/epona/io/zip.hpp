@@ -341,8 +341,9 @@ class ZipArchive {
     if (csize == 0xffffffffu) z.compressed_size = &csize;
     apply_zip64_extra({p + kLocalSize + name_len, extra_len}, z, e.name, "local header");
     // With a data descriptor (torch.save sets bit 3) the local CRC and sizes may be zero.
-    const bool deferred = (flags & kFlagDataDescriptor) && crc == 0 && csize == 0 && size == 0;
-    EPONA_CHECK(deferred || (crc == e.crc32 && csize == e.compressed_size && size == e.size), name_, ": ", what,
+    const bool deferred = flags & kFlagDataDescriptor;
+    auto agrees = [&](std::uint64_t local, std::uint64_t central) { return local == central || (deferred && local == 0); };
+    EPONA_CHECK(agrees(crc, e.crc32) && agrees(csize, e.compressed_size) && agrees(size, e.size), name_, ": ", what,
                 " disagrees with the central directory on the CRC or sizes (local: ", csize, "/", size,
                 " bytes, central: ", e.compressed_size, "/", e.size, ")");
     e.data_offset = e.header_offset + header_len;
