@@ -4,6 +4,8 @@
 // golden safetensors tensor for tensor; and hostile pickles and archives built here (dangerous
 // globals, bad storages, deep nesting, memo abuse, absurd lengths, truncation) each fail with an
 // epona::Error that names the problem.
+#include "epona/io/torch_checkpoint.hpp"
+
 #include <doctest/doctest.h>
 
 #include <chrono>
@@ -18,7 +20,6 @@
 #include "epona/io/load_weights.hpp"
 #include "epona/io/pickle.hpp"
 #include "epona/io/safetensors.hpp"
-#include "epona/io/torch_checkpoint.hpp"
 #include "zip_builder.hpp"
 
 using namespace epona;
@@ -239,8 +240,9 @@ TEST_CASE("state dict selection: top level, model_state_dict, model, explicit ke
   CHECK(world.contains("module.traj_dit.final_layer.linear.weight"));
   expect_error([] { load_torch_checkpoint(kPklDir + "bf16_world.pkl", "epoch"); },
                {"bf16_world.pkl", "'epoch' holds a int 7", "expected a dict of tensors"});
-  expect_error([] { load_torch_checkpoint(kPklDir + "bf16_world.pkl", "optimizer"); },
-               {"no key 'optimizer'", "'model_state_dict' (dict of 5 items)", "'lr' (float", "'flags' (list of 3"});
+  expect_error(
+      [] { load_torch_checkpoint(kPklDir + "bf16_world.pkl", "optimizer"); },
+      {"no key 'optimizer'", "'model_state_dict' (dict of 5 items)", "'lr' (float", "'flags' (list of 3"});
   // {"model": OrderedDict (with _metadata, pickled via BUILD), "step": 20000}
   check_against_expected(load_torch_checkpoint(kPklDir + "fp16_dcae.pkl", "model"), expected.at("fp16_dcae.pkl"),
                          "fp16_dcae.pkl explicit key");
@@ -331,14 +333,20 @@ TEST_CASE("hand-made checkpoint: offsets, strides of size-1 dims, empty tensors,
   const auto pos = corrupt.find(floats({9, 1}));
   corrupt[pos + 5] ^= 0x40;
   CHECK_NOTHROW(load_bytes(corrupt));
-  expect_error([&] { load_bytes(corrupt, {.key = "", .verify_checksums = true}); }, {"entry 'arc/data/0' is corrupt: CRC-32"});
+  expect_error([&] { load_bytes(corrupt, {.key = "", .verify_checksums = true}); },
+               {"entry 'arc/data/0' is corrupt: CRC-32"});
   CHECK_NOTHROW(load_bytes(bytes, {.key = "", .verify_checksums = true}));
 }
 
 TEST_CASE("hostile globals are refused by name, never resolved") {
-  for (const auto& [module, name] : {std::pair{"os", "system"}, {"posix", "system"}, {"builtins", "eval"},
-                                     {"builtins", "exec"}, {"subprocess", "Popen"}, {"torch", "load"},
-                                     {"torch._utils", "_rebuild_qtensor"}, {"collections", "namedtuple"},
+  for (const auto& [module, name] : {std::pair{"os", "system"},
+                                     {"posix", "system"},
+                                     {"builtins", "eval"},
+                                     {"builtins", "exec"},
+                                     {"subprocess", "Popen"},
+                                     {"torch", "load"},
+                                     {"torch._utils", "_rebuild_qtensor"},
+                                     {"collections", "namedtuple"},
                                      {"__builtin__", "getattr"}}) {
     const std::string full = std::string(module) + "." + name;
     // GLOBAL then a call with a harmless-looking argument; refused at the GLOBAL opcode.
@@ -354,7 +362,8 @@ TEST_CASE("hostile globals are refused by name, never resolved") {
   pkl.replace(at - std::string("torch._utils\n").size(), std::string("torch._utils\n_rebuild_tensor_v2").size(),
               "os\nsystem");
   expect_pickle_error(pkl, {"refusing to load", "'os.system'"});
-  expect_pickle_error(PickleWriter().global("torch", "DoubleStorage").done(), {"unsupported storage type 'torch.DoubleStorage'"});
+  expect_pickle_error(PickleWriter().global("torch", "DoubleStorage").done(),
+                      {"unsupported storage type 'torch.DoubleStorage'"});
   expect_pickle_error(PickleWriter().global("a\x01\xff", "b").done(), {"refusing to load", "'a\\x01\\xff.b'"});
   expect_pickle_error(PickleWriter().raw("cos").done(), {"GLOBAL operand is unterminated"});
   expect_pickle_error(PickleWriter().raw("c" + std::string(300, 'a') + "\nb\n").done(), {"longer than 256 bytes"});
@@ -379,23 +388,28 @@ TEST_CASE("bad storages and tensors are named") {
   expect_load_error(archive(state_dict_pickle({{"w", {2}, {1}}, {"v", {1}, {1}, 0, "0", -1, "HalfStorage"}}),
                             {{"0", floats({1, 2})}}),
                     {"storage '0' is used as float32 and as float16 (tensor 'v')"});
-  expect_load_error(archive(state_dict_pickle({{"w", {INT64_MAX / 2, 4}, {4, 1}, 0, "0", 1}}), {{"0", floats({1})}}),
-                    {"tensor 'w'", "overflows int64"});
+  expect_load_error(
+      archive(state_dict_pickle({{"w", {INT64_MAX / 2, 4}, {4, 1}, 0, "0", 1}}), {{"0", floats({1})}}),
+      {"tensor 'w'", "overflows int64"});
   expect_load_error(archive(state_dict_pickle({{"w", {INT64_MAX}, {1}, 0, "0", 1}}), {{"0", floats({1})}}),
                     {"tensor 'w'", "overflows 64-bit byte offsets"});
   expect_load_error(archive(state_dict_pickle({{"w", {2}, {1}, INT64_MAX - 1, "0", 1}}), {{"0", floats({1})}}),
                     {"tensor 'w'", "overflows 64-bit byte offsets"});
-  expect_pickle_error(state_dict_pickle({{"w", {-2}, {1}, 0, "0", 2}}), {"_rebuild_tensor_v2: size must be a non-negative int"});
+  expect_pickle_error(state_dict_pickle({{"w", {-2}, {1}, 0, "0", 2}}),
+                      {"_rebuild_tensor_v2: size must be a non-negative int"});
   expect_pickle_error(state_dict_pickle({{"w", {2, 2}, {1}}}), {"size (2, 2) and stride (1,) differ in length"});
-  expect_pickle_error(state_dict_pickle({{"w", std::vector<std::int64_t>(100, 1), std::vector<std::int64_t>(100, 1)}}),
-                      {"size has 100 dimensions"});
+  expect_pickle_error(
+      state_dict_pickle({{"w", std::vector<std::int64_t>(100, 1), std::vector<std::int64_t>(100, 1)}}),
+      {"size has 100 dimensions"});
   // Persistent ids and rebuild calls of the wrong form.
-  expect_pickle_error(PickleWriter().raw("(").str("module").str("x").raw("tQ").done(), {"unsupported persistent id"});
+  expect_pickle_error(PickleWriter().raw("(").str("module").str("x").raw("tQ").done(),
+                      {"unsupported persistent id"});
   expect_pickle_error(PickleWriter().integer(3).raw("Q").done(), {"unsupported persistent id int 3"});
   expect_pickle_error(PickleWriter().global("torch._utils", "_rebuild_tensor_v2").raw("(K\x01tR").done(),
                       {"_rebuild_tensor_v2 called with 1 arguments"});
-  expect_pickle_error(PickleWriter().global("torch._utils", "_rebuild_tensor_v2").raw("(K\x01K\x01K\x01K\x01K\x01K\x01tR").done(),
-                      {"the first argument must be a storage"});
+  expect_pickle_error(
+      PickleWriter().global("torch._utils", "_rebuild_tensor_v2").raw("(K\x01K\x01K\x01K\x01K\x01K\x01tR").done(),
+      {"the first argument must be a storage"});
   expect_pickle_error(PickleWriter().global("torch._utils", "_rebuild_parameter").raw("(NNNtR").done(),
                       {"the first argument must be a tensor"});
   expect_pickle_error(PickleWriter().global("collections", "OrderedDict").raw("(]tR").done(),
@@ -404,7 +418,11 @@ TEST_CASE("bad storages and tensors are named") {
                       {"torch.FloatStorage may only appear in a persistent id"});
   expect_pickle_error(PickleWriter().raw("K\x01)R").done(), {"REDUCE on a int"});
   // State dict values and keys that are not parameter tensors.
-  expect_pickle_error(PickleWriter().raw("}(X\x01\x00\x00\x00" "aK\x01u"s).done(), {"no state dict found"});
+  expect_pickle_error(PickleWriter()
+                          .raw("}(X\x01\x00\x00\x00"
+                               "aK\x01u"s)
+                          .done(),
+                      {"no state dict found"});
   std::string mixed = state_dict_pickle({{"w", {2}, {1}}});
   mixed.insert(mixed.size() - 2, "X\x01\x00\x00\x00xK\x05"s);
   expect_error([&] { load_bytes(archive(mixed, {{"0", floats({1, 2})}}), {.key = ""}); }, {"no state dict found"});
@@ -420,14 +438,18 @@ TEST_CASE("bad storages and tensors are named") {
 
 TEST_CASE("hostile pickle structure: nesting, memo, lengths, stack, marks, opcodes, truncation") {
   // Deep nesting without a growing stack: a 1-tuple of a 1-tuple of ... (TUPLE1 x 100000).
-  expect_pickle_error(PickleWriter().raw("N" + std::string(100000, '\x85')).done(), {"nested deeper than 256 levels"});
+  expect_pickle_error(PickleWriter().raw("N" + std::string(100000, '\x85')).done(),
+                      {"nested deeper than 256 levels"});
   // Deep nesting through lists: push many lists, then APPEND each into the one below.
   expect_pickle_error(PickleWriter().raw(std::string(1000, ']') + std::string(999, 'a')).done(),
                       {"nested deeper than 256"});
   // A list appended into itself, repeatedly, through the memo: refused, no infinite loop.
   {
     std::string self = "]q\x00"s;
-    for (int i = 0; i < 300; ++i) self += "h\x00" "a"s;
+    for (int i = 0; i < 300; ++i)
+      self +=
+          "h\x00"
+          "a"s;
     expect_pickle_error(PickleWriter().raw(self).done(), {"nested deeper than 256"});
   }
   // A harmless cycle beside a valid state dict loads.
@@ -436,12 +458,16 @@ TEST_CASE("hostile pickle structure: nesting, memo, lengths, stack, marks, opcod
     std::string top = PickleWriter().raw("}X\x0a\x00\x00\x00state_dict"s).done();
     top.pop_back();
     // "cycle": a list (memo index 65536, LONG_BINPUT) that contains itself (LONG_BINGET + APPEND).
-    top += pkl.substr(2, pkl.size() - 3) + "sX\x05\x00\x00\x00" "cycle]r\x00\x00\x01\x00j\x00\x00\x01\x00" "as."s;
+    top += pkl.substr(2, pkl.size() - 3) +
+           "sX\x05\x00\x00\x00"
+           "cycle]r\x00\x00\x01\x00j\x00\x00\x01\x00"
+           "as."s;
     const auto map = load_bytes(archive(top, {{"0", floats({1, 2})}}));
     CHECK(map.size() == 1);
   }
   // Memo abuse.
-  expect_pickle_error(PickleWriter().raw("Nr\xff\xff\xff\xff").done(), {"memo index 4294967295 is beyond the limit"});
+  expect_pickle_error(PickleWriter().raw("Nr\xff\xff\xff\xff").done(),
+                      {"memo index 4294967295 is beyond the limit"});
   expect_pickle_error(PickleWriter().raw("h\x05").done(), {"memo index 5 was never stored"});
   expect_pickle_error(PickleWriter().raw("j\xff\xff\xff\x7f").done(), {"memo index 2147483647 was never stored"});
   expect_pickle_error(PickleWriter().raw("q\x00"s).done(), {"stack underflow"});
@@ -450,9 +476,17 @@ TEST_CASE("hostile pickle structure: nesting, memo, lengths, stack, marks, opcod
                       {"a string of 4294967295 bytes runs past the end of the pickle"});
   expect_pickle_error(PickleWriter().raw("\x8d\xff\xff\xff\xff\xff\xff\xff\x7f").done(),
                       {"a string of 9223372036854775807 bytes runs past the end"});
-  expect_pickle_error(PickleWriter().raw("\x8c\x10" "abc").done(), {"a string of 16 bytes runs past the end"});
+  expect_pickle_error(PickleWriter()
+                          .raw("\x8c\x10"
+                               "abc")
+                          .done(),
+                      {"a string of 16 bytes runs past the end"});
   expect_pickle_error(PickleWriter().raw("\x95\xff\xff\xff\xff\xff\xff\xff\xff").done(), {"a frame of"});
-  expect_pickle_error(PickleWriter().raw("\x8a\x09" "123456789").done(), {"an integer of 9 bytes"});
+  expect_pickle_error(PickleWriter()
+                          .raw("\x8a\x09"
+                               "123456789")
+                          .done(),
+                      {"an integer of 9 bytes"});
   // Stack and marks.
   expect_pickle_error(PickleWriter().raw("s").done(), {"stack underflow"});
   expect_pickle_error(PickleWriter().raw("\x86").done(), {"stack underflow"});
@@ -461,9 +495,17 @@ TEST_CASE("hostile pickle structure: nesting, memo, lengths, stack, marks, opcod
   expect_pickle_error(PickleWriter().raw(std::string(2000, '(')).done(), {"more than 1024 nested MARKs"});
   expect_pickle_error(PickleWriter().raw("}(K\x01u").done(), {"SETITEMS with an odd number (1)"});
   expect_pickle_error(PickleWriter().raw("](K\x01K\x02u").done(), {"SETITEM(S) on a list"});
-  expect_pickle_error(PickleWriter().raw("}K\x01" "a").done(), {"APPEND(S) on a dict"});
+  expect_pickle_error(PickleWriter()
+                          .raw("}K\x01"
+                               "a")
+                          .done(),
+                      {"APPEND(S) on a dict"});
   expect_pickle_error(PickleWriter().raw("]Nb").done(), {"BUILD on a list"});
-  expect_pickle_error(PickleWriter().raw("}K\x01" "b").done(), {"BUILD with a int state"});
+  expect_pickle_error(PickleWriter()
+                          .raw("}K\x01"
+                               "b")
+                          .done(),
+                      {"BUILD with a int state"});
   // Opcodes outside the supported set, and protocols beyond 5.
   expect_pickle_error(PickleWriter().raw("(cos\nsystem\ni").done(), {"refusing to load"});
   expect_pickle_error(PickleWriter().raw("(i").done(), {"unsupported pickle opcode 0x69 'i'"});
@@ -500,14 +542,20 @@ TEST_CASE("pickle values: scalars, strings, containers, memo sharing, protocol 4
   p.raw("}\x94(");
   p.raw("\x8c\x01i").integer(-7);
   p.raw("\x8c\x01l").raw("\x8a\x08").raw(std::string("\x00\x00\x00\x00\x00\x00\x00\x80", 8));  // INT64_MIN
-  p.raw("\x8c\x01m").raw("\x8a\x00"s);                                                          // LONG1 0 = 0
+  p.raw("\x8c\x01m").raw("\x8a\x00"s);                                                         // LONG1 0 = 0
   p.raw("\x8c\x01n").raw("\x8a\x02\xff\x7f");                                                  // 32767
-  p.raw("\x8c\x01" "f").raw("G\x3f\xf8\x00\x00\x00\x00\x00\x00"s);                                 // 1.5
+  p.raw(
+       "\x8c\x01"
+       "f")
+      .raw("G\x3f\xf8\x00\x00\x00\x00\x00\x00"s);  // 1.5
   p.raw("\x8c\x01s").str("caf\xc3\xa9");
   p.raw("\x8c\x01t").raw("K\x01\x88N\x87");  // (1, True, None)
-  p.raw("\x8c\x01L").raw("](K\x01K\x02" "e\x94");
-  p.raw("\x8c\x01M").raw("h\x01");          // the same list again, through the memo
-  p.raw("\x8c\x01i").raw("M\x34\x12");      // a repeated key replaces the value (Python dict semantics)
+  p.raw("\x8c\x01L")
+      .raw(
+          "](K\x01K\x02"
+          "e\x94");
+  p.raw("\x8c\x01M").raw("h\x01");      // the same list again, through the memo
+  p.raw("\x8c\x01i").raw("M\x34\x12");  // a repeated key replaces the value (Python dict semantics)
   p.raw("u");
   const std::string s = p.done();
   const auto doc = pickle::unpickle({reinterpret_cast<const std::byte*>(s.data()), s.size()}, "values");
@@ -590,13 +638,15 @@ TEST_CASE("byte-flip fuzzing of real checkpoints: loads or a named error, never 
         }
       }
     CHECK(loaded + refused == 3 * bytes.size());
-    MESSAGE(std::string(f), ": ", refused, " corruptions refused, ", loaded, " harmless (timestamps, padding, unused fields)");
+    MESSAGE(std::string(f), ": ", refused, " corruptions refused, ", loaded,
+            " harmless (timestamps, padding, unused fields)");
   }
 }
 
 TEST_CASE("a sparse multi-GB checkpoint (ZIP64, storage > 4 GiB) loads zero-copy in milliseconds") {
   const std::int64_t n = (std::int64_t{1} << 30) + 5;  // 4 GiB + 20 bytes of float32
-  const std::string pkl = state_dict_pickle({{"huge", {n}, {1}}, {"tail", {5}, {1}, n - 5}, {"small", {2}, {1}, 0, "1"}});
+  const std::string pkl =
+      state_dict_pickle({{"huge", {n}, {1}}, {"tail", {5}, {1}, n - 5}, {"small", {2}, {1}, 0, "1"}});
   zip_test::ZipSpec s;
   s.zip64 = true;
   s.entries.push_back({"big/data.pkl", pkl});
@@ -657,6 +707,7 @@ TEST_CASE("byte-flip fuzzing of the unpickler (CRC kept valid): loads or a named
       }
     CHECK(loaded + refused == 4 * pkl.size());
     CHECK(refused > loaded);
-    MESSAGE(stem, ": ", refused, " pickle corruptions refused, ", loaded, " loaded (e.g. changed values or names)");
+    MESSAGE(stem, ": ", refused, " pickle corruptions refused, ", loaded,
+            " loaded (e.g. changed values or names)");
   }
 }

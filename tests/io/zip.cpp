@@ -1,6 +1,8 @@
 // Tests for epona/io/zip.hpp: archives written by torch.save, Python's zipfile (ZIP64) and the test
 // builder, every structural corruption the reader must name, truncations, byte-flip fuzzing, and a
 // sparse multi-GB ZIP64 archive with sizes and offsets beyond 4 GiB.
+#include "epona/io/zip.hpp"
+
 #include <doctest/doctest.h>
 
 #include <chrono>
@@ -10,7 +12,6 @@
 #include <iterator>
 #include <string>
 
-#include "epona/io/zip.hpp"
 #include "zip_builder.hpp"
 
 using namespace epona;
@@ -172,7 +173,8 @@ TEST_CASE("structural corruptions are named") {
                    {"central directory record 1", "bad signature"});
   expect_zip_error(with([&](std::string& b) { poke<std::uint16_t>(b, cd1 + 28, 200); }),
                    {"central directory record 1", "runs past the end"});
-  expect_zip_error(with([&](std::string& b) { poke<std::uint16_t>(b, cd0 + 8, 1); }), {"'arc/data.pkl' is encrypted"});
+  expect_zip_error(with([&](std::string& b) { poke<std::uint16_t>(b, cd0 + 8, 1); }),
+                   {"'arc/data.pkl' is encrypted"});
   expect_zip_error(with([&](std::string& b) { poke<std::uint32_t>(b, cd1 + 42, 1u << 31); }),
                    {"local header of 'arc/data/0'", "not before the central directory"});
   expect_zip_error(with([&](std::string& b) { poke<std::uint32_t>(b, cd1 + 42, 0); }),
@@ -195,11 +197,12 @@ TEST_CASE("structural corruptions are named") {
   expect_zip_error(with([&](std::string& b) { poke<std::uint16_t>(b, cd1 + 28, 0); }), {"has an empty name"});
   expect_zip_error(with([&](std::string& b) { b[cd1 + 46 + 2] = '\0'; }), {"NUL byte"});
   // Data that runs into the central directory (local and central sizes both enlarged).
-  expect_zip_error(with([&](std::string& b) {
-                     for (std::uint64_t off : {cd1 + 20, cd1 + 24, L.local_offsets[1] + 18, L.local_offsets[1] + 22})
-                       poke<std::uint32_t>(b, off, 500);
-                   }),
-                   {"data of entry 'arc/data/0'", "runs into the central directory"});
+  expect_zip_error(
+      with([&](std::string& b) {
+        for (std::uint64_t off : {cd1 + 20, cd1 + 24, L.local_offsets[1] + 18, L.local_offsets[1] + 22})
+          poke<std::uint32_t>(b, off, 500);
+      }),
+      {"data of entry 'arc/data/0'", "runs into the central directory"});
 }
 
 TEST_CASE("data descriptors: local CRC and sizes may be zero, never different") {
@@ -207,12 +210,13 @@ TEST_CASE("data descriptors: local CRC and sizes may be zero, never different") 
   for (auto& e : s.entries) e.descriptor = true;
   const auto L = layout_zip(s);
   std::string b = L.bytes();
-  poke<std::uint32_t>(b, L.local_offsets[1] + 14, epona::io::crc32({reinterpret_cast<const std::byte*>(b.data()) +
-                                                                         L.data_offsets[1], 40}));
+  poke<std::uint32_t>(b, L.local_offsets[1] + 14,
+                      epona::io::crc32({reinterpret_cast<const std::byte*>(b.data()) + L.data_offsets[1], 40}));
   poke<std::uint32_t>(b, L.local_offsets[1] + 22, 40);  // CRC and size filled in, compressed size left 0
   CHECK(open_zip(b).entries().size() == 2);
   poke<std::uint32_t>(b, L.local_offsets[1] + 18, 39);
-  expect_zip_error(b, {"local header of 'arc/data/0'", "disagrees with the central directory on the CRC or sizes"});
+  expect_zip_error(b,
+                   {"local header of 'arc/data/0'", "disagrees with the central directory on the CRC or sizes"});
 }
 
 TEST_CASE("duplicate names are refused") {
@@ -310,7 +314,8 @@ TEST_CASE("single-byte corruption anywhere: an error or a consistent archive, ne
       }
     CHECK(opened + refused == 3 * bytes.size());
     CHECK(refused > 0);
-    MESSAGE(std::string(f), ": ", refused, " corruptions refused, ", opened, " harmless (data, timestamps, padding)");
+    MESSAGE(std::string(f), ": ", refused, " corruptions refused, ", opened,
+            " harmless (data, timestamps, padding)");
   }
 }
 

@@ -21,10 +21,10 @@ namespace zip_test {
 struct ZipSpec {
   struct Entry {
     std::string name;
-    std::string data;               // the entry's first bytes
-    std::uint64_t size = ~0ull;     // total size, zero-filled after `data`; default data.size()
-    std::uint16_t method = 0;       // 0 stored; 8 marks it deflated (the bytes are not compressed)
-    bool descriptor = false;        // bit 3: zero CRC/sizes in the local header, data descriptor after
+    std::string data;            // the entry's first bytes
+    std::uint64_t size = ~0ull;  // total size, zero-filled after `data`; default data.size()
+    std::uint16_t method = 0;    // 0 stored; 8 marks it deflated (the bytes are not compressed)
+    bool descriptor = false;     // bit 3: zero CRC/sizes in the local header, data descriptor after
     std::uint64_t total() const { return size == ~0ull ? data.size() : size; }
   };
   std::vector<Entry> entries;
@@ -69,9 +69,10 @@ inline ZipLayout layout_zip(const ZipSpec& spec) {
   const std::uint32_t sat32 = 0xffffffffu;
   for (const auto& e : spec.entries) {
     const std::uint64_t size = e.total();
-    const std::uint32_t crc = size == e.data.size()
-                                  ? epona::io::crc32({reinterpret_cast<const std::byte*>(e.data.data()), e.data.size()})
-                                  : 0;  // sparse entries: not verified by the tests
+    const std::uint32_t crc =
+        size == e.data.size()
+            ? epona::io::crc32({reinterpret_cast<const std::byte*>(e.data.data()), e.data.size()})
+            : 0;  // sparse entries: not verified by the tests
     const std::uint16_t flags = e.descriptor ? 0x0808 : 0x0800;
     std::string local;
     put<std::uint32_t>(local, 0x04034b50);

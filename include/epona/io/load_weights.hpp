@@ -36,8 +36,9 @@ inline TensorMap load_weights(const std::string& path, const std::string& key = 
   switch (sniff_weight_format(path)) {
     case WeightFormat::TorchZip: return load_torch_checkpoint(path, key);
     case WeightFormat::LegacyTorch:
-      fail(path, ": a legacy (pre-PyTorch-1.6) torch.save file; re-save it with a recent PyTorch "
-                 "(torch.save(torch.load(path), path2)) or convert it to safetensors");
+      fail(path,
+           ": a legacy (pre-PyTorch-1.6) torch.save file; re-save it with a recent PyTorch "
+           "(torch.save(torch.load(path), path2)) or convert it to safetensors");
     case WeightFormat::Safetensors:
       EPONA_CHECK(key.empty(), path, ": a safetensors file is flat, it has no key '", key, "'");
       return load_safetensors(path);

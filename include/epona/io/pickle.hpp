@@ -84,7 +84,7 @@ struct TensorRef {
   std::int64_t storage = 0;  // index into the storage table
   std::int64_t offset = 0;   // in elements
   Shape shape;
-  Shape stride;              // in elements
+  Shape stride;  // in elements
   std::size_t pickle_offset = 0;
 };
 
@@ -94,19 +94,19 @@ struct Sequence {
 };
 
 struct Dict {
-  std::vector<std::pair<Value, Value>> items;  // insertion order, as Python dicts
+  std::vector<std::pair<Value, Value>> items;          // insertion order, as Python dicts
   std::unordered_map<std::string, std::size_t> index;  // canonical key -> position in items
   std::size_t depth = 1;
 };
 
 struct Limits {
-  std::size_t max_stack = std::size_t{1} << 20;       // values on the unpickling stack
-  std::size_t max_marks = 1024;                       // open MARKs
-  std::size_t max_depth = 256;                        // container nesting
+  std::size_t max_stack = std::size_t{1} << 20;  // values on the unpickling stack
+  std::size_t max_marks = 1024;                  // open MARKs
+  std::size_t max_depth = 256;                   // container nesting
   // ~10 objects and memo entries per tensor: room for 400k tensors, while a hostile pickle
   // cannot make the reader hold more than a few hundred MB.
   std::uint64_t max_memo_index = std::uint64_t{1} << 22;
-  std::size_t max_objects = std::size_t{1} << 22;     // strings, containers, storages, tensors
+  std::size_t max_objects = std::size_t{1} << 22;  // strings, containers, storages, tensors
   std::size_t max_dims = 64;
 };
 
@@ -186,7 +186,8 @@ class Unpickler {
 
   Document run() {
     for (;;) {
-      EPONA_CHECK(pos_ < bytes_.size(), source_, ": pickle byte ", pos_, ": the pickle ends without a STOP opcode (truncated?)");
+      EPONA_CHECK(pos_ < bytes_.size(), source_, ": pickle byte ", pos_,
+                  ": the pickle ends without a STOP opcode (truncated?)");
       op_pos_ = pos_;
       if (step(u8())) break;
     }
@@ -198,45 +199,45 @@ class Unpickler {
   // One opcode; returns true at STOP.
   bool step(std::uint8_t op) {
     switch (op) {
-      case 0x80: protocol(); break;                                   // PROTO
-      case 0x95: frame(); break;                                      // FRAME
-      case '.': return true;                                          // STOP
-      case '(': mark(); break;                                        // MARK
-      case '}': push(new_dict()); break;                              // EMPTY_DICT
-      case ']': push(new_sequence(Kind::List, {})); break;            // EMPTY_LIST
-      case ')': push(new_sequence(Kind::Tuple, {})); break;           // EMPTY_TUPLE
-      case 'X': push(new_string(u32())); break;                       // BINUNICODE
-      case 0x8c: push(new_string(u8())); break;                       // SHORT_BINUNICODE
-      case 0x8d: push(new_string(u64())); break;                      // BINUNICODE8
-      case 'q': memo_put(u8()); break;                                // BINPUT
-      case 'r': memo_put(u32()); break;                               // LONG_BINPUT
-      case 0x94: memo_put(memo_.size()); break;                       // MEMOIZE
-      case 'h': memo_get(u8()); break;                                // BINGET
-      case 'j': memo_get(u32()); break;                               // LONG_BINGET
-      case 'J': push_int(static_cast<std::int32_t>(u32())); break;    // BININT
-      case 'K': push_int(u8()); break;                                // BININT1
-      case 'M': push_int(u16()); break;                               // BININT2
-      case 0x8a: push_int(long1()); break;                            // LONG1
-      case 't': push(new_sequence(Kind::Tuple, pop_mark())); break;   // TUPLE
-      case 0x85: push(new_sequence(Kind::Tuple, pop_n(1))); break;    // TUPLE1
-      case 0x86: push(new_sequence(Kind::Tuple, pop_n(2))); break;    // TUPLE2
-      case 0x87: push(new_sequence(Kind::Tuple, pop_n(3))); break;    // TUPLE3
-      case 's': set_items(pop_n(2)); break;                           // SETITEM
-      case 'u': set_items(pop_mark()); break;                         // SETITEMS
-      case 'a': append(pop_n(1)); break;                              // APPEND
-      case 'e': append(pop_mark()); break;                            // APPENDS
-      case 0x88: push({Kind::Bool, 1}); break;                        // NEWTRUE
-      case 0x89: push({Kind::Bool, 0}); break;                        // NEWFALSE
-      case 'N': push({}); break;                                      // NONE
-      case 'G': push_float(); break;                                  // BINFLOAT
-      case 'c': global_from_lines(); break;                           // GLOBAL
-      case 0x93: global_from_stack(); break;                          // STACK_GLOBAL
-      case 'R': reduce(); break;                                      // REDUCE
-      case 'Q': persistent_id(); break;                               // BINPERSID
-      case 'b': build(); break;                                       // BUILD
-      case '0': pop(); break;                                         // POP
-      case '1': pop_mark(); break;                                    // POP_MARK
-      case '2': push(top()); break;                                   // DUP
+      case 0x80: protocol(); break;                                  // PROTO
+      case 0x95: frame(); break;                                     // FRAME
+      case '.': return true;                                         // STOP
+      case '(': mark(); break;                                       // MARK
+      case '}': push(new_dict()); break;                             // EMPTY_DICT
+      case ']': push(new_sequence(Kind::List, {})); break;           // EMPTY_LIST
+      case ')': push(new_sequence(Kind::Tuple, {})); break;          // EMPTY_TUPLE
+      case 'X': push(new_string(u32())); break;                      // BINUNICODE
+      case 0x8c: push(new_string(u8())); break;                      // SHORT_BINUNICODE
+      case 0x8d: push(new_string(u64())); break;                     // BINUNICODE8
+      case 'q': memo_put(u8()); break;                               // BINPUT
+      case 'r': memo_put(u32()); break;                              // LONG_BINPUT
+      case 0x94: memo_put(memo_.size()); break;                      // MEMOIZE
+      case 'h': memo_get(u8()); break;                               // BINGET
+      case 'j': memo_get(u32()); break;                              // LONG_BINGET
+      case 'J': push_int(static_cast<std::int32_t>(u32())); break;   // BININT
+      case 'K': push_int(u8()); break;                               // BININT1
+      case 'M': push_int(u16()); break;                              // BININT2
+      case 0x8a: push_int(long1()); break;                           // LONG1
+      case 't': push(new_sequence(Kind::Tuple, pop_mark())); break;  // TUPLE
+      case 0x85: push(new_sequence(Kind::Tuple, pop_n(1))); break;   // TUPLE1
+      case 0x86: push(new_sequence(Kind::Tuple, pop_n(2))); break;   // TUPLE2
+      case 0x87: push(new_sequence(Kind::Tuple, pop_n(3))); break;   // TUPLE3
+      case 's': set_items(pop_n(2)); break;                          // SETITEM
+      case 'u': set_items(pop_mark()); break;                        // SETITEMS
+      case 'a': append(pop_n(1)); break;                             // APPEND
+      case 'e': append(pop_mark()); break;                           // APPENDS
+      case 0x88: push({Kind::Bool, 1}); break;                       // NEWTRUE
+      case 0x89: push({Kind::Bool, 0}); break;                       // NEWFALSE
+      case 'N': push({}); break;                                     // NONE
+      case 'G': push_float(); break;                                 // BINFLOAT
+      case 'c': global_from_lines(); break;                          // GLOBAL
+      case 0x93: global_from_stack(); break;                         // STACK_GLOBAL
+      case 'R': reduce(); break;                                     // REDUCE
+      case 'Q': persistent_id(); break;                              // BINPERSID
+      case 'b': build(); break;                                      // BUILD
+      case '0': pop(); break;                                        // POP
+      case '1': pop_mark(); break;                                   // POP_MARK
+      case '2': push(top()); break;                                  // DUP
       default: error("unsupported pickle opcode ", opcode_str(op), " (only what torch.save writes is read)");
     }
     return false;
@@ -248,8 +249,10 @@ class Unpickler {
   }
   static std::string opcode_str(std::uint8_t op) {
     char buf[16];
-    if (std::isprint(op)) std::snprintf(buf, sizeof buf, "0x%02x '%c'", op, op);
-    else std::snprintf(buf, sizeof buf, "0x%02x", op);
+    if (std::isprint(op))
+      std::snprintf(buf, sizeof buf, "0x%02x '%c'", op, op);
+    else
+      std::snprintf(buf, sizeof buf, "0x%02x", op);
     return buf;
   }
 
@@ -345,7 +348,8 @@ class Unpickler {
 
   // ---- the memo ----
   void memo_put(std::uint64_t index) {
-    if (index >= limits_.max_memo_index) error("memo index ", index, " is beyond the limit ", limits_.max_memo_index);
+    if (index >= limits_.max_memo_index)
+      error("memo index ", index, " is beyond the limit ", limits_.max_memo_index);
     memo_[index] = top();
   }
   void memo_get(std::uint64_t index) {
@@ -379,9 +383,12 @@ class Unpickler {
   // Depth of a container holding v; containers grow deeper as items are added.
   std::size_t nested_depth(const Value& v) const {
     std::size_t d = 1;
-    if (v.kind == Kind::Tuple || v.kind == Kind::List) d = doc_.sequences_[std::size_t(v.i)].depth;
-    else if (v.kind == Kind::Dict) d = doc_.dicts_[std::size_t(v.i)].depth;
-    else return 2;
+    if (v.kind == Kind::Tuple || v.kind == Kind::List)
+      d = doc_.sequences_[std::size_t(v.i)].depth;
+    else if (v.kind == Kind::Dict)
+      d = doc_.dicts_[std::size_t(v.i)].depth;
+    else
+      return 2;
     if (d + 1 > limits_.max_depth) error("objects nested deeper than ", limits_.max_depth, " levels");
     return d + 1;
   }
@@ -408,8 +415,10 @@ class Unpickler {
     for (std::size_t n = 0; n < kv.size(); n += 2) {
       d.depth = std::max({d.depth, nested_depth(kv[n]), nested_depth(kv[n + 1])});
       auto [it, inserted] = d.index.emplace(canonical_key(kv[n]), d.items.size());
-      if (inserted) d.items.emplace_back(kv[n], kv[n + 1]);
-      else d.items[it->second].second = kv[n + 1];
+      if (inserted)
+        d.items.emplace_back(kv[n], kv[n + 1]);
+      else
+        d.items[it->second].second = kv[n + 1];
     }
   }
   void append(const std::vector<Value>& values) {
@@ -436,12 +445,18 @@ class Unpickler {
   Value resolve_global(const std::string& module, const std::string& name) {
     const std::string full = module + "." + name;
     GlobalRef g{Callable::OrderedDict, DType::F32, full};
-    if (full == "collections.OrderedDict") g.callable = Callable::OrderedDict;
-    else if (full == "torch._utils._rebuild_tensor_v2") g.callable = Callable::RebuildTensorV2;
-    else if (full == "torch._utils._rebuild_tensor") g.callable = Callable::RebuildTensor;
-    else if (full == "torch._utils._rebuild_parameter") g.callable = Callable::RebuildParameter;
-    else if (full == "torch._utils._rebuild_parameter_with_state") g.callable = Callable::RebuildParameterWithState;
-    else if (module == "torch" && storage_dtype(name, g.storage_dtype)) g.callable = Callable::StorageType;
+    if (full == "collections.OrderedDict")
+      g.callable = Callable::OrderedDict;
+    else if (full == "torch._utils._rebuild_tensor_v2")
+      g.callable = Callable::RebuildTensorV2;
+    else if (full == "torch._utils._rebuild_tensor")
+      g.callable = Callable::RebuildTensor;
+    else if (full == "torch._utils._rebuild_parameter")
+      g.callable = Callable::RebuildParameter;
+    else if (full == "torch._utils._rebuild_parameter_with_state")
+      g.callable = Callable::RebuildParameterWithState;
+    else if (module == "torch" && storage_dtype(name, g.storage_dtype))
+      g.callable = Callable::StorageType;
     else if (module == "torch" && name.size() > 7 && name.ends_with("Storage"))
       error("unsupported storage type '", Document::printable(full),
             "' (supported: FloatStorage, BFloat16Storage, HalfStorage, LongStorage)");
@@ -453,11 +468,16 @@ class Unpickler {
     return {Kind::Global, static_cast<std::int64_t>(doc_.globals_.size() - 1)};
   }
   static bool storage_dtype(const std::string& name, DType& dtype) {
-    if (name == "FloatStorage") dtype = DType::F32;
-    else if (name == "BFloat16Storage") dtype = DType::BF16;
-    else if (name == "HalfStorage") dtype = DType::F16;
-    else if (name == "LongStorage") dtype = DType::I64;
-    else return false;
+    if (name == "FloatStorage")
+      dtype = DType::F32;
+    else if (name == "BFloat16Storage")
+      dtype = DType::BF16;
+    else if (name == "HalfStorage")
+      dtype = DType::F16;
+    else if (name == "LongStorage")
+      dtype = DType::I64;
+    else
+      return false;
     return true;
   }
 
@@ -502,19 +522,20 @@ class Unpickler {
   Value rebuild_tensor(const std::vector<Value>& a, const std::string& fn, std::size_t nargs) {
     const bool v2 = nargs == 6;
     if (a.size() != nargs && !(v2 && a.size() == 7)) error(fn, " called with ", a.size(), " arguments");
-    if (a[0].kind != Kind::Storage) error(fn, ": the first argument must be a storage (persistent id), got ",
-                                          kind_name(a[0].kind));
+    if (a[0].kind != Kind::Storage)
+      error(fn, ": the first argument must be a storage (persistent id), got ", kind_name(a[0].kind));
     TensorRef t;
     t.storage = a[0].i;
     t.offset = int_arg(a[1], fn, "storage_offset");
     t.shape = int_tuple(a[2], fn, "size");
     t.stride = int_tuple(a[3], fn, "stride");
     t.pickle_offset = op_pos_;
-    if (t.shape.size() != t.stride.size()) error(fn, ": size ", shape_str(t.shape), " and stride ",
-                                                 shape_str(t.stride), " differ in length");
+    if (t.shape.size() != t.stride.size())
+      error(fn, ": size ", shape_str(t.shape), " and stride ", shape_str(t.stride), " differ in length");
     if (v2 && a[4].kind != Kind::Bool) error(fn, ": requires_grad must be a bool");
     if (v2 && a[5].kind != Kind::Dict) error(fn, ": backward_hooks must be a dict");
-    if (a.size() == 7 && !is_empty_or_none(a[6])) error(fn, ": tensor metadata (", describe(a[6]), ") is not supported");
+    if (a.size() == 7 && !is_empty_or_none(a[6]))
+      error(fn, ": tensor metadata (", describe(a[6]), ") is not supported");
     count_object();
     doc_.tensors_.push_back(std::move(t));
     return {Kind::Tensor, static_cast<std::int64_t>(doc_.tensors_.size() - 1)};
@@ -524,7 +545,8 @@ class Unpickler {
   Value rebuild_parameter(const std::vector<Value>& a, const std::string& fn, std::size_t nargs) const {
     if (a.size() != nargs) error(fn, " called with ", a.size(), " arguments, expected ", nargs);
     if (a[0].kind != Kind::Tensor) error(fn, ": the first argument must be a tensor, got ", kind_name(a[0].kind));
-    if (nargs == 4 && !is_empty_or_none(a[3]) && !(a[3].kind == Kind::Tuple && doc_.sequences_[std::size_t(a[3].i)].items.empty()))
+    if (nargs == 4 && !is_empty_or_none(a[3]) &&
+        !(a[3].kind == Kind::Tuple && doc_.sequences_[std::size_t(a[3].i)].items.empty()))
       error(fn, ": parameter state (", describe(a[3]), ") is not supported");
     return a[0];
   }
@@ -552,9 +574,10 @@ class Unpickler {
   void build() {
     const Value state = pop();
     const Value& target = top();
-    if (target.kind != Kind::Dict) error("BUILD on a ", kind_name(target.kind), " (only OrderedDict state is supported)");
-    if (state.kind != Kind::None && state.kind != Kind::Dict) error("BUILD with a ", kind_name(state.kind),
-                                                                     " state (only a dict of attributes is supported)");
+    if (target.kind != Kind::Dict)
+      error("BUILD on a ", kind_name(target.kind), " (only OrderedDict state is supported)");
+    if (state.kind != Kind::None && state.kind != Kind::Dict)
+      error("BUILD with a ", kind_name(state.kind), " state (only a dict of attributes is supported)");
   }
 
   std::span<const std::byte> bytes_;

@@ -36,8 +36,9 @@ inline std::string archive_prefix(const ZipArchive& zip) {
   EPONA_CHECK(!zip.entries().empty(), zip.name(), ": empty ZIP archive, not a torch.save checkpoint");
   const std::string& first = zip.entries().front().name;
   const auto slash = first.find('/');
-  EPONA_CHECK(slash != std::string::npos && slash > 0, zip.name(), ": not a torch.save checkpoint (its first entry '",
-              pickle::Document::printable(first), "' is not inside a folder)");
+  EPONA_CHECK(slash != std::string::npos && slash > 0, zip.name(),
+              ": not a torch.save checkpoint (its first entry '", pickle::Document::printable(first),
+              "' is not inside a folder)");
   return first.substr(0, slash + 1);
 }
 
@@ -57,15 +58,16 @@ inline std::string list_keys(const pickle::Document& doc, const pickle::Dict& d)
       s += ", ... (" + std::to_string(d.items.size()) + " keys)";
       break;
     }
-    s += (shown++ ? ", " : "") + (k.kind == pickle::Kind::String ? "'" + pickle::Document::printable(doc.str(k)) + "'"
-                                                                  : doc.describe(k));
+    s += (shown++ ? ", " : "") +
+         (k.kind == pickle::Kind::String ? "'" + pickle::Document::printable(doc.str(k)) + "'" : doc.describe(k));
     s += " (" + doc.describe(v) + ")";
   }
   return s.empty() ? "none" : s;
 }
 
 // The dict whose tensors are returned (see the header comment for the rule).
-inline pickle::Value select_state_dict(const pickle::Document& doc, const std::string& key, const std::string& source) {
+inline pickle::Value select_state_dict(const pickle::Document& doc, const std::string& key,
+                                       const std::string& source) {
   const pickle::Value& root = doc.root;
   EPONA_CHECK(root.kind == pickle::Kind::Dict, source, ": the checkpoint holds a ", doc.describe(root),
               ", expected a dict (a state dict, or a dict holding one)");
@@ -81,8 +83,9 @@ inline pickle::Value select_state_dict(const pickle::Document& doc, const std::s
   if (is_dict_of_tensors(doc, root)) return root;
   for (const char* k : kStateDictKeys)
     if (const pickle::Value* v = doc.find(top, k); v && v->kind == pickle::Kind::Dict) return *v;
-  fail(source, ": no state dict found: the top-level dict does not hold tensors only and has no dict under "
-               "'model_state_dict', 'model' or 'state_dict' (pass the key explicitly); its keys are ",
+  fail(source,
+       ": no state dict found: the top-level dict does not hold tensors only and has no dict under "
+       "'model_state_dict', 'model' or 'state_dict' (pass the key explicitly); its keys are ",
        list_keys(doc, top));
 }
 
@@ -119,8 +122,8 @@ class StorageTable {
     }
     const std::string record = prefix_ + "data/" + s.key;
     const ZipEntry* e = zip_.find(record);
-    EPONA_CHECK(e != nullptr, zip_.name(), ": storage '", pickle::Document::printable(s.key), "' of tensor '", tensor,
-                "' has no record '", pickle::Document::printable(record), "' in the archive");
+    EPONA_CHECK(e != nullptr, zip_.name(), ": storage '", pickle::Document::printable(s.key), "' of tensor '",
+                tensor, "' has no record '", pickle::Document::printable(record), "' in the archive");
     if (verify_) zip_.verify_crc(*e);
     return records_.emplace(s.key, Record{s.dtype, zip_.data(*e), record}).first->second;
   }
@@ -147,8 +150,8 @@ inline RawTensor tensor_view(const pickle::Document& doc, const pickle::TensorRe
   const auto esize = static_cast<std::uint64_t>(dtype_size(s.dtype));
   const auto first = static_cast<std::uint64_t>(t.offset), count = static_cast<std::uint64_t>(numel);
   const std::uint64_t limit = ~std::uint64_t{0} / esize;
-  EPONA_CHECK(count <= limit && first <= limit - count, source, ": tensor '", name, "' of shape ", shape_str(t.shape),
-              " at storage offset ", t.offset, " overflows 64-bit byte offsets");
+  EPONA_CHECK(count <= limit && first <= limit - count, source, ": tensor '", name, "' of shape ",
+              shape_str(t.shape), " at storage offset ", t.offset, " overflows 64-bit byte offsets");
   const auto& record = storages.get(s, name);
   const std::uint64_t needed = (first + count) * esize;
   EPONA_CHECK(count == 0 || needed <= record.bytes.size(), source, ": tensor '", name, "' needs ", needed,
@@ -162,7 +165,9 @@ inline RawTensor tensor_view(const pickle::Document& doc, const pickle::TensorRe
   RawTensor r;
   r.dtype = s.dtype;
   r.shape = t.shape;
-  if (count > 0) r.bytes = record.bytes.subspan(static_cast<std::size_t>(first * esize), static_cast<std::size_t>(count * esize));
+  if (count > 0)
+    r.bytes =
+        record.bytes.subspan(static_cast<std::size_t>(first * esize), static_cast<std::size_t>(count * esize));
   return r;
 }
 
@@ -192,11 +197,11 @@ inline TensorMap load_torch_checkpoint(const ZipArchive& zip, const TorchLoadOpt
   TensorMap map(zip.name());
   torch_detail::StorageTable storages(zip, prefix, options.verify_checksums);
   for (const auto& [k, v] : doc.dict(state).items) {
-    EPONA_CHECK(k.kind == pickle::Kind::String, zip.name(), ": the state dict has a key that is a ", doc.describe(k),
-                ", expected parameter names (str)");
+    EPONA_CHECK(k.kind == pickle::Kind::String, zip.name(), ": the state dict has a key that is a ",
+                doc.describe(k), ", expected parameter names (str)");
     const std::string& name = doc.str(k);
-    EPONA_CHECK(v.kind == pickle::Kind::Tensor, zip.name(), ": state dict entry '", pickle::Document::printable(name),
-                "' is a ", doc.describe(v), ", not a tensor");
+    EPONA_CHECK(v.kind == pickle::Kind::Tensor, zip.name(), ": state dict entry '",
+                pickle::Document::printable(name), "' is a ", doc.describe(v), ", not a tensor");
     map.add(name, torch_detail::tensor_view(doc, doc.tensor(v), name, storages, zip.name()));
   }
   map.keep_alive(std::const_pointer_cast<void>(zip.owner()));

@@ -22,7 +22,8 @@
 
 namespace epona::io {
 
-static_assert(std::endian::native == std::endian::little, "the ZIP and pickle readers assume a little-endian host");
+static_assert(std::endian::native == std::endian::little,
+              "the ZIP and pickle readers assume a little-endian host");
 
 namespace zip_detail {
 
@@ -121,7 +122,8 @@ class ZipArchive {
 
   // The bytes of a stored entry, a view into the mapping (zero-copy).
   std::span<const std::byte> data(const ZipEntry& e) const {
-    EPONA_CHECK(e.method == 0, name_, ": entry '", e.name, "' is compressed (method ", e.method, method_name(e.method),
+    EPONA_CHECK(e.method == 0, name_, ": entry '", e.name, "' is compressed (method ", e.method,
+                method_name(e.method),
                 "); only stored (uncompressed) entries can be read, as torch.save writes them");
     return bytes_.subspan(e.data_offset, e.size);
   }
@@ -164,8 +166,8 @@ class ZipArchive {
   // The bytes [offset, offset + length) of the file; throws (naming `what`) if out of bounds.
   const std::byte* range(std::uint64_t offset, std::uint64_t length, const std::string& what) const {
     const std::uint64_t size = bytes_.size();
-    EPONA_CHECK(length <= size && offset <= size - length, name_, ": ", what, " (", length, " bytes at offset ", offset,
-                ") lies outside the file of ", size, " bytes (truncated or corrupt archive)");
+    EPONA_CHECK(length <= size && offset <= size - length, name_, ": ", what, " (", length, " bytes at offset ",
+                offset, ") lies outside the file of ", size, " bytes (truncated or corrupt archive)");
     return bytes_.data() + offset;
   }
 
@@ -187,7 +189,8 @@ class ZipArchive {
   EndRecord read_end_record(std::uint64_t pos) const {
     using namespace zip_detail;
     const std::byte* p = bytes_.data() + pos;
-    const std::uint16_t disk = le16(p + 4), cd_disk = le16(p + 6), disk_entries = le16(p + 8), entries = le16(p + 10);
+    const std::uint16_t disk = le16(p + 4), cd_disk = le16(p + 6), disk_entries = le16(p + 8),
+                        entries = le16(p + 10);
     const std::uint32_t cd_size = le32(p + 12), cd_offset = le32(p + 16);
     EPONA_CHECK(disk == 0 && cd_disk == 0 && disk_entries == entries, name_,
                 ": multi-disk (split) ZIP archives are not supported");
@@ -200,7 +203,8 @@ class ZipArchive {
       check_agrees(cd_size, 0xffffffffu, end.cd_size, "central directory size");
       check_agrees(cd_offset, 0xffffffffu, end.cd_offset, "central directory offset");
     } else {
-      EPONA_CHECK(!saturated, name_, ": the end record needs ZIP64 values, but there is no ZIP64 end-record locator");
+      EPONA_CHECK(!saturated, name_,
+                  ": the end record needs ZIP64 values, but there is no ZIP64 end-record locator");
     }
     EPONA_CHECK(end.cd_size <= end.cd_limit && end.cd_offset <= end.cd_limit - end.cd_size, name_,
                 ": the central directory (", end.cd_size, " bytes at offset ", end.cd_offset,
@@ -295,7 +299,8 @@ class ZipArchive {
       e.name.assign(reinterpret_cast<const char*>(p + kCentralSize), name_len);
       check_name(e.name, what);
       const std::uint16_t disk = le16(p + 34);
-      EPONA_CHECK(disk == 0 || disk == 0xffff, name_, ": entry '", e.name, "' lies on another disk (split archive)");
+      EPONA_CHECK(disk == 0 || disk == 0xffff, name_, ": entry '", e.name,
+                  "' lies on another disk (split archive)");
       Zip64Fields z;
       if (e.size == 0xffffffffu) z.size = &e.size;
       if (e.compressed_size == 0xffffffffu) z.compressed_size = &e.compressed_size;
@@ -342,9 +347,11 @@ class ZipArchive {
     apply_zip64_extra({p + kLocalSize + name_len, extra_len}, z, e.name, "local header");
     // With a data descriptor (torch.save sets bit 3) the local CRC and sizes may be zero.
     const bool deferred = flags & kFlagDataDescriptor;
-    auto agrees = [&](std::uint64_t local, std::uint64_t central) { return local == central || (deferred && local == 0); };
-    EPONA_CHECK(agrees(crc, e.crc32) && agrees(csize, e.compressed_size) && agrees(size, e.size), name_, ": ", what,
-                " disagrees with the central directory on the CRC or sizes (local: ", csize, "/", size,
+    auto agrees = [&](std::uint64_t local, std::uint64_t central) {
+      return local == central || (deferred && local == 0);
+    };
+    EPONA_CHECK(agrees(crc, e.crc32) && agrees(csize, e.compressed_size) && agrees(size, e.size), name_, ": ",
+                what, " disagrees with the central directory on the CRC or sizes (local: ", csize, "/", size,
                 " bytes, central: ", e.compressed_size, "/", e.size, ")");
     e.data_offset = e.header_offset + header_len;
     EPONA_CHECK(e.compressed_size <= cd_offset - e.data_offset, name_, ": the data of entry '", e.name, "' (",
