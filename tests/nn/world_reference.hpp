@@ -24,7 +24,10 @@ using HostTensor = epona::Tensor<float, epona::Cpu>;
 // Random float32 parameters under official names, readable back as float64.
 class RandomWeights {
  public:
-  explicit RandomWeights(std::uint64_t seed) : rng_(seed), map_("random weights") {}
+  // bf16_storage: tensors are stored as bfloat16 (as the released checkpoint most likely is);
+  // the float64 copies hold exactly the stored values.
+  explicit RandomWeights(std::uint64_t seed, bool bf16_storage = false)
+      : rng_(seed), map_("random weights"), bf16_(bf16_storage) {}
 
   // Uniform in [offset - scale, offset + scale].
   void add(const std::string& name, const epona::Shape& shape, double scale, double offset = 0) {
@@ -32,11 +35,22 @@ class RandomWeights {
     std::uniform_real_distribution<double> u(-scale, scale);
     for (auto& v : *data) v = static_cast<float>(offset + u(rng_));
     epona::io::RawTensor r;
-    r.dtype = epona::DType::F32;
     r.shape = shape;
-    r.bytes = std::span<const std::byte>(reinterpret_cast<const std::byte*>(data->data()), data->size() * 4);
+    if (bf16_) {
+      auto half = std::make_shared<std::vector<epona::bf16>>();
+      for (auto& v : *data) {
+        half->push_back(epona::bf16(v));
+        v = float(half->back());
+      }
+      r.dtype = epona::DType::BF16;
+      r.bytes = std::span<const std::byte>(reinterpret_cast<const std::byte*>(half->data()), half->size() * 2);
+      map_.keep_alive(half);
+    } else {
+      r.dtype = epona::DType::F32;
+      r.bytes = std::span<const std::byte>(reinterpret_cast<const std::byte*>(data->data()), data->size() * 4);
+      map_.keep_alive(data);
+    }
     map_.add(name, r);
-    map_.keep_alive(data);
     values_[name] = Vec(data->begin(), data->end());
   }
   // Linear(in -> out): weight scaled 1/sqrt(in) so activations stay O(1).
@@ -54,6 +68,7 @@ class RandomWeights {
  private:
   std::mt19937_64 rng_;
   epona::io::TensorMap map_;
+  bool bf16_ = false;
   std::map<std::string, Vec> values_;
 };
 
