@@ -185,6 +185,21 @@ int main() {
     bench_attention<bf16>(ctx, 1, 16, 4096, false, 10, "long (fill check)");
     bench_attention<bf16>(ctx, 1, 16, 4096, true, 10, "long (fill check)");
     bench_attention<float>(ctx, 10, 16, 515, false, 5, "MST spatial");
+    {  // MST temporal: 515 sequences (spatial positions) of 10 frames, causal, frame-strided rows.
+      const std::int64_t frames = 10, spatial = 515, heads = 16, c = heads * 128;
+      auto qkv = random_device<bf16>(ctx, {frames, spatial, 3 * c}, 78, -2.f, 2.f);
+      Tensor<bf16, Cuda> out({frames, spatial, c});
+      cuda::AttentionShape a;
+      a.seqs = spatial, a.heads = heads, a.lq = a.lk = frames, a.head_dim = 128;
+      a.q_seq = a.k_seq = a.v_seq = 3 * c, a.q_row = a.k_row = a.v_row = spatial * 3 * c;
+      a.o_seq = c, a.o_row = spatial * c;
+      a.mask = cuda::Mask::Causal;
+      const double ms = median_ms(ctx, 30, [&](int) {
+        cuda::attention(ctx, qkv.data(), qkv.data() + c, qkv.data() + 2 * c, out.data(), a);
+      });
+      row("attention MST temporal bf16 515 x 16 heads x 10 x 128 causal", ms, 4.0 * spatial * heads * frames * frames * 128,
+          0);
+    }
 
     std::printf("\nmemory-bound kernels (bf16 activations; bytes = reads + writes)\n");
     {

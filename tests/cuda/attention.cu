@@ -5,8 +5,9 @@
 // head dims 4/24/32/64/128, unaligned strides. Outputs are poisoned first; elements outside
 // the output layout must stay poisoned.
 // Bounds. float32: rel_l2 and max|err| / max|v| <= 1e-5. bf16: P is rounded to bf16 before
-// P·V (|δp| <= 2^-9 p, so |err| <= 2^-9 max|v|) and the output once more (2^-9 |o| <= 2^-9
-// max|v|): max|err| <= 2^-8 max|v|, rel_l2 <= 1e-2.
+// P·V (|δp| <= 2^-8 p, so |err| <= 2^-8 max|v|) and the output once more (2^-8 |o| <= 2^-8
+// max|v|): max|err| <= 2^-7 max|v|; rel_l2 <= 1e-2 (rounding errors average out; measured
+// about 2e-3).
 #include "cuda_test_util.cuh"
 
 #include <algorithm>
@@ -100,11 +101,12 @@ void check_attention(cuda::Context& ctx, const Layout& l, std::uint32_t seed, co
   const auto d = measure(out.data(), ref.data(), out.numel(), written);
   std::int64_t stray = 0;
   for (std::int64_t i = 0; i < out.numel(); ++i) stray += !written(i) && !std::isnan(out.data()[i]);
-  const Bound b = std::is_same_v<T, float> ? kF32 : Bound{1e-2, 1.0 / 256};
+  constexpr double max_v = 2.0;  // inputs are uniform in [-2, 2)
+  const Bound b = std::is_same_v<T, float> ? Bound{kF32Tol, kF32Tol * max_v} : Bound{1e-2, 2 * kBf16Roundoff * max_v};
   const std::string what = std::string("attention ") + type_name<T>() + " " + name + " d=" + std::to_string(l.dim) +
                            (l.causal ? " causal" : "") + (l.additive ? " +mask" : "");
   if (l.lq > 0 && l.seqs > 0) {
-    check_error(d, b, /*max|v|=*/2.0, what);
+    check_error(d, b, what);
   } else {
     CHECK(d.n == 0);
   }

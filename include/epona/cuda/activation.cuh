@@ -25,22 +25,28 @@ struct SiluOp {
   __device__ float operator()(float v) const { return v / (1.0f + expf(-v)); }
 };
 
+// y[i] = op(x[i]) over one row of n elements.
 template <class TX, class TY, class Op>
-__global__ void map_kernel(const TX* x, TY* y, std::int64_t n, Op op) {
-  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < n;
-       i += std::int64_t{gridDim.x} * blockDim.x)
-    y[i] = from_f32<TY>(op(to_f32(x[i])));
-}
+struct MapEach {
+  const TX* x;
+  TY* y;
+  Op op;
+  __device__ void pack(std::int64_t, std::int64_t c) const {
+    float v[kPack];
+    load8(x + c, v);
+#pragma unroll
+    for (int i = 0; i < kPack; ++i) v[i] = op(v[i]);
+    store8(y + c, v);
+  }
+  __device__ void one(std::int64_t, std::int64_t c) const { y[c] = from_f32<TY>(op(to_f32(x[c]))); }
+};
 
 // y[i] = op(x[i]); x and y may be the same buffer.
 template <class TX, class TY, class Op>
 void map(Context& ctx, const TX* x, TY* y, std::int64_t n, Op op) {
   static_assert(is_device_float<TX> && is_device_float<TY>, "activations take float or bf16");
   EPONA_CHECK(n >= 0, "activation: negative element count ", n);
-  if (n == 0) return;
-  constexpr int threads = 256;
-  map_kernel<<<grid_for(n, threads), threads, 0, ctx.stream()>>>(x, y, n, op);
-  EPONA_CUDA_CHECK_LAUNCH();
+  for_each(ctx.stream(), 1, n, packable(x, n, n) && packable(y, n, n), MapEach<TX, TY, Op>{x, y, op});
 }
 
 }  // namespace detail

@@ -62,10 +62,80 @@ __device__ __forceinline__ float block_sum(float v, float* scratch) {
   return total;
 }
 
+// Eight consecutive elements as float32, moved with 16-byte accesses (one for bf16, two for
+// float): the memory-bound kernels' unit of work. p must be 16-byte aligned.
+constexpr int kPack = 8;
+__device__ __forceinline__ void load8(const float* p, float (&v)[kPack]) {
+  const float4 a = reinterpret_cast<const float4*>(p)[0], b = reinterpret_cast<const float4*>(p)[1];
+  v[0] = a.x, v[1] = a.y, v[2] = a.z, v[3] = a.w, v[4] = b.x, v[5] = b.y, v[6] = b.z, v[7] = b.w;
+}
+__device__ __forceinline__ void load8(const bf16* p, float (&v)[kPack]) {
+  const uint4 raw = *reinterpret_cast<const uint4*>(p);
+  const unsigned w[4] = {raw.x, raw.y, raw.z, raw.w};
+#pragma unroll
+  for (int i = 0; i < 4; ++i) {
+    v[2 * i] = __uint_as_float(w[i] << 16);
+    v[2 * i + 1] = __uint_as_float(w[i] & 0xffff0000u);
+  }
+}
+__device__ __forceinline__ void store8(float* p, const float (&v)[kPack]) {
+  reinterpret_cast<float4*>(p)[0] = make_float4(v[0], v[1], v[2], v[3]);
+  reinterpret_cast<float4*>(p)[1] = make_float4(v[4], v[5], v[6], v[7]);
+}
+__device__ __forceinline__ void store8(bf16* p, const float (&v)[kPack]) {
+  unsigned w[4];
+#pragma unroll
+  for (int i = 0; i < 4; ++i) {
+    const __nv_bfloat162 h = __floats2bfloat162_rn(v[2 * i], v[2 * i + 1]);
+    w[i] = *reinterpret_cast<const unsigned*>(&h);
+  }
+  *reinterpret_cast<uint4*>(p) = make_uint4(w[0], w[1], w[2], w[3]);
+}
+
+inline bool aligned16(const void* p) { return reinterpret_cast<std::uintptr_t>(p) % 16 == 0; }
+
+// Rows of width n, ldp apart, can be walked in 16-byte packs from p (null p counts as fine).
+inline bool packable(const void* p, std::int64_t n, std::int64_t ldp) {
+  return !p || (aligned16(p) && n % kPack == 0 && ldp % kPack == 0);
+}
+
 // Blocks for a grid-stride loop over n elements: enough to fill the device, no more.
 inline unsigned grid_for(std::int64_t n, int threads) {
   const std::int64_t blocks = (n + threads - 1) / threads;
   return static_cast<unsigned>(std::clamp<std::int64_t>(blocks, 1, 65535L * 8));
+}
+
+// Element-wise work over rows x n: f.pack(r, c) handles columns [c, c + 8) of row r with
+// 16-byte accesses, f.one(r, c) a single element. One thread per pack (or element), grid-stride.
+template <class F>
+__global__ void for_each_pack_kernel(std::int64_t rows, std::int64_t n, F f) {
+  const std::int64_t per_row = n / kPack, total = rows * per_row;
+  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
+       i += std::int64_t{gridDim.x} * blockDim.x) {
+    const std::int64_t r = i / per_row;
+    f.pack(r, (i - r * per_row) * kPack);
+  }
+}
+template <class F>
+__global__ void for_each_one_kernel(std::int64_t rows, std::int64_t n, F f) {
+  const std::int64_t total = rows * n;
+  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
+       i += std::int64_t{gridDim.x} * blockDim.x) {
+    const std::int64_t r = i / n;
+    f.one(r, i - r * n);
+  }
+}
+
+// Runs f over rows x n, in packs when `packed` (n % 8 == 0 and 16-byte aligned operands).
+template <class F>
+void for_each(cudaStream_t stream, std::int64_t rows, std::int64_t n, bool packed, const F& f) {
+  if (rows <= 0 || n <= 0) return;
+  constexpr int threads = 256;
+  if (packed)
+    for_each_pack_kernel<<<grid_for(rows * (n / kPack), threads), threads, 0, stream>>>(rows, n, f);
+  else
+    for_each_one_kernel<<<grid_for(rows * n, threads), threads, 0, stream>>>(rows, n, f);
+  EPONA_CUDA_CHECK_LAUNCH();
 }
 
 }  // namespace detail

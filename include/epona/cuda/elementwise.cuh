@@ -12,27 +12,39 @@ namespace epona::cuda {
 
 namespace detail {
 
-template <class TX, class TY>
-__global__ void add_kernel(TX* x, const TY* y, std::int64_t n) {
-  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < n;
-       i += std::int64_t{gridDim.x} * blockDim.x)
-    x[i] = from_f32<TX>(to_f32(x[i]) + to_f32(y[i]));
-}
-
-// x[r, c] += gate[c] * y[r, c]; with y null, x[r, c] += gate[c] (the row broadcast add).
+// x[r, c] += gate[c] * y[r, c] on rows of width n; with y null, x[r, c] += gate[c] (the row
+// broadcast add); with gate null, x[r, c] += y[r, c].
 template <class TX, class TY, class TG>
-__global__ void add_gated_kernel(TX* x, const TY* y, const TG* gate, std::int64_t rows, std::int64_t n) {
-  const std::int64_t total = rows * n;
-  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
-       i += std::int64_t{gridDim.x} * blockDim.x) {
-    const float g = to_f32(gate[i % n]);
-    const float update = y ? round_to<promote_t<TG, TY>>(g * to_f32(y[i])) : g;
-    x[i] = from_f32<TX>(to_f32(x[i]) + update);
+struct AddEach {
+  TX* x;
+  const TY* y;
+  const TG* gate;
+  std::int64_t n;
+  __device__ float update(float g, float v) const {
+    if (!gate) return v;
+    return y ? round_to<promote_t<TG, TY>>(g * v) : g;
   }
-}
+  __device__ void pack(std::int64_t r, std::int64_t c) const {
+    float xs[kPack], ys[kPack] = {}, gs[kPack] = {};
+    load8(x + r * n + c, xs);
+    if (y) load8(y + r * n + c, ys);
+    if (gate) load8(gate + c, gs);
+#pragma unroll
+    for (int i = 0; i < kPack; ++i) xs[i] += update(gs[i], ys[i]);
+    store8(x + r * n + c, xs);
+  }
+  __device__ void one(std::int64_t r, std::int64_t c) const {
+    const float g = gate ? to_f32(gate[c]) : 0.f, v = y ? to_f32(y[r * n + c]) : 0.f;
+    x[r * n + c] = from_f32<TX>(to_f32(x[r * n + c]) + update(g, v));
+  }
+};
 
-inline void check_count(std::int64_t rows, std::int64_t n, const char* what) {
+template <class TX, class TY, class TG>
+void add_rows(Context& ctx, TX* x, const TY* y, const TG* gate, std::int64_t rows, std::int64_t n, const char* what) {
+  static_assert(is_device_float<TX> && is_device_float<TY> && is_device_float<TG>, "residual ops take float or bf16");
   EPONA_CHECK(rows >= 0 && n >= 0, what, ": negative extent (rows ", rows, ", width ", n, ")");
+  const bool packed = packable(x, n, n) && packable(y, n, n) && packable(gate, n, 0);
+  for_each(ctx.stream(), rows, n, packed, AddEach<TX, TY, TG>{x, y, gate, n});
 }
 
 }  // namespace detail
@@ -40,34 +52,22 @@ inline void check_count(std::int64_t rows, std::int64_t n, const char* what) {
 // x[i] += y[i] for i < n.
 template <class TX, class TY>
 void add_inplace(Context& ctx, TX* x, const TY* y, std::int64_t n) {
-  static_assert(is_device_float<TX> && is_device_float<TY>, "add_inplace takes float or bf16");
-  detail::check_count(1, n, "add_inplace");
-  if (n == 0) return;
-  detail::add_kernel<<<detail::grid_for(n, 256), 256, 0, ctx.stream()>>>(x, y, n);
-  EPONA_CUDA_CHECK_LAUNCH();
+  EPONA_CHECK(x != nullptr && y != nullptr, "add_inplace: null input");
+  detail::add_rows(ctx, x, y, static_cast<const TX*>(nullptr), 1, n, "add_inplace");
 }
 
 // x[r, :] += gate[:] * y[r, :] for rows of width n.
 template <class TX, class TY, class TG>
 void add_gated(Context& ctx, TX* x, const TY* y, const TG* gate, std::int64_t rows, std::int64_t n) {
-  static_assert(is_device_float<TX> && is_device_float<TY> && is_device_float<TG>, "add_gated takes float or bf16");
-  detail::check_count(rows, n, "add_gated");
-  EPONA_CHECK(y != nullptr && gate != nullptr, "add_gated: null input");
-  if (rows * n == 0) return;
-  detail::add_gated_kernel<<<detail::grid_for(rows * n, 256), 256, 0, ctx.stream()>>>(x, y, gate, rows, n);
-  EPONA_CUDA_CHECK_LAUNCH();
+  EPONA_CHECK(x != nullptr && y != nullptr && gate != nullptr, "add_gated: null input");
+  detail::add_rows(ctx, x, y, gate, rows, n, "add_gated");
 }
 
 // x[r, :] += b[:] for rows of width n.
 template <class TX, class TB>
 void add_row_broadcast(Context& ctx, TX* x, const TB* b, std::int64_t rows, std::int64_t n) {
-  static_assert(is_device_float<TX> && is_device_float<TB>, "add_row_broadcast takes float or bf16");
-  detail::check_count(rows, n, "add_row_broadcast");
-  EPONA_CHECK(b != nullptr, "add_row_broadcast: null bias");
-  if (rows * n == 0) return;
-  detail::add_gated_kernel<<<detail::grid_for(rows * n, 256), 256, 0, ctx.stream()>>>(
-      x, static_cast<const TX*>(nullptr), b, rows, n);
-  EPONA_CUDA_CHECK_LAUNCH();
+  EPONA_CHECK(x != nullptr && b != nullptr, "add_row_broadcast: null bias");
+  detail::add_rows(ctx, x, static_cast<const TX*>(nullptr), b, rows, n, "add_row_broadcast");
 }
 
 }  // namespace epona::cuda

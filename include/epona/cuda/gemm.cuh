@@ -87,30 +87,37 @@ std::unique_ptr<LtPlan> make_plan(Context& ctx, const LtPlanKey& key, cublasLtEp
   return plan;
 }
 
+// y[r, c] = op(y[r, c] + bias[c]) on rows ldy apart; bias may be null. A bias that was not
+// fused rounds the sum to T first, as cuBLASLt's output (and PyTorch's Linear) would be.
 template <class T, class Op>
-__global__ void bias_activation_kernel(T* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const T* bias,
-                                       Op op) {
-  const std::int64_t total = rows * n;
-  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
-       i += std::int64_t{gridDim.x} * blockDim.x) {
-    const std::int64_t r = i / n, c = i - r * n;
-    T& out = y[r * ldy + c];
-    float v = to_f32(out);
-    // A bias that is not fused rounds like cuBLASLt's output would before the activation.
-    if (bias) v = round_to<T>(v + to_f32(bias[c]));
-    out = from_f32<T>(op(v));
+struct BiasActivationEach {
+  T* y;
+  std::int64_t ldy;
+  const T* bias;
+  Op op;
+  __device__ void pack(std::int64_t r, std::int64_t c) const {
+    float v[kPack], b[kPack];
+    load8(y + r * ldy + c, v);
+    if (bias) load8(bias + c, b);
+#pragma unroll
+    for (int i = 0; i < kPack; ++i) v[i] = op(bias ? round_to<T>(v[i] + b[i]) : v[i]);
+    store8(y + r * ldy + c, v);
   }
-}
+  __device__ void one(std::int64_t r, std::int64_t c) const {
+    float v = to_f32(y[r * ldy + c]);
+    if (bias) v = round_to<T>(v + to_f32(bias[c]));
+    y[r * ldy + c] = from_f32<T>(op(v));
+  }
+};
 
 struct Identity {
   __device__ float operator()(float v) const { return v; }
 };
 
-// y[r, :] = act(y[r, :] + bias) on rows ldy apart, as one pass over y.
 template <class T, class Op>
 void bias_activation(Context& ctx, T* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const T* bias, Op op) {
-  bias_activation_kernel<<<grid_for(rows * n, 256), 256, 0, ctx.stream()>>>(y, ldy, rows, n, bias, op);
-  EPONA_CUDA_CHECK_LAUNCH();
+  const bool packed = packable(y, n, ldy) && packable(bias, n, 0);
+  for_each(ctx.stream(), rows, n, packed, BiasActivationEach<T, Op>{y, ldy, bias, op});
 }
 
 }  // namespace detail
