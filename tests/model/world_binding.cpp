@@ -6,6 +6,7 @@
 
 #include <string>
 
+#include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
 #include "world_golden.hpp"
 
@@ -103,4 +104,16 @@ TEST_CASE("a config that does not match the weights is refused with the shapes n
     INFO(e.what());
     CHECK(contains(e.what(), "'module.model.time_emb' has shape"));
   }
+}
+
+TEST_CASE("random_world_weights has exactly the golden file's keys and shapes, and binds strictly") {
+  const auto& g = world_golden();
+  const auto random = model::random_world_weights(g.world(), 3);
+  CHECK(random.size() == g.weights.size());
+  for (const auto& [name, raw] : g.weights.entries()) {
+    INFO(name);
+    REQUIRE(random.contains(name));
+    CHECK(random.at(name).shape == raw.shape);
+  }
+  CHECK_NOTHROW((void)WorldModel<Cpu, float>::load(random, g.world()));
 }
