@@ -1,0 +1,129 @@
+#!/usr/bin/env python3
+"""Writes the seed corpora fuzz/corpus/<target>/ (small, valid or nearly valid inputs that show
+the fuzzer each format's structure). Deterministic, standard library only; the test fixtures it
+reads are in tests/data. Run from anywhere: python3 fuzz/make_corpus.py"""
+import json
+import pathlib
+import shutil
+import struct
+import zipfile
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+DATA = ROOT / "tests" / "data"
+OUT = ROOT / "fuzz" / "corpus"
+RECORD_SEP = b"\xff\xfeREC"  # fuzz_torch_checkpoint.cpp
+YAW_SEP = b"\xff\xfeYAW"     # fuzz_poses_npy.cpp
+
+
+def put(target, name, data):
+    d = OUT / target
+    d.mkdir(parents=True, exist_ok=True)
+    (d / name).write_bytes(data if isinstance(data, bytes) else data.encode())
+
+
+# ---- safetensors -------------------------------------------------------------------------
+def safetensors(tensors, metadata=None):
+    header, blob = {}, b""
+    if metadata is not None:
+        header["__metadata__"] = metadata
+    for name, (dtype, shape, data) in tensors.items():
+        header[name] = {"dtype": dtype, "shape": shape, "data_offsets": [len(blob), len(blob) + len(data)]}
+        blob += data
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)
+    return struct.pack("<Q", len(text)) + text + blob
+
+
+def f32(*v):
+    return struct.pack("<%df" % len(v), *v)
+
+
+put("safetensors", "f32_bf16_meta.safetensors", safetensors(
+    {"w": ("F32", [2, 3], f32(1, -2, 3.5, 0, -0.0, 1e-3)), "b": ("BF16", [3], b"\x80\x3f\x00\x40\xc0\x7f")},
+    {"format": "pt", "note": "seed"}))
+put("safetensors", "f16_i64_empty_scalar.safetensors", safetensors(
+    {"h": ("F16", [2, 2], struct.pack("<4e", 1, -1, 0.5, 65504)), "ids": ("I64", [2], struct.pack("<2q", -1, 7)),
+     "empty": ("F32", [0, 3], b""), "s": ("F32", [], f32(0.25))}))
+put("safetensors", "no_tensors.safetensors", safetensors({}, {"a": "b"}))
+put("safetensors", "special_values.safetensors", safetensors(
+    {"x": ("F32", [4], struct.pack("<4I", 0x7f800000, 0xff800000, 0x7fc00000, 1))}))
+
+# ---- ZIP / pickle / torch checkpoints from the torch.save fixtures ----------------------
+PKL = ["fp32_plain", "bf16_world", "fp16_dcae", "views", "noncontiguous", "ordered_state_dict", "no_state_dict",
+       "hostile_os_system", "zip64_full", "zip64_local"]
+for name in PKL:
+    raw = (DATA / "pkl" / f"{name}.pkl").read_bytes()
+    put("zip", f"{name}.zip", raw)
+    with zipfile.ZipFile(DATA / "pkl" / f"{name}.pkl") as z:
+        files = {i.filename.split("/", 1)[1]: z.read(i) for i in z.infolist()}
+    put("pickle", f"{name}.pkl", files["data.pkl"])
+    records = sorted((int(k[5:]), v) for k, v in files.items() if k.startswith("data/"))
+    assert [i for i, _ in records] == list(range(len(records))), name
+    put("torch_checkpoint", f"{name}.bin", RECORD_SEP.join([files["data.pkl"]] + [v for _, v in records]))
+
+# ---- configs ----------------------------------------------------------------------------
+golden = json.loads((DATA / "golden" / "configs.json").read_text())
+put("config_json", "golden.json", json.dumps(golden, indent=1))
+put("config_json", "plain_world.json", json.dumps(golden["world_model_config"]))
+put("config_json", "golden_compact.json",
+    json.dumps({"world_model_config": golden["world_model_config"], "dcae": golden["dcae"]}, separators=(",", ":")))
+
+
+# ---- .npy -------------------------------------------------------------------------------
+def npy(descr, shape, data, version=1):
+    sh = "(" + ", ".join(map(str, shape)) + ("," if len(shape) == 1 else "") + ")"
+    header = "{'descr': '%s', 'fortran_order': False, 'shape': %s, }" % (descr, sh)
+    pre = 10 if version == 1 else 12
+    header += " " * (-(pre + len(header) + 1) % 64) + "\n"
+    length = struct.pack("<H", len(header)) if version == 1 else struct.pack("<I", len(header))
+    return b"\x93NUMPY" + bytes([version, 0]) + length + header.encode() + data
+
+
+for f in sorted((DATA / "poses" / "npy").glob("*.npy")):
+    put("npy", f.name, f.read_bytes())
+put("npy", "f8_3d_v2.npy", npy("<f8", [2, 1, 2], struct.pack("<4d", 1.5, -2, 1e300, 0), 2))
+put("npy", "f2_empty_v3.npy", npy("<f2", [0], b"", 3))
+
+
+def absolute(poses):  # 4x4 row-major ego-to-world, yaw in degrees around z
+    import math
+    out = []
+    for x, y, yaw in poses:
+        c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+        out += [c, -s, 0, x, s, c, 0, y, 0, 0, 1, 0, 0, 0, 0, 1]
+    return out
+
+
+ABS = absolute([(0, 0, 0), (1.2, 0.1, 2), (2.5, 0.3, 5)])
+for f in sorted((DATA / "poses").glob("absolute_*.npy")):
+    put("poses_npy", f.name, f.read_bytes())
+put("poses_npy", "absolute_n44_small.npy", npy("<f8", [3, 4, 4], struct.pack("<48d", *ABS)))
+put("poses_npy", "rows_n3.npy", npy("<f4", [3, 3], f32(0.5, 0, 1, 0.6, 0.01, -1, 0.7, 0, 0)))
+put("poses_npy", "planned_sw3.npy", npy("<f4", [2, 2, 3], f32(*range(12))))
+for d in ["demo_n2_f4", "demo_1n2_f8", "demo_mismatch"]:
+    put("poses_npy", f"{d}.pair", (DATA / "poses" / d / "pose.npy").read_bytes() + YAW_SEP +
+        (DATA / "poses" / d / "yaw.npy").read_bytes())
+
+# ---- pose CSV / JSON ---------------------------------------------------------------------
+put("poses_csv", "header.csv", "x,y,yaw\n0.5,0.01,0.2\n0.6,-0.02,-1.5\n")
+put("poses_csv", "reordered.csv", "\ufeff# recorded at 5 Hz\nyaw, x, y\n1.0, 0.5, 0\n-2e-1, +0.4, 1e-3  # turn\n")
+put("poses_csv", "whitespace.txt", "0.5 0 0\n\t0.6\t0.1\t-3\n\n0.7 0 1.25\n")
+put("poses_json", "list.json", json.dumps([[0.5, 0.0, 0.2], [0.6, -0.02, -1.5]]))
+put("poses_json", "objects.json", json.dumps([{"x": 0.5, "y": 0, "yaw": 1}, {"yaw": -1, "x": 0.4, "y": 1e-3}]))
+put("poses_json", "poses.json", json.dumps({"poses": [[1, 2, 3]]}))
+put("poses_json", "absolute.json",
+    json.dumps({"absolute": [[ABS[16 * i + 4 * r:16 * i + 4 * r + 4] for r in range(4)] for i in range(3)]}))
+
+# ---- planned trajectories ----------------------------------------------------------------
+traj = [[[0.5 * (w + 1), 0.01 * w, 0.1 * w - s] for w in range(3)] for s in range(2)]
+rows = "".join(f"{s},{w},{x},{y},{yaw}\n" for s, step in enumerate(traj) for w, (x, y, yaw) in enumerate(step))
+put("trajectory_csv", "two_steps.csv", "# epona planned trajectory\nstep,waypoint,x,y,yaw\n" + rows)
+put("trajectory_csv", "one_waypoint.csv", "step,waypoint,x,y,yaw\n0,0,-0.0,1e-45,3.4028235e38\n")
+put("trajectory_json", "two_steps.json", json.dumps(
+    {"format": "epona-trajectory", "units": {"x": "m, forward", "y": "m, left", "yaw": "deg, left turn positive"},
+     "steps": traj}))
+put("trajectory_json", "bare.json", json.dumps({"steps": [[[1, 2, 3]]]}))
+
+if __name__ == "__main__":
+    for d in sorted(OUT.iterdir()):
+        print(f"{d.name}: {len(list(d.iterdir()))} files, {sum(f.stat().st_size for f in d.iterdir())} bytes")
