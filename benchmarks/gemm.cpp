@@ -81,12 +81,23 @@ void BM_Linear(benchmark::State& state) {
     benchmark::ClobberMemory();
   }
   state.counters["GFLOPS"] = benchmark::Counter(2.0 * M * N * K * 1e-9, benchmark::Counter::kIsIterationInvariantRate);
+  // Weight bytes read per second: the figure that matters for the few-row (GEMV-like) shapes.
+  state.counters["weight_GBps"] =
+      benchmark::Counter(double(N * K * sizeof(W)) * 1e-9, benchmark::Counter::kIsIterationInvariantRate);
   state.counters["threads"] = Eigen::nbThreads();
+}
+
+// With --benchmark_repetitions=N, also report the best repetition (min time, max rate): on a
+// machine shared with other jobs the best run is the one least disturbed.
+void best_of(benchmark::internal::Benchmark* b) {
+  b->ComputeStatistics("min", [](const std::vector<double>& v) { return *std::min_element(v.begin(), v.end()); });
+  b->ComputeStatistics("max", [](const std::vector<double>& v) { return *std::max_element(v.begin(), v.end()); });
 }
 
 void peak_args(benchmark::internal::Benchmark* b) {
   b->Arg(1);
   if (all_threads() > 1) b->Arg(all_threads());
+  best_of(b);
   b->UseRealTime()->Unit(benchmark::kMillisecond);
 }
 
@@ -99,7 +110,9 @@ void linear_args(benchmark::internal::Benchmark* b) {
     b->Args({5150, 2048, 2048, t, 0, 1});   // MST-sized projections (10 frames × 515 tokens)
     b->Args({5150, 8192, 2048, t, 2, 1});   // MLP up-projection + bias + GELU-tanh
     b->Args({5150, 2048, 8192, t, 0, 1});   // MLP down-projection
+    b->Args({2, 12288, 2048, t, 0, 1});     // adaLN modulation (batch 2): weight-bandwidth bound
   }
+  best_of(b);
   b->UseRealTime()->Unit(benchmark::kMillisecond)->MinTime(0.5);
 }
 
@@ -107,6 +120,9 @@ void linear_bf16_args(benchmark::internal::Benchmark* b) {
   b->ArgNames({"M", "N", "K", "thr", "epi", "bias"});
   b->Args({1024, 1024, 1024, all_threads(), 0, 0});
   b->Args({5150, 2048, 2048, all_threads(), 0, 1});
+  b->Args({2, 12288, 2048, 1, 0, 1});
+  b->Args({2, 12288, 2048, all_threads(), 0, 1});
+  best_of(b);
   b->UseRealTime()->Unit(benchmark::kMillisecond)->MinTime(0.5);
 }
 

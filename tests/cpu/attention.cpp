@@ -124,6 +124,12 @@ TEST_CASE("attention with causal lq > lk and a fully masked first query") {
   for (std::int64_t x = 0; x < 64; ++x) CHECK(c.o[x] == 0.f);
 }
 
+TEST_CASE("attention with no keys gives zeros") {
+  Contiguous c(2, 2, 5, 0, 24, 960);
+  CHECK(c.run() <= 1e-5);
+  for (float x : c.o) CHECK(x == 0.f);
+}
+
 TEST_CASE("attention straight out of a packed QKV buffer") {
   // x: (seqs, L, 3·C) with q | k | v side by side per token; o: (seqs, L, C).
   for (std::int64_t D : {24, 128}) {

@@ -177,7 +177,7 @@ inline void pv_block(const Scratch& w, const float* vb, std::int64_t v_stride, s
   }
   for (std::int64_t j = 0; j < nk; ++j) {
     Batch vv[NV];
-    for (int c = 0; c < NV; ++c) vv[c] = simd::load(vb + j * v_stride + d0 + c * kW);
+    for (int c = 0; c < NV; ++c) vv[c] = simd::load_reused(vb + j * v_stride + d0 + c * kW);
     for (int r = 0; r < kPvRows; ++r) {
       const Batch p(w.st[j * kTileQ + i0 + r]);
       for (int c = 0; c < NV; ++c) acc[r][c] = xsimd::fma(p, vv[c], acc[r][c]);

@@ -38,33 +38,78 @@ struct Identity {
 
 // y[m, :] = act(y[m, :] + bias) over rows of width n (row stride ldy); bias may be null.
 template <class Act>
-inline void bias_activation(float* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const float* bias, Act act) {
+inline void bias_activation_row(float* yr, std::int64_t n, const float* bias, Act act) {
   using simd::Batch;
-  simd::for_each_row(rows, n, [=](std::int64_t r) {
-    float* yr = y + r * ldy;
-    if (bias) simd::map(n, yr, [act](const Batch& v, const Batch& b) { return act(v + b); }, yr, bias);
-    else simd::map(n, yr, act, yr);
-  });
+  if (bias) simd::map(n, yr, [act](const Batch& v, const Batch& b) { return act(v + b); }, yr, bias);
+  else simd::map(n, yr, act, yr);
 }
 
-inline void apply_epilogue(float* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const float* bias,
-                           Epilogue e) {
+// Calls f(act) with the epilogue's batch functor (None is the identity, used for a bias alone).
+template <class F>
+inline void with_activation(Epilogue e, F&& f) {
   switch (e) {
-    case Epilogue::None:
-      if (bias) bias_activation(y, ldy, rows, n, bias, Identity{});
-      break;
-    case Epilogue::GeluErf: bias_activation(y, ldy, rows, n, bias, act::GeluErf{}); break;
-    case Epilogue::GeluTanh: bias_activation(y, ldy, rows, n, bias, act::GeluTanh{}); break;
-    case Epilogue::Silu: bias_activation(y, ldy, rows, n, bias, act::Silu{}); break;
+    case Epilogue::None: f(Identity{}); break;
+    case Epilogue::GeluErf: f(act::GeluErf{}); break;
+    case Epilogue::GeluTanh: f(act::GeluTanh{}); break;
+    case Epilogue::Silu: f(act::Silu{}); break;
   }
 }
 
+// The epilogue over a (rows, n) block, rows in parallel when `parallel` (and the block is large).
+inline void apply_epilogue(float* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const float* bias,
+                           Epilogue e, bool parallel = true) {
+  if (e == Epilogue::None && !bias) return;
+  with_activation(e, [&](auto act) {
+    if (parallel) simd::for_each_row(rows, n, [=](std::int64_t r) { bias_activation_row(y + r * ldy, n, bias, act); });
+    else
+      for (std::int64_t r = 0; r < rows; ++r) bias_activation_row(y + r * ldy, n, bias, act);
+  });
+}
+
 // Kept for callers of the first version: the epilogue alone on a contiguous buffer.
-inline void apply_epilogue(Context&, float* y, std::int64_t n, Epilogue e) { apply_epilogue(y, n, 1, n, nullptr, e); }
+inline void apply_epilogue(Context&, float* y, std::int64_t n, Epilogue e) {
+  with_activation(e, [&](auto act) { simd::parallel_map(n, y, act, y); });
+}
+
+// Below this many rows a GEMM is nearly a matrix-vector product (modulation vectors, time
+// embeddings): bound by reading the weights, which Eigen's GEMV would do on one thread.
+inline constexpr std::int64_t kFewRows = 64;
+
+// y = act(x · wᵀ + b) by blocks of output columns shared among the threads: each thread
+// widens its block of weights (bf16), multiplies it with Eigen on one thread (Eigen does not
+// nest inside a parallel region) and applies the epilogue while the block is in cache.
+template <class W>
+void linear_column_blocks(const float* x, std::int64_t ldx, const W* w, const float* b, float* y, std::int64_t ldy,
+                          std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi) {
+  const std::int64_t threads = Eigen::nbThreads();
+  // Enough blocks to balance the threads, each at least 16 columns and at most 256 wide.
+  const std::int64_t width = std::clamp<std::int64_t>((N + 4 * threads - 1) / (4 * threads), 16, 256);
+  const std::int64_t blocks = (N + width - 1) / width;
+  CMapRow X(x, M, K, Strided(ldx));
+#pragma omp parallel if (blocks > 1 && M * N * K >= (1 << 18))
+  {
+    std::vector<float> widened(std::is_same_v<W, float> ? 0 : static_cast<std::size_t>(width * K));
+#pragma omp for schedule(dynamic)
+    for (std::int64_t blk = 0; blk < blocks; ++blk) {
+      const std::int64_t n0 = blk * width, nb = std::min(width, N - n0);
+      const float* wb;
+      if constexpr (std::is_same_v<W, float>) {
+        wb = w + n0 * K;
+      } else {
+        widen_bf16(w + n0 * K, widened.data(), nb * K);
+        wb = widened.data();
+      }
+      MapRow Yb(y + n0, M, nb, Strided(ldy));
+      Yb.noalias() = X * CMapRow(wb, nb, K, Strided(K)).transpose();
+      apply_epilogue(y + n0, ldy, M, nb, b ? b + n0 : nullptr, epi, /*parallel=*/false);
+    }
+  }
+}
 }  // namespace detail
 
 // Pointer form with row strides (x rows ldx apart, y rows ldy apart, so y can be a column
 // block of a wider buffer): y[M, N] = act(x[M, K] · w[N, K]ᵀ + bias[N]); bias may be null.
+// Large fp32 products use Eigen's threads; few rows or bf16 weights split columns instead.
 template <class W>
 void linear(Context&, const float* x, std::int64_t ldx, const W* w, const W* bias, float* y, std::int64_t ldy,
             std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi = Epilogue::None) {
@@ -72,31 +117,26 @@ void linear(Context&, const float* x, std::int64_t ldx, const W* w, const W* bia
   EPONA_CHECK(M >= 0 && N >= 0 && K >= 0, "linear: negative extent (M ", M, ", N ", N, ", K ", K, ")");
   EPONA_CHECK(ldx >= K && ldy >= N, "linear: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K, ", N ", N);
   if (M == 0 || N == 0) return;
-  detail::CMapRow X(x, M, K, detail::Strided(ldx));
-  detail::MapRow Y(y, M, N, detail::Strided(ldy));
-  std::vector<float> bias_f;
+  std::vector<float> bias_f;  // bf16 bias, widened once
   const float* b = nullptr;
   if constexpr (std::is_same_v<W, float>) {
-    detail::CMapRow Wm(w, N, K, detail::Strided(K));
-    Y.noalias() = X * Wm.transpose();
     b = bias;
-  } else {
-    // Widen bf16 weights block by block (keeps memory bounded for large layers).
-    constexpr std::int64_t block = 256;
-    std::vector<float> wf(static_cast<std::size_t>(std::min(block, N) * K));
-    for (std::int64_t n0 = 0; n0 < N; n0 += block) {
-      const std::int64_t nb = std::min(block, N - n0);
-      detail::widen_bf16(w + n0 * K, wf.data(), nb * K);
-      detail::CMapRow Wm(wf.data(), nb, K, detail::Strided(K));
-      Y.middleCols(n0, nb).noalias() = X * Wm.transpose();
-    }
-    if (bias) {
-      bias_f.resize(static_cast<std::size_t>(N));
-      detail::widen_bf16(bias, bias_f.data(), N);
-      b = bias_f.data();
+  } else if (bias) {
+    bias_f.resize(static_cast<std::size_t>(N));
+    detail::widen_bf16(bias, bias_f.data(), N);
+    b = bias_f.data();
+  }
+  if constexpr (std::is_same_v<W, float>) {
+    if (M >= detail::kFewRows) {
+      // Large fp32 GEMM: Eigen's own multi-threaded GEMM, then one parallel epilogue pass.
+      detail::CMapRow X(x, M, K, detail::Strided(ldx));
+      detail::MapRow Y(y, M, N, detail::Strided(ldy));
+      Y.noalias() = X * detail::CMapRow(w, N, K, detail::Strided(K)).transpose();
+      detail::apply_epilogue(y, ldy, M, N, b, epi);
+      return;
     }
   }
-  detail::apply_epilogue(y, ldy, M, N, b, epi);
+  detail::linear_column_blocks(x, ldx, w, b, y, ldy, M, N, K, epi);
 }
 
 // x: (..., K) float32; w: (N, K) float or bf16; bias: (N) or empty; y: (..., N) preallocated.

@@ -45,6 +45,17 @@ inline void store_partial(float* p, const Batch& v, std::int64_t n) {
   std::copy_n(buf, n, p);
 }
 
+// Loads a batch that the caller reuses several times. GCC otherwise folds the load into every
+// FMA that reads it (one memory operand each), which makes register-blocked kernels bound on
+// load bandwidth instead of FMA throughput; the empty asm pins the value in a register.
+inline Batch load_reused(const float* p) {
+  Batch v = Batch::load_unaligned(p);
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+  asm("" : "+x"(v.data));
+#endif
+  return v;
+}
+
 // Horizontal reductions (xsimd 8.1 has hadd; newer releases call it reduce_add; 8.1 has no
 // horizontal max, so that one goes through memory — it runs once per row).
 inline float reduce_add(const Batch& v) { return xsimd::hadd(v); }
