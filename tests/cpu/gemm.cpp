@@ -73,16 +73,19 @@ void check_linear(std::int64_t M, std::int64_t N, std::int64_t K) {
 }  // namespace
 
 TEST_CASE("linear with float32 weights, every epilogue, with and without bias") {
-  // M >= 64 goes through Eigen's threaded GEMM, fewer rows through per-thread column blocks.
+  // M >= 64 goes through Eigen's threaded GEMM, 5..63 rows through per-thread column blocks,
+  // up to 4 rows through dot products (K odd and K not a multiple of the SIMD width included).
   for (auto [M, N, K] : {std::tuple<std::int64_t, std::int64_t, std::int64_t>{1, 1, 1}, {7, 13, 5}, {33, 17, 65},
                          {100, 300, 129}, {257, 31, 260},
-                         {3, 1001, 300}})  // few rows: columns split among threads (< 64 rows)
+                         {3, 1001, 300},   // few rows: dot products over weight rows
+                         {1, 300, 2048}, {4, 70, 33}, {6, 500, 300}})  // 6 rows: column blocks
     check_linear<float>(M, N, K);
 }
 
 TEST_CASE("linear with bfloat16 weights (widened in blocks of columns)") {
   for (auto [M, N, K] : {std::tuple<std::int64_t, std::int64_t, std::int64_t>{1, 1, 1}, {7, 13, 5}, {41, 600, 77},
-                         {130, 257, 200}, {2, 1500, 200}})
+                         {130, 257, 200}, {2, 1500, 200},
+                         {1, 300, 2048}, {4, 70, 33}, {3, 41, 95}, {6, 500, 300}})
     check_linear<bf16>(M, N, K);
 }
 

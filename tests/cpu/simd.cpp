@@ -6,6 +6,7 @@
 #include <limits>
 #include <numeric>
 
+#include "epona/core/dtype.hpp"
 #include "epona/cpu/simd.hpp"
 #include "testing.hpp"
 
@@ -74,4 +75,19 @@ TEST_CASE("parallel_map and for_each_row cover every element once") {
   std::vector<int> hits(1000, 0);
   simd::for_each_row(1000, 1 << 10, [&](std::int64_t r) { hits[static_cast<std::size_t>(r)] += 1; });
   for (int h : hits) REQUIRE(h == 1);
+}
+
+TEST_CASE("load_bf16_pairs widens even and odd elements exactly") {
+  std::vector<std::uint16_t> bits(static_cast<std::size_t>(2 * kWidth));
+  const auto v = epona::test::random_floats(bits.size(), 9, -100.f, 100.f);
+  for (std::size_t i = 0; i < bits.size(); ++i) bits[i] = epona::bf16::from_float(v[i]);
+  Batch even, odd;
+  simd::load_bf16_pairs(bits.data(), even, odd);
+  alignas(64) float e[kWidth], o[kWidth];
+  even.store_aligned(e);
+  odd.store_aligned(o);
+  for (std::int64_t i = 0; i < kWidth; ++i) {
+    CHECK(e[i] == epona::bf16::to_float(bits[static_cast<std::size_t>(2 * i)]));
+    CHECK(o[i] == epona::bf16::to_float(bits[static_cast<std::size_t>(2 * i + 1)]));
+  }
 }

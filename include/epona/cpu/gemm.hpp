@@ -71,6 +71,83 @@ inline void apply_epilogue(Context&, float* y, std::int64_t n, Epilogue e) {
   with_activation(e, [&](auto act) { simd::parallel_map(n, y, act, y); });
 }
 
+// Up to this many rows, one pass over the weights with dot products beats any GEMM: the
+// product is bound by reading the weights (adaLN modulation and embedders on a batch of 1-2).
+inline constexpr int kDotRows = 4;
+
+// y[m, n] = x[m, :] · w[n, :] for m < M <= kDotRows and n in [n0, n1), fp32 weights.
+inline void dot_rows(const float* x, std::int64_t ldx, const float* w, float* y, std::int64_t ldy, std::int64_t M,
+                     std::int64_t n0, std::int64_t n1, std::int64_t K) {
+  using simd::Batch;
+  constexpr std::int64_t W = simd::kWidth;
+  for (std::int64_t n = n0; n < n1; ++n) {
+    const float* wn = w + n * K;
+    Batch acc[kDotRows] = {Batch(0.f), Batch(0.f), Batch(0.f), Batch(0.f)};
+    std::int64_t k = 0;
+    for (; k + W <= K; k += W) {
+      const Batch wv = simd::load(wn + k);
+      for (std::int64_t m = 0; m < M; ++m) acc[m] = xsimd::fma(simd::load(x + m * ldx + k), wv, acc[m]);
+    }
+    if (k < K) {
+      const Batch wv = simd::load_partial(wn + k, K - k);
+      for (std::int64_t m = 0; m < M; ++m) acc[m] = xsimd::fma(simd::load_partial(x + m * ldx + k, K - k), wv, acc[m]);
+    }
+    for (std::int64_t m = 0; m < M; ++m) y[m * ldy + n] = simd::reduce_add(acc[m]);
+  }
+}
+
+// The same with bf16 weights widened in registers; xe/xo hold each row of x split into its
+// even and odd elements (row stride `half`), matching simd::load_bf16_pairs.
+inline void dot_rows(const float* x, std::int64_t ldx, const float* xe, const float* xo, std::int64_t half,
+                     const bf16* w, float* y, std::int64_t ldy, std::int64_t M, std::int64_t n0, std::int64_t n1,
+                     std::int64_t K) {
+  using simd::Batch;
+  constexpr std::int64_t W = simd::kWidth;
+  for (std::int64_t n = n0; n < n1; ++n) {
+    const auto* wn = reinterpret_cast<const std::uint16_t*>(w + n * K);
+    Batch acc[kDotRows] = {Batch(0.f), Batch(0.f), Batch(0.f), Batch(0.f)};
+    std::int64_t k = 0;
+    for (; k + 2 * W <= K; k += 2 * W) {
+      Batch we, wo;
+      simd::load_bf16_pairs(wn + k, we, wo);
+      for (std::int64_t m = 0; m < M; ++m) {
+        acc[m] = xsimd::fma(simd::load(xe + m * half + k / 2), we, acc[m]);
+        acc[m] = xsimd::fma(simd::load(xo + m * half + k / 2), wo, acc[m]);
+      }
+    }
+    for (std::int64_t m = 0; m < M; ++m) {
+      float t = simd::reduce_add(acc[m]);
+      for (std::int64_t kk = k; kk < K; ++kk) t += x[m * ldx + kk] * bf16::to_float(wn[kk]);
+      y[m * ldy + n] = t;
+    }
+  }
+}
+
+// y = act(x · wᵀ + b) for M <= kDotRows rows: blocks of 64 output columns among the threads.
+template <class W>
+void linear_dot_rows(const float* x, std::int64_t ldx, const W* w, const float* b, float* y, std::int64_t ldy,
+                     std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi) {
+  std::vector<float> split;  // bf16: x rows as [even elements | odd elements]
+  const std::int64_t half = K / 2;
+  if constexpr (std::is_same_v<W, bf16>) {
+    split.resize(static_cast<std::size_t>(2 * M * half));
+    for (std::int64_t m = 0; m < M; ++m)
+      for (std::int64_t c = 0; c < half; ++c) {
+        split[static_cast<std::size_t>(m * half + c)] = x[m * ldx + 2 * c];
+        split[static_cast<std::size_t>((M + m) * half + c)] = x[m * ldx + 2 * c + 1];
+      }
+  }
+  constexpr std::int64_t block = 64;
+  const std::int64_t blocks = (N + block - 1) / block;
+#pragma omp parallel for schedule(dynamic) if (blocks > 1 && N * K >= (1 << 18))
+  for (std::int64_t blk = 0; blk < blocks; ++blk) {
+    const std::int64_t n0 = blk * block, n1 = std::min(N, n0 + block);
+    if constexpr (std::is_same_v<W, float>) dot_rows(x, ldx, w, y, ldy, M, n0, n1, K);
+    else dot_rows(x, ldx, split.data(), split.data() + M * half, half, w, y, ldy, M, n0, n1, K);
+    apply_epilogue(y + n0, ldy, M, n1 - n0, b ? b + n0 : nullptr, epi, /*parallel=*/false);
+  }
+}
+
 // Below this many rows a GEMM is nearly a matrix-vector product (modulation vectors, time
 // embeddings): bound by reading the weights, which Eigen's GEMV would do on one thread.
 inline constexpr std::int64_t kFewRows = 64;
@@ -109,7 +186,9 @@ void linear_column_blocks(const float* x, std::int64_t ldx, const W* w, const fl
 
 // Pointer form with row strides (x rows ldx apart, y rows ldy apart, so y can be a column
 // block of a wider buffer): y[M, N] = act(x[M, K] · w[N, K]ᵀ + bias[N]); bias may be null.
-// Large fp32 products use Eigen's threads; few rows or bf16 weights split columns instead.
+// Large fp32 products use Eigen's threads; few rows or bf16 weights split columns instead,
+// and up to kDotRows rows are plain dot products over the weights (one pass, bf16 widened
+// in registers).
 template <class W>
 void linear(Context&, const float* x, std::int64_t ldx, const W* w, const W* bias, float* y, std::int64_t ldy,
             std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi = Epilogue::None) {
@@ -136,7 +215,8 @@ void linear(Context&, const float* x, std::int64_t ldx, const W* w, const W* bia
       return;
     }
   }
-  detail::linear_column_blocks(x, ldx, w, b, y, ldy, M, N, K, epi);
+  if (M <= detail::kDotRows) detail::linear_dot_rows(x, ldx, w, b, y, ldy, M, N, K, epi);
+  else detail::linear_column_blocks(x, ldx, w, b, y, ldy, M, N, K, epi);
 }
 
 // x: (..., K) float32; w: (N, K) float or bf16; bias: (N) or empty; y: (..., N) preallocated.

@@ -56,6 +56,17 @@ inline Batch load_reused(const float* p) {
   return v;
 }
 
+// 2·kWidth bfloat16 values (raw bits) widened to float: lanes of `even` hold elements 0, 2, 4..
+// and `odd` elements 1, 3, 5.. (a bf16 is the high half of a float, so a 32-bit lane holding
+// two of them gives the odd one by masking and the even one by shifting). No shuffles needed;
+// the other operand of a dot product is split into even/odd halves once instead.
+inline void load_bf16_pairs(const std::uint16_t* bits, Batch& even, Batch& odd) {
+  using U = xsimd::batch<std::uint32_t, Arch>;
+  const U u = U::load_unaligned(reinterpret_cast<const std::uint32_t*>(bits));
+  even = xsimd::bitwise_cast<Batch>(u << 16);
+  odd = xsimd::bitwise_cast<Batch>(u & U(0xffff0000u));
+}
+
 // Horizontal reductions (xsimd 8.1 has hadd; newer releases call it reduce_add; 8.1 has no
 // horizontal max, so that one goes through memory — it runs once per row).
 inline float reduce_add(const Batch& v) { return xsimd::hadd(v); }
