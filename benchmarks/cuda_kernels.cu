@@ -40,8 +40,11 @@ Tensor<T, Cuda> random_device(cuda::Context& ctx, Shape shape, std::uint32_t see
   return t;
 }
 
+bool g_once = false;  // --once: every kernel runs once (for profiling with ncu), timings meaningless
+
 // Median milliseconds of `reps` event-timed calls after `warmup` untimed ones.
 double median_ms(cuda::Context& ctx, int reps, const std::function<void(int)>& fn, int warmup = 3) {
+  if (g_once) reps = 1, warmup = 0;
   for (int i = 0; i < warmup; ++i) fn(i);
   std::vector<cudaEvent_t> ev(2 * reps);
   for (auto& e : ev) EPONA_CUDA_CHECK(cudaEventCreate(&e));
@@ -137,7 +140,8 @@ void bench_attention(cuda::Context& ctx, std::int64_t seqs, std::int64_t heads, 
 
 }  // namespace
 
-int main() {
+int main(int argc, char** argv) {
+  g_once = argc > 1 && std::string(argv[1]) == "--once";
   if (!cuda::has_gpu()) {
     std::printf("no CUDA device: skipping\n");
     return 0;

@@ -117,118 +117,97 @@ __device__ __forceinline__ void load_tile(bf16* dst, const bf16* src, std::int64
   }
 }
 
+constexpr int kDimTiles = kMaxHeadDim / 8, kKeyTiles = kKeys / 8;
+
+// S = Q K(t)ᵀ for one warp's 16 query rows: 16 x 64 in 8 accumulator tiles.
 template <bool kExactDim>
-__global__ void __launch_bounds__(kThreads) flash_bf16_kernel(const FlashParams<bf16> p) {
-  extern __shared__ __align__(16) unsigned char smem[];
-  bf16* sQ = reinterpret_cast<bf16*>(smem);
-  bf16* sK = sQ + kRows * kStride;
-  bf16* sV = sK + kKeys * kStride;
-
-  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
-  const int g = lane / 4, tq = lane % 4;  // mma fragment row group and column pair
-  const int q0 = blockIdx.x * kRows, h = blockIdx.y;
-  const std::int64_t s = blockIdx.z;
-  const int D = kExactDim ? kMaxHeadDim : p.head_dim;
-  const bf16* qg = p.q + s * p.q_seq + std::int64_t{h} * D;
-  const bf16* kg = p.k + s * p.k_seq + std::int64_t{h} * D;
-  const bf16* vg = p.v + s * p.v_seq + std::int64_t{h} * D;
-
-  load_tile<kExactDim>(sQ, qg, p.q_row, q0, p.lq, D);
-  load_tile<kExactDim>(sK, kg, p.k_row, 0, p.lk, D);
-  cp_async_commit();
-
-  constexpr int kDimTiles = kMaxHeadDim / 8, kKeyTiles = kKeys / 8;
-  float o[kDimTiles][4] = {};
-  float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
-  const int rows[2] = {q0 + warp * 16 + g, q0 + warp * 16 + g + 8};
-  const int tiles = key_tiles(q0, kRows, p.lq, p.lk, p.causal, kKeys);
-
-  for (int t = 0; t < tiles; ++t) {
-    const int k0 = t * kKeys;
-    cp_async_wait_all();
-    __syncthreads();  // K(t) (and Q) landed; every warp is done with V(t-1)
-    load_tile<kExactDim>(sV, vg, p.v_row, k0, p.lk, D);
-    cp_async_commit();
-
-    // S = Q K(t)ᵀ for this warp's 16 rows: 16 x 64 in 8 accumulator tiles.
-    float sc[kKeyTiles][4] = {};
+__device__ __forceinline__ void warp_scores(float (&sc)[kKeyTiles][4], const bf16* sQ, const bf16* sK, int warp,
+                                            int lane, int D) {
 #pragma unroll
-    for (int kk = 0; kk < kMaxHeadDim / 16; ++kk) {
-      if (!kExactDim && kk * 16 >= D) break;
-      unsigned a[4];
-      ldmatrix_x4(a, sQ + (warp * 16 + (lane & 15)) * kStride + kk * 16 + (lane >> 4) * 8);
+  for (int kk = 0; kk < kMaxHeadDim / 16; ++kk) {
+    if (!kExactDim && kk * 16 >= D) break;
+    unsigned a[4];
+    ldmatrix_x4(a, sQ + (warp * 16 + (lane & 15)) * kStride + kk * 16 + (lane >> 4) * 8);
 #pragma unroll
-      for (int n2 = 0; n2 < kKeys / 16; ++n2) {
-        unsigned b[4];
-        ldmatrix_x4(b, sK + (n2 * 16 + (lane & 7) + ((lane >> 4) << 3)) * kStride + kk * 16 + ((lane >> 3) & 1) * 8);
-        mma_bf16(sc[2 * n2], a, b[0], b[1]);
-        mma_bf16(sc[2 * n2 + 1], a, b[2], b[3]);
-      }
-    }
-
-    // Scale (base 2), masks, and the online softmax update per row.
-#pragma unroll
-    for (int i = 0; i < 2; ++i) {
-      float mx = -INFINITY;
-#pragma unroll
-      for (int nt = 0; nt < kKeyTiles; ++nt)
-#pragma unroll
-        for (int e = 0; e < 2; ++e) {
-          const int col = k0 + nt * 8 + 2 * tq + e;
-          float x = sc[nt][2 * i + e] * p.scale;
-          if (p.mask && rows[i] < p.lq && col < p.lk)
-            x += p.mask[std::int64_t{rows[i]} * p.lk + col] * 1.4426950408889634f;
-          if (col >= p.lk || (p.causal && col > rows[i])) x = -INFINITY;
-          sc[nt][2 * i + e] = x;
-          mx = fmaxf(mx, x);
-        }
-      mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 1));
-      mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 2));
-      const float m_new = fmaxf(m[i], mx);
-      const float base = m_new == -INFINITY ? 0.f : m_new;  // a fully masked row so far stays all zero
-      const float alpha = exp2f(m[i] - base);
-      m[i] = m_new;
-      float sum = 0;
-#pragma unroll
-      for (int nt = 0; nt < kKeyTiles; ++nt)
-#pragma unroll
-        for (int e = 0; e < 2; ++e) {
-          const float pr = exp2f(sc[nt][2 * i + e] - base);
-          sc[nt][2 * i + e] = pr;
-          sum += pr;
-        }
-      l[i] = l[i] * alpha + sum;  // this thread's share of the row; reduced over the quad at the end
-#pragma unroll
-      for (int nt = 0; nt < kDimTiles; ++nt) {
-        o[nt][2 * i] *= alpha;
-        o[nt][2 * i + 1] *= alpha;
-      }
-    }
-
-    cp_async_wait_all();
-    __syncthreads();  // V(t) landed; every warp is done with K(t)
-    if (t + 1 < tiles) load_tile<kExactDim>(sK, kg, p.k_row, k0 + kKeys, p.lk, D);
-    cp_async_commit();
-
-    // O += P V(t): the S accumulators of two adjacent key tiles are one A fragment of P.
-#pragma unroll
-    for (int kk = 0; kk < kKeys / 16; ++kk) {
-      const unsigned a[4] = {pack_bf16(sc[2 * kk][0], sc[2 * kk][1]), pack_bf16(sc[2 * kk][2], sc[2 * kk][3]),
-                             pack_bf16(sc[2 * kk + 1][0], sc[2 * kk + 1][1]),
-                             pack_bf16(sc[2 * kk + 1][2], sc[2 * kk + 1][3])};
-#pragma unroll
-      for (int n2 = 0; n2 < kMaxHeadDim / 16; ++n2) {
-        if (!kExactDim && n2 * 16 >= D) break;
-        unsigned b[4];
-        ldmatrix_x4_trans(b, sV + (kk * 16 + (lane & 7) + ((lane >> 3) & 1) * 8) * kStride + n2 * 16 + (lane >> 4) * 8);
-        mma_bf16(o[2 * n2], a, b[0], b[1]);
-        mma_bf16(o[2 * n2 + 1], a, b[2], b[3]);
-      }
+    for (int n2 = 0; n2 < kKeys / 16; ++n2) {
+      unsigned b[4];
+      ldmatrix_x4(b, sK + (n2 * 16 + (lane & 7) + ((lane >> 4) << 3)) * kStride + kk * 16 + ((lane >> 3) & 1) * 8);
+      mma_bf16(sc[2 * n2], a, b[0], b[1]);
+      mma_bf16(sc[2 * n2 + 1], a, b[2], b[3]);
     }
   }
-  cp_async_wait_all();
+}
 
-  // Normalise and store rows g and g + 8 of this warp; columns 2 tq, 2 tq + 1 of each tile.
+// Scales (base 2) and masks the scores of key tile k0 in place, then folds them into the
+// running max m and sum l of this thread's two rows, leaving P = exp2(S - m) in sc and the
+// output accumulators rescaled to the new max.
+__device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float (&m)[2], float (&l)[2],
+                                               float (&o)[kDimTiles][4], const FlashParams<bf16>& p,
+                                               const int (&rows)[2], int k0, int tq) {
+#pragma unroll
+  for (int i = 0; i < 2; ++i) {
+    float mx = -INFINITY;
+#pragma unroll
+    for (int nt = 0; nt < kKeyTiles; ++nt)
+#pragma unroll
+      for (int e = 0; e < 2; ++e) {
+        const int col = k0 + nt * 8 + 2 * tq + e;
+        float x = sc[nt][2 * i + e] * p.scale;
+        if (p.mask && rows[i] < p.lq && col < p.lk)
+          x += p.mask[std::int64_t{rows[i]} * p.lk + col] * 1.4426950408889634f;
+        if (col >= p.lk || (p.causal && col > rows[i])) x = -INFINITY;
+        sc[nt][2 * i + e] = x;
+        mx = fmaxf(mx, x);
+      }
+    mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 1));  // the row's four threads
+    mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 2));
+    const float m_new = fmaxf(m[i], mx);
+    const float base = m_new == -INFINITY ? 0.f : m_new;  // a row masked so far stays all zero
+    const float alpha = exp2f(m[i] - base);
+    m[i] = m_new;
+    float sum = 0;
+#pragma unroll
+    for (int nt = 0; nt < kKeyTiles; ++nt)
+#pragma unroll
+      for (int e = 0; e < 2; ++e) {
+        const float pr = exp2f(sc[nt][2 * i + e] - base);
+        sc[nt][2 * i + e] = pr;
+        sum += pr;
+      }
+    l[i] = l[i] * alpha + sum;  // this thread's share of the row; reduced over the quad at the end
+#pragma unroll
+    for (int nt = 0; nt < kDimTiles; ++nt) {
+      o[nt][2 * i] *= alpha;
+      o[nt][2 * i + 1] *= alpha;
+    }
+  }
+}
+
+// O += P V(t): the S accumulators of two adjacent key tiles form one A fragment of P.
+template <bool kExactDim>
+__device__ __forceinline__ void warp_pv(float (&o)[kDimTiles][4], const float (&sc)[kKeyTiles][4], const bf16* sV,
+                                        int lane, int D) {
+#pragma unroll
+  for (int kk = 0; kk < kKeys / 16; ++kk) {
+    const unsigned a[4] = {pack_bf16(sc[2 * kk][0], sc[2 * kk][1]), pack_bf16(sc[2 * kk][2], sc[2 * kk][3]),
+                           pack_bf16(sc[2 * kk + 1][0], sc[2 * kk + 1][1]),
+                           pack_bf16(sc[2 * kk + 1][2], sc[2 * kk + 1][3])};
+#pragma unroll
+    for (int n2 = 0; n2 < kMaxHeadDim / 16; ++n2) {
+      if (!kExactDim && n2 * 16 >= D) break;
+      unsigned b[4];
+      ldmatrix_x4_trans(b, sV + (kk * 16 + (lane & 7) + ((lane >> 3) & 1) * 8) * kStride + n2 * 16 + (lane >> 4) * 8);
+      mma_bf16(o[2 * n2], a, b[0], b[1]);
+      mma_bf16(o[2 * n2 + 1], a, b[2], b[3]);
+    }
+  }
+}
+
+// Normalises and stores rows g and g + 8 of this warp (columns 2 tq, 2 tq + 1 of each tile).
+template <bool kExactDim>
+__device__ __forceinline__ void store_rows(const float (&o)[kDimTiles][4], const float (&l)[2],
+                                           const FlashParams<bf16>& p, const int (&rows)[2], std::int64_t s, int h,
+                                           int D, int tq) {
 #pragma unroll
   for (int i = 0; i < 2; ++i) {
     float sum = l[i];
@@ -249,6 +228,56 @@ __global__ void __launch_bounds__(kThreads) flash_bf16_kernel(const FlashParams<
       }
     }
   }
+}
+
+template <bool kExactDim>
+__global__ void __launch_bounds__(kThreads) flash_bf16_kernel(const FlashParams<bf16> p) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  bf16* sQ = reinterpret_cast<bf16*>(smem);
+  bf16* sK = sQ + kRows * kStride;
+  bf16* sV = sK + kKeys * kStride;
+
+  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
+  const int g = lane / 4, tq = lane % 4;  // mma fragment row group and column pair
+  const int q0 = blockIdx.x * kRows, h = blockIdx.y;
+  const std::int64_t s = blockIdx.z;
+  const int D = kExactDim ? kMaxHeadDim : p.head_dim;
+  const bf16* kg = p.k + s * p.k_seq + std::int64_t{h} * D;
+  const bf16* vg = p.v + s * p.v_seq + std::int64_t{h} * D;
+
+  load_tile<kExactDim>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, q0, p.lq, D);
+  load_tile<kExactDim>(sK, kg, p.k_row, 0, p.lk, D);
+  cp_async_commit();
+
+  float o[kDimTiles][4] = {};
+  float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
+  const int rows[2] = {q0 + warp * 16 + g, q0 + warp * 16 + g + 8};
+  const int tiles = key_tiles(q0, kRows, p.lq, p.lk, p.causal, kKeys);
+  // A warp whose rows all lie past lq (short sequences: the MST's 10 frames) only loads.
+  const bool warp_active = q0 + warp * 16 < p.lq;
+
+  for (int t = 0; t < tiles; ++t) {
+    const int k0 = t * kKeys;
+    cp_async_wait_all();
+    __syncthreads();  // K(t) (and Q) landed; every warp is done with V(t-1)
+    load_tile<kExactDim>(sV, vg, p.v_row, k0, p.lk, D);
+    cp_async_commit();
+
+    float sc[kKeyTiles][4] = {};
+    if (warp_active) {
+      warp_scores<kExactDim>(sc, sQ, sK, warp, lane, D);
+      online_softmax(sc, m, l, o, p, rows, k0, tq);
+    }
+
+    cp_async_wait_all();
+    __syncthreads();  // V(t) landed; every warp is done with K(t)
+    if (t + 1 < tiles) load_tile<kExactDim>(sK, kg, p.k_row, k0 + kKeys, p.lk, D);
+    cp_async_commit();
+
+    if (warp_active) warp_pv<kExactDim>(o, sc, sV, lane, D);
+  }
+  cp_async_wait_all();
+  store_rows<kExactDim>(o, l, p, rows, s, h, D, tq);
 }
 }  // namespace fa
 
