@@ -140,7 +140,9 @@ __device__ __forceinline__ void warp_scores(float (&sc)[kKeyTiles][4], const bf1
 
 // Scales (base 2) and masks the scores of key tile k0 in place, then folds them into the
 // running max m and sum l of this thread's two rows, leaving P = exp2(S - m) in sc and the
-// output accumulators rescaled to the new max.
+// output accumulators rescaled to the new max. kMasked: the tile has keys past lk, past the
+// causal diagonal of some row, or an additive mask (most tiles have none: no per-score tests).
+template <bool kMasked>
 __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float (&m)[2], float (&l)[2],
                                                float (&o)[kDimTiles][4], const FlashParams<bf16>& p,
                                                const int (&rows)[2], int k0, int tq) {
@@ -151,11 +153,13 @@ __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float 
     for (int nt = 0; nt < kKeyTiles; ++nt)
 #pragma unroll
       for (int e = 0; e < 2; ++e) {
-        const int col = k0 + nt * 8 + 2 * tq + e;
         float x = sc[nt][2 * i + e] * p.scale;
-        if (p.mask && rows[i] < p.lq && col < p.lk)
-          x += p.mask[std::int64_t{rows[i]} * p.lk + col] * 1.4426950408889634f;
-        if (col >= p.lk || (p.causal && col > rows[i])) x = -INFINITY;
+        if constexpr (kMasked) {
+          const int col = k0 + nt * 8 + 2 * tq + e;
+          if (p.mask && rows[i] < p.lq && col < p.lk)
+            x += p.mask[std::int64_t{rows[i]} * p.lk + col] * 1.4426950408889634f;
+          if (col >= p.lk || (p.causal && col > rows[i])) x = -INFINITY;
+        }
         sc[nt][2 * i + e] = x;
         mx = fmaxf(mx, x);
       }
@@ -266,7 +270,11 @@ __global__ void __launch_bounds__(kThreads) flash_bf16_kernel(const FlashParams<
     float sc[kKeyTiles][4] = {};
     if (warp_active) {
       warp_scores<kExactDim>(sc, sQ, sK, warp, lane, D);
-      online_softmax(sc, m, l, o, p, rows, k0, tq);
+      const bool masked = p.mask || k0 + kKeys > p.lk || (p.causal && k0 + kKeys - 1 > q0 + warp * 16);
+      if (masked)
+        online_softmax<true>(sc, m, l, o, p, rows, k0, tq);
+      else
+        online_softmax<false>(sc, m, l, o, p, rows, k0, tq);
     }
 
     cp_async_wait_all();
