@@ -165,6 +165,15 @@ TEST_CASE("MST evaluate and get_pose_emb at head dim 128 vs float64") {
   mst.evaluate(ctx, arena, latents, pose_idx, yaw_idx, stt, pose_emb);
   CHECK(arena.high_water() == mst.evaluate_workspace_bytes());
 
+  // With an observer every frame of every block is computed; the last frame must not differ
+  // from the pruned run beyond accumulation order.
+  HostTensor stt_full({B, T, C}), emb_full({B, 3 * C});
+  arena.reset();
+  mst.evaluate(ctx, arena, latents, pose_idx, yaw_idx, stt_full, emb_full, [](auto, const auto&, const auto&) {});
+  const double rel_pruned = world_ref::rel_max(stt, world_ref::to_vec(stt_full));
+  MESSAGE("pruned last block vs full: rel ", rel_pruned);
+  CHECK(rel_pruned <= 1e-6);
+
   const RefMst ref{w, c};
   for (i64 b = 0; b < B; ++b) {
     const auto [stt_ref, emb_ref] = ref.evaluate(latents[b], pose_idx[b], yaw_idx[b]);

@@ -13,6 +13,7 @@
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
 #include "epona/nn/attention.hpp"
+#include "epona/nn/flops.hpp"
 #include "epona/nn/backend_context.hpp"
 #include "epona/nn/layer_norm.hpp"
 #include "epona/nn/linear.hpp"
@@ -77,13 +78,19 @@ void modulate_rows(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& y,
   const std::int64_t D = x.size(-1);
   layer_norm_modulate(ctx, x.data() + first * D, y.data() + first * D, rows, D, shift, scale, eps);
 }
-// Joint attention over all rows of the packed qkv buffer, output row stride out_stride.
+// Unmasked attention of queries at rows [q_first, q_first + q_rows) of the packed [q | k | v]
+// buffer (rows in_stride apart) over all `rows` keys; output rows out_stride apart.
 template <class Context>
-void joint_attention(Context& ctx, const float* qkv, std::int64_t rows, const DitWidths& w, float* out,
-                     std::int64_t out_stride, std::int64_t in_stride) {
+void joint_attention(Context& ctx, const float* qkv, std::int64_t rows, std::int64_t q_first, std::int64_t q_rows,
+                     const DitWidths& w, float* out, std::int64_t out_stride, std::int64_t in_stride) {
   const std::int64_t D = w.hidden;
   nn::PackedAttention p{1, rows, w.heads, w.head_dim(), 0, in_stride, 0, out_stride, false};
-  nn::packed_attention(ctx, qkv, qkv + D, qkv + 2 * D, out, p);
+  p.q_len = q_rows;
+  p.q_token_stride = in_stride;
+  nn::packed_attention(ctx, qkv + q_first * in_stride, qkv + D, qkv + 2 * D, out, p);
+}
+inline double joint_attention_flops(const DitWidths& w, std::int64_t q_rows, std::int64_t rows) {
+  return nn::attention_flops(1, w.heads, q_rows, rows, w.head_dim());
 }
 }  // namespace detail
 
@@ -137,9 +144,7 @@ struct DoubleStream {
     add_gated(ctx, z.data(), sub.data(), mv + 5 * D, rows, D);
   }
 
-  double flops(std::int64_t rows) const {
-    return mod.flops() + qkv.flops(rows) + proj.flops(rows) + mlp.flops(rows);
-  }
+  double flops(std::int64_t rows) const { return qkv.flops(rows) + proj.flops(rows) + mlp.flops(rows); }
 };
 
 template <class B, class W>
@@ -161,14 +166,14 @@ struct DoubleStreamBlock {
     cond.project(ctx, s, s.mod_b, 0, rows.cond, widths);
     img.project(ctx, s, s.mod_a, rows.cond, rows.target, widths);
     nn::apply_rope_qk(ctx, s.qkv.data(), s.qkv.data() + D, rows.total(), 3 * D, widths.heads, rope);
-    detail::joint_attention(ctx, s.qkv.data(), rows.total(), widths, s.attn.data(), D, 3 * D);
+    detail::joint_attention(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D);
     img.finish(ctx, s, s.mod_a, rows.cond, rows.target, widths);
     cond.finish(ctx, s, s.mod_b, 0, rows.cond, widths);
   }
 
-  double flops(const JointRows& rows) const {
-    const nn::PackedAttention p{1, rows.total(), widths.heads, widths.head_dim(), 0, 0, 0, 0, false};
-    return img.flops(rows.target) + cond.flops(rows.cond) + nn::attention_flops(p);
+  nn::Flops flops(const JointRows& rows) const {
+    return {img.mod.flops() + cond.mod.flops() + img.flops(rows.target) + cond.flops(rows.cond),
+            detail::joint_attention_flops(widths, rows.total(), rows.total())};
   }
 };
 
@@ -179,7 +184,7 @@ struct SingleStreamBlock {
   nn::Linear<B, W> linear1, linear2;  // (3D + Dm, D), (D, D + Dm)
   nn::QkNorm<B> norm;
   nn::Modulation<B, W> modulation;
-  nn::Linear<B, W> qkv_part, mlp_part;  // row views of linear1, set by bind
+  nn::Linear<B, W> q_part, kv_part, mlp_part;  // row views of linear1: [q | k v | mlp], set by bind
 
   SingleStreamBlock() = default;
   explicit SingleStreamBlock(const DitWidths& w)
@@ -191,31 +196,43 @@ struct SingleStreamBlock {
     linear2.bind(w, p + "linear2.", r);
     norm.bind(w, p + "norm.", r);
     modulation.bind(w, p + "modulation.lin.", r);
-    if (!linear1.weight.empty() && (!linear1.has_bias || !linear1.bias.empty())) {
-      qkv_part = linear1.rows(0, 3 * widths.hidden);
-      mlp_part = linear1.rows(3 * widths.hidden, 3 * widths.hidden + widths.mlp_hidden);
+    if (!linear1.weight.empty() && !linear1.bias.empty()) {
+      const std::int64_t D = widths.hidden;
+      q_part = linear1.rows(0, D);
+      kv_part = linear1.rows(D, 3 * D);
+      mlp_part = linear1.rows(3 * D, 3 * D + widths.mlp_hidden);
     }
   }
 
-  void operator()(Context& ctx, DitScratch<B>& s, const JointRows& rows, const nn::RopeTable<B>& rope) const {
-    const std::int64_t D = widths.hidden, Dm = widths.mlp_hidden, n = rows.total();
+  // z ← z + gate ⊙ linear2([attention, GELU(mlp)]). Only the rows from `first_out` on are
+  // updated (keys and values still come from every row): the last single block passes
+  // rows.cond, since only the target tokens reach the final layer (compute-budget.md §5.4).
+  void operator()(Context& ctx, DitScratch<B>& s, const JointRows& rows, const nn::RopeTable<B>& rope,
+                  std::int64_t first_out = 0) const {
+    const std::int64_t D = widths.hidden, Dm = widths.mlp_hidden, n = rows.total(), m = n - first_out;
     modulation(ctx, s.silu_vec, s.mod_a);
     const float* mv = s.mod_a.data();
     detail::modulate_rows(ctx, s.z, s.modulated, 0, n, mv, mv + D, widths.ln_eps);
-    // linear1 in two parts (same rows of W): [q | k | v] and the MLP input, GELU fused.
-    qkv_part(ctx, s.modulated, s.qkv);
-    mlp_part(ctx, s.modulated, s.mlp, BackendEpilogue<B>::GeluTanh);
-    norm(ctx, s.qkv.data(), s.qkv.data() + D, n, 3 * D, widths.heads);
-    nn::apply_rope_qk(ctx, s.qkv.data(), s.qkv.data() + D, n, 3 * D, widths.heads, rope);
-    detail::joint_attention(ctx, s.qkv.data(), n, widths, s.cat.data(), D + Dm, 3 * D);
-    copy_rows(ctx, s.mlp.data(), Dm, s.cat.data() + D, D + Dm, n, Dm);
-    linear2(ctx, s.cat, s.sub);
-    add_gated(ctx, s.z.data(), s.sub.data(), mv + 2 * D, n, D);
+    float* qkv = s.qkv.data();
+    const float* a_out = s.modulated.data() + first_out * D;
+    kv_part.strided(ctx, s.modulated.data(), D, n, qkv + D, 3 * D);
+    q_part.strided(ctx, a_out, D, m, qkv + first_out * 3 * D, 3 * D);
+    mlp_part.strided(ctx, a_out, D, m, s.mlp.data(), Dm, BackendEpilogue<B>::GeluTanh);
+    norm.queries(ctx, qkv + first_out * 3 * D, m, 3 * D, widths.heads);
+    norm.keys(ctx, qkv + D, n, 3 * D, widths.heads);
+    nn::apply_rope_rows(ctx, qkv + first_out * 3 * D, m, 3 * D, widths.heads, rope, first_out);
+    nn::apply_rope_rows(ctx, qkv + D, n, 3 * D, widths.heads, rope);
+    // cat rows 0..m = [attention | GELU(mlp)] of the updated rows.
+    detail::joint_attention(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D);
+    copy_rows(ctx, s.mlp.data(), Dm, s.cat.data() + D, D + Dm, m, Dm);
+    linear2.strided(ctx, s.cat.data(), D + Dm, m, s.sub.data(), D);
+    add_gated(ctx, s.z.data() + first_out * D, s.sub.data(), mv + 2 * D, m, D);
   }
 
-  double flops(const JointRows& rows) const {
-    const nn::PackedAttention p{1, rows.total(), widths.heads, widths.head_dim(), 0, 0, 0, 0, false};
-    return modulation.flops() + linear1.flops(rows.total()) + linear2.flops(rows.total()) + nn::attention_flops(p);
+  nn::Flops flops(const JointRows& rows, std::int64_t first_out = 0) const {
+    const std::int64_t n = rows.total(), m = n - first_out;
+    return {modulation.flops() + kv_part.flops(n) + q_part.flops(m) + mlp_part.flops(m) + linear2.flops(m),
+            detail::joint_attention_flops(widths, m, n)};
   }
 };
 
@@ -243,7 +260,7 @@ struct LastLayer {
     linear(ctx, s.modulated.slice(rows.cond, rows.total()), out);
   }
 
-  double flops(const JointRows& rows) const { return adaLN_modulation.flops() + linear.flops(rows.target); }
+  nn::Flops flops(const JointRows& rows) const { return {adaLN_modulation.flops() + linear.flops(rows.target), 0}; }
 };
 
 }  // namespace epona::model

@@ -172,7 +172,8 @@ class FluxDiT {
       embed_inputs(ctx, s, c, b, x[b], temb.size(0) == 1 ? temb : temb.slice(b, b + 1));
       const nn::RopeTable<B> rope{c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
       for (const auto& block : double_blocks_) block(ctx, s, c.rows, rope);
-      for (const auto& block : single_blocks_) block(ctx, s, c.rows, rope);
+      for (std::size_t j = 0; j < single_blocks_.size(); ++j)
+        single_blocks_[j](ctx, s, c.rows, rope, first_updated_row(j, c.rows));
       auto o = out[b];
       final_layer_(ctx, s, c.rows, o);
     }
@@ -203,16 +204,24 @@ class FluxDiT {
     });
   }
 
-  // FLOPs of one velocity evaluation including cond_in (compute-budget.md §3.2/3.3), batch 1.
-  double forward_flops(const JointRows& rows) const {
-    double f = input_.flops(rows.target) + time_in_.flops(1) + cond_in_.flops(rows.cond);
-    if (vector_in_) f += vector_in_->flops(1);
+  // FLOPs of one velocity evaluation including cond_in, batch 1: `executed` counts what runs
+  // (the last single block updates only the target rows); otherwise the official count of
+  // compute-budget.md §3.2/3.3 (every row of every block).
+  nn::Flops forward_flops(const JointRows& rows, bool executed = true) const {
+    nn::Flops f{input_.flops(rows.target) + time_in_.flops(1) + cond_in_.flops(rows.cond), 0};
+    if (vector_in_) f.gemm += vector_in_->flops(1);
     for (const auto& b : double_blocks_) f += b.flops(rows);
-    for (const auto& b : single_blocks_) f += b.flops(rows);
+    for (std::size_t j = 0; j < single_blocks_.size(); ++j)
+      f += single_blocks_[j].flops(rows, executed ? first_updated_row(j, rows) : 0);
     return f + final_layer_.flops(rows);
   }
 
  private:
+  // The last single block only needs to update the target rows (the final layer reads no others).
+  std::int64_t first_updated_row(std::size_t single_index, const JointRows& rows) const {
+    return single_index + 1 == single_blocks_.size() ? rows.cond : 0;
+  }
+
   template <class Alloc>
   Conditioning plan_conditioning(Alloc& a, std::int64_t batch, const JointRows& rows) const {
     const std::int64_t pairs = widths_.head_dim() / 2;

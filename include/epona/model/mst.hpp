@@ -17,6 +17,7 @@
 #include "epona/nn/attention.hpp"
 #include "epona/nn/backend_context.hpp"
 #include "epona/nn/embeddings.hpp"
+#include "epona/nn/flops.hpp"
 #include "epona/nn/layer_norm.hpp"
 #include "epona/nn/linear.hpp"
 #include "epona/nn/mlp.hpp"
@@ -124,23 +125,34 @@ struct MstLayer {
             a.template take<float>({n, c.mlp_hidden()})};
   }
 
-  // x (n, C) += attn(ln1 x); x += mlp(ln2 x). `before_attention(q, k)` may rotate q and k;
-  // `attend(q, k, v, o)` arranges the tokens into sequences.
+  // x (n, C) += attn(ln1 x); x += mlp(ln2 x) on rows [first, first + count) of x, the queries
+  // (keys and values come from all n rows; the pruned last block updates a subset).
+  // `before_attention(q, k)` may rotate q (count rows) and k (n rows); `attend(q, k, v, o)`
+  // arranges the tokens into sequences.
   template <class Rotate, class Attend>
-  void operator()(Context& ctx, Tensor<float, B>& x, Scratch& s, Rotate&& before_attention, Attend&& attend) const {
-    ln1(ctx, x, s.u);
-    query(ctx, s.u, s.q);
-    key(ctx, s.u, s.k);
-    value(ctx, s.u, s.v);
-    q_norm(ctx, s.q, s.q);
-    k_norm(ctx, s.k, s.k);
-    before_attention(s.q, s.k);
-    attend(s.q, s.k, s.v, s.u);  // the attention output reuses u
-    proj(ctx, s.u, s.q);         // ... and the projection reuses q
-    add_inplace(ctx, x.data(), s.q.data(), x.numel());
-    ln2(ctx, x, s.u);
-    mlp(ctx, s.u, s.hidden, s.q);
-    add_inplace(ctx, x.data(), s.q.data(), x.numel());
+  void operator()(Context& ctx, Tensor<float, B>& x, Scratch& s, std::int64_t first, std::int64_t count,
+                  Rotate&& before_attention, Attend&& attend) const {
+    const std::int64_t n = x.size(0);
+    auto rows = x.slice(first, first + count);
+    auto u = s.u.slice(0, n), k = s.k.slice(0, n), v = s.v.slice(0, n);
+    auto q = s.q.slice(0, count), o = s.u.slice(0, count), hidden = s.hidden.slice(0, count);
+    ln1(ctx, x, u);
+    key(ctx, u, k);
+    value(ctx, u, v);
+    query(ctx, u.slice(first, first + count), q);
+    q_norm(ctx, q, q);
+    k_norm(ctx, k, k);
+    before_attention(q, k);
+    attend(q, k, v, o);  // the attention output reuses u
+    proj(ctx, o, q);         // ... and the projection reuses q
+    add_inplace(ctx, rows.data(), q.data(), rows.numel());
+    ln2(ctx, rows, o);
+    mlp(ctx, o, hidden, q);
+    add_inplace(ctx, rows.data(), q.data(), rows.numel());
+  }
+
+  nn::Flops flops(std::int64_t n, std::int64_t count) const {
+    return {key.flops(n) + value.flops(n) + query.flops(count) + proj.flops(count) + mlp.flops(count), 0};
   }
 };
 
@@ -228,7 +240,10 @@ class SpatialTemporalTransformer {
       assemble_tokens(ctx, latents[b], s);
       if (observe) observe(b, "tokens_in", s.x);
       for (std::size_t i = 0; i < blocks_.size(); ++i) {
-        run_block(ctx, blocks_[i], s);
+        // Only the last frame of the last block is consumed; an observer sees every frame.
+        const bool prune = i + 1 == blocks_.size() && !observe;
+        if (prune) run_last_block(ctx, blocks_[i], s);
+        else run_block(ctx, blocks_[i], s);
         if (observe) observe(b, "block" + std::to_string(i) + "_out", s.x);
       }
       auto last = s.x[F - 1];
@@ -255,16 +270,27 @@ class SpatialTemporalTransformer {
     }
   }
 
-  // FLOPs of one evaluate (batch 1), counted as compute-budget.md §3.1 does.
-  double evaluate_flops() const {
+  // FLOPs of one evaluate (batch 1): `executed` counts what runs (the last block computes the
+  // last frame only); otherwise the official count of compute-budget.md §3.1.
+  nn::Flops evaluate_flops(bool executed = true) const {
     const double F = double(cfg_.condition_frames), T = double(cfg_.tokens_per_frame()), C = double(cfg_.n_embd);
     const double L = double(cfg_.img_tokens()), E = double(cfg_.fourier_dim), P = double(cfg_.projector_hidden);
-    const double img = 2 * F * L * (double(cfg_.token_dim) * double(cfg_.img_hidden()) + double(cfg_.img_hidden()) * C);
-    const double act = 2 * 3 * (F + 1) * (E * P + P * C);
-    const double layers = double(cfg_.n_layer) * 2 * 2 * F * T * 12 * C * C;
-    const double d = double(cfg_.head_dim()), H = double(cfg_.n_head);
-    const double attn = double(cfg_.n_layer) * (4 * T * H * F * F * d + 4 * F * H * T * T * d);
-    return img + act + layers + attn;
+    const std::int64_t n = cfg_.condition_frames * cfg_.tokens_per_frame(), t = cfg_.tokens_per_frame();
+    nn::Flops f{2 * F * L * (double(cfg_.token_dim) * double(cfg_.img_hidden()) + double(cfg_.img_hidden()) * C) +
+                    2 * 3 * (F + 1) * (E * P + P * C),
+                0};
+    const std::int64_t H = cfg_.n_head, d = cfg_.head_dim(), Fi = cfg_.condition_frames;
+    for (std::size_t i = 0; i < blocks_.size(); ++i) {
+      const auto& blk = blocks_[i];
+      if (executed && i + 1 == blocks_.size()) {
+        f += blk.causal_time_block.flops(n, t) + blk.space_block.flops(t, t);
+        f.attention += nn::attention_flops(t, H, 1, Fi, d) + nn::attention_flops(1, H, t, t, d);
+      } else {
+        f += blk.causal_time_block.flops(n, n) + blk.space_block.flops(n, n);
+        f.attention += nn::attention_flops(t, H, Fi, Fi, d) + nn::attention_flops(Fi, H, t, t, d);
+      }
+    }
+    return f;
   }
 
  private:
@@ -341,26 +367,49 @@ class SpatialTemporalTransformer {
 
   void run_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s) const {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
-    const std::int64_t H = cfg_.n_head, d = cfg_.head_dim(), L = cfg_.img_tokens();
+    const std::int64_t H = cfg_.n_head, d = cfg_.head_dim();
     auto x = s.x.reshape({F * T, C});
     // (a) time: each of the T token positions is a causal sequence over the F frames; no RoPE.
-    nn::PackedAttention time{T, F, H, d, C, T * C, C, T * C, true};
-    block.causal_time_block(ctx, x, s.layer, [](auto&, auto&) {},
-                            [&](const auto& q, const auto& k, const auto& v, auto& o) {
-                              nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), time);
-                            });
+    const nn::PackedAttention time{T, F, H, d, C, T * C, C, T * C, true};
+    block.causal_time_block(ctx, x, s.layer, 0, F * T, no_rotation, attention_with(ctx, time));
     // (b) space: each frame is one unmasked sequence of T tokens; RoPE on the image tokens only.
-    nn::PackedAttention space{F, T, H, d, T * C, C, T * C, C, false};
-    block.space_block(ctx, x, s.layer,
-                      [&](auto& q, auto& k) {
-                        for (std::int64_t f = 0; f < F; ++f) {
-                          const std::int64_t first = f * T + constants::action_tokens;
-                          nn::apply_rope_qk(ctx, q.data() + first * C, k.data() + first * C, L, C, H, rope_);
-                        }
-                      },
-                      [&](const auto& q, const auto& k, const auto& v, auto& o) {
-                        nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), space);
-                      });
+    run_space(ctx, block.space_block, x, s.layer, F);
+  }
+
+  // The last block for the last frame only: its time attention still reads keys and values
+  // of every frame (the last frame attends to all of them, so no mask is needed).
+  void run_last_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s) const {
+    const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
+    const std::int64_t H = cfg_.n_head, d = cfg_.head_dim();
+    auto x = s.x.reshape({F * T, C});
+    nn::PackedAttention time{T, F, H, d, C, T * C, C, 0, false};
+    time.q_len = 1;
+    time.q_seq_stride = C;
+    block.causal_time_block(ctx, x, s.layer, (F - 1) * T, T, no_rotation, attention_with(ctx, time));
+    auto last = s.x[F - 1];
+    run_space(ctx, block.space_block, last, s.layer, 1);
+  }
+
+  // Space attention over `frames` consecutive frames of x (frames·T, C).
+  void run_space(Context& ctx, const MstLayer<B, W>& layer, Tensor<float, B>& x, typename MstLayer<B, W>::Scratch& s,
+                 std::int64_t frames) const {
+    const std::int64_t T = cfg_.tokens_per_frame(), C = cfg_.n_embd, H = cfg_.n_head, d = cfg_.head_dim();
+    const std::int64_t L = cfg_.img_tokens();
+    const nn::PackedAttention space{frames, T, H, d, T * C, C, T * C, C, false};
+    const auto rotate_images = [&](auto& q, auto& k) {
+      for (std::int64_t f = 0; f < frames; ++f) {
+        const std::int64_t first = f * T + constants::action_tokens;
+        nn::apply_rope_qk(ctx, q.data() + first * C, k.data() + first * C, L, C, H, rope_);
+      }
+    };
+    layer(ctx, x, s, 0, frames * T, rotate_images, attention_with(ctx, space));
+  }
+
+  static constexpr auto no_rotation = [](auto&, auto&) {};
+  static auto attention_with(Context& ctx, const nn::PackedAttention& p) {
+    return [&ctx, p](const auto& q, const auto& k, const auto& v, auto& o) {
+      nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), p);
+    };
   }
 
   MstConfig cfg_;

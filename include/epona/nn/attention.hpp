@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <string>
 
+#include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/attention.hpp"
 #include "epona/io/tensor_map.hpp"
@@ -16,33 +17,43 @@
 namespace epona::nn {
 
 // Where q, k, v and the output of one attention call live: `seqs` independent sequences of
-// `len` tokens; token i of sequence s starts at base + s*seq_stride + i*token_stride.
+// `len` key tokens; token i of sequence s starts at base + s*seq_stride + i*token_stride.
+// Queries may be fewer than keys (q_len; the pruned last blocks attend from a subset) — then
+// q has its own strides and the call is unmasked.
 struct PackedAttention {
   std::int64_t seqs = 1, len = 0, heads = 1, head_dim = 0;
-  std::int64_t in_seq_stride = 0, in_token_stride = 0;    // q, k and v share their strides
+  std::int64_t in_seq_stride = 0, in_token_stride = 0;    // k and v (and q unless q_len is set)
   std::int64_t out_seq_stride = 0, out_token_stride = 0;
   bool causal = false;
+  std::int64_t q_len = -1, q_seq_stride = 0, q_token_stride = 0;  // q_len < 0: q like k and v
+
+  std::int64_t queries() const { return q_len < 0 ? len : q_len; }
 };
 
 template <class Context>
 void packed_attention(Context& ctx, const float* q, const float* k, const float* v, float* o,
                       const PackedAttention& p) {
+  EPONA_CHECK(p.q_len < 0 || !p.causal, "attention: a causal mask needs as many queries as keys");
   cpu::AttentionShape a;
   a.seqs = p.seqs;
   a.heads = p.heads;
-  a.lq = a.lk = p.len;
+  a.lq = p.queries();
+  a.lk = p.len;
   a.head_dim = p.head_dim;
-  a.q_seq = a.k_seq = a.v_seq = p.in_seq_stride;
-  a.q_row = a.k_row = a.v_row = p.in_token_stride;
+  a.k_seq = a.v_seq = p.in_seq_stride;
+  a.k_row = a.v_row = p.in_token_stride;
+  a.q_seq = p.q_len < 0 ? p.in_seq_stride : p.q_seq_stride;
+  a.q_row = p.q_len < 0 ? p.in_token_stride : p.q_token_stride;
   a.o_seq = p.out_seq_stride;
   a.o_row = p.out_token_stride;
   a.mask = p.causal ? cpu::Mask::Causal : cpu::Mask::None;
   attention(ctx, q, k, v, o, a);
 }
 
-// FLOPs of one attention call as compute-budget.md counts them (4·H·Lq·Lk·d per sequence).
-inline double attention_flops(const PackedAttention& p) {
-  return 4.0 * double(p.seqs) * double(p.heads) * double(p.len) * double(p.len) * double(p.head_dim);
+// FLOPs of attention as compute-budget.md counts them (4·H·Lq·Lk·d per sequence).
+inline double attention_flops(std::int64_t seqs, std::int64_t heads, std::int64_t lq, std::int64_t lk,
+                              std::int64_t head_dim) {
+  return 4.0 * double(seqs) * double(heads) * double(lq) * double(lk) * double(head_dim);
 }
 
 // QKNorm: RMSNorm per token and head with separate learned scales for queries and keys.
@@ -65,7 +76,13 @@ struct QkNorm {
   // In place on `rows` tokens; q of token r starts at q + r*stride (heads side by side), k too.
   void operator()(Context& ctx, float* q, float* k, std::int64_t rows, std::int64_t stride,
                   std::int64_t heads) const {
+    queries(ctx, q, rows, stride, heads);
+    keys(ctx, k, rows, stride, heads);
+  }
+  void queries(Context& ctx, float* q, std::int64_t rows, std::int64_t stride, std::int64_t heads) const {
     rms_norm_heads(ctx, q, rows, stride, heads, head_dim, query_scale.data(), eps);
+  }
+  void keys(Context& ctx, float* k, std::int64_t rows, std::int64_t stride, std::int64_t heads) const {
     rms_norm_heads(ctx, k, rows, stride, heads, head_dim, key_scale.data(), eps);
   }
 };

@@ -48,6 +48,14 @@ struct Linear {
     return part;
   }
 
+  // Pointer form for strided rows: y[r*ldy + o] for r < rows (y may be a column block of a
+  // wider buffer, x a row subset of one).
+  void strided(Context& ctx, const float* x, std::int64_t ldx, std::int64_t rows, float* y, std::int64_t ldy,
+               Epilogue epilogue = Epilogue::None) const {
+    linear(ctx, x, ldx, weight.data(), has_bias ? bias.data() : static_cast<const T*>(nullptr), y, ldy, rows, out, in,
+           epilogue);
+  }
+
   double flops(std::int64_t tokens) const { return 2.0 * double(tokens) * double(in) * double(out); }
 };
 
