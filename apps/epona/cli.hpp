@@ -1,0 +1,86 @@
+// apps/epona/cli.hpp — the `epona` program as a function: picks the subcommand, parses its
+// options, runs it, and turns every failure into "epona: error: <message>" and exit status 1.
+// Header-only so that tests call it in-process with their own output streams.
+#pragma once
+
+// First: trajectory_io.hpp and poses.hpp name `detail::concat` unqualified, which resolves to
+// epona::io::detail (no concat) once config_json.hpp has declared that namespace.
+#include "epona/io/poses.hpp"
+#include "epona/io/trajectory_io.hpp"
+
+#include <exception>
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include "args.hpp"
+#include "cmd_codec.hpp"
+#include "cmd_generate.hpp"
+#include "cmd_info.hpp"
+#include "cmd_plan.hpp"
+#include "console.hpp"
+
+namespace epona::app {
+
+inline constexpr const char* kVersion = "0.1.0";
+
+struct Subcommand {
+  const char* name;
+  const char* summary;
+  ArgParser (*parser)();
+  int (*run)(const ParsedArgs&, const Console&);
+};
+
+inline const std::vector<Subcommand>& subcommands() {
+  static const std::vector<Subcommand> list = {
+      {"plan", "plan the ego trajectory from the last frames and poses (JSON/CSV + a picture)", plan_parser, run_plan},
+      {"generate", "roll out N frames under the model's own plan or given actions", generate_parser, run_generate},
+      {"encode", "images -> DC-AE latents (.npy)", encode_parser, run_encode},
+      {"decode", "DC-AE latents (.npy) -> PNG frames", decode_parser, run_decode},
+      {"info", "what a checkpoint holds and the configuration its shapes imply", info_parser, run_info},
+  };
+  return list;
+}
+
+inline std::string main_help() {
+  std::string s =
+      "usage: epona <command> [options]\n\n"
+      "Runs the Epona world model (ICCV 2025) from its released checkpoints: plans trajectories, rolls\n"
+      "out driving video, encodes and decodes frames. Without --weights, plan and generate run a small\n"
+      "bundled demo model (random conformance weights) on a bundled clip.\n\ncommands:\n";
+  for (const auto& c : subcommands()) s += "  " + std::string(c.name) + std::string(10 - std::string(c.name).size(), ' ') + c.summary + "\n";
+  s += "\n`epona <command> --help` shows the options of a command.\n";
+  return s;
+}
+
+// Runs the program on `args` (without argv[0]). `interactive`: err is a terminal.
+inline int run(const std::vector<std::string>& args, std::ostream& out, std::ostream& err, bool interactive = false) {
+  try {
+    if (args.empty() || args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
+      (args.empty() ? err : out) << main_help();
+      if (args.empty()) usage_fail("no command given (plan, generate, encode, decode, info)");
+      return 0;
+    }
+    if (args[0] == "--version") {
+      out << "epona " << kVersion << "\n";
+      return 0;
+    }
+    for (const auto& c : subcommands()) {
+      if (args[0] != c.name) continue;
+      const ArgParser parser = c.parser();
+      const ParsedArgs parsed = parser.parse(std::vector<std::string>(args.begin() + 1, args.end()));
+      if (parsed.flag("help")) {
+        out << parser.help();
+        return 0;
+      }
+      const Console con{out, err, parsed.flag("quiet"), interactive};
+      return c.run(parsed, con);
+    }
+    usage_fail("unknown command '", args[0], "' (commands: plan, generate, encode, decode, info; see epona --help)");
+  } catch (const std::exception& e) {
+    err << "epona: error: " << e.what() << "\n";
+    return 1;
+  }
+}
+
+}  // namespace epona::app

@@ -1,0 +1,135 @@
+// apps/epona/cmd_codec.hpp — `epona encode` (images -> DC-AE latents (N, C, H/32, W/32) as .npy)
+// and `epona decode` (such latents -> PNG frames, one by one or as temporal clips). Latents are
+// the raw DC-AE values the world model works on (no scaling, no shift).
+#pragma once
+
+#include <charconv>
+#include <cstdio>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "args.hpp"
+#include "cmd_common.hpp"
+#include "console.hpp"
+#include "frames.hpp"
+#include "models.hpp"
+#include "epona/io/image.hpp"
+#include "epona/io/npy.hpp"
+
+namespace epona::app {
+
+inline ArgParser encode_parser() {
+  ArgParser p("epona encode", "IMAGE|DIR... [options]",
+              "Encodes images (PNG/JPEG files, or every image of a folder in natural name order) with the\n"
+              "DC-AE into latents of shape (N, C, H/32, W/32), written as a float32 .npy. Sizes must be\n"
+              "multiples of 32 unless --size and --fit say how to convert them.");
+  p.positionals(1, 1000000, "image file(s) or folder(s)");
+  add_model_options(p, false, true);
+  p.option("size", "HxW", "image size to encode at (with --fit)", "the first image's size")
+      .option("fit", "MODE", "images not at that size: exact (refuse), resize, crop, cover", "exact");
+  add_compute_options(p);
+  p.option("out", "FILE", "latents file (.npy)", "out/encode/latents.npy", 'o')
+      .flag("quiet", "no progress bars or notes on stderr", 'q');
+  return p;
+}
+
+inline ArgParser decode_parser() {
+  ArgParser p("epona decode", "LATENTS.npy [options]",
+              "Decodes DC-AE latents (N, C, h, w) (as `epona encode` or `epona generate --latents` write them)\n"
+              "into PNG frames of (32h, 32w): frame_0000.png ... in the output folder.");
+  p.positionals(1, 1, "latents file");
+  add_model_options(p, false, true);
+  p.flag("video", "decode clips of the DC-AE's temporal length together (N must be a multiple of it)");
+  add_compute_options(p);
+  add_output_options(p, "out/decode");
+  return p;
+}
+
+inline std::pair<std::int64_t, std::int64_t> parse_size(const std::string& text) {
+  const auto x = text.find('x');
+  std::int64_t h = 0, w = 0;
+  const bool ok = x != std::string::npos &&
+                  std::from_chars(text.data(), text.data() + x, h).ptr == text.data() + x &&
+                  std::from_chars(text.data() + x + 1, text.data() + text.size(), w).ptr == text.data() + text.size();
+  if (!ok || h <= 0 || w <= 0 || h % io::kImageMultiple || w % io::kImageMultiple)
+    usage_fail("--size must be HxW with positive multiples of ", io::kImageMultiple, " (e.g. 512x1024), got '", text, "'");
+  return {h, w};
+}
+
+// The image files named on the command line (folders expanded in natural name order).
+inline std::vector<std::filesystem::path> expand_inputs(const std::vector<std::string>& args) {
+  std::vector<std::filesystem::path> files;
+  for (const auto& a : args) {
+    std::error_code ec;
+    if (std::filesystem::is_directory(a, ec)) {
+      const auto in_dir = list_images(a, "input");
+      files.insert(files.end(), in_dir.begin(), in_dir.end());
+    } else {
+      EPONA_CHECK(std::filesystem::is_regular_file(a, ec), "input ", a, ": no such file or folder");
+      files.emplace_back(a);
+    }
+  }
+  return files;
+}
+
+inline int run_encode(const ParsedArgs& a, const Console& con) {
+  const ComputeOptions compute = compute_options(a);
+  const ModelFiles files = resolve_models(a, false, true);
+  const auto inputs = expand_inputs(a.positionals());
+  const auto policy = size_policy(a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact"));
+  std::int64_t H = 0, W = 0;
+  if (a.has("size")) std::tie(H, W) = parse_size(*a.get("size"));
+  std::vector<io::Image> images;
+  for (const auto& f : inputs) {
+    images.push_back(read_frame(f, H, W, policy));
+    if (H == 0) H = images.back().height, W = images.back().width;  // the first image sets the size
+  }
+  const std::filesystem::path out = a.text("out", "out/encode/latents.npy");
+  if (out.has_parent_path()) std::filesystem::create_directories(out.parent_path());
+  return with_weight_type(compute, [&](auto weight_tag) {
+    using T = decltype(weight_tag);
+    cpu::Context ctx(compute.threads);
+    const auto dcae = load_dcae<T>(files, con);
+    const Tensor<float> latents = encode_frames(ctx, dcae, images, con);
+    io::write_npy(out, latents);
+    con.out << "encoded " << images.size() << " image(s) of " << H << "x" << W << " into " << out.string()
+            << ": latents " << shape_str(latents.shape()) << " float32\n";
+    return 0;
+  });
+}
+
+inline int run_decode(const ParsedArgs& a, const Console& con) {
+  const ComputeOptions compute = compute_options(a);
+  const ModelFiles files = resolve_models(a, false, true);
+  const std::string path = a.positionals().front();
+  check_file(path, "latents");
+  const Tensor<float> latents = io::read_npy<float>(path).values;
+  EPONA_CHECK(latents.dim() == 4, path, ": latents must be (N, C, h, w), got ", shape_str(latents.shape()));
+  for (std::int64_t i = 0; i < latents.numel(); ++i)
+    EPONA_CHECK(std::isfinite(latents.data()[i]), path, ": non-finite latent value at flat index ", i);
+  const auto dir = output_dir(a, "out/decode");
+  return with_weight_type(compute, [&](auto weight_tag) {
+    using T = decltype(weight_tag);
+    cpu::Context ctx(compute.threads);
+    const auto dcae = load_dcae<T>(files, con);
+    const bool video = a.flag("video") && dcae.config().add_decoder_temporal;
+    const std::int64_t N = latents.size(0), group = video ? dcae.config().condition_frames : 1;
+    EPONA_CHECK(N % group == 0, path, ": ", N, " latents are not whole clips of ", group, " frames (--video)");
+    Progress bar(con, "decode  ", N, "frame");
+    for (std::int64_t first = 0; first < N; first += group) {
+      const Tensor<float> images = dcae.decode(ctx, latents.slice(first, first + group), video);
+      for (std::int64_t i = 0; i < group; ++i) {
+        char name[32];
+        std::snprintf(name, sizeof name, "frame_%04lld.png", static_cast<long long>(first + i));
+        io::write_png((dir / name).string(), io::tensor_to_image(images, i));
+      }
+      bar.advance(group);
+    }
+    con.out << "decoded " << N << " frame(s) of " << 32 * latents.size(2) << "x" << 32 * latents.size(3) << " into "
+            << dir.string() << "/frame_0000.png ...\n";
+    return 0;
+  });
+}
+
+}  // namespace epona::app

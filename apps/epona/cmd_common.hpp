@@ -1,0 +1,96 @@
+// apps/epona/cmd_common.hpp — what plan and generate share: the input-clip options (frames,
+// poses, fitting; the bundled demo clip by default), sampling options (steps, seed), the output
+// folder, and small writers (a pose CSV that reads back with --poses).
+#pragma once
+
+#include <charconv>
+#include <filesystem>
+#include <string>
+
+#include "args.hpp"
+#include "frames.hpp"
+#include "models.hpp"
+#include "epona/io/npy.hpp"
+#include "epona/io/poses.hpp"
+#include "epona/model/world_model.hpp"
+
+namespace epona::app {
+
+inline void add_clip_options(ArgParser& p) {
+  p.option("frames", "DIR", "folder of the input frames (PNG/JPEG, natural name order; the last F are used)",
+           "the bundled demo clip")
+      .option("poses", "FILE", "one ego motion per frame: .csv/.json (x, y, yaw), the demo's pose.npy+yaw.npy folder, "
+              "or absolute 4x4 poses (.npy/.json)", "the bundled demo poses")
+      .option("fit", "MODE", "frames not at the model's size: exact (refuse), resize, crop, cover", "exact");
+}
+inline void add_sampling_options(ArgParser& p) {
+  p.option("steps", "N", "Euler sampling steps of each DiT", "the configuration's num_sampling_steps")
+      .option("seed", "N", "noise seed (torch.manual_seed-compatible draws)", "0");
+}
+inline void add_output_options(ArgParser& p, const std::string& default_dir) {
+  p.option("out", "DIR", "output folder", default_dir, 'o').flag("quiet", "no progress bars or notes on stderr", 'q');
+}
+
+struct ClipInputs {
+  std::filesystem::path frames, poses;
+};
+
+inline ClipInputs clip_inputs(const ParsedArgs& a, const ModelFiles& f) {
+  if (!f.demo && !a.has("frames")) usage_fail(a.command(), ": --frames DIR is needed with --weights");
+  if (!f.demo && !a.has("poses")) usage_fail(a.command(), ": --poses FILE is needed with --weights");
+  ClipInputs in;
+  in.frames = a.text("frames", demo_frames_dir());
+  in.poses = a.text("poses", a.has("frames") ? "" : demo_frames_dir() + "/poses.csv");
+  if (in.poses.empty()) usage_fail(a.command(), ": --poses FILE is needed with --frames");
+  return in;
+}
+
+inline Clip load_clip_for(const ParsedArgs& a, const ModelFiles& f, const Console& con) {
+  const ClipInputs in = clip_inputs(a, f);
+  const auto& w = f.configs.world;
+  const auto policy = size_policy(a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact"));
+  Clip clip = load_clip(in.frames, in.poses, w.condition_frames, w.image_h, w.image_w, policy);
+  con.note("input: ", clip.frames.size(), " of ", clip.folder_frames, " frame(s) from ", in.frames.string(),
+           " (", w.image_h, "x", w.image_w, "), poses from ", in.poses.string());
+  return clip;
+}
+
+inline SampleOptions sample_options(const ParsedArgs& a, const WorldModelConfig& w) {
+  SampleOptions o;
+  o.steps = a.integer("steps", w.num_sampling_steps, 1, 100000);
+  o.seed = static_cast<std::uint64_t>(a.integer("seed", 0, 0));
+  return o;
+}
+
+inline std::filesystem::path output_dir(const ParsedArgs& a, const std::string& fallback) {
+  const std::filesystem::path dir = a.text("out", fallback);
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  EPONA_CHECK(std::filesystem::is_directory(dir, ec), "--out ", dir.string(), ": cannot create the output folder",
+              ec ? " (" + ec.message() + ")" : std::string());
+  return dir;
+}
+
+inline void append_shortest(std::string& s, float v) {
+  char buf[32];
+  const auto r = std::to_chars(buf, buf + sizeof buf, v);
+  s.append(buf, r.ptr);
+}
+
+// x,y,yaw rows (the --poses CSV format), exact float round trip.
+inline void write_pose_csv(const std::filesystem::path& path, const io::PoseSequence& p) {
+  std::string s = "# motion into each frame: x metres forward, y metres left, yaw degrees (left positive)\nx,y,yaw\n";
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    append_shortest(s, p.x[i]);
+    s += ',';
+    append_shortest(s, p.y[i]);
+    s += ',';
+    append_shortest(s, p.yaw[i]);
+    s += '\n';
+  }
+  io::write_file_atomically(path, s);
+}
+
+inline std::string size_text(const io::Image& img) { return std::to_string(img.height) + "x" + std::to_string(img.width); }
+
+}  // namespace epona::app

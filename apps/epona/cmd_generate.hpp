@@ -1,0 +1,218 @@
+// apps/epona/cmd_generate.hpp — `epona generate`: rolls the world model out for N frames, each
+// step conditioned on the sliding window of the last F frames, driven by its own planned
+// trajectory (waypoint 0 of each step, as test_free.py) or by actions read from a file; frames
+// are decoded in clips of the DC-AE's temporal length as test_nuplan.py does (or one by one).
+#pragma once
+
+#include <cstdio>
+#include <filesystem>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "args.hpp"
+#include "cmd_common.hpp"
+#include "console.hpp"
+#include "drawing.hpp"
+#include "frames.hpp"
+#include "models.hpp"
+#include "epona/io/image.hpp"
+#include "epona/io/npy.hpp"
+#include "epona/io/trajectory_io.hpp"
+#include "epona/model/latent_layout.hpp"
+#include "epona/model/rollout.hpp"
+
+namespace epona::app {
+
+inline constexpr std::int64_t kSheetTiles = 40;  // input frames + a sample of the generated ones
+
+inline ArgParser generate_parser() {
+  ArgParser p("epona generate", "[options]",
+              "Rolls the world model out: each step predicts the next frame from the last F frames and the\n"
+              "motion into it, then the window slides. The motion is the model's own plan (waypoint 0 of\n"
+              "each step's trajectory) or, with --trajectory, one action per step from a file. Writes\n"
+              "frames/frame_NNNN.png, contact_sheet.png, trajectory.json/.csv (each step's plan, or the\n"
+              "actions used) and poses.csv (the motion into each generated frame) into the output folder.\n"
+              "Without --weights it runs the bundled demo model on the bundled demo clip.");
+  add_model_options(p, true, true);
+  add_clip_options(p);
+  p.option("num-frames", "N", "frames to generate", "6, or one per action of --trajectory", 'n')
+      .option("trajectory", "FILE", "actions to follow: a trajectory written by epona (waypoint 0 of each step) "
+              "or a poses file (one motion per step)")
+      .option("decode", "MODE", "clip: clips of the DC-AE's temporal length (video mode, as test_nuplan.py); "
+              "frame: each frame alone", "clip")
+      .flag("latents", "also write latents.npy, (N, C, h, w), for `epona decode`");
+  add_sampling_options(p);
+  add_compute_options(p);
+  add_output_options(p, "out/generate");
+  p.epilog("examples:\n"
+           "  epona generate -n 4                          # the bundled demo\n"
+           "  epona generate --weights epona_nuplan.pkl --dcae dcae_td_20000.pkl --frames clip/ \\\n"
+           "                 --poses clip/poses.csv -n 60 --steps 100 --out out/drive\n"
+           "  epona generate ... --trajectory out/drive/trajectory.csv   # replay the same actions");
+  return p;
+}
+
+// Writes decoded frames as they complete and keeps the ones the contact sheet shows.
+class FrameSink {
+ public:
+  FrameSink(std::filesystem::path dir, std::vector<std::int64_t> sheet_picks)
+      : dir_(std::move(dir)), picks_(std::move(sheet_picks)) {
+    std::error_code ec;
+    std::filesystem::create_directories(dir_, ec);
+    EPONA_CHECK(std::filesystem::is_directory(dir_, ec), dir_.string(), ": cannot create the frames folder");
+    remove_stale_frames();
+  }
+  void put(const io::Image& img) {
+    char name[32];
+    std::snprintf(name, sizeof name, "frame_%04lld.png", static_cast<long long>(written_));
+    io::write_png((dir_ / name).string(), img);
+    if (next_pick_ < picks_.size() && picks_[next_pick_] == written_) {
+      kept_.push_back(img);
+      ++next_pick_;
+    }
+    ++written_;
+  }
+  std::int64_t written() const { return written_; }
+  const std::vector<io::Image>& kept() const { return kept_; }
+  const std::filesystem::path& dir() const { return dir_; }
+
+ private:
+  // frame_NNNN.png files of an earlier, longer run would read as part of this one.
+  void remove_stale_frames() {
+    std::error_code ec;
+    std::vector<std::filesystem::path> stale;
+    for (const auto& e : std::filesystem::directory_iterator(dir_, ec)) {
+      const std::string name = e.path().filename().string();
+      if (name.size() >= 14 && starts_with(name, "frame_") && ends_with(name, ".png") &&
+          is_index(name.substr(6, name.size() - 10)))
+        stale.push_back(e.path());
+    }
+    for (const auto& p : stale) std::filesystem::remove(p, ec);
+  }
+
+  std::filesystem::path dir_;
+  std::vector<std::int64_t> picks_;
+  std::size_t next_pick_ = 0;
+  std::int64_t written_ = 0;
+  std::vector<io::Image> kept_;
+};
+
+// Decodes generated latents (tokens (1, L, C) each) as one group: a temporal clip when
+// `is_video`, else frame by frame.
+template <class T>
+void decode_group(cpu::Context& ctx, const Dcae<Cpu, T>& dcae, const WorldModelConfig& w,
+                  const std::vector<Tensor<float>>& tokens, bool is_video, FrameSink& sink) {
+  if (tokens.empty()) return;
+  const std::int64_t L = w.img_tokens(), C = w.token_dim(), n = static_cast<std::int64_t>(tokens.size());
+  Tensor<float> group({n, L, C});
+  for (std::int64_t i = 0; i < n; ++i) std::copy_n(tokens[static_cast<std::size_t>(i)].data(), L * C, group[i].data());
+  const Tensor<float> images = dcae.decode(ctx, tokens_to_latent(ctx, group, w.latent_h(), w.latent_w()), is_video);
+  for (std::int64_t i = 0; i < n; ++i) sink.put(io::tensor_to_image(images, i));
+}
+
+// The per-step actions of --trajectory, or none (self-predicted).
+inline std::optional<io::PoseSequence> read_step_actions(const ParsedArgs& a) {
+  if (!a.has("trajectory")) return std::nullopt;
+  const std::string path = *a.get("trajectory");
+  check_file(path, "--trajectory");
+  return io::read_actions(path);
+}
+
+inline std::int64_t frames_to_generate(const ParsedArgs& a, const std::optional<io::PoseSequence>& actions) {
+  const auto n = a.maybe_integer("num-frames", 1, 1000000);
+  if (!actions) return n.value_or(6);
+  const auto available = static_cast<std::int64_t>(actions->size());
+  EPONA_CHECK(!n || *n <= available, "--trajectory ", *a.get("trajectory"), " holds ", available,
+              " action(s); --num-frames asks for ", *n);
+  return n.value_or(available);
+}
+
+inline NextAction action_at(const io::PoseSequence& p, std::size_t i) {
+  NextAction act{Tensor<float>({1, 1, 2}), Tensor<float>({1, 1, 1})};
+  act.rel_pose.data()[0] = p.x[i], act.rel_pose.data()[1] = p.y[i];
+  act.rel_yaw.data()[0] = p.yaw[i];
+  return act;
+}
+
+inline int run_generate(const ParsedArgs& a, const Console& con) {
+  const ComputeOptions compute = compute_options(a);
+  const ModelFiles files = resolve_models(a, true, true);
+  const WorldModelConfig& wc = files.configs.world;
+  const SampleOptions sample = sample_options(a, wc);
+  const auto actions = read_step_actions(a);
+  const std::int64_t N = frames_to_generate(a, actions);
+  const bool clip_decode = a.choice("decode", {"clip", "frame"}, "clip") == "clip";
+  const Clip clip = load_clip_for(a, files, con);
+  const auto dir = output_dir(a, "out/generate");
+
+  return with_weight_type(compute, [&](auto weight_tag) {
+    using W = decltype(weight_tag);
+    cpu::Context ctx(compute.threads);
+    const auto dcae = load_dcae<W>(files, con);
+    History window = make_history(ctx, encode_frames(ctx, dcae, clip.frames, con), clip.poses);
+    auto wm = load_world<W>(files, compute, con);
+    const std::int64_t clip_len = clip_decode && dcae.config().add_decoder_temporal ? dcae.config().condition_frames : 1;
+    con.note("generating ", N, " frame(s): ", *sample.steps, " sampling steps, seed ", sample.seed, ", ",
+             actions ? "actions from " + *a.get("trajectory") : std::string("self-predicted trajectory"),
+             ", decoded ", clip_len > 1 ? "in clips of " + std::to_string(clip_len) : std::string("frame by frame"));
+
+    const std::int64_t W_log = actions ? 1 : wc.traj_len;  // waypoints logged per step
+    Tensor<float> log({N, W_log, 3});
+    Tensor<float> all_latents = a.flag("latents") ? Tensor<float>({N, wc.img_tokens(), wc.token_dim()}) : Tensor<float>();
+    io::PoseSequence motions;
+    const auto slots = std::max<std::int64_t>(kSheetTiles - static_cast<std::int64_t>(clip.frames.size()), 5);
+    FrameSink sink(dir / "frames", sheet_picks(N, slots));
+    std::vector<Tensor<float>> pending;
+    NoiseSource noise = NoiseSource::seeded(sample.seed);
+    Progress bar(con, "generate", N, "frame");
+    for (std::int64_t i = 0; i < N; ++i) {
+      const std::optional<NextAction> act = actions ? std::optional(action_at(*actions, std::size_t(i))) : std::nullopt;
+      const StepResult r = wm.run_step(window, act ? &*act : nullptr, true, *sample.steps, noise, {});
+      Tensor<float> used({1, W_log, 3});  // what drove this step
+      if (act) {
+        used.data()[0] = act->rel_pose.data()[0], used.data()[1] = act->rel_pose.data()[1];
+        used.data()[2] = act->rel_yaw.data()[0];
+      } else {
+        std::copy_n(r.trajectory.data(), used.numel(), used.data());
+      }
+      std::copy_n(used.data(), used.numel(), log[i].data());
+      motions.x.push_back(used.data()[0]), motions.y.push_back(used.data()[1]), motions.yaw.push_back(used.data()[2]);
+      if (!all_latents.empty()) std::copy_n(r.latent.data(), r.latent.numel(), all_latents[i].data());
+      model::slide_window(window, r.latent, used);
+      pending.push_back(r.latent);
+      if (static_cast<std::int64_t>(pending.size()) == clip_len) {
+        decode_group(ctx, dcae, wc, pending, clip_len > 1, sink);
+        pending.clear();
+      }
+      bar.advance();
+    }
+    decode_group(ctx, dcae, wc, pending, false, sink);  // an incomplete last clip: frame by frame (test_nuplan.py)
+
+    std::vector<SheetTile> tiles;
+    for (const auto& f : clip.frames) tiles.push_back({f, true});
+    for (const auto& f : sink.kept()) tiles.push_back({f, false});
+    const io::Image sheet = contact_sheet(tiles);
+    io::write_png((dir / "contact_sheet.png").string(), sheet);
+    io::write_trajectory(dir / "trajectory.json", log);
+    io::write_trajectory(dir / "trajectory.csv", log);
+    write_pose_csv(dir / "poses.csv", motions);
+    if (!all_latents.empty())
+      io::write_npy(dir / "latents.npy", tokens_to_latent(ctx, all_latents, wc.latent_h(), wc.latent_w()));
+
+    con.out << "generated " << N << " frame(s) of " << wc.image_h << "x" << wc.image_w << " in " << bar.elapsed()
+            << " s\nwrote " << (sink.dir() / "frame_0000.png").string()
+            << (N > 1 ? " ... frame_" + std::string(4 - std::min<std::size_t>(4, std::to_string(N - 1).size()), '0') +
+                            std::to_string(N - 1) + ".png"
+                      : std::string())
+            << "\nwrote " << (dir / "contact_sheet.png").string() << " (" << size_text(sheet) << ": "
+            << clip.frames.size() << " input frame(s) framed blue, " << sink.kept().size()
+            << " generated framed orange)\nwrote " << (dir / "trajectory.json").string() << ", "
+            << (dir / "trajectory.csv").string() << " (" << (actions ? "the action of each step" : "each step's plan")
+            << "), " << (dir / "poses.csv").string() << "\n";
+    if (!all_latents.empty()) con.out << "wrote " << (dir / "latents.npy").string() << "\n";
+    return 0;
+  });
+}
+
+}  // namespace epona::app

@@ -1,0 +1,164 @@
+// apps/epona/cmd_info.hpp — `epona info`: what checkpoint files hold (format, tensors, dtypes,
+// parameters per module prefix, keys) and the configuration their shapes imply, compared with
+// the configuration the other commands would use; optionally written out as a --config file.
+#pragma once
+
+#include <cstdio>
+#include <string>
+#include <vector>
+
+#include "args.hpp"
+#include "console.hpp"
+#include "inspect.hpp"
+#include "models.hpp"
+#include "epona/io/config_json.hpp"
+#include "epona/io/load_weights.hpp"
+#include "epona/io/npy.hpp"
+#include "epona/io/safetensors.hpp"
+
+namespace epona::app {
+
+inline ArgParser info_parser() {
+  ArgParser p("epona info", "FILE... [options]",
+              "Describes checkpoint files (official .pkl or .safetensors): tensor count, dtypes, parameters per\n"
+              "module prefix, and the world-model / DC-AE configuration their shapes imply. Settings that no\n"
+              "shape reveals (head count of the MST, image size, window length, ...) are listed as assumed.");
+  p.positionals(1, 64, "checkpoint file(s)")
+      .flag("keys", "list every tensor: name, dtype, shape")
+      .option("depth", "N", "module prefix depth of the parameter table", "2")
+      .option("config", "FILE", "configuration to compare with", "the shipped Epona configuration")
+      .option("write-config", "FILE", "write the detected configuration (assumed values from --config) as JSON")
+      .flag("quiet", "no notes on stderr", 'q')
+      .epilog("example:\n  epona info epona_nuplan.pkl dcae_td_20000.pkl --write-config nuplan.json");
+  return p;
+}
+
+inline std::string human_bytes_text(double b) { return epona::detail::human_bytes(b); }
+
+inline std::string count_text(double n) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "%.0f", n);
+  std::string s = buf, out;
+  for (std::size_t i = 0; i < s.size(); ++i) {
+    if (i && (s.size() - i) % 3 == 0) out += ',';
+    out += s[i];
+  }
+  return n >= 1e6 ? out + " (" + epona::detail::human_count(n) + ")" : out;
+}
+
+inline void print_facts(std::ostream& out, const std::vector<Fact>& facts) {
+  std::size_t w = 0;
+  for (const auto& f : facts) w = std::max(w, f.field.size() + f.value.size() + 3);
+  for (const auto& f : facts) {
+    const std::string left = f.field + " = " + f.value;
+    out << "    " << left << std::string(w - left.size() + 2, ' ') << "<- " << f.evidence << "\n";
+  }
+}
+
+inline void print_comparison(std::ostream& out, const std::vector<std::string>& diffs, const std::string& base) {
+  if (diffs.empty()) {
+    out << "  matches " << base << "\n";
+    return;
+  }
+  out << "  differs from " << base << " in:\n";
+  for (const auto& d : diffs) out << "    " << d << "\n";
+}
+
+inline void print_prefix_counts(std::ostream& out, const io::TensorMap& m,
+                                const std::vector<std::pair<std::string, double>>& expected) {
+  for (const auto& [prefix, implied] : expected) {
+    double n = 0;
+    for (const auto& [name, t] : m.entries())
+      if (starts_with(name, prefix) && !is_buffer(name)) n += double(t.numel());
+    out << "    " << prefix << "* " << count_text(n) << " parameters; the detected configuration implies "
+        << count_text(implied) << (n == implied ? " (match)" : " (MISMATCH)") << "\n";
+  }
+}
+
+inline void print_checkpoint(std::ostream& out, const std::string& path, const io::TensorMap& m, int depth,
+                             bool keys) {
+  const auto format = io::sniff_weight_format(path);
+  out << path << "\n  format: "
+      << (format == io::WeightFormat::TorchZip ? "PyTorch checkpoint (torch.save ZIP)" : "safetensors") << "\n";
+  if (format == io::WeightFormat::Safetensors)
+    for (const auto& [k, v] : io::read_safetensors(path).metadata) out << "  metadata: " << k << " = " << v << "\n";
+  const CheckpointStats s = checkpoint_stats(m, depth);
+  out << "  tensors: " << s.tensors << ", " << human_bytes_text(s.bytes) << " of data; dtypes:";
+  for (const auto& [name, d] : s.dtypes) out << " " << d.first << " x " << name << " (" << human_bytes_text(d.second) << ")";
+  out << "\n  parameters: " << count_text(s.parameters);
+  if (s.buffer_elements > 0) out << " + " << count_text(s.buffer_elements) << " BatchNorm buffer elements";
+  out << "\n  per module prefix:\n";
+  std::size_t w = 0;
+  for (const auto& [g, _] : s.groups) w = std::max(w, g.size());
+  for (const auto& [g, st] : s.groups)
+    out << "    " << g << std::string(w - g.size() + 2, ' ') << count_text(st.parameters) << " parameters, " << st.tensors
+        << " tensors, " << human_bytes_text(st.bytes) << "\n";
+  if (keys) {
+    out << "  keys:\n";
+    for (const auto& [name, t] : m.entries())
+      out << "    " << name << "  " << dtype_name(t.dtype) << "  " << shape_str(t.shape) << "\n";
+  }
+}
+
+inline void print_detection(std::ostream& out, const io::TensorMap& m, const Detection& d,
+                            const io::ModelConfigs& base, const std::string& base_name) {
+  if (!d.has_world && !d.has_dcae) {
+    out << "  no world-model (module.*) or DC-AE (encoder.*, decoder.*) keys: not an Epona checkpoint\n";
+    return;
+  }
+  if (d.has_world) {
+    const auto& w = d.configs.world;
+    out << "  world model (module.*), read from the shapes:\n";
+    print_facts(out, d.world_facts);
+    out << "  assumed (no shape shows them; from " << base_name << "): " << join(d.world_assumed, ", ") << "\n";
+    print_comparison(out, world_differences(w, base.world), base_name);
+    print_prefix_counts(out, m, {{"module.model.", w.mst_parameter_count()},
+                                 {"module.dit.", w.vis_dit_parameter_count()},
+                                 {"module.traj_dit.", w.traj_dit_parameter_count()}});
+  }
+  if (d.has_dcae) {
+    const auto& c = d.configs.dcae;
+    out << "  DC-AE (encoder.*, decoder.*, temporal blocks), read from the shapes:\n";
+    print_facts(out, d.dcae_facts);
+    out << "  assumed (no shape shows them; from " << base_name << "): " << join(d.dcae_assumed, ", ") << "\n";
+    print_comparison(out, dcae_differences(c, base.dcae), base_name);
+    const double half = c.temporal_parameter_count() / 2;
+    print_prefix_counts(out, m, {{"encoder.", c.encoder_parameter_count()},
+                                 {"decoder.", c.decoder_parameter_count()},
+                                 {"causal_time_block.", half},
+                                 {"space_block.", half}});
+  }
+  for (const auto& p : d.problems) out << "  cannot read: " << p << "\n";
+}
+
+inline int run_info(const ParsedArgs& a, const Console& con) {
+  const int depth = static_cast<int>(a.integer("depth", 2, 1, 64));
+  const io::ModelConfigs base = a.has("config") ? io::load_configs(*a.get("config")) : io::ModelConfigs{};
+  const std::string base_name = a.has("config") ? *a.get("config") : "the shipped Epona configuration";
+  io::ModelConfigs combined = base;  // world part from the file holding it, DC-AE from the other
+  for (const auto& path : a.positionals()) {
+    check_file(path, "checkpoint");
+    con.note("reading ", path);
+    const io::TensorMap m = io::load_weights(path);
+    print_checkpoint(con.out, path, m, depth, a.flag("keys"));
+    const Detection d = detect_configuration(m, base);
+    print_detection(con.out, m, d, base, base_name);
+    if (d.has_world) combined.world = d.configs.world;
+    if (d.has_dcae) combined.dcae = d.configs.dcae;
+  }
+  for (const auto* what : {"world model", "DC-AE"}) {
+    try {
+      std::string(what) == "DC-AE" ? combined.dcae.validate() : combined.world.validate();
+    } catch (const Error& e) {
+      con.out << "note: the detected " << what << " configuration is not valid as it stands: " << e.what() << "\n";
+    }
+  }
+  if (a.has("write-config")) {
+    const std::string path = *a.get("write-config");
+    io::write_file_atomically(path, io::to_json(combined).dump(1) + "\n");
+    con.out << "wrote the detected configuration to " << path << " (check the assumed values, then pass it with --config)\n";
+  }
+  return 0;
+}
+
+}  // namespace epona::app

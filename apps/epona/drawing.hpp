@@ -1,0 +1,166 @@
+// apps/epona/drawing.hpp — pictures the program writes besides the frames: a planned trajectory
+// drawn top-down over the last input frame (plan.png), and a contact sheet of input and
+// generated frames. Plain drawing into the RGB buffer (discs along segments), no font.
+#pragma once
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+#include "epona/core/tensor.hpp"
+#include "epona/io/image.hpp"
+
+namespace epona::app {
+
+using Rgb = std::array<std::uint8_t, 3>;
+
+inline void fill_disc(io::Image& img, double cx, double cy, double radius, Rgb colour) {
+  const auto y0 = static_cast<std::int64_t>(std::floor(cy - radius)), y1 = static_cast<std::int64_t>(std::ceil(cy + radius));
+  const auto x0 = static_cast<std::int64_t>(std::floor(cx - radius)), x1 = static_cast<std::int64_t>(std::ceil(cx + radius));
+  for (std::int64_t y = std::max<std::int64_t>(y0, 0); y <= std::min(y1, img.height - 1); ++y)
+    for (std::int64_t x = std::max<std::int64_t>(x0, 0); x <= std::min(x1, img.width - 1); ++x) {
+      const double dx = double(x) - cx, dy = double(y) - cy;
+      if (dx * dx + dy * dy <= radius * radius + 0.25)
+        for (int c = 0; c < 3; ++c) img.at(y, x, c) = colour[c];
+    }
+}
+
+// A segment of the given half-width: discs every half pixel along it (clipped to the image).
+inline void draw_segment(io::Image& img, double x0, double y0, double x1, double y1, double radius, Rgb colour) {
+  const double length = std::hypot(x1 - x0, y1 - y0);
+  const int n = std::max(1, static_cast<int>(std::ceil(length * 2)));
+  for (int i = 0; i <= n; ++i) {
+    const double t = double(i) / n;
+    fill_disc(img, x0 + (x1 - x0) * t, y0 + (y1 - y0) * t, radius, colour);
+  }
+}
+
+inline void draw_rect_outline(io::Image& img, std::int64_t top, std::int64_t left, std::int64_t h, std::int64_t w,
+                              int thickness, Rgb colour) {
+  for (std::int64_t y = top; y < top + h; ++y)
+    for (std::int64_t x = left; x < left + w; ++x) {
+      const bool edge = y < top + thickness || y >= top + h - thickness || x < left + thickness || x >= left + w - thickness;
+      if (edge && y >= 0 && y < img.height && x >= 0 && x < img.width)
+        for (int c = 0; c < 3; ++c) img.at(y, x, c) = colour[c];
+    }
+}
+
+// ---- plan.png: top-down projection over the frame -------------------------------------
+//
+// The ego car sits at the bottom centre, 5% of the height above the lower edge; forward (+x)
+// points up, left (+y) points left, both axes share one scale (pixels per metre) chosen so the
+// plan fits: the furthest forward reach (at least 10 m) spans 85% of the height and the widest
+// lateral offset (at least 1 m) at most 45% of the width. This is a bird's-eye sketch laid over
+// the camera image, not a projection into it (the camera's intrinsics are not known).
+struct TopDownView {
+  double origin_x = 0, origin_y = 0;  // ego position in pixels
+  double pixels_per_metre = 1;
+
+  static TopDownView fit(const io::Image& frame, const Tensor<float>& waypoints) {  // (W, 3)
+    double reach = 10.0, lateral = 1.0;
+    for (std::int64_t i = 0; i < waypoints.size(0); ++i) {
+      reach = std::max(reach, double(waypoints.at(i, 0)));
+      lateral = std::max(lateral, std::abs(double(waypoints.at(i, 1))));
+    }
+    TopDownView v;
+    v.origin_x = double(frame.width) / 2.0;
+    v.origin_y = double(frame.height - 1) - std::round(0.05 * double(frame.height));
+    v.pixels_per_metre = std::min(0.85 * double(frame.height) / reach, 0.45 * double(frame.width) / lateral);
+    return v;
+  }
+  double px(double /*x_fwd*/, double y_left) const { return origin_x - y_left * pixels_per_metre; }
+  double py(double x_fwd, double /*y_left*/) const { return origin_y - x_fwd * pixels_per_metre; }
+};
+
+// Waypoint colour: green (first) to red (last).
+inline Rgb waypoint_colour(std::int64_t i, std::int64_t n) {
+  const double t = n > 1 ? double(i) / double(n - 1) : 0.0;
+  return {static_cast<std::uint8_t>(40 + 215 * t), static_cast<std::uint8_t>(230 - 190 * t), 40};
+}
+
+// The frame with the planned waypoints (W, 3) (metres forward, metres left, degrees) drawn on it.
+inline io::Image draw_plan(io::Image frame, const Tensor<float>& waypoints, TopDownView* view_out = nullptr) {
+  const TopDownView view = TopDownView::fit(frame, waypoints);
+  if (view_out) *view_out = view;
+  const double r = std::max(1.0, std::round(double(frame.height) / 96.0));  // line half-width
+  const std::int64_t n = waypoints.size(0);
+  std::vector<std::array<double, 2>> pts{{view.origin_x, view.origin_y}};
+  for (std::int64_t i = 0; i < n; ++i)
+    pts.push_back({view.px(waypoints.at(i, 0), waypoints.at(i, 1)), view.py(waypoints.at(i, 0), waypoints.at(i, 1))});
+  const Rgb outline{20, 20, 20}, path{255, 220, 40}, ego{255, 255, 255};
+  for (std::size_t i = 0; i + 1 < pts.size(); ++i)  // a dark outline first keeps the path visible on any ground
+    draw_segment(frame, pts[i][0], pts[i][1], pts[i + 1][0], pts[i + 1][1], r + 1, outline);
+  for (std::size_t i = 0; i + 1 < pts.size(); ++i)
+    draw_segment(frame, pts[i][0], pts[i][1], pts[i + 1][0], pts[i + 1][1], r * 0.5, path);
+  for (std::int64_t i = 0; i < n; ++i) {
+    fill_disc(frame, pts[i + 1][0], pts[i + 1][1], r + 1.5, outline);
+    fill_disc(frame, pts[i + 1][0], pts[i + 1][1], r + 0.5, waypoint_colour(i, n));
+  }
+  fill_disc(frame, view.origin_x, view.origin_y, r + 2, outline);
+  fill_disc(frame, view.origin_x, view.origin_y, r + 1, ego);
+  return frame;
+}
+
+// ---- contact sheet --------------------------------------------------------------------
+
+struct SheetTile {
+  io::Image image;
+  bool is_input = false;  // input frames get a blue frame, generated ones an orange one
+};
+
+struct SheetLayout {
+  std::int64_t columns = 1, rows = 1, tile_h = 0, tile_w = 0, gap = 4;
+  std::int64_t height() const { return rows * tile_h + (rows + 1) * gap; }
+  std::int64_t width() const { return columns * tile_w + (columns + 1) * gap; }
+
+  // Up to `max_columns` per row; tiles wider than `max_tile_w` are shrunk (aspect kept).
+  static SheetLayout of(std::int64_t count, std::int64_t frame_h, std::int64_t frame_w, std::int64_t max_columns = 5,
+                        std::int64_t max_tile_w = 384) {
+    SheetLayout l;
+    l.columns = std::clamp<std::int64_t>(count, 1, max_columns);
+    l.rows = (std::max<std::int64_t>(count, 1) + l.columns - 1) / l.columns;
+    l.tile_w = std::min(frame_w, max_tile_w);
+    l.tile_h = std::max<std::int64_t>(1, frame_h * l.tile_w / frame_w);
+    return l;
+  }
+};
+
+inline io::Image contact_sheet(const std::vector<SheetTile>& tiles) {
+  EPONA_CHECK(!tiles.empty(), "contact sheet: no frames");
+  const auto& first = tiles.front().image;
+  const SheetLayout l = SheetLayout::of(static_cast<std::int64_t>(tiles.size()), first.height, first.width);
+  io::Image sheet(l.height(), l.width());
+  std::fill(sheet.rgb.begin(), sheet.rgb.end(), std::uint8_t{32});
+  const int border = static_cast<int>(std::max<std::int64_t>(1, l.tile_h / 64));
+  for (std::size_t i = 0; i < tiles.size(); ++i) {
+    const auto row = static_cast<std::int64_t>(i) / l.columns, col = static_cast<std::int64_t>(i) % l.columns;
+    const std::int64_t top = l.gap + row * (l.tile_h + l.gap), left = l.gap + col * (l.tile_w + l.gap);
+    const io::Image& src = tiles[i].image;
+    const io::Image tile = (src.height == l.tile_h && src.width == l.tile_w) ? src : io::resize_bicubic(src, l.tile_h, l.tile_w);
+    for (std::int64_t y = 0; y < l.tile_h; ++y)
+      std::copy_n(tile.rgb.data() + y * l.tile_w * 3, l.tile_w * 3, &sheet.at(top + y, left, 0));
+    draw_rect_outline(sheet, top, left, l.tile_h, l.tile_w, border,
+                      tiles[i].is_input ? Rgb{60, 130, 255} : Rgb{255, 150, 30});
+  }
+  return sheet;
+}
+
+// Which of `count` generated frames go on the sheet: all when they fit in `slots`, else
+// evenly spaced ones that include the first and the last.
+inline std::vector<std::int64_t> sheet_picks(std::int64_t count, std::int64_t slots) {
+  std::vector<std::int64_t> picks;
+  if (count <= 0 || slots <= 0) return picks;
+  if (count <= slots) {
+    for (std::int64_t i = 0; i < count; ++i) picks.push_back(i);
+    return picks;
+  }
+  for (std::int64_t k = 0; k < slots; ++k) {
+    const std::int64_t i = slots == 1 ? count - 1 : k * (count - 1) / (slots - 1);
+    if (picks.empty() || picks.back() != i) picks.push_back(i);
+  }
+  return picks;
+}
+
+}  // namespace epona::app

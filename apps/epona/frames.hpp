@@ -1,0 +1,147 @@
+// apps/epona/frames.hpp — the input clip of plan/generate: a folder of frames (PNG/JPEG, in
+// natural name order) and a poses file with one motion per frame; the last F frames of the
+// model's window are fitted to the model's image size and encoded into the History.
+#pragma once
+
+#include <algorithm>
+#include <cctype>
+#include <cstdint>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "console.hpp"
+#include "epona/core/tensor.hpp"
+#include "epona/cpu/context.hpp"
+#include "epona/io/image.hpp"
+#include "epona/io/poses.hpp"
+#include "epona/model/dcae.hpp"
+#include "epona/model/latent_layout.hpp"
+#include "epona/model/world_model.hpp"
+
+namespace epona::app {
+
+inline std::string lower_text(std::string s) {
+  for (auto& ch : s) ch = static_cast<char>(std::tolower(static_cast<unsigned char>(ch)));
+  return s;
+}
+
+inline bool is_image_file(const std::filesystem::path& p) {
+  const std::string ext = lower_text(p.extension().string());
+  return ext == ".png" || ext == ".jpg" || ext == ".jpeg";
+}
+
+// "frame_2.png" before "frame_10.png": digit runs compare by value, the rest byte-wise.
+inline bool natural_less(const std::string& a, const std::string& b) {
+  std::size_t i = 0, j = 0;
+  while (i < a.size() && j < b.size()) {
+    const bool da = std::isdigit(static_cast<unsigned char>(a[i])), db = std::isdigit(static_cast<unsigned char>(b[j]));
+    if (da && db) {
+      std::size_t ie = i, je = j;
+      while (ie < a.size() && std::isdigit(static_cast<unsigned char>(a[ie]))) ++ie;
+      while (je < b.size() && std::isdigit(static_cast<unsigned char>(b[je]))) ++je;
+      std::string na = a.substr(i, ie - i), nb = b.substr(j, je - j);
+      na.erase(0, std::min(na.find_first_not_of('0'), na.size()));
+      nb.erase(0, std::min(nb.find_first_not_of('0'), nb.size()));
+      if (na.size() != nb.size()) return na.size() < nb.size();
+      if (na != nb) return na < nb;
+      i = ie, j = je;
+      continue;
+    }
+    if (a[i] != b[j]) return a[i] < b[j];
+    ++i, ++j;
+  }
+  return a.size() - i < b.size() - j || (a.size() - i == b.size() - j && a < b);
+}
+
+// The image files of a folder in natural name order; errors name the folder.
+inline std::vector<std::filesystem::path> list_images(const std::filesystem::path& dir, const std::string& option) {
+  std::error_code ec;
+  EPONA_CHECK(std::filesystem::exists(dir, ec), option, " ", dir.string(), ": no such folder");
+  EPONA_CHECK(std::filesystem::is_directory(dir, ec), option, " ", dir.string(), ": not a folder");
+  std::vector<std::filesystem::path> files;
+  for (const auto& e : std::filesystem::directory_iterator(dir, ec))
+    if (e.is_regular_file() && is_image_file(e.path())) files.push_back(e.path());
+  EPONA_CHECK(!ec, option, " ", dir.string(), ": cannot list the folder: ", ec.message());
+  EPONA_CHECK(!files.empty(), option, " ", dir.string(), ": no .png/.jpg/.jpeg frames in the folder");
+  std::sort(files.begin(), files.end(),
+            [](const auto& x, const auto& y) { return natural_less(x.filename().string(), y.filename().string()); });
+  return files;
+}
+
+inline io::SizePolicy size_policy(const std::string& name) {
+  if (name == "resize") return io::SizePolicy::Resize;
+  if (name == "crop") return io::SizePolicy::CenterCrop;
+  if (name == "cover") return io::SizePolicy::ResizeCover;
+  return io::SizePolicy::Exact;
+}
+
+// Reads a frame, converting grayscale/RGBA/16-bit to 8-bit RGB and fitting it to height x width.
+inline io::Image read_frame(const std::filesystem::path& file, std::int64_t height, std::int64_t width,
+                            io::SizePolicy policy) {
+  io::ImageReadOptions opt;
+  opt.height = height, opt.width = width, opt.size = policy, opt.convert_to_rgb8 = true;
+  try {
+    return io::read_image(file.string(), opt);
+  } catch (const Error& e) {
+    if (policy == io::SizePolicy::Exact && std::string(e.what()).find("the model takes") != std::string::npos)
+      fail(e.what(), " (or pass --fit resize|crop|cover)");
+    throw;
+  }
+}
+
+// The frames and motions of the model's window.
+struct Clip {
+  std::vector<std::filesystem::path> files;  // the frames used (the last F of the folder)
+  std::vector<io::Image> frames;             // fitted to the model's image size
+  io::PoseSequence poses;                    // motion into each frame used
+  std::int64_t folder_frames = 0;            // frames in the folder
+};
+
+inline Clip load_clip(const std::filesystem::path& frames_dir, const std::filesystem::path& poses_file,
+                      std::int64_t window, std::int64_t height, std::int64_t width, io::SizePolicy policy) {
+  const auto files = list_images(frames_dir, "--frames");
+  const io::PoseSequence poses = io::load_poses(poses_file);
+  const auto n = static_cast<std::int64_t>(files.size());
+  EPONA_CHECK(n >= window, "--frames ", frames_dir.string(), ": the model needs ", window,
+              " condition frames, the folder holds ", n);
+  EPONA_CHECK(static_cast<std::int64_t>(poses.size()) == n, "--poses ", poses_file.string(), " holds ", poses.size(),
+              " pose(s) for the ", n, " frame(s) in ", frames_dir.string(), "; give one pose per frame");
+  Clip c;
+  c.folder_frames = n;
+  for (std::int64_t i = n - window; i < n; ++i) {
+    c.files.push_back(files[static_cast<std::size_t>(i)]);
+    c.frames.push_back(read_frame(files[static_cast<std::size_t>(i)], height, width, policy));
+    c.poses.x.push_back(poses.x[static_cast<std::size_t>(i)]);
+    c.poses.y.push_back(poses.y[static_cast<std::size_t>(i)]);
+    c.poses.yaw.push_back(poses.yaw[static_cast<std::size_t>(i)]);
+  }
+  return c;
+}
+
+// Encodes frames one by one (progress per frame) -> latents (N, C, h, w).
+template <class T>
+Tensor<float> encode_frames(cpu::Context& ctx, const Dcae<Cpu, T>& dcae, const std::vector<io::Image>& frames,
+                            const Console& con) {
+  Progress bar(con, "encode  ", static_cast<std::int64_t>(frames.size()), "frame");
+  std::vector<Tensor<float>> parts;
+  for (const auto& f : frames) {
+    parts.push_back(dcae.encode(ctx, io::image_to_tensor(f)));
+    bar.advance();
+  }
+  Shape shape = parts.front().shape();
+  shape[0] = static_cast<std::int64_t>(parts.size());
+  Tensor<float> out(shape);
+  for (std::size_t i = 0; i < parts.size(); ++i)
+    std::copy_n(parts[i].data(), parts[i].numel(), out.data() + static_cast<std::int64_t>(i) * parts[i].numel());
+  return out;
+}
+
+// The world model's window (batch 1) from encoded frames (F, C, h, w) and their motions.
+inline History make_history(cpu::Context& ctx, const Tensor<float>& latents, const io::PoseSequence& poses) {
+  const Tensor<float> tokens = latent_to_tokens(ctx, latents);  // (F, L, C)
+  return History{tokens.reshape({1, tokens.size(0), tokens.size(1), tokens.size(2)}), poses.pose_tensor(),
+                 poses.yaw_tensor()};
+}
+
+}  // namespace epona::app

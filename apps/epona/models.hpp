@@ -1,0 +1,206 @@
+// apps/epona/models.hpp — which model files and configuration a command uses (the bundled demo
+// model when no --weights/--dcae is given; the shipped configuration, WorldModelConfig{} and
+// DcaeConfig{}, unless --config names another), the compute options (backend, weight dtype,
+// threads), and loading. A binding failure is explained with what the checkpoint's shapes imply.
+#pragma once
+
+#include <chrono>
+#include <cstdlib>
+#include <filesystem>
+#include <string>
+
+#include "console.hpp"
+#include "args.hpp"
+#include "inspect.hpp"
+#include "epona/core/dtype.hpp"
+#include "epona/io/config_json.hpp"
+#include "epona/io/load_weights.hpp"
+#include "epona/model/dcae.hpp"
+#include "epona/model/world_model.hpp"
+
+namespace epona::app {
+
+// Where the bundled data lives: $EPONA_DATA_DIR, else the source tree's tests/data as built in.
+inline std::string data_dir() {
+  if (const char* env = std::getenv("EPONA_DATA_DIR"); env && *env) return env;
+#if defined(EPONA_APP_DATA_DIR)
+  return EPONA_APP_DATA_DIR;
+#elif defined(EPONA_TEST_DATA_DIR)
+  return EPONA_TEST_DATA_DIR;
+#else
+  return "tests/data";
+#endif
+}
+inline std::string demo_model_dir() { return data_dir() + "/golden"; }
+inline std::string demo_frames_dir() { return data_dir() + "/demo"; }
+
+// ---- compute options --------------------------------------------------------------------
+
+struct ComputeOptions {
+  std::string backend = "cpu";
+  bool bf16_weights = false;  // --dtype bfloat16: weights stored in bf16, activations in float32
+  int threads = 0;            // 0: all hardware threads
+};
+
+inline void add_compute_options(ArgParser& p) {
+  p.option("backend", "NAME", "cpu or cuda", "cpu")
+      .option("dtype", "TYPE", "weight precision: float32 (exact) or bfloat16 (half the memory)", "float32")
+      .option("threads", "N", "CPU threads", "all");
+}
+
+// Refuses a backend this build cannot run, naming why.
+inline void check_backend(const std::string& backend) {
+  if (backend == "cpu") return;
+#if defined(EPONA_WITH_CUDA)
+  fail("CUDA backend not yet available for the world model and the DC-AE in the epona program "
+       "(the CUDA kernels are built, the models do not run on them yet); use --backend cpu");
+#else
+  fail("this build has no CUDA backend (configure with -DEPONA_CUDA=ON on a machine with nvcc); use --backend cpu");
+#endif
+}
+
+inline ComputeOptions compute_options(const ParsedArgs& a) {
+  ComputeOptions c;
+  c.backend = a.choice("backend", {"cpu", "cuda"}, "cpu");
+  const std::string dtype = a.choice("dtype", {"float32", "fp32", "bfloat16", "bf16"}, "float32");
+  c.bf16_weights = dtype == "bfloat16" || dtype == "bf16";
+  if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 1, 4096));
+  check_backend(c.backend);
+  return c;
+}
+
+// Calls fn(float{}) or fn(bf16{}): the weight type the models are instantiated with.
+template <class Fn>
+decltype(auto) with_weight_type(const ComputeOptions& c, Fn&& fn) {
+  if (c.bf16_weights) return fn(bf16{});
+  return fn(float{});
+}
+
+// ---- which files ------------------------------------------------------------------------
+
+inline void add_model_options(ArgParser& p, bool world, bool dcae) {
+  if (world) p.option("weights", "FILE", "world-model checkpoint: official .pkl or .safetensors", "the bundled demo model");
+  if (dcae) p.option("dcae", "FILE", "DC-AE checkpoint: official .pkl (dcae_td_*.pkl) or .safetensors",
+                     world ? "the bundled demo DC-AE, or --weights when it holds the DC-AE too" : "the bundled demo DC-AE");
+  p.option("config", "FILE", "model configuration JSON (configs.json layout, or the world_model_config keys)",
+           "with --weights/--dcae: the shipped Epona configuration");
+}
+
+struct ModelFiles {
+  bool demo = false;             // the bundled demo model (small random conformance weights)
+  std::string world, dcae;       // checkpoint paths (empty when the command does not need one)
+  io::ModelConfigs configs;
+  std::string config_source;     // named in messages
+};
+
+inline void check_file(const std::string& path, const std::string& option) {
+  std::error_code ec;
+  EPONA_CHECK(std::filesystem::exists(path, ec), option, " ", path, ": no such file");
+  EPONA_CHECK(std::filesystem::is_regular_file(path, ec), option, " ", path, ": not a regular file");
+}
+
+inline ModelFiles resolve_models(const ParsedArgs& a, bool need_world, bool need_dcae) {
+  ModelFiles f;
+  f.demo = !a.has("weights") && !a.has("dcae");
+  if (f.demo) {
+    const std::string dir = demo_model_dir();
+    std::error_code ec;
+    EPONA_CHECK(std::filesystem::is_directory(dir, ec), "the bundled demo model is not at ", dir,
+                " (set EPONA_DATA_DIR to the repository's tests/data, or give --weights/--dcae)");
+    if (need_world) f.world = dir + "/weights_world.safetensors";
+    if (need_dcae) f.dcae = dir + "/weights_dcae.safetensors";
+    f.configs = io::load_configs(a.text("config", dir + "/configs.json"));
+    f.config_source = a.text("config", "the demo configuration " + dir + "/configs.json");
+    return f;
+  }
+  if (need_world) {
+    if (!a.has("weights")) usage_fail(a.command(), ": --weights FILE (the world-model checkpoint) is needed with --dcae");
+    f.world = *a.get("weights");
+    check_file(f.world, "--weights");
+  }
+  if (need_dcae) {
+    if (a.has("dcae")) {
+      f.dcae = *a.get("dcae");
+      check_file(f.dcae, "--dcae");
+    } else if (need_world) {
+      f.dcae = f.world;  // a merged checkpoint; load_dcae says so if it holds no DC-AE
+    } else {
+      usage_fail(a.command(), ": --dcae FILE (the DC-AE checkpoint) is needed with --weights");
+    }
+  }
+  if (a.has("config")) {
+    f.configs = io::load_configs(*a.get("config"));
+    f.config_source = *a.get("config");
+  } else {
+    f.configs = io::ModelConfigs{};
+    f.config_source = "the shipped Epona configuration";
+  }
+  return f;
+}
+
+// ---- loading ----------------------------------------------------------------------------
+
+inline double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+inline std::string join(const std::vector<std::string>& v, const std::string& sep) {
+  std::string s;
+  for (std::size_t i = 0; i < v.size(); ++i) s += (i ? sep : "") + v[i];
+  return s;
+}
+
+// Re-throws a binding error with the configuration the checkpoint's shapes imply, when it
+// differs from the one used.
+[[noreturn]] inline void explain_bind_failure(const Error& e, const std::vector<std::string>& differences,
+                                              const ModelFiles& f, const std::string& path) {
+  if (differences.empty()) throw e;
+  fail(e.what(), "\n  the checkpoint's shapes differ from ", f.config_source, " in: ", join(differences, "; "),
+       "\n  (write a configuration with `epona info ", path, " --write-config FILE`, check its assumed values, "
+       "and pass it with --config FILE)");
+}
+
+template <class W>
+WorldModel<Cpu, W> load_world(const ModelFiles& f, const ComputeOptions& c, const Console& con) {
+  const auto t0 = std::chrono::steady_clock::now();
+  con.note("loading the world model from ", f.world, f.demo ? " (bundled demo: small random conformance weights)" : "");
+  const io::TensorMap weights = io::load_weights(f.world);
+  try {
+    auto wm = WorldModel<Cpu, W>::load(weights, f.configs.world);
+    if (c.threads > 0) wm.context().set_threads(c.threads);
+    con.note("  ", std::int64_t(f.configs.world.parameter_count()), " parameters in ", seconds_since(t0), " s");
+    return wm;
+  } catch (const Error& e) {
+    const auto d = detect_configuration(weights, f.configs);
+    explain_bind_failure(e, world_differences(d.configs.world, f.configs.world), f, f.world);
+  }
+}
+
+// The DC-AE's keys of a map (a merged checkpoint also holds module.* world-model keys).
+inline io::TensorMap dcae_entries(const io::TensorMap& m) {
+  io::TensorMap out(m.source());
+  for (const auto& [name, t] : m.entries())
+    if (!starts_with(name, "module.")) out.add(name, t);
+  return out;
+}
+
+template <class T>
+Dcae<Cpu, T> load_dcae(const ModelFiles& f, const Console& con) {
+  const auto t0 = std::chrono::steady_clock::now();
+  con.note("loading the DC-AE from ", f.dcae, f.demo ? " (bundled demo: small random conformance weights)" : "");
+  const io::TensorMap all = io::load_weights(f.dcae);
+  const io::TensorMap weights = dcae_entries(all);  // views into `all`, which lives until binding is done
+  if (weights.size() == 0 || (f.dcae == f.world && !weights.contains("encoder.project_in.conv.conv.weight")))
+    fail(f.dcae, ": holds no DC-AE weights (no 'encoder.*' keys", weights.size() == 0 && all.size() ? "; it is a world-model checkpoint" : "",
+         "); give the DC-AE checkpoint with --dcae FILE");
+  try {
+    auto model = Dcae<Cpu, T>::load(weights, f.configs.dcae);
+    con.note("  ", std::int64_t(f.configs.dcae.parameter_count()), " parameters in ", seconds_since(t0), " s");
+    return model;
+  } catch (const Error& e) {
+    const auto d = detect_configuration(weights, f.configs);
+    explain_bind_failure(e, dcae_differences(d.configs.dcae, f.configs.dcae), f, f.dcae);
+  }
+}
+
+}  // namespace epona::app
