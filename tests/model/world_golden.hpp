@@ -61,12 +61,12 @@ inline double golden_tolerance(const std::string& name) {
 }
 
 // Compares with the golden tensor `name` (same shape required) and prints the figure.
-inline void expect_golden(const std::string& name, const Tensor<float, Cpu>& ours) {
+inline void expect_golden(const std::string& name, const Tensor<float, Cpu>& ours, const std::string& note = "") {
   const auto golden = world_golden().tensor(name);
   REQUIRE_MESSAGE(ours.shape() == golden.shape(), name, ": ours ", shape_str(ours.shape()), ", golden ",
                   shape_str(golden.shape()));
   const double rel = rel_error(ours, golden), tol = golden_tolerance(name);
-  MESSAGE(name, ": rel ", rel, " (limit ", tol, ")");
+  MESSAGE(name, note, ": rel ", rel, " (limit ", tol, ")");
   CHECK_MESSAGE(rel <= tol, name, ": rel ", rel, " exceeds ", tol);
 }
 
