@@ -183,3 +183,14 @@ TEST_CASE("bad inputs are refused with the problem named") {
   broken.encoder_width_list[5] = 33;
   CHECK_THROWS_AS(Model{broken}, Error);
 }
+
+TEST_CASE("FLOP count of the real f32c32 at 512x1024 matches spec §12 (torch flop_counter)") {
+  const DcaeConfig real;  // defaults = Epona's nuPlan DC-AE
+  const DcaeFlops f = dcae_flops(real, 512, 1024);
+  MESSAGE("encode " << f.encode / 1e9 << " GFLOP, decode " << f.decode / 1e9 << " + temporal " << f.temporal / 1e9
+                    << " GFLOP per frame");
+  CHECK(f.encode / 1e9 == doctest::Approx(4170.9).epsilon(1e-4));
+  CHECK(f.decode_total() / 1e9 == doctest::Approx(5539.4).epsilon(1e-4));
+  CHECK(f.temporal / 1e9 == doctest::Approx(0.46).epsilon(2e-2));
+  CHECK(6 * dcae_flops(real, 512, 1024, 6).decode_total() / 1e9 == doctest::Approx(33236.4).epsilon(1e-4));
+}

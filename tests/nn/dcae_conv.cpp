@@ -20,8 +20,8 @@ struct Case {
 };
 
 // Runs conv2d on random data and returns rel_max against the float64 loop (act applied to both).
-double conv_error(const Case& c, ConvAct act = ConvAct::None, bool with_bias = true) {
-  cpu::Context ctx;
+double conv_error(const Case& c, ConvAct act = ConvAct::None, bool with_bias = true, int threads = 0) {
+  cpu::Context ctx(threads);
   const HostTensor x = dcae_ref::random_tensor({c.N, c.C, c.H, c.W}, 1);
   const HostTensor w = dcae_ref::random_tensor({c.O, c.C / c.groups, c.k, c.k}, 2);
   const HostTensor b = dcae_ref::random_tensor({c.O}, 3);
@@ -53,9 +53,16 @@ TEST_CASE("conv2d groups and depthwise") {
   CHECK(conv_error({1, 6, 5, 5, 6, 5, 6}) <= 2e-6);     // depthwise 5x5 (padding 2)
 }
 
-TEST_CASE("conv2d over several im2col panels with a remainder panel") {
-  // K = 64·9 = 576 and W = 128 give 56 rows per panel: 120 rows = 56 + 56 + 8.
-  CHECK(conv_error({1, 64, 120, 128, 8, 3, 1}) <= 2e-6);
+TEST_CASE("conv2d cut into tasks: row blocks with a remainder, channel blocks on small maps") {
+  // K = 64·9 = 576 and W = 128: 14 rows per 4 MB panel, 120 rows = 8 x 14 + 8.
+  for (int threads : {1, 2, 3}) {
+    INFO("threads = " << threads);
+    CHECK(conv_error({1, 64, 120, 128, 8, 3, 1}, ConvAct::None, true, threads) <= 2e-6);
+    // 2x3 map, 40 outputs: one row block, output channels split 16 + 16 + 8 (threads > 1)
+    CHECK(conv_error({2, 24, 2, 3, 40, 3, 1}, ConvAct::Silu, true, threads) <= 2e-6);
+    CHECK(conv_error({2, 24, 2, 3, 40, 1, 1}, ConvAct::Relu, true, threads) <= 2e-6);
+    CHECK(conv_error({1, 8, 37, 5, 36, 1, 2}, ConvAct::None, true, threads) <= 2e-6);
+  }
 }
 
 TEST_CASE("conv2d fused activations, no bias") {

@@ -11,7 +11,6 @@
 #include <type_traits>
 #include <vector>
 
-#include "epona/cpu/activation.hpp"
 #include "epona/cpu/context.hpp"
 
 namespace epona {
@@ -31,25 +30,35 @@ struct Conv2dShape {
 
 namespace epona::cpu {
 
-inline void apply_conv_act(Context& ctx, float* x, std::int64_t n, ConvAct act) {
+namespace conv_detail {
+// act(v) for one value: ReLU, SiLU = v / (1 + e^-v), or identity.
+inline float activate(float v, ConvAct act) {
   switch (act) {
-    case ConvAct::None: return;
-    case ConvAct::Silu: silu(ctx, x, n); return;
-    case ConvAct::Relu:
-#pragma omp parallel for
-      for (std::int64_t i = 0; i < n; ++i) x[i] = x[i] > 0.f ? x[i] : 0.f;
-      return;
+    case ConvAct::Relu: return v > 0.f ? v : 0.f;
+    case ConvAct::Silu: return v / (1.0f + std::exp(-v));
+    case ConvAct::None: break;
   }
+  return v;
+}
+}  // namespace conv_detail
+
+inline void apply_conv_act(Context&, float* x, std::int64_t n, ConvAct act) {
+  if (act == ConvAct::None) return;
+#pragma omp parallel for
+  for (std::int64_t i = 0; i < n; ++i) x[i] = conv_detail::activate(x[i], act);
 }
 
 namespace conv_detail {
 using RowMat = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 using CMap = Eigen::Map<const RowMat>;
+using CStridedMap = Eigen::Map<const RowMat, 0, Eigen::OuterStride<>>;
 using StridedMap = Eigen::Map<RowMat, 0, Eigen::OuterStride<>>;
 
-// Upper bound on one im2col panel (floats): keeps the panel in a few tens of MB whatever the
-// image size, while leaving each GEMM wide enough (thousands of columns) to run at full speed.
-inline constexpr std::int64_t kPanelFloats = std::int64_t{1} << 22;
+// Per-thread im2col panel bound (floats, 4 MB): keeps a task's panel near the core's caches.
+inline constexpr std::int64_t kPanelFloats = std::int64_t{1} << 20;
+// Narrowest task worth its own GEMM (output columns), and tasks per thread for load balance.
+inline constexpr std::int64_t kMinTaskColumns = 256;
+inline constexpr std::int64_t kTasksPerThread = 2;
 
 inline void check_shape(const Conv2dShape& s) {
   EPONA_CHECK(s.batch >= 0 && s.in_channels > 0 && s.out_channels > 0 && s.height > 0 && s.width > 0,
@@ -80,7 +89,6 @@ const float* weights_as_float(const W* w, std::int64_t n, std::vector<float>& st
 inline void im2col(const float* in, std::int64_t channels, std::int64_t H, std::int64_t W, std::int64_t k,
                    std::int64_t y0, std::int64_t rows, float* panel) {
   const std::int64_t pad = k / 2, P = rows * W, K = channels * k * k;
-#pragma omp parallel for
   for (std::int64_t kr = 0; kr < K; ++kr) {
     const std::int64_t c = kr / (k * k), dy = (kr / k) % k - pad, dx = kr % k - pad;
     const float* plane = in + c * H * W;
@@ -101,24 +109,56 @@ inline void im2col(const float* in, std::int64_t channels, std::int64_t H, std::
   }
 }
 
-// out[o, p] = bias[o] + Σ_k W[o, k] · in[k, p] for one group of one image: a 1x1 convolution
-// is one GEMM on the image itself; larger kernels go through im2col panels of whole rows.
+// How one image-group's output (cout x H·W) is cut into independent tasks: blocks of whole
+// output rows (bounded by the panel size), and, when that leaves too few tasks for the
+// threads (small maps), blocks of output channels as well.
+struct Tiling {
+  std::int64_t rows = 1, row_tasks = 1, channels = 1, channel_tasks = 1;
+  std::int64_t tasks() const { return row_tasks * channel_tasks; }
+};
+
+inline Tiling tile(std::int64_t cout, std::int64_t K, std::int64_t H, std::int64_t W, bool panel, std::int64_t threads) {
+  Tiling t;
+  const std::int64_t want = std::max<std::int64_t>(1, threads * kTasksPerThread);
+  const std::int64_t by_panel = panel ? std::max<std::int64_t>(1, kPanelFloats / (K * W)) : H;
+  const std::int64_t by_balance = std::max<std::int64_t>((H + want - 1) / want, (kMinTaskColumns + W - 1) / W);
+  t.rows = std::clamp<std::int64_t>(std::min(by_panel, by_balance), 1, H);
+  t.row_tasks = (H + t.rows - 1) / t.rows;
+  const std::int64_t split = threads > 1 ? std::max<std::int64_t>(1, want / t.row_tasks) : 1;
+  t.channels = std::max<std::int64_t>(1, (cout + split - 1) / split);
+  t.channels = std::min(cout, (t.channels + 15) / 16 * 16);  // whole SIMD-friendly row blocks
+  t.channel_tasks = (cout + t.channels - 1) / t.channels;
+  return t;
+}
+
+// out[o, p] = act(bias[o] + Σ_k W[o, k] · in[k, p]) for one group of one image. Every task runs
+// its own im2col (k > 1) and a single-threaded GEMM, then its epilogue while the block is hot.
 inline void conv_group(const float* in, std::int64_t cin, std::int64_t H, std::int64_t W, std::int64_t k,
-                       const float* w, std::int64_t cout, float* out, std::vector<float>& panel) {
+                       const float* w, const float* bias, std::int64_t cout, float* out, ConvAct act,
+                       std::int64_t threads) {
   const std::int64_t HW = H * W, K = cin * k * k;
-  const CMap Wm(w, cout, K);
-  if (k == 1) {
-    StridedMap Y(out, cout, HW, Eigen::OuterStride<>(HW));
-    Y.noalias() = Wm * CMap(in, cin, HW);
-    return;
-  }
-  const std::int64_t rows_per_panel = std::clamp<std::int64_t>(kPanelFloats / (K * W), 1, H);
-  panel.resize(static_cast<std::size_t>(K * rows_per_panel * W));
-  for (std::int64_t y0 = 0; y0 < H; y0 += rows_per_panel) {
-    const std::int64_t rows = std::min(rows_per_panel, H - y0), P = rows * W;
-    im2col(in, cin, H, W, k, y0, rows, panel.data());
-    StridedMap Y(out + y0 * W, cout, P, Eigen::OuterStride<>(HW));
-    Y.noalias() = Wm * CMap(panel.data(), K, P);
+  const Tiling t = tile(cout, K, H, W, k > 1, threads);
+#pragma omp parallel num_threads(static_cast<int>(std::min(threads, t.tasks())))
+  {
+    std::vector<float> panel(k > 1 ? static_cast<std::size_t>(K * t.rows * W) : 0);
+#pragma omp for schedule(dynamic)
+    for (std::int64_t task = 0; task < t.tasks(); ++task) {
+      const std::int64_t y0 = (task % t.row_tasks) * t.rows, rows = std::min(t.rows, H - y0), P = rows * W;
+      const std::int64_t o0 = (task / t.row_tasks) * t.channels, no = std::min(t.channels, cout - o0);
+      StridedMap Y(out + o0 * HW + y0 * W, no, P, Eigen::OuterStride<>(HW));
+      const CMap Wm(w + o0 * K, no, K);
+      if (k == 1) {
+        Y.noalias() = Wm * CStridedMap(in + y0 * W, cin, P, Eigen::OuterStride<>(HW));
+      } else {
+        im2col(in, cin, H, W, k, y0, rows, panel.data());
+        Y.noalias() = Wm * CMap(panel.data(), K, P);
+      }
+      for (std::int64_t o = 0; o < no; ++o) {
+        float* row = out + (o0 + o) * HW + y0 * W;
+        const float b = bias ? bias[o0 + o] : 0.f;
+        for (std::int64_t p = 0; p < P; ++p) row[p] = activate(row[p] + b, act);
+      }
+    }
   }
 }
 
@@ -148,23 +188,10 @@ inline void conv_depthwise(const float* in, std::int64_t planes, std::int64_t ch
       }
   }
 }
-
-inline void add_bias_act(Context& ctx, float* y, const float* bias, std::int64_t planes, std::int64_t channels,
-                         std::int64_t HW, ConvAct act) {
-  if (bias) {
-#pragma omp parallel for
-    for (std::int64_t p = 0; p < planes; ++p) {
-      const float b = bias[p % channels];
-      float* d = y + p * HW;
-      for (std::int64_t i = 0; i < HW; ++i) d[i] += b;
-    }
-  }
-  apply_conv_act(ctx, y, planes * HW, act);
-}
 }  // namespace conv_detail
 
 // y = act(conv(x) + bias), x (N, C, H, W), y (N, O, H, W) preallocated (must not alias x).
-// W: float or bf16 weights; activations and accumulation are float32.
+// W: float or bf16 weights; activations and accumulation are float32. Threads: ctx.threads().
 template <class W>
 void conv2d(Context& ctx, const float* x, const W* weight, const float* bias, float* y, const Conv2dShape& s,
             ConvAct act = ConvAct::None) {
@@ -178,13 +205,11 @@ void conv2d(Context& ctx, const float* x, const W* weight, const float* bias, fl
     apply_conv_act(ctx, y, s.batch * s.out_channels * HW, act);
     return;
   }
-  std::vector<float> panel;
   for (std::int64_t n = 0; n < s.batch; ++n)
     for (std::int64_t g = 0; g < s.groups; ++g)
       conv_detail::conv_group(x + (n * s.in_channels + g * cin_g) * HW, cin_g, s.height, s.width, k,
-                              w + g * cout_g * cin_g * k * k, cout_g, y + (n * s.out_channels + g * cout_g) * HW,
-                              panel);
-  conv_detail::add_bias_act(ctx, y, bias, s.batch * s.out_channels, s.out_channels, HW, act);
+                              w + g * cout_g * cin_g * k * k, bias ? bias + g * cout_g : nullptr, cout_g,
+                              y + (n * s.out_channels + g * cout_g) * HW, act, ctx.threads());
 }
 
 // RMSNorm2d (the DC-AE's "trms2d"): per pixel over the C channels, no mean subtraction,
@@ -230,9 +255,7 @@ inline void gated_act(Context&, const float* value, const float* gate, float* ou
 #pragma omp parallel for collapse(2)
   for (std::int64_t r = 0; r < rows; ++r)
     for (std::int64_t i = 0; i < width; ++i) {
-      const float g = gate[r * in_stride + i];
-      const float a = act == ConvAct::Silu ? g / (1.0f + std::exp(-g)) : act == ConvAct::Relu ? (g > 0.f ? g : 0.f) : g;
-      out[r * out_stride + i] = value[r * in_stride + i] * a;
+      out[r * out_stride + i] = value[r * in_stride + i] * conv_detail::activate(gate[r * in_stride + i], act);
     }
 }
 

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -250,6 +251,55 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
     return tokens_to_latent(ctx, x.reshape({N, L, latent.size(1)}), latent.size(2), latent.size(3));
   }
 };
+
+// FLOPs of one pass at H x W, counted as spec §12 (and torch.utils.flop_counter): 2 per
+// multiply-accumulate of every convolution and matrix product (LiteMLA's padded [v; 1] products
+// and the temporal blocks' projections and attention included); biases, norms, activations,
+// softmax, residual adds and shortcuts excluded.
+struct DcaeFlops {
+  double encode = 0;           // one image
+  double decode = 0;           // one image, convolutional decoder only
+  double temporal = 0;         // temporal blocks for one image decoded in a clip of `frames`
+  double decode_total() const { return decode + temporal; }
+};
+
+inline DcaeFlops dcae_flops(const DcaeConfig& c, std::int64_t height, std::int64_t width, std::int64_t frames = 1) {
+  const double d = constants::dcae_litemla_head_dim, e = constants::dcae_glu_expand;
+  const auto pixels = [&](std::size_t s) { return double(height) * double(width) / std::pow(4.0, double(s)); };
+  const auto conv = [](double k, double in, double out, double p) { return k * k * in * out * p; };
+  const auto block = [&](DcaeBlockType t, double C, double P) {
+    if (t == DcaeBlockType::ResBlock) return 2 * conv(3, C, C, P);
+    const double n = P, heads = C / d;
+    const double attention = heads * (n > d ? 2 * (d + 1) * d * n : 2 * d * n * n);
+    return conv(1, C, 3 * C, P) + attention + conv(1, C, C, P) + conv(1, C, 2 * e * C, P) + 9 * 2 * e * C * P +
+           conv(1, e * C, C, P);
+  };
+  DcaeFlops f;
+  const auto& we = c.encoder_width_list;
+  double enc = conv(3, double(c.in_channels), double(we[1] / 4), pixels(0));
+  for (std::size_t s = 1; s < we.size(); ++s) {
+    enc += double(c.encoder_depth_list[s]) * block(c.encoder_block_type[s], double(we[s]), pixels(s));
+    if (s + 1 < we.size() && c.encoder_depth_list[s] > 0) enc += conv(3, double(we[s]), double(we[s + 1] / 4), pixels(s));
+  }
+  enc += conv(3, double(we.back()), double(c.latent_channels), pixels(we.size() - 1));
+  const auto& wd = c.decoder_width_list;
+  const std::size_t last = wd.size() - 1;
+  double dec = conv(3, double(c.latent_channels), double(wd[last]), pixels(last));
+  for (std::size_t s = 1; s < wd.size(); ++s) {
+    if (s < last && c.decoder_depth_list[s] > 0) dec += conv(3, double(wd[s + 1]), double(4 * wd[s]), pixels(s + 1));
+    dec += double(c.decoder_depth_list[s]) * block(c.decoder_block_type[s], double(wd[s]), pixels(s));
+  }
+  dec += conv(3, double(wd[1]), double(4 * c.in_channels), pixels(1));
+  if (c.add_decoder_temporal) {
+    const double L = pixels(last), D = double(c.temporal_dim), F = double(frames);
+    const double linears = 4 * D * D * L + 3 * D * double(c.temporal_ffn_hidden) * L;  // per block, per frame
+    const double attention = 2 * D * (F * L + L * L);  // time: L sequences of F per clip / F; space: L x L
+    f.temporal = 2 * double(c.temporal_blocks) * (2 * linears + attention);
+  }
+  f.encode = 2 * enc;
+  f.decode = 2 * dec;
+  return f;
+}
 
 // The whole autoencoder. encode: (N, 3, H, W) in [-1, 1] -> (N, 32, H/32, W/32); decode: the
 // inverse, with the temporal front over single frames (is_video = false) or over clips of
