@@ -71,7 +71,7 @@ struct TileRef {
 template <int QV>
 inline void pack_queries(const AttentionShape& a, const TileRef& t, Scratch& w) {
   constexpr std::int64_t kTileQ = QV * kW;
-  std::fill_n(w.qt.data(), w.dim * kTileQ, 0.f);
+  if (t.nq < kTileQ) std::fill_n(w.qt.data(), w.dim * kTileQ, 0.f);  // padding lanes score 0
   for (std::int64_t i = 0; i < t.nq; ++i) {
     const float* qi = t.q + (t.q0 + i) * a.q_row;
     for (std::int64_t d = 0; d < w.dim; ++d) w.qt[d * kTileQ + i] = qi[d];
@@ -101,9 +101,9 @@ inline void score_block(const float* qt, const float* k0, std::int64_t k_row, st
     for (int v = 0; v < QV; ++v) (acc[jj][v] * sc).store_aligned(st + jj * kTileQ + v * kW);
 }
 
-// Keys [j, nk) of the tile in blocks of JB. The remainder goes in one block of JB or of a
-// smaller power of two (at least 4: one accumulator chain alone would wait on the FMA latency),
-// its rows copied to `spare` with the last key repeated to fill the block.
+// Keys [j, nk) of the tile in blocks of JB, the remainder in blocks of JB/2, JB/4, .. 4; the
+// last partial block of 4 (one accumulator chain alone would wait on the FMA latency) has its
+// rows copied to `spare` with the last key repeated to fill the block.
 template <int D, int QV, int JB>
 inline void score_keys(const float* qt, const float* kb, std::int64_t k_row, std::int64_t dim, float scale, float* st,
                        std::int64_t j, std::int64_t nk, float* spare) {
@@ -112,7 +112,7 @@ inline void score_keys(const float* qt, const float* kb, std::int64_t k_row, std
   const auto rest = static_cast<int>(nk - j);
   if (rest == 0) return;
   if constexpr (JB > 4) {
-    if (rest <= JB / 2) return score_keys<D, QV, JB / 2>(qt, kb, k_row, dim, scale, st, j, nk, spare);
+    return score_keys<D, QV, JB / 2>(qt, kb, k_row, dim, scale, st, j, nk, spare);
   }
   for (int jj = 0; jj < JB; ++jj) std::copy_n(kb + (j + std::min(jj, rest - 1)) * k_row, dim, spare + jj * dim);
   score_block<D, QV, JB>(qt, spare, dim, dim, scale, st + j * kTileQ, rest);
