@@ -401,7 +401,7 @@ class Unpickler {
       case Kind::Bool: return "i" + std::to_string(k.i);
       case Kind::None: return "n";
       case Kind::Float:
-        if (k.f == static_cast<double>(static_cast<std::int64_t>(k.f)) && std::abs(k.f) < 9.0e18)
+        if (std::abs(k.f) < 9.0e18 && k.f == static_cast<double>(static_cast<std::int64_t>(k.f)))
           return "i" + std::to_string(static_cast<std::int64_t>(k.f));
         return "f" + std::to_string(std::bit_cast<std::uint64_t>(k.f));
       default: error("a dict key of type ", kind_name(k.kind), " is not supported");
