@@ -24,7 +24,7 @@ struct ModelConfigs {
   bool operator==(const ModelConfigs&) const = default;
 };
 
-namespace detail {
+namespace config_detail {
 using nlohmann::json;
 
 // A JSON object plus where it sits ("configs.json: dcae.config.encoder"), for error messages.
@@ -205,14 +205,14 @@ inline DcaeConfig dcae_from_world(const JsonObject& w, const WorldModelConfig& w
   if (w.has("temporal_patch_size")) c.condition_frames = w.integer("temporal_patch_size");
   return c;
 }
-}  // namespace detail
+}  // namespace config_detail
 
 // The world-model keys of the official config dict (extra keys are ignored).
 inline WorldModelConfig world_model_config_from_json(const nlohmann::json& j, const std::string& source,
                                                      const std::string& path = "world_model_config") {
-  const detail::JsonObject o(j, source, path);
+  const config_detail::JsonObject o(j, source, path);
   WorldModelConfig c;
-  const auto hw = detail::image_size(o);
+  const auto hw = config_detail::image_size(o);
   c.image_h = hw[0];
   c.image_w = hw[1];
   c.downsample_size = o.integer("downsample_size");
@@ -244,7 +244,7 @@ inline WorldModelConfig world_model_config_from_json(const nlohmann::json& j, co
 // The golden `dcae` section: {config: <dc-ae config dict>, image_size: [H, W], temporal_block: {...}}.
 inline DcaeConfig dcae_config_from_json(const nlohmann::json& j, const std::string& source,
                                         const std::string& path = "dcae") {
-  const detail::JsonObject section(j, source, path);
+  const config_detail::JsonObject section(j, source, path);
   const auto o = section.object("config");
   DcaeConfig c;
   c.in_channels = o.integer("in_channels");
@@ -256,16 +256,16 @@ inline DcaeConfig dcae_config_from_json(const nlohmann::json& j, const std::stri
     EPONA_CHECK(side->integer("latent_channels") == c.latent_channels, side->where("latent_channels"),
                 " differs from ", o.where("latent_channels"));
   }
-  detail::read_encoder(enc, c);
-  detail::read_decoder(dec, c);
+  config_detail::read_encoder(enc, c);
+  config_detail::read_decoder(dec, c);
   o.expect("use_quant_conv", false);
   o.expect("add_encoder_temporal", false);
   c.add_decoder_temporal = o.boolean("add_decoder_temporal");
   c.condition_frames = o.integer("condition_frames");
-  const auto hw = detail::image_size(section);
+  const auto hw = config_detail::image_size(section);
   c.image_h = hw[0];
   c.image_w = hw[1];
-  detail::read_temporal_block(section.object("temporal_block"), c);
+  config_detail::read_temporal_block(section.object("temporal_block"), c);
   const auto tokens = o.integer("token_size");
   if (c.image_h > 0 && c.image_w > 0)
     EPONA_CHECK(tokens == c.token_size(), o.where("token_size"), " (", tokens, ") does not match image_size ",
@@ -276,7 +276,7 @@ inline DcaeConfig dcae_config_from_json(const nlohmann::json& j, const std::stri
 // Either the golden layout (has "world_model_config") or a plain world-model object, from
 // which the DC-AE gets its image size, latent width, clip length and temporal flag. Validated.
 inline ModelConfigs configs_from_json(const nlohmann::json& j, const std::string& source) {
-  const detail::JsonObject top(j, source, "");
+  const config_detail::JsonObject top(j, source, "");
   ModelConfigs c;
   if (top.has("world_model_config")) {
     c.world = world_model_config_from_json(j.at("world_model_config"), source);
@@ -286,7 +286,7 @@ inline ModelConfigs configs_from_json(const nlohmann::json& j, const std::string
                 c.world.vae_embed_dim, ") must equal dcae.config.latent_channels (", c.dcae.latent_channels, ")");
   } else {
     c.world = world_model_config_from_json(j, source, "");
-    c.dcae = detail::dcae_from_world(top, c.world);
+    c.dcae = config_detail::dcae_from_world(top, c.world);
   }
   auto validate = [&](auto& cfg) {
     try {
@@ -350,14 +350,14 @@ inline nlohmann::json to_json(const WorldModelConfig& c) {
           {"num_sampling_steps", c.num_sampling_steps}};
 }
 
-namespace detail {
+namespace config_detail {
 template <class E>
 nlohmann::json names(const std::vector<E>& v) {
   nlohmann::json a = nlohmann::json::array();
   for (auto e : v) a.push_back(std::string(to_string(e)));
   return a;
 }
-}  // namespace detail
+}  // namespace config_detail
 
 inline nlohmann::json to_json(const DcaeConfig& c) {
   using nlohmann::json;
@@ -365,7 +365,7 @@ inline nlohmann::json to_json(const DcaeConfig& c) {
                         {"latent_channels", c.latent_channels},
                         {"width_list", c.encoder_width_list},
                         {"depth_list", c.encoder_depth_list},
-                        {"block_type", detail::names(c.encoder_block_type)},
+                        {"block_type", config_detail::names(c.encoder_block_type)},
                         {"norm", std::string(to_string(c.encoder_norm))},
                         {"act", std::string(to_string(c.encoder_act))},
                         {"downsample_block_type", "ConvPixelUnshuffle"},
@@ -380,9 +380,9 @@ inline nlohmann::json to_json(const DcaeConfig& c) {
                         {"in_shortcut", "duplicating"},
                         {"width_list", c.decoder_width_list},
                         {"depth_list", c.decoder_depth_list},
-                        {"block_type", detail::names(c.decoder_block_type)},
-                        {"norm", detail::names(c.decoder_norm)},
-                        {"act", detail::names(c.decoder_act)},
+                        {"block_type", config_detail::names(c.decoder_block_type)},
+                        {"norm", config_detail::names(c.decoder_norm)},
+                        {"act", config_detail::names(c.decoder_act)},
                         {"upsample_block_type", "ConvPixelShuffle"},
                         {"upsample_match_channel", true},
                         {"upsample_shortcut", "duplicating"},
