@@ -16,6 +16,15 @@
 
 #include "epona/core/error.hpp"
 
+// Each target's entry point. tests/reliability/fuzz_replay.cpp includes every target file with
+// EPONA_FUZZ_REPLAY defined, which names the entry points fuzz_<target> so that they share one
+// program (built by any compiler) that replays the seed corpora and every past finding.
+#ifdef EPONA_FUZZ_REPLAY
+#define EPONA_FUZZ_TARGET(target) int fuzz_##target(const std::uint8_t* data, std::size_t size)
+#else
+#define EPONA_FUZZ_TARGET(target) extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size)
+#endif
+
 namespace epona_fuzz {
 
 [[noreturn]] inline void bug(const char* what, const char* detail) {

@@ -4,7 +4,7 @@
 #include "epona/io/config_json.hpp"
 #include "fuzz_common.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(config_json) {
   return epona_fuzz::run([&] {
     const auto configs = epona::io::parse_configs(epona_fuzz::as_text(data, size), "fuzz.json");
     const auto again = epona::io::parse_configs(epona::io::to_json(configs).dump(), "round trip");

@@ -6,7 +6,7 @@
 #include "epona/io/npy.hpp"
 #include "fuzz_common.hpp"
 
-namespace {
+namespace npy_target {
 template <class T>
 void read_and_round_trip(std::span<const std::byte> bytes) {
   const auto a = epona::io::parse_npy<T>(bytes, "fuzz.npy");
@@ -16,9 +16,10 @@ void read_and_round_trip(std::span<const std::byte> bytes) {
   epona_fuzz::require(std::memcmp(a.values.data(), b.values.data(), a.values.nbytes()) == 0,
                       "round trip keeps every bit");
 }
-}  // namespace
+}  // namespace npy_target
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(npy) {
+  using namespace npy_target;
   const auto bytes = epona_fuzz::as_bytes(data, size);
   epona_fuzz::run([&] { read_and_round_trip<float>(bytes); });
   return epona_fuzz::run([&] { read_and_round_trip<double>(bytes); });

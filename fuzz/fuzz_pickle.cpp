@@ -8,7 +8,7 @@
 #include "epona/io/torch_checkpoint.hpp"
 #include "fuzz_common.hpp"
 
-namespace {
+namespace pickle_target {
 using namespace epona::io::pickle;
 
 // Visits every value reachable from `v` once, describing each (which reads every table entry).
@@ -36,9 +36,10 @@ std::size_t walk(const Document& doc, const Value& v, std::set<std::pair<Kind, s
   }
   return n;
 }
-}  // namespace
+}  // namespace pickle_target
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(pickle) {
+  using namespace pickle_target;
   return epona_fuzz::run([&] {
     const Document doc = unpickle(epona_fuzz::as_bytes(data, size), "fuzz.pkl");
     std::set<std::pair<Kind, std::int64_t>> seen;

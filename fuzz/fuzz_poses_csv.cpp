@@ -3,7 +3,7 @@
 #include "epona/io/poses.hpp"
 #include "fuzz_common.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(poses_csv) {
   return epona_fuzz::run([&] {
     const auto poses = epona::io::parse_pose_csv(epona_fuzz::as_text(data, size), "fuzz.csv");
     epona_fuzz::require(!poses.empty() && poses.y.size() == poses.size() && poses.yaw.size() == poses.size(),

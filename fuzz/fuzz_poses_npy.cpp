@@ -11,7 +11,7 @@
 #include "epona/io/trajectory_io.hpp"
 #include "fuzz_common.hpp"
 
-namespace {
+namespace poses_npy_target {
 namespace fs = std::filesystem;
 constexpr std::string_view kYawSeparator = "\xff\xfeYAW";
 
@@ -31,9 +31,10 @@ void put(const fs::path& path, std::string_view bytes) {
   out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
   if (!out) epona_fuzz::bug("cannot write the fuzz input to", path.c_str());
 }
-}  // namespace
+}  // namespace poses_npy_target
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(poses_npy) {
+  using namespace poses_npy_target;
   const auto parts = epona_fuzz::split(epona_fuzz::as_text(data, size), kYawSeparator);
   const fs::path pose = work_dir() / "pose.npy", yaw = work_dir() / "yaw.npy";
   put(pose, parts[0]);

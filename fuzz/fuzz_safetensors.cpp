@@ -3,7 +3,7 @@
 #include "epona/io/safetensors.hpp"
 #include "fuzz_common.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(safetensors) {
   return epona_fuzz::run([&] {
     const auto file = epona::io::parse_safetensors(epona_fuzz::as_bytes(data, size), "fuzz.safetensors", nullptr);
     for (const auto& [name, raw] : file.tensors.entries()) {

@@ -8,11 +8,12 @@
 #include "epona/io/torch_checkpoint.hpp"
 #include "fuzz_common.hpp"
 
-namespace {
+namespace torch_checkpoint_target {
 constexpr std::string_view kRecordSeparator = "\xff\xfeREC";
 }
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(torch_checkpoint) {
+  using namespace torch_checkpoint_target;
   const auto parts = epona_fuzz::split(epona_fuzz::as_text(data, size), kRecordSeparator);
   zip_test::ZipSpec spec;
   spec.entries.push_back({"archive/data.pkl", std::string(parts[0])});

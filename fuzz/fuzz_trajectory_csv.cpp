@@ -6,7 +6,7 @@
 #include "epona/io/trajectory_io.hpp"
 #include "fuzz_common.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(trajectory_csv) {
   return epona_fuzz::run([&] {
     const auto t = epona::io::parse_trajectory_csv(epona_fuzz::as_text(data, size), "fuzz.csv");
     const auto again = epona::io::parse_trajectory_csv(epona::io::trajectory_to_csv(t), "round trip");

@@ -5,7 +5,7 @@
 #include "epona/io/trajectory_io.hpp"
 #include "fuzz_common.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(trajectory_json) {
   return epona_fuzz::run([&] {
     const auto t = epona::io::parse_trajectory_json(epona_fuzz::as_text(data, size), "fuzz.json");
     const auto again = epona::io::parse_trajectory_json(epona::io::trajectory_to_json(t), "round trip");

@@ -4,7 +4,7 @@
 #include "epona/io/zip.hpp"
 #include "fuzz_common.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+EPONA_FUZZ_TARGET(zip) {
   return epona_fuzz::run([&] {
     const epona::io::ZipArchive zip(epona_fuzz::as_bytes(data, size), nullptr, "fuzz.zip");
     for (const auto& e : zip.entries()) {
