@@ -43,8 +43,18 @@ bool contains(const std::string& s, const std::string& part) { return s.find(par
 
 }  // namespace
 
-TEST_CASE("the golden weights bind strictly") {
+TEST_CASE("the golden weights bind strictly, from a map and from the file") {
   CHECK_NOTHROW((void)WorldModel<Cpu, float>::load(world_golden().weights, world_golden().world()));
+  CHECK_NOTHROW((void)WorldModel<Cpu, bf16>::load_file(test::golden_dir() + "/weights_world.safetensors",
+                                                       world_golden().world()));
+  // The DC-AE file has no world-model key at all: every one is reported missing.
+  try {
+    (void)WorldModel<Cpu, float>::load_file(test::golden_dir() + "/weights_dcae.safetensors", world_golden().world());
+    FAIL("a DC-AE file must not load as a world model");
+  } catch (const Error& e) {
+    CHECK(contains(e.what(), "no TrajDiT weights"));
+    CHECK(contains(e.what(), "missing 'module.model.time_emb'"));
+  }
 }
 
 TEST_CASE("missing, unexpected and mis-shaped keys are all named at once") {

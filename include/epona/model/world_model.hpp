@@ -19,6 +19,7 @@
 #include "epona/core/rng.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/flow/schedule.hpp"
+#include "epona/io/load_weights.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
 #include "epona/model/flux_dit.hpp"
@@ -138,6 +139,12 @@ class WorldModel {
     m.traj_.bind(weights, "module.traj_dit.", report);
     report.finish(true, [](const std::string& k) { return k.rfind("module.", 0) != 0; });
     return m;
+  }
+
+  // From a weight file: the official torch.save checkpoint (its "model_state_dict") or a
+  // safetensors file with the same keys. The file is released once the weights are bound.
+  static WorldModel load_file(const std::string& path, const WorldModelConfig& config = {}) {
+    return load(io::load_weights(path), config);
   }
 
   const WorldModelConfig& config() const { return cfg_; }
