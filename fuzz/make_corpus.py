@@ -1,12 +1,15 @@
 #!/usr/bin/env python3
 """Writes the seed corpora fuzz/corpus/<target>/ (small, valid or nearly valid inputs that show
 the fuzzer each format's structure). Deterministic, standard library only; the test fixtures it
-reads are in tests/data. Run from anywhere: python3 fuzz/make_corpus.py"""
+reads are in tests/data. Run from anywhere: python3 fuzz/make_corpus.py
+The JPEG seeds fuzz/corpus/image/*.jpg.in are not written here: they are baseline JPEGs from
+stb_image_write's stbi_write_jpg (after the option byte, see fuzz_image.cpp), kept as files."""
 import json
 import pathlib
 import shutil
 import struct
 import zipfile
+import zlib
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DATA = ROOT / "tests" / "data"
@@ -123,6 +126,52 @@ put("trajectory_json", "two_steps.json", json.dumps(
     {"format": "epona-trajectory", "units": {"x": "m, forward", "y": "m, left", "yaw": "deg, left turn positive"},
      "steps": traj}))
 put("trajectory_json", "bare.json", json.dumps({"steps": [[[1, 2, 3]]]}))
+
+
+# ---- PNG images (the first byte is fuzz_image.cpp's option byte) -------------------------
+def png(width, height, color_type, depth, interlace=False, palette=None):
+    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}[color_type]
+    bpp = max(1, channels * depth // 8)
+
+    def sample(x, y):
+        return bytes(((x * 29 + y * 53 + c * 101) % 256) for c in range(bpp))
+
+    def scanlines(xs, ys):  # filter type cycles through 0-4 so every PNG filter is exercised
+        xs = list(xs)
+        if depth < 8:  # packed samples: the row is ceil(width * depth / 8) bytes
+            return b"".join(bytes([y % 5]) + bytes((x * 29 + y * 53) % 256 for x in range((len(xs) * depth + 7) // 8))
+                            for y in ys)
+        return b"".join(bytes([y % 5]) + b"".join(sample(x, y) for x in xs) for y in ys)
+
+    if interlace:  # Adam7: seven passes of a sub-grid each
+        passes = [(0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2)]
+        raw = b"".join(scanlines(range(x0, width, dx), range(y0, height, dy))
+                       for x0, y0, dx, dy in passes if x0 < width and y0 < height)
+    else:
+        raw = scanlines(range(width), range(height))
+
+    def chunk(kind, body):
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, depth, color_type, 0, 0, 1 if interlace else 0)
+    out = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
+    if palette:
+        out += chunk(b"PLTE", palette)
+    return out + chunk(b"IDAT", zlib.compress(raw, 9)) + chunk(b"IEND", b"")
+
+
+EXACT, CONVERT, RESIZE, CROP, COVER, TARGET, WIDE = 0, 1, 2, 4, 6, 8, 16
+put("image", "rgb8_32x32.png.in", bytes([EXACT]) + png(32, 32, 2, 8))
+put("image", "rgb8_40x24_resize.png.in", bytes([RESIZE | TARGET]) + png(40, 24, 2, 8))
+put("image", "rgb8_72x40_cover_wide.png.in", bytes([COVER | TARGET | WIDE]) + png(72, 40, 2, 8))
+put("image", "rgb8_36x33_crop.png.in", bytes([CROP | TARGET]) + png(36, 33, 2, 8))
+put("image", "rgb8_9x7_adam7.png.in", bytes([CONVERT]) + png(9, 7, 2, 8, interlace=True))
+put("image", "gray8_4x4.png.in", bytes([CONVERT | RESIZE | TARGET]) + png(4, 4, 0, 8))
+put("image", "gray1_8x3.png.in", bytes([CONVERT]) + png(8, 3, 0, 1))
+put("image", "gray_alpha16_2x2.png.in", bytes([CONVERT | COVER | TARGET | WIDE]) + png(2, 2, 4, 16))
+put("image", "rgba8_4x4.png.in", bytes([CONVERT | RESIZE | TARGET]) + png(4, 4, 6, 8))
+put("image", "rgb16_2x2.png.in", bytes([EXACT]) + png(2, 2, 2, 16))
+put("image", "palette4_4x4.png.in", bytes([CONVERT]) + png(4, 4, 3, 4, palette=bytes(range(48))))
 
 if __name__ == "__main__":
     for d in sorted(OUT.iterdir()):

@@ -48,9 +48,9 @@ run_target() {
   [ -s "$dict" ] && args+=(-dict="$dict")
   mkdir -p "$work/$t" "$work/artifacts/$t" fuzz/corpus/"$t"
   # -timeout: an input running 10 s is a hang; -rss_limit_mb/-malloc_limit_mb: an input that makes
-  # a reader allocate over 2 GB (an unchecked size) is a finding.
+  # a reader allocate 1 GB at once or hold over 2 GB (an unchecked size) is a finding.
   nice -n 10 "$build/fuzz/fuzz_$t" "$work/$t" "fuzz/corpus/$t" "${args[@]}" -max_total_time="$seconds" \
-    -timeout=10 -rss_limit_mb=2048 -malloc_limit_mb=2048 -print_final_stats=1 \
+    -timeout=10 -rss_limit_mb=2048 -malloc_limit_mb=1024 -print_final_stats=1 \
     -artifact_prefix="$work/artifacts/$t/" >"$work/logs/$t.log" 2>&1 || true
   echo "fuzz: $t finished"
 }

@@ -12,6 +12,7 @@
 
 #define EPONA_FUZZ_REPLAY
 #include "../../fuzz/fuzz_config_json.cpp"
+#include "../../fuzz/fuzz_image.cpp"
 #include "../../fuzz/fuzz_npy.cpp"
 #include "../../fuzz/fuzz_pickle.cpp"
 #include "../../fuzz/fuzz_poses_csv.cpp"
@@ -53,6 +54,7 @@ std::size_t replay(const std::string& name, Target target) {
   TEST_CASE("fuzz target " #target " on its seeds and past findings") { CHECK(replay(#target, fuzz_##target) > 0); }
 
 REPLAY(config_json)
+REPLAY(image)
 REPLAY(npy)
 REPLAY(pickle)
 REPLAY(poses_csv)
