@@ -11,9 +11,9 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
-#include <random>
 #include <span>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #if __has_include(<stb/stb_image.h>)
@@ -26,6 +26,7 @@
 
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/io/atomic_file.hpp"
 
 namespace epona::io {
 
@@ -264,8 +265,8 @@ inline Image read_image(const std::string& path, const ImageReadOptions& opt = {
   return decode_image(bytes, path, opt);
 }
 
-// Writes an 8-bit RGB PNG: encoded in memory, written to a temporary file next to `path`, then
-// renamed over it, so a reader never sees a partial file.
+// Writes an 8-bit RGB PNG: encoded in memory, then written atomically (io/atomic_file.hpp: a
+// temporary file beside `path`, flushed and renamed over it), so a reader never sees a partial file.
 inline void write_png(const std::string& path, const Image& img) {
   EPONA_CHECK(img.height > 0 && img.width > 0 && img.rgb.size() == static_cast<std::size_t>(img.height * img.width * 3),
               path, ": cannot write an empty or inconsistent image (", img.height, "x", img.width, ")");
@@ -277,26 +278,7 @@ inline void write_png(const std::string& path, const Image& img) {
   };
   const int w = static_cast<int>(img.width), h = static_cast<int>(img.height);
   EPONA_CHECK(stbi_write_png_to_func(append, &png, w, h, 3, img.rgb.data(), w * 3) != 0, path, ": PNG encoding failed");
-  std::random_device rd;
-  const std::string tmp = path + ".tmp-" + std::to_string(rd());
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    EPONA_CHECK(out, path, ": cannot create ", tmp);
-    out.write(reinterpret_cast<const char*>(png.data()), static_cast<std::streamsize>(png.size()));
-    out.close();
-    if (!out) {
-      std::error_code ec;
-      std::filesystem::remove(tmp, ec);
-      fail(path, ": write error on ", tmp);
-    }
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::error_code ignore;
-    std::filesystem::remove(tmp, ignore);
-    fail(path, ": cannot rename ", tmp, " into place: ", ec.message());
-  }
+  write_atomically(path, std::string_view(reinterpret_cast<const char*>(png.data()), png.size()));
 }
 
 // uint8 RGB -> the model's input (1, 3, H, W): x = (u / 255 - 0.5) · 2 in float32, in that order.
