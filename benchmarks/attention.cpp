@@ -117,7 +117,8 @@ void attention_args(benchmark::internal::Benchmark* b) {
   const auto ncases = static_cast<std::int64_t>(std::size(kCases));
   for (int t : thread_counts)
     for (std::int64_t i = 0; i < ncases; ++i) b->Args({i, t, 0});
-  for (std::int64_t i = 0; i < 2; ++i) b->Args({i, all, 1});  // the bench-mid cases, old kernel
+  for (int t : thread_counts)
+    for (std::int64_t i = 0; i < 2; ++i) b->Args({i, t, 1});  // the bench-mid cases, old kernel
   best_of(b);
   b->UseRealTime()->Unit(benchmark::kMillisecond)->MinTime(0.3);
 }
