@@ -30,7 +30,6 @@ inline constexpr std::int64_t kWidth = static_cast<std::int64_t>(Batch::size);
 
 inline Batch load(const float* p) { return Batch::load_unaligned(p); }
 inline void store(float* p, const Batch& v) { v.store_unaligned(p); }
-inline Batch splat(float v) { return Batch(v); }
 
 // Loads n < kWidth floats, the other lanes set to `fill` (0 for sums, -inf for maxima).
 inline Batch load_partial(const float* p, std::int64_t n, float fill = 0.f) {
@@ -50,7 +49,9 @@ inline void store_partial(float* p, const Batch& v, std::int64_t n) {
 // load bandwidth instead of FMA throughput; the empty asm pins the value in a register.
 inline Batch load_reused(const float* p) {
   Batch v = Batch::load_unaligned(p);
-#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+#if defined(__GNUC__) && defined(__AVX512F__)
+  asm("" : "+v"(v.data));  // any of the 32 vector registers
+#elif defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
   asm("" : "+x"(v.data));
 #endif
   return v;
