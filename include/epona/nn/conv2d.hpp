@@ -13,6 +13,8 @@
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/conv.hpp"
 #include "epona/io/tensor_map.hpp"
+#include "epona/nn/backend_context.hpp"
+#include "epona/nn/parameter.hpp"
 
 namespace epona::nn {
 
@@ -24,8 +26,7 @@ class ParamBinder {
 
   template <class T, class B>
   void param(const std::string& name, Tensor<T, B>& slot, const Shape& shape) {
-    static_assert(is_host_backend<B>, "binding device tensors needs the backend's upload (not yet provided)");
-    if (const io::RawTensor* raw = report_.take(name, shape)) slot = io::to_tensor<T>(*raw);
+    slot = bind_param<B, T>(report_, name, shape);
   }
   // BatchNorm's `num_batches_tracked`: an int64 scalar that inference ignores. Absent is fine
   // (PyTorch tolerates that too); present with another type or shape is reported.
@@ -51,8 +52,7 @@ class ParamRandomizer {
 
   template <class T, class B>
   void param(const std::string& name, Tensor<T, B>& slot, const Shape& shape) {
-    static_assert(is_host_backend<B>, "random initialisation fills host tensors");
-    slot = Tensor<T, B>(shape);
+    Tensor<T, Cpu> host(shape);
     const bool is_vector = shape.size() == 1;
     const auto ends_with = [&](const char* s) {
       const std::string suffix(s);
@@ -68,7 +68,8 @@ class ParamRandomizer {
       half_width = 0.1f;
     }
     std::uniform_real_distribution<float> u(center - half_width, center + half_width);
-    for (std::int64_t i = 0; i < slot.numel(); ++i) slot.data()[i] = T(u(rng_));
+    for (std::int64_t i = 0; i < host.numel(); ++i) host.data()[i] = T(u(rng_));
+    slot = BackendTraits<B>::upload(host);
   }
   void counter(const std::string&) {}
 
