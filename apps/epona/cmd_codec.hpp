@@ -76,10 +76,10 @@ inline std::vector<std::filesystem::path> expand_inputs(const std::vector<std::s
 inline int run_encode(const ParsedArgs& a, const Console& con) {
   const ComputeOptions compute = compute_options(a);
   const ModelFiles files = resolve_models(a, false, true);
-  const auto inputs = expand_inputs(a.positionals());
   const auto policy = size_policy(a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact"));
   std::int64_t H = 0, W = 0;
   if (a.has("size")) std::tie(H, W) = parse_size(*a.get("size"));
+  const auto inputs = expand_inputs(a.positionals());
   std::vector<io::Image> images;
   for (const auto& f : inputs) {
     images.push_back(read_frame(f, H, W, policy));
