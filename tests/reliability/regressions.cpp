@@ -8,8 +8,11 @@
 #include <cstdint>
 #include <limits>
 #include <string>
+#include <vector>
 
+#include "epona/io/image.hpp"
 #include "epona/io/pickle.hpp"
+#include "epona/io/stb_implementation.hpp"
 
 using namespace epona;
 using namespace epona::io::pickle;
@@ -51,4 +54,36 @@ TEST_CASE("pickle: float dict keys outside the int64 range are keys of their own
     CHECK(std::bit_cast<std::uint64_t>(items[i].first.f) == std::bit_cast<std::uint64_t>(keys[i]));
     CHECK(items[i].second.i == (i == 5 ? 7 : static_cast<std::int64_t>(i) + 1));  // {2.0: 6, 2: 7} -> 2.0: 7
   }
+}
+
+// fuzz_image, crash-15740 (fuzz/regressions/image/jpeg-dht-more-than-256-codes.jpg.in): stb_image
+// 2.27 writes past its Huffman tables when a DHT declares more than 256 codes (ASan/UBSan: index
+// 257 out of bounds in stbi__build_huffman). image.hpp now checks every DHT table first; tables
+// that break the limit, or do not fit their segment, are refused by name.
+TEST_CASE("image: a JPEG Huffman table with more than 256 codes is refused before stb sees it") {
+  auto jpeg_with_dht = [](const std::vector<std::uint8_t>& counts, std::size_t symbols) {
+    std::vector<std::uint8_t> table = {0x00};  // class 0 (DC), table 0
+    table.insert(table.end(), counts.begin(), counts.end());
+    table.resize(table.size() + symbols, 0x01);
+    const std::size_t len = table.size() + 2;
+    std::vector<std::uint8_t> b = {0xFF, 0xD8, 0xFF, 0xC4, std::uint8_t(len >> 8), std::uint8_t(len & 0xff)};
+    b.insert(b.end(), table.begin(), table.end());
+    const std::uint8_t scan[] = {0xFF, 0xDA, 0x00, 0x08, 0x01, 0x01, 0x00, 0x00, 0x3F, 0x00, 0x12, 0x34, 0xFF, 0xD9};
+    b.insert(b.end(), std::begin(scan), std::end(scan));
+    return b;
+  };
+  std::vector<std::uint8_t> counts(16, 0);
+  counts[0] = 255, counts[1] = 2;  // 257 codes
+  CHECK_THROWS_WITH_AS(io::decode_image(jpeg_with_dht(counts, 257), "dht.jpg"),
+                       doctest::Contains("dht.jpg: corrupt JPEG (Huffman table at byte 6 declares 257 codes"), Error);
+  counts.assign(16, 255);  // 4080 codes, the most 16 count bytes can declare
+  CHECK_THROWS_WITH_AS(io::decode_image(jpeg_with_dht(counts, 4080), "dht.jpg"),
+                       doctest::Contains("declares 4080 codes"), Error);
+  counts.assign(16, 0);
+  counts[0] = 2;  // a valid count whose symbols are missing from the segment
+  CHECK_THROWS_WITH_AS(io::decode_image(jpeg_with_dht(counts, 1), "dht.jpg"),
+                       doctest::Contains("they must fit in its segment"), Error);
+  counts[0] = 1;  // a well-formed table passes the check and reaches stb (which finds no frame header)
+  CHECK_THROWS_WITH_AS(io::decode_image(jpeg_with_dht(counts, 1), "dht.jpg"), doctest::Contains("cannot decode image"),
+                       Error);
 }

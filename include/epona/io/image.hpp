@@ -78,6 +78,34 @@ inline std::uint32_t be32(const std::uint8_t* p) {
   return (std::uint32_t(p[0]) << 24) | (std::uint32_t(p[1]) << 16) | (std::uint32_t(p[2]) << 8) | p[3];
 }
 
+// stb_image 2.27 (Debian 12's libstb) does not bound the code count of a JPEG Huffman table
+// (DHT) and writes past its tables when a hostile file declares more than 256 codes (found by
+// fuzz/fuzz_image), so every marker segment is walked and every DHT table checked first.
+inline void check_jpeg_huffman_tables(std::span<const std::uint8_t> b, const std::string& source) {
+  for (std::size_t pos = 2; pos + 1 < b.size();) {
+    const std::uint8_t m = b[pos + 1];
+    // Scan data, fill bytes, stuffed 0xFF00, RSTn and TEM carry no segment: step over them.
+    if (b[pos] != 0xFF || m == 0xFF || m == 0x00 || m == 0x01 || (m >= 0xD0 && m <= 0xD7)) {
+      pos += b[pos] == 0xFF && m != 0xFF ? 2 : 1;
+      continue;
+    }
+    if (m == 0xD9) return;  // end of image
+    EPONA_CHECK(pos + 4 <= b.size(), source, ": truncated JPEG (marker at byte ", pos, " has no length)");
+    const std::size_t len = (std::size_t{b[pos + 2]} << 8) | b[pos + 3];
+    EPONA_CHECK(len >= 2 && pos + 2 + len <= b.size(), source, ": corrupt JPEG (the segment at byte ", pos,
+                " declares ", len, " bytes, the file ends at ", b.size(), ")");
+    for (std::size_t t = pos + 4, end = pos + 2 + len; m == 0xC4 && t < end;) {  // DHT: tables back to back
+      EPONA_CHECK(end - t >= 17, source, ": corrupt JPEG (Huffman table at byte ", t, " is cut short)");
+      std::size_t codes = 0;
+      for (std::size_t i = 1; i <= 16; ++i) codes += b[t + i];
+      EPONA_CHECK(codes <= 256 && end - t - 17 >= codes, source, ": corrupt JPEG (Huffman table at byte ", t,
+                  " declares ", codes, " codes; at most 256, and they must fit in its segment)");
+      t += 17 + codes;
+    }
+    pos += 2 + len;
+  }
+}
+
 // stb decodes many truncated files into partly grey images without complaint, so the
 // container is checked first: PNG chunks must lie inside the file up to IEND; a JPEG must have
 // its end-of-image marker after the last start-of-scan (markers never occur inside scan data).
@@ -104,6 +132,7 @@ inline void check_container(std::span<const std::uint8_t> b, const std::string& 
     }
     EPONA_CHECK(last_sos > 0, source, ": JPEG without image data (no start-of-scan marker)");
     EPONA_CHECK(last_eoi > last_sos, source, ": truncated JPEG (no end-of-image marker after the last scan)");
+    check_jpeg_huffman_tables(b, source);
     return;
   }
   fail(source, ": not a PNG or JPEG file");
@@ -113,7 +142,7 @@ inline const char* channel_name(int comp) {
   switch (comp) {
     case 1: return "grayscale";
     case 2: return "grayscale + alpha";
-    case 4: return "RGBA";
+    case 4: return "RGBA or CMYK";
     default: return "RGB";
   }
 }
