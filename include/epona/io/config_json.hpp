@@ -117,11 +117,11 @@ class JsonObject {
   // Integers may be written 50 or 50.0; anything fractional or out of int64 range is an error.
   std::int64_t to_integer(const json& v, const char* key, std::ptrdiff_t index = -1) const {
     const std::string at_ = index < 0 ? where(key) : where(key) + "[" + std::to_string(index) + "]";
-    if (v.is_number_integer()) return v.get<std::int64_t>();
-    if (v.is_number_unsigned()) {
+    if (v.is_number_unsigned()) {  // first: is_number_integer() is true for unsigned values too
       EPONA_CHECK(v.get<std::uint64_t>() <= std::uint64_t(INT64_MAX), at_, " is out of range: ", v.dump());
       return static_cast<std::int64_t>(v.get<std::uint64_t>());
     }
+    if (v.is_number_integer()) return v.get<std::int64_t>();
     EPONA_CHECK(v.is_number_float(), at_, " must be an integer, got ", type_of(v));
     const double d = v.get<double>();
     EPONA_CHECK(std::isfinite(d) && d == std::floor(d) && std::fabs(d) < 9.2e18, at_,
