@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# The CPU test suite under AddressSanitizer + UndefinedBehaviorSanitizer (+ LeakSanitizer, and
+# float-cast-overflow): configures, builds and runs every test with -DEPONA_SANITIZE=ON in
+# build-asan (EPONA_ASAN_BUILD_DIR overrides). Any sanitizer report fails its test.
+# Extra arguments go to ctest (e.g. -R io_).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/setup.sh
+build=${EPONA_ASAN_BUILD_DIR:-build-asan}
+jobs=${EPONA_JOBS:-$(nproc)}
+start=$SECONDS
+cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DEPONA_SANITIZE=ON -DEPONA_CUDA=OFF \
+  -DEPONA_TESTS=ON -DEPONA_BENCHMARKS=OFF -DEPONA_EXAMPLES=OFF
+cmake --build "$build" -j "$jobs"
+built=$SECONDS
+# halt_on_error + abort: a report is a failed test; detect_leaks: LeakSanitizer at exit.
+export ASAN_OPTIONS=${ASAN_OPTIONS:-detect_leaks=1:halt_on_error=1:abort_on_error=1:strict_string_checks=1:detect_stack_use_after_return=1}
+export UBSAN_OPTIONS=${UBSAN_OPTIONS:-print_stacktrace=1:halt_on_error=1}
+ctest --test-dir "$build" --output-on-failure -j "$jobs" "$@"
+echo "test-sanitize: build $((built - start)) s, tests $((SECONDS - built)) s"
