@@ -1,9 +1,53 @@
 #!/usr/bin/env bash
-# The main job: installs dependencies, builds, and runs the demo on the bundled model.
+# The main job: installs dependencies, builds the `epona` program, then runs `epona generate`
+# and `epona plan` on the bundled demo (a small conformance model with random weights and a
+# rendered 3-frame road clip, both in tests/data), writing PNG/JSON/CSV into ./out/demo.
+#
+#   scripts/demo.sh                                   # the bundled demo
+#   scripts/demo.sh --weights epona_nuplan.pkl --dcae dcae_td_20000.pkl \
+#                   --frames clip/ --poses clip/poses.csv    # the released model
+#
+# Options of its own: --out DIR (default out/demo), -n/--num-frames N (frames to generate,
+# default 6). Every other option goes to both commands (--steps, --seed, --dtype, --threads,
+# --fit, --config, --quiet; see `epona plan --help`). Paths are relative to where it is run.
+# EPONA_BUILD_DIR picks the build folder (default: build, inside the repository).
 set -euo pipefail
-cd "$(dirname "$0")/.."
+caller=$(pwd)
+root=$(cd "$(dirname "$0")/.." && pwd)
+
+out=out/demo
+frames=6
+pass=()
+while (($#)); do
+  case "$1" in
+    --out|-o) out=${2:?"--out needs a folder"}; shift 2 ;;
+    --out=*) out=${1#--out=}; shift ;;
+    -n|--num-frames) frames=${2:?"$1 needs a number"}; shift 2 ;;
+    --num-frames=*) frames=${1#--num-frames=}; shift ;;
+    -h|--help) sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    *) pass+=("$1"); shift ;;
+  esac
+done
+
+cd "$root"
 scripts/setup.sh
 build=${EPONA_BUILD_DIR:-build}
-cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DEPONA_TESTS=OFF -DEPONA_BENCHMARKS=OFF -DEPONA_EXAMPLES=ON
-cmake --build "$build" -j "$(nproc)" --target example_demo
-"$build/examples/example_demo" "$@"
+cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DEPONA_TESTS=OFF -DEPONA_BENCHMARKS=OFF \
+      -DEPONA_EXAMPLES=ON >/dev/null
+cmake --build "$build" -j "$(nproc)" --target epona_cli
+epona=$(cd "$build" && pwd)/apps/epona
+
+cd "$caller"
+echo
+echo "== epona generate: roll out $frames frame(s) under the model's own plan"
+"$epona" generate "${pass[@]}" --num-frames "$frames" --out "$out/generate"
+echo
+echo "== epona plan: the trajectory from the last frames"
+"$epona" plan "${pass[@]}" --out "$out/plan"
+echo
+echo "demo outputs are in $(cd "$out" && pwd):"
+echo "  generate/frames/frame_*.png   generated frames"
+echo "  generate/contact_sheet.png    input frames (blue) and generated frames (orange)"
+echo "  generate/trajectory.csv/.json each step's planned trajectory; generate/poses.csv the motion into each frame"
+echo "  plan/plan.png                 the planned trajectory drawn top-down over the last frame"
+echo "  plan/trajectory.csv/.json     the planned waypoints (x m forward, y m left, yaw deg)"

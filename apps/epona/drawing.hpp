@@ -74,14 +74,29 @@ struct TopDownView {
   double py(double x_fwd, double /*y_left*/) const { return origin_y - x_fwd * pixels_per_metre; }
 };
 
+// Nearest-neighbour enlargement by an integer factor (keeps small frames' pixels crisp).
+inline io::Image enlarge(const io::Image& in, std::int64_t factor) {
+  if (factor <= 1) return in;
+  io::Image out(in.height * factor, in.width * factor);
+  for (std::int64_t y = 0; y < out.height; ++y)
+    for (std::int64_t x = 0; x < out.width; ++x)
+      for (int c = 0; c < 3; ++c) out.at(y, x, c) = in.at(y / factor, x / factor, c);
+  return out;
+}
+
+// plan.png is at least this tall: smaller frames are enlarged by an integer factor first.
+inline constexpr std::int64_t kPlanMinHeight = 256;
+
 // Waypoint colour: green (first) to red (last).
 inline Rgb waypoint_colour(std::int64_t i, std::int64_t n) {
   const double t = n > 1 ? double(i) / double(n - 1) : 0.0;
   return {static_cast<std::uint8_t>(40 + 215 * t), static_cast<std::uint8_t>(230 - 190 * t), 40};
 }
 
-// The frame with the planned waypoints (W, 3) (metres forward, metres left, degrees) drawn on it.
-inline io::Image draw_plan(io::Image frame, const Tensor<float>& waypoints, TopDownView* view_out = nullptr) {
+// The frame (enlarged to at least kPlanMinHeight rows) with the planned waypoints (W, 3)
+// (metres forward, metres left, degrees) drawn on it.
+inline io::Image draw_plan(const io::Image& last_frame, const Tensor<float>& waypoints, TopDownView* view_out = nullptr) {
+  io::Image frame = enlarge(last_frame, (kPlanMinHeight + last_frame.height - 1) / last_frame.height);
   const TopDownView view = TopDownView::fit(frame, waypoints);
   if (view_out) *view_out = view;
   const double r = std::max(1.0, std::round(double(frame.height) / 96.0));  // line half-width
