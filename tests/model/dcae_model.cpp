@@ -98,6 +98,12 @@ TEST_CASE("strict binding names missing, mis-shaped and unexpected keys") {
   CHECK_THROWS_WITH_AS(Model::load(edited("", {{"decoder.surprise", one}}), config()),
                        doctest::Contains("unexpected 'decoder.surprise'"), Error);
   CHECK_NOTHROW(Model::load(edited("", {{"decoder.surprise", one}}), config(), false));
+  // a counter where no BatchNorm is (the encoder uses RMSNorm2d) is not exempt
+  const std::string stray = "encoder.stages.1.op_list.0.main.conv2.norm.num_batches_tracked";
+  REQUIRE(!weights().contains(stray));
+  const io::RawTensor& counter = weights().at("decoder.stages.1.op_list.1.main.conv2.norm.num_batches_tracked");
+  CHECK_THROWS_WITH_AS(Model::load(edited("", {{stray, counter}}), config()),
+                       doctest::Contains(("unexpected '" + stray + "'").c_str()), Error);
 
   const std::string wkey = "space_block.3.attention.wq.weight";
   io::RawTensor bad = weights().at(wkey);

@@ -321,11 +321,9 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
   static Dcae load(const io::TensorMap& weights, const DcaeConfig& config, bool strict = true) {
     Dcae model(config);
     io::BindReport report(weights);
-    model.bind(weights, "", report);
-    report.finish(strict, [](const std::string& name) {
-      const std::string counter = "num_batches_tracked";
-      return name.size() >= counter.size() && name.compare(name.size() - counter.size(), counter.size(), counter) == 0;
-    });
+    nn::ParamBinder binder(weights, report);
+    model.visit_params("", binder);
+    report.finish(strict, [&](const std::string& name) { return binder.is_counter(name); });
     return model;
   }
 

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdint>
 #include <random>
+#include <set>
 #include <string>
 #include <type_traits>
 
@@ -32,15 +33,19 @@ class ParamBinder {
   // (PyTorch tolerates that too); present with another type or shape is reported.
   void counter(const std::string& name) {
     if (!map_.contains(name)) return;
+    counters_.insert(name);
     const io::RawTensor& r = map_.at(name);
     if (r.dtype != DType::I64 || r.numel() != 1)
       report_.problem("'" + name + "' should be an int64 scalar, is " + std::string(dtype_name(r.dtype)) + " " +
                       shape_str(r.shape));
   }
+  // True for the counters visited so far (to exempt them from a strict report's "unexpected").
+  bool is_counter(const std::string& name) const { return counters_.count(name) != 0; }
 
  private:
   const io::TensorMap& map_;
   io::BindReport& report_;
+  std::set<std::string> counters_;
 };
 
 // Fills parameter slots with seeded random values of a sensible scale (benchmarks, tests):
