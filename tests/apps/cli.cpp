@@ -309,7 +309,9 @@ TEST_CASE("plan on the bundled demo: outputs exist, sizes, equal to WorldModel::
   INFO(r.err);
   REQUIRE(r.rc == 0);
   const io::ModelConfigs demo = io::load_configs(std::string(EPONA_TEST_DATA_DIR) + "/golden/configs.json");
-  check_png(t / "plan/plan.png", demo.world.image_h, demo.world.image_w);
+  const std::int64_t k = (app::kPlanMinHeight + demo.world.image_h - 1) / demo.world.image_h;  // small frames enlarged
+  check_png(t / "plan/plan.png", k * demo.world.image_h, k * demo.world.image_w);
+  CHECK(has(r.out, "plan.png (" + std::to_string(k * demo.world.image_h) + "x" + std::to_string(k * demo.world.image_w)));
   const Tensor<float> json = io::read_trajectory(t / "plan/trajectory.json");
   const Tensor<float> csv = io::read_trajectory(t / "plan/trajectory.csv");
   CHECK(json.shape() == Shape{1, demo.world.traj_len, 3});
@@ -326,8 +328,8 @@ TEST_CASE("plan on the bundled demo: outputs exist, sizes, equal to WorldModel::
   SampleOptions opt;
   opt.seed = 7;
   check_same(json, wm.plan(h, opt));
-  // The picture is the last frame with the plan drawn on it: same size, some pixels changed.
-  const io::Image last = demo_frame(2), drawn = io::read_image(t / "plan/plan.png");
+  // The picture is the (enlarged) last frame with the plan drawn on it: some pixels changed.
+  const io::Image last = app::enlarge(demo_frame(2), k), drawn = io::read_image(t / "plan/plan.png");
   std::int64_t changed = 0;
   for (std::size_t i = 0; i < last.rgb.size(); ++i) changed += last.rgb[i] != drawn.rgb[i];
   CHECK(changed > 0);
