@@ -7,7 +7,7 @@
 //              (default tests/data/golden: the small conformance model, random weights)
 //   CLIP_DIR   frames (*.png, in name order) and poses.csv with one x,y,yaw row per frame
 //              (default tests/data/demo)
-// The released model: io::load_weights("epona_nuplan.pkl") / ("dcae_td_20000.pkl") with the
+// The released model: io::load_weights("world.pkl") / ("dcae_td_20000.pkl") with the
 // default-constructed WorldModelConfig{} and DcaeConfig{}.
 #include <algorithm>
 #include <cstdio>

@@ -4,7 +4,7 @@
 # rendered 3-frame road clip, both in tests/data), writing PNG/JSON/CSV into ./out/demo.
 #
 #   scripts/demo.sh                                   # the bundled demo
-#   scripts/demo.sh --weights epona_nuplan.pkl --dcae dcae_td_20000.pkl \
+#   scripts/demo.sh --weights world.pkl --dcae dcae_td_20000.pkl \
 #                   --frames clip/ --poses clip/poses.csv    # the released model
 #
 # Options of its own: --out DIR (default out/demo), -n/--num-frames N (frames to generate,

@@ -47,7 +47,7 @@ inline ArgParser generate_parser() {
   add_output_options(p, "out/generate");
   p.epilog("examples:\n"
            "  epona generate -n 4                          # the bundled demo\n"
-           "  epona generate --weights epona_nuplan.pkl --dcae dcae_td_20000.pkl --frames clip/ \\\n"
+           "  epona generate --weights world.pkl --dcae dcae_td_20000.pkl --frames clip/ \\\n"
            "                 --poses clip/poses.csv -n 60 --steps 100 --out out/drive\n"
            "  epona generate ... --trajectory out/drive/trajectory.csv   # replay the same actions");
   return p;

@@ -29,7 +29,7 @@ inline ArgParser info_parser() {
       .option("config", "FILE", "configuration to compare with", "the shipped Epona configuration")
       .option("write-config", "FILE", "write the detected configuration (assumed values from --config) as JSON")
       .flag("quiet", "no notes on stderr", 'q')
-      .epilog("example:\n  epona info epona_nuplan.pkl dcae_td_20000.pkl --write-config nuplan.json");
+      .epilog("example:\n  epona info world.pkl dcae_td_20000.pkl --write-config nuplan.json");
   return p;
 }
 

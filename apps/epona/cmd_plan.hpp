@@ -31,7 +31,7 @@ inline ArgParser plan_parser() {
   add_output_options(p, "out/plan");
   p.epilog("examples:\n"
            "  epona plan                                  # the bundled demo\n"
-           "  epona plan --weights epona_nuplan.pkl --dcae dcae_td_20000.pkl \\\n"
+           "  epona plan --weights world.pkl --dcae dcae_td_20000.pkl \\\n"
            "             --frames clip/ --poses clip/poses.csv --out out/plan");
   return p;
 }
