@@ -1,17 +1,22 @@
 // epona/cpu/gemm.hpp — Linear layers on the CPU: y = act(x · Wᵀ + b) with PyTorch's weight
-// layout W (out, in). float32 weights go straight to Eigen's multi-threaded GEMM; bfloat16
-// weights are widened to float32 in blocks (fp32 accumulation). Bias and activation are
-// fused into one vectorised pass over the output.
+// layout W (out, in). Packed, cache-blocked micro-kernels (gemm_kernels.hpp, chosen at run time
+// by cpu_features.hpp: AVX-512, AVX512-BF16 dot products for bf16 weights, AVX2) with bias and
+// activation applied to each finished tile; Eigen where no kernel fits (the "generic" path).
 #pragma once
 
 #include <algorithm>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
+#include <string_view>
 #include <type_traits>
 #include <vector>
 
 #include "epona/cpu/context.hpp"  // first: includes Eigen with GCC 12's false positives silenced
 #include "epona/cpu/activation.hpp"
+#include "epona/cpu/cpu_features.hpp"
+#include "epona/cpu/gemm_driver.hpp"
+#include "epona/cpu/gemm_kernels.hpp"
 #include "epona/cpu/simd.hpp"
 
 namespace epona::cpu {
@@ -182,15 +187,115 @@ void linear_column_blocks(const float* x, std::int64_t ldx, const W* w, const fl
     }
   }
 }
+
+// ---- the packed micro-kernel path -------------------------------------------------------
+
+// The AVX-512 tile: 6×64 where a 512-bit FMA issues once per cycle (AMD Zen 4/5: fewer
+// broadcasts per FMA pay), 14×32 elsewhere (two FMA pipes: lighter on L2). EPONA_CPU_TILE=
+// tall|wide overrides (benchmarks comparing them; both are tested on every CPU).
+inline gemm::Tile avx512_tile() {
+  static const gemm::Tile tile = [] {
+    const char* env = std::getenv("EPONA_CPU_TILE");
+    if (env && *env) {
+      const std::string_view v(env);
+      EPONA_CHECK(v == "tall" || v == "wide", "EPONA_CPU_TILE='", v, "' is not tall (14x32) or wide (6x64)");
+      return v == "tall" ? gemm::Tile::Tall : gemm::Tile::Wide;
+    }
+    return cpu_features().amd ? gemm::Tile::Wide : gemm::Tile::Tall;
+  }();
+  return tile;
+}
+
+// The micro-kernel family for weights W under `isa`; null for the generic (Eigen) path. bf16
+// weights take the BF16 dot-product kernels where the CPU has them, else are widened to
+// float32 while packing (no rounding of the activations then).
+template <class W>
+const gemm::KernelFamily* kernel_family(Isa isa) {
+#if defined(EPONA_GEMM_X86)
+  switch (isa) {
+    case Isa::Avx512Bf16:
+      return std::is_same_v<W, bf16> ? &gemm::avx512_bf16(avx512_tile()) : &gemm::avx512_f32(avx512_tile());
+    case Isa::Avx512: return &gemm::avx512_f32(avx512_tile());
+    case Isa::Avx2: return &gemm::avx2_f32();
+    case Isa::Generic: break;
+  }
+#endif
+  return nullptr;
+}
+
+// Packs rows of the activations x (M×K, row stride ldx): float32 steps, or bf16 pairs.
+struct PackActivations {
+  const gemm::KernelFamily& f;
+  const float* x;
+  std::int64_t ldx, K;
+  void operator()(std::int64_t m0, std::int64_t rows, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
+    const float* rows_x = x + m0 * ldx;
+#if defined(EPONA_GEMM_X86)
+    if (f.k_per_step == 2) return gemm::pack_bf16_pairs_rounded(rows_x, ldx, rows, f.mr, K, s0, steps, dst);
+    if (f.avx512_packing) return gemm::pack_f32_avx512(rows_x, ldx, rows, f.mr, s0, steps, dst);
+#endif
+    gemm::pack_transposed(rows_x, ldx, rows, f.mr, s0, steps, dst, gemm::FloatStep{});
+  }
+};
+
+// Packs rows of the weights w (N×K): float32 steps (bf16 widened), or bf16 pairs as stored.
+template <class W>
+struct PackWeights {
+  const gemm::KernelFamily& f;
+  const W* w;
+  std::int64_t K;
+  void operator()(std::int64_t n0, std::int64_t cols, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
+    const W* rows_w = w + n0 * K;
+#if defined(EPONA_GEMM_X86)
+    if (f.avx512_packing) {
+      if constexpr (std::is_same_v<W, float>) return gemm::pack_f32_avx512(rows_w, K, cols, f.nr, s0, steps, dst);
+      else if (f.k_per_step == 1) return gemm::pack_bf16_widened_avx512(rows_w, K, cols, f.nr, s0, steps, dst);
+      else if (K % 2 == 0) return gemm::pack_bf16_pairs_avx512(rows_w, K, cols, f.nr, s0, steps, dst);
+    }
+#endif
+    if constexpr (std::is_same_v<W, bf16>) {
+      if (f.k_per_step == 2) return gemm::pack_transposed(rows_w, K, cols, f.nr, s0, steps, dst, gemm::Bf16PairStep{K});
+    }
+    gemm::pack_transposed(rows_w, K, cols, f.nr, s0, steps, dst, gemm::FloatStep{});
+  }
+};
+
+// Bias and activation on a finished tile of y (rows × cols at m0, n0), while it is in L1.
+template <class Act>
+struct LinearTileEpilogue {
+  float* y;
+  std::int64_t ldy;
+  const float* bias;  // per output column, or null
+  Act act;
+  void operator()(std::int64_t m0, std::int64_t rows, std::int64_t n0, std::int64_t cols) const {
+    for (std::int64_t r = 0; r < rows; ++r) bias_activation_row(y + (m0 + r) * ldy + n0, cols, bias ? bias + n0 : nullptr, act);
+  }
+};
+struct NoEpilogue {
+  void operator()(std::int64_t, std::int64_t, std::int64_t, std::int64_t) const {}
+};
+
+template <class W>
+void linear_packed(const gemm::KernelFamily& f, int threads, const float* x, std::int64_t ldx, const W* w,
+                   const float* b, float* y, std::int64_t ldy, std::int64_t M, std::int64_t N, std::int64_t K,
+                   Epilogue epi) {
+  const std::int64_t steps = (K + f.k_per_step - 1) / f.k_per_step;
+  const PackActivations pack_a{f, x, ldx, K};
+  const PackWeights<W> pack_b{f, w, K};
+  if (epi == Epilogue::None && !b) return gemm::run_gemm(f, M, N, steps, threads, pack_a, pack_b, y, ldy, NoEpilogue{});
+  with_activation(epi, [&](auto act) {
+    gemm::run_gemm(f, M, N, steps, threads, pack_a, pack_b, y, ldy, LinearTileEpilogue<decltype(act)>{y, ldy, b, act});
+  });
+}
 }  // namespace detail
 
 // Pointer form with row strides (x rows ldx apart, y rows ldy apart, so y can be a column
 // block of a wider buffer): y[M, N] = act(x[M, K] · w[N, K]ᵀ + bias[N]); bias may be null.
-// Large fp32 products use Eigen's threads; few rows or bf16 weights split columns instead,
-// and up to kDotRows rows are plain dot products over the weights (one pass, bf16 widened
-// in registers).
+// Up to kDotRows rows: plain dot products over the weights (one pass, bf16 widened in
+// registers). More: the packed micro-kernels of active_isa(); on the generic path Eigen's
+// threaded GEMM (fp32, >= kFewRows rows) or column blocks shared among the threads.
 template <class W>
-void linear(Context&, const float* x, std::int64_t ldx, const W* w, const W* bias, float* y, std::int64_t ldy,
+void linear(Context& ctx, const float* x, std::int64_t ldx, const W* w, const W* bias, float* y, std::int64_t ldy,
             std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi = Epilogue::None) {
   static_assert(std::is_same_v<W, float> || std::is_same_v<W, bf16>, "linear: weights are float or bf16");
   EPONA_CHECK(M >= 0 && N >= 0 && K >= 0, "linear: negative extent (M ", M, ", N ", N, ", K ", K, ")");
@@ -205,9 +310,12 @@ void linear(Context&, const float* x, std::int64_t ldx, const W* w, const W* bia
     detail::widen_bf16(bias, bias_f.data(), N);
     b = bias_f.data();
   }
+  if (M <= detail::kDotRows) return detail::linear_dot_rows(x, ldx, w, b, y, ldy, M, N, K, epi);
+  if (const gemm::KernelFamily* f = detail::kernel_family<W>(active_isa()))
+    return detail::linear_packed(*f, ctx.threads(), x, ldx, w, b, y, ldy, M, N, K, epi);
+  // Generic path. Large fp32 GEMM: Eigen's own multi-threaded GEMM, then one parallel epilogue.
   if constexpr (std::is_same_v<W, float>) {
     if (M >= detail::kFewRows) {
-      // Large fp32 GEMM: Eigen's own multi-threaded GEMM, then one parallel epilogue pass.
       detail::CMapRow X(x, M, K, detail::Strided(ldx));
       detail::MapRow Y(y, M, N, detail::Strided(ldy));
       Y.noalias() = X * detail::CMapRow(w, N, K, detail::Strided(K)).transpose();
@@ -215,8 +323,7 @@ void linear(Context&, const float* x, std::int64_t ldx, const W* w, const W* bia
       return;
     }
   }
-  if (M <= detail::kDotRows) detail::linear_dot_rows(x, ldx, w, b, y, ldy, M, N, K, epi);
-  else detail::linear_column_blocks(x, ldx, w, b, y, ldy, M, N, K, epi);
+  detail::linear_column_blocks(x, ldx, w, b, y, ldy, M, N, K, epi);
 }
 
 // x: (..., K) float32; w: (N, K) float or bf16; bias: (N) or empty; y: (..., N) preallocated.
