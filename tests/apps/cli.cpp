@@ -183,7 +183,7 @@ TEST_CASE("--backend cuda is refused with a reason, never a crash") {
 }
 
 TEST_CASE("--help of the program and of every command") {
-  for (const std::string cmd : {"plan", "generate", "encode", "decode", "info"}) {
+  for (const std::string cmd : {"plan", "generate", "encode", "decode", "info", "convert"}) {
     const Result r = cli({cmd, "--help"});
     INFO(cmd);
     CHECK(r.rc == 0);
@@ -194,7 +194,7 @@ TEST_CASE("--help of the program and of every command") {
   }
   const Result top = cli({"--help"});
   CHECK(top.rc == 0);
-  for (const std::string cmd : {"plan", "generate", "encode", "decode", "info"}) CHECK(has(top.out, "  " + cmd));
+  for (const std::string cmd : {"plan", "generate", "encode", "decode", "info", "convert"}) CHECK(has(top.out, "  " + cmd));
   CHECK(cli({"--version"}).out == std::string("epona ") + app::kVersion + "\n");
 }
 
@@ -251,6 +251,29 @@ TEST_CASE("info reads the official .pkl form of the golden weights") {
   CHECK(has(r.out, "(match)"));
   CHECK_FALSE(has(r.out, "MISMATCH"));
   CHECK_FALSE(has(r.out, "differs from"));
+}
+
+TEST_CASE("convert: the official .pkl to safetensors, same names, dtypes, shapes and bytes") {
+  TempDir t;
+  const std::string pkl = std::string(EPONA_TEST_DATA_DIR) + "/pkl/weights_dcae.pkl";
+  const Result r = cli({"convert", pkl, t / "dcae.safetensors", "-q"});
+  INFO(r.err);
+  REQUIRE(r.rc == 0);
+  const auto from_pkl = io::load_weights(pkl);
+  const auto file = io::read_safetensors(t / "dcae.safetensors");
+  CHECK(file.metadata.at("converted_from") == "weights_dcae.pkl");
+  REQUIRE(file.tensors.size() == from_pkl.size());
+  for (const auto& [name, a] : from_pkl.entries()) {
+    INFO(name);
+    REQUIRE(file.tensors.contains(name));
+    const auto& b = file.tensors.at(name);
+    CHECK(a.dtype == b.dtype);
+    CHECK(a.shape == b.shape);
+    CHECK(std::equal(a.bytes.begin(), a.bytes.end(), b.bytes.begin(), b.bytes.end()));
+  }
+  check_error(cli({"convert", pkl, t / "out.bin"}), "the name must end in .safetensors");
+  check_error(cli({"convert", t / "missing.pkl", t / "x.safetensors"}), "no such file");
+  check_error(cli({"convert", pkl, t / "x.safetensors", "--key", "optimizer"}), "optimizer");
 }
 
 TEST_CASE("encode and decode equal the DC-AE called directly") {
