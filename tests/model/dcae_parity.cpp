@@ -9,7 +9,6 @@
 #include <cstdio>
 #include <cstdlib>
 #include <map>
-#include <regex>
 #include <set>
 #include <string>
 
@@ -152,9 +151,9 @@ TEST_CASE("dcae parity: clip decode (is_video = true) through the causal tempora
 }
 
 TEST_CASE("dcae parity: every dcae.* output of the golden set was checked") {
-  const std::regex input_name(R"(dcae\..*_in)");
+  const auto is_input = [](const std::string& n) { return n.size() >= 3 && n.compare(n.size() - 3, 3, "_in") == 0; };
   for (const auto& name : golden().cases.names()) {
-    if (name.rfind("dcae.", 0) != 0 || std::regex_match(name, input_name)) continue;
+    if (name.rfind("dcae.", 0) != 0 || is_input(name)) continue;
     CHECK_MESSAGE(checked().count(name), "golden output '" << name << "' was not compared");
   }
 }
