@@ -26,6 +26,7 @@ inline ArgParser info_parser() {
   p.positionals(1, 64, "checkpoint file(s)")
       .flag("keys", "list every tensor: name, dtype, shape")
       .option("depth", "N", "module prefix depth of the parameter table", "2")
+      .option("key", "NAME", "state dict inside a .pkl (e.g. model_state_dict, model)", "automatic")
       .option("config", "FILE", "configuration to compare with", "the shipped Epona configuration")
       .option("write-config", "FILE", "write the detected configuration (assumed values from --config) as JSON")
       .flag("quiet", "no notes on stderr", 'q')
@@ -139,7 +140,8 @@ inline int run_info(const ParsedArgs& a, const Console& con) {
   for (const auto& path : a.positionals()) {
     check_file(path, "checkpoint");
     con.note("reading ", path);
-    const io::TensorMap m = io::load_weights(path);
+    const bool pkl = io::sniff_weight_format(path) != io::WeightFormat::Safetensors;
+    const io::TensorMap m = io::load_weights(path, pkl ? a.text("key", "") : "");
     print_checkpoint(con.out, path, m, depth, a.flag("keys"));
     const Detection d = detect_configuration(m, base);
     print_detection(con.out, m, d, base, base_name);

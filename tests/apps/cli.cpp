@@ -6,6 +6,7 @@
 // Model: the golden set (EPONA_GOLDEN_DIR); the bundled-demo tests use tests/data as built in.
 #include <doctest/doctest.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cstdlib>
 #include <filesystem>
@@ -171,6 +172,50 @@ TEST_CASE("usage errors exit 1 with 'epona: error:' and name the problem") {
   check_error(cli({"decode"}), "missing latents file");
   check_error(cli({"encode", "x.png", "--size", "100x200"}), "--size must be HxW with positive multiples of 32");
   check_error(cli({"plan", "--dcae", golden_dir() + "/weights_dcae.safetensors"}), "--weights FILE");
+}
+
+TEST_CASE("progress: rate, elapsed and time left; in place on a terminal, a line per tenth otherwise") {
+  CHECK(app::clock_text(7.4) == "00:07");
+  CHECK(app::clock_text(723) == "12:03");
+  CHECK(app::clock_text(3725) == "1:02:05");
+  CHECK(app::rate_text(3, 1.5, "frame") == "2.00 frame/s");
+  CHECK(app::rate_text(1, 4, "frame") == "4.00 s/frame");
+  std::ostringstream out, log, tty;
+  {
+    const app::Console con{out, log, false, false};
+    app::Progress bar(con, "work", 20, "item");
+    for (int i = 0; i < 20; ++i) bar.advance();
+  }
+  // Non-interactive: one line per tenth (20 items -> 10 lines), the last without "left".
+  CHECK(std::count(log.str().begin(), log.str().end(), '\n') == 10);
+  CHECK(has(log.str(), "work [############------------] 10/20 items"));
+  CHECK(has(log.str(), "left "));
+  CHECK(has(log.str(), "work [########################] 20/20 items"));
+  {
+    const app::Console con{out, tty, false, true};
+    app::Progress bar(con, "work", 4, "item");
+    for (int i = 0; i < 4; ++i) bar.advance();
+  }
+  CHECK(has(tty.str(), "\r"));
+  CHECK(has(tty.str(), "\x1b[K"));
+  CHECK(tty.str().back() == '\n');
+  std::ostringstream silent;
+  {
+    const app::Console con{out, silent, true, true};
+    app::Progress bar(con, "work", 4, "item");
+    bar.advance(4);
+    con.note("a note");
+  }
+  CHECK(silent.str().empty());
+  CHECK(out.str().empty());
+}
+
+TEST_CASE("frames are listed in natural name order") {
+  CHECK(app::natural_less("f2.png", "f10.png"));
+  CHECK_FALSE(app::natural_less("f10.png", "f2.png"));
+  CHECK(app::natural_less("frame_002.png", "frame_10.png"));
+  CHECK(app::natural_less("a.png", "b.png"));
+  CHECK_FALSE(app::natural_less("a.png", "a.png"));
 }
 
 TEST_CASE("--backend cuda is refused with a reason, never a crash") {
@@ -514,6 +559,8 @@ TEST_CASE("bad inputs: clear errors, exit 1") {
     CHECK(has(r.err, "weight problem(s)"));
   }
   check_error(cli({"info", t / "absent.safetensors"}), "no such file");
+  check_error(cli({"info", std::string(EPONA_TEST_DATA_DIR) + "/pkl/no_state_dict.pkl"}), "pass the key explicitly");
+  check_error(cli({"info", std::string(EPONA_TEST_DATA_DIR) + "/pkl/hostile_os_system.pkl"}), "os.system");
   write_text(t.path / "junk.safetensors", "not a checkpoint at all");
   check_error(cli({"info", t / "junk.safetensors"}), "junk.safetensors");
 }
