@@ -187,10 +187,11 @@ TEST_CASE("progress: rate, elapsed and time left; in place on a terminal, a line
     for (int i = 0; i < 20; ++i) bar.advance();
   }
   // Non-interactive: one line per tenth (20 items -> 10 lines), the last without "left".
-  CHECK(std::count(log.str().begin(), log.str().end(), '\n') == 10);
-  CHECK(has(log.str(), "work [############------------] 10/20 items"));
-  CHECK(has(log.str(), "left "));
-  CHECK(has(log.str(), "work [########################] 20/20 items"));
+  const std::string lines = log.str();
+  CHECK(std::count(lines.begin(), lines.end(), '\n') == 10);
+  CHECK(has(lines, "work [############------------] 10/20 items"));
+  CHECK(has(lines, "left "));
+  CHECK(has(lines, "work [########################] 20/20 items"));
   {
     const app::Console con{out, tty, false, true};
     app::Progress bar(con, "work", 4, "item");
