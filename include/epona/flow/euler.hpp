@@ -1,7 +1,9 @@
 // epona/flow/euler.hpp — explicit Euler integration of dx/dt = v(x, t) over a time grid
 // (`FluxDiT.sample` / `TrajDiT.sample`): x += (t_{i+1} - t_i)·v(x, t_i), the step formed in
 // double from the two fp32 grid values and rounded to fp32 where it multiplies v. Written
-// once against any velocity callable; the state and velocity buffers are the caller's.
+// once against any velocity callable; the state (float32) and velocity buffers are the
+// caller's. The velocity may be stored in bf16 (the GPU's bf16 DiTs): the product a·v is then
+// rounded to bf16 before it is added, as PyTorch's `x + dt * v` under autocast.
 #pragma once
 
 #include <cstdint>
@@ -32,8 +34,8 @@ struct RectifiedFlowEuler {
   }
 
   // Integrates x in place. velocity(i, t_i, x, v) must write v(x, t_i) into v (same shape as x).
-  template <class Velocity>
-  void sample(Context& ctx, Tensor<float, B>& x, Tensor<float, B>& v, Velocity&& velocity) const {
+  template <class V, class Velocity>
+  void sample(Context& ctx, Tensor<float, B>& x, Tensor<V, B>& v, Velocity&& velocity) const {
     EPONA_CHECK(x.numel() == v.numel(), "Euler: state ", shape_str(x.shape()), " and velocity ",
                 shape_str(v.shape()), " differ in size");
     for (std::int64_t i = 0; i < steps(); ++i) {

@@ -2,7 +2,10 @@
 // (models/modules/dit_modules/layers.py): DoubleStreamBlock (separate condition and target
 // streams, joint attention), SingleStreamBlock (one stream, fused qkv+MLP projection) and
 // LastLayer (adaLN + Linear). All blocks work on one residual buffer z whose rows are
-// [condition tokens | target tokens], so the streams' concatenation costs nothing.
+// [condition tokens | target tokens], so the streams' concatenation costs nothing. Blocks read
+// their modulation vectors from a table computed before the sampling loop (FluxDiT), so a
+// step only runs the token-wise work. Activations are Activation<B, W> (bf16 on the GPU, as
+// the official residual streams under autocast).
 #pragma once
 
 #include <cstdint>
@@ -31,35 +34,28 @@ struct DitWidths {
 };
 
 // Activation buffers of one DiT evaluation of one batch item (`rows` = condition + target
-// tokens), shared by all blocks.
-template <class B>
+// tokens), shared by all blocks; A is the activation type.
+template <class B, class A = float>
 struct DitScratch {
-  Tensor<float, B> z;         // (rows, D) residual stream: condition rows, then target rows
-  Tensor<float, B> modulated; // (rows, D) (1 + scale)·LN(z) + shift
-  Tensor<float, B> qkv;       // (rows, 3D) [q | k | v], heads contiguous inside each
-  Tensor<float, B> attn;      // (rows, D) attention output (double blocks)
-  Tensor<float, B> mlp;       // (rows, Dm) MLP hidden
-  Tensor<float, B> cat;       // (rows, D + Dm) single blocks: [attention | GELU(mlp)]
-  Tensor<float, B> sub;       // (rows, D) a sublayer's output before its gate
-  Tensor<float, B> mod_a, mod_b;  // (1, 6D) modulation vectors
-  Tensor<float, B> vec, silu_vec, vec_hidden;  // (1, D)
+  Tensor<A, B> z;         // (rows, D) residual stream: condition rows, then target rows
+  Tensor<A, B> modulated; // (rows, D) (1 + scale)·LN(z) + shift
+  Tensor<A, B> qkv;       // (rows, 3D) [q | k | v], heads contiguous inside each
+  Tensor<A, B> attn;      // (rows, D) attention output (double blocks)
+  Tensor<A, B> mlp;       // (rows, Dm) MLP hidden
+  Tensor<A, B> cat;       // (rows, D + Dm) single blocks: [attention | GELU(mlp)]
+  Tensor<A, B> sub;       // (rows, D) a sublayer's output before its gate
 
   template <class Alloc>
   static DitScratch plan(Alloc& a, std::int64_t rows, const DitWidths& w) {
     const std::int64_t D = w.hidden, Dm = w.mlp_hidden;
     DitScratch s;
-    s.z = a.template take<float>({rows, D});
-    s.modulated = a.template take<float>({rows, D});
-    s.qkv = a.template take<float>({rows, 3 * D});
-    s.attn = a.template take<float>({rows, D});
-    s.mlp = a.template take<float>({rows, Dm});
-    s.cat = a.template take<float>({rows, D + Dm});
-    s.sub = a.template take<float>({rows, D});
-    s.mod_a = a.template take<float>({1, 6 * D});
-    s.mod_b = a.template take<float>({1, 6 * D});
-    s.vec = a.template take<float>({1, D});
-    s.silu_vec = a.template take<float>({1, D});
-    s.vec_hidden = a.template take<float>({1, D});
+    s.z = a.template take<A>({rows, D});
+    s.modulated = a.template take<A>({rows, D});
+    s.qkv = a.template take<A>({rows, 3 * D});
+    s.attn = a.template take<A>({rows, D});
+    s.mlp = a.template take<A>({rows, Dm});
+    s.cat = a.template take<A>({rows, D + Dm});
+    s.sub = a.template take<A>({rows, D});
     return s;
   }
 };
@@ -72,17 +68,17 @@ struct JointRows {
 
 namespace detail {
 // y = (1 + scale) ⊙ LN(x) + shift over `rows` rows of x starting at `first`.
-template <class Context, class B>
-void modulate_rows(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& y, std::int64_t first,
-                   std::int64_t rows, const float* shift, const float* scale, float eps) {
+template <class Context, class B, class A>
+void modulate_rows(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& y, std::int64_t first, std::int64_t rows,
+                   const A* shift, const A* scale, float eps) {
   const std::int64_t D = x.size(-1);
   layer_norm_modulate(ctx, x.data() + first * D, y.data() + first * D, rows, D, shift, scale, eps);
 }
 // Unmasked attention of queries at rows [q_first, q_first + q_rows) of the packed [q | k | v]
 // buffer (rows in_stride apart) over all `rows` keys; output rows out_stride apart.
-template <class Context>
-void joint_attention(Context& ctx, const float* qkv, std::int64_t rows, std::int64_t q_first, std::int64_t q_rows,
-                     const DitWidths& w, float* out, std::int64_t out_stride, std::int64_t in_stride) {
+template <class B, class A>
+void joint_attention(BackendContext<B>& ctx, const A* qkv, std::int64_t rows, std::int64_t q_first,
+                     std::int64_t q_rows, const DitWidths& w, A* out, std::int64_t out_stride, std::int64_t in_stride) {
   const std::int64_t D = w.hidden;
   nn::PackedAttention p{1, rows, w.heads, w.head_dim(), 0, in_stride, 0, out_stride, false};
   p.q_len = q_rows;
@@ -98,6 +94,8 @@ inline double joint_attention_flops(const DitWidths& w, std::int64_t q_rows, std
 template <class B, class W>
 struct DoubleStream {
   using Context = BackendContext<B>;
+  using A = Activation<B, W>;
+  using Scratch = DitScratch<B, A>;
   nn::Modulation<B, W> mod;
   nn::Linear<B, W> qkv, proj;
   nn::QkNorm<B> norm;
@@ -117,23 +115,22 @@ struct DoubleStream {
     mlp.bind(w, p + s + "_mlp.", r);
   }
 
-  // Modulation, then q/k/v of rows [first, first+rows) into the joint qkv buffer, QK-normed.
-  void project(Context& ctx, DitScratch<B>& s, Tensor<float, B>& m, std::int64_t first, std::int64_t rows,
-               const DitWidths& w) const {
-    mod(ctx, s.silu_vec, m);
-    const float* mv = m.data();
+  // q/k/v of rows [first, first+rows) into the joint qkv buffer, QK-normed and rotated with
+  // the same rows of the joint RoPE table; mv = this stream's modulation (shift, scale, gate) x 2.
+  void project(Context& ctx, Scratch& s, const A* mv, std::int64_t first, std::int64_t rows, const DitWidths& w,
+               const nn::RopeTable<B>& rope) const {
     const std::int64_t D = w.hidden;
     detail::modulate_rows(ctx, s.z, s.modulated, first, rows, mv + 0 * D, mv + 1 * D, w.ln_eps);
     auto out = s.qkv.slice(first, first + rows);
     qkv(ctx, s.modulated.slice(first, first + rows), out);
-    norm(ctx, out.data(), out.data() + D, rows, 3 * D, w.heads);
+    norm.queries_rope(ctx, out.data(), rows, 3 * D, w.heads, rope, first);
+    norm.keys_rope(ctx, out.data() + D, rows, 3 * D, w.heads, rope, first);
   }
 
   // Gated attention projection and gated MLP on the stream's rows.
-  void finish(Context& ctx, DitScratch<B>& s, const Tensor<float, B>& m, std::int64_t first, std::int64_t rows,
+  void finish(Context& ctx, Scratch& s, const A* mv, std::int64_t first, std::int64_t rows,
               const DitWidths& w) const {
     const std::int64_t D = w.hidden;
-    const float* mv = m.data();
     auto z = s.z.slice(first, first + rows);
     auto sub = s.sub.slice(first, first + rows);
     proj(ctx, s.attn.slice(first, first + rows), sub);
@@ -150,6 +147,7 @@ struct DoubleStream {
 template <class B, class W>
 struct DoubleStreamBlock {
   using Context = BackendContext<B>;
+  using A = Activation<B, W>;
   DitWidths widths;
   DoubleStream<B, W> img, cond;  // "img" is the target stream (latents or trajectory)
 
@@ -161,14 +159,22 @@ struct DoubleStreamBlock {
     cond.bind(w, p, "cond", r);
   }
 
-  void operator()(Context& ctx, DitScratch<B>& s, const JointRows& rows, const nn::RopeTable<B>& rope) const {
+  // Modulation vectors of this block in a table row: [img 6D | cond 6D].
+  std::int64_t modulation_width() const { return 12 * widths.hidden; }
+  void modulations(Context& ctx, const A* silu_vecs, std::int64_t n, A* table, std::int64_t ld) const {
+    img.mod.rows(ctx, silu_vecs, n, table, ld);
+    cond.mod.rows(ctx, silu_vecs, n, table + 6 * widths.hidden, ld);
+  }
+
+  void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const nn::RopeTable<B>& rope,
+                  const A* mods) const {
     const std::int64_t D = widths.hidden;
-    cond.project(ctx, s, s.mod_b, 0, rows.cond, widths);
-    img.project(ctx, s, s.mod_a, rows.cond, rows.target, widths);
-    nn::apply_rope_qk(ctx, s.qkv.data(), s.qkv.data() + D, rows.total(), 3 * D, widths.heads, rope);
-    detail::joint_attention(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D);
-    img.finish(ctx, s, s.mod_a, rows.cond, rows.target, widths);
-    cond.finish(ctx, s, s.mod_b, 0, rows.cond, widths);
+    const A *img_mod = mods, *cond_mod = mods + 6 * D;
+    cond.project(ctx, s, cond_mod, 0, rows.cond, widths, rope);
+    img.project(ctx, s, img_mod, rows.cond, rows.target, widths, rope);
+    detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D);
+    img.finish(ctx, s, img_mod, rows.cond, rows.target, widths);
+    cond.finish(ctx, s, cond_mod, 0, rows.cond, widths);
   }
 
   nn::Flops flops(const JointRows& rows) const {
@@ -180,6 +186,7 @@ struct DoubleStreamBlock {
 template <class B, class W>
 struct SingleStreamBlock {
   using Context = BackendContext<B>;
+  using A = Activation<B, W>;
   DitWidths widths;
   nn::Linear<B, W> linear1, linear2;  // (3D + Dm, D), (D, D + Dm)
   nn::QkNorm<B> norm;
@@ -207,24 +214,26 @@ struct SingleStreamBlock {
   // z ← z + gate ⊙ linear2([attention, GELU(mlp)]). Only the rows from `first_out` on are
   // updated (keys and values still come from every row): the last single block passes
   // rows.cond, since only the target tokens reach the final layer (compute-budget.md §5.4).
-  void operator()(Context& ctx, DitScratch<B>& s, const JointRows& rows, const nn::RopeTable<B>& rope,
-                  std::int64_t first_out = 0) const {
+  // Modulation vectors of this block in a table row: (shift, scale, gate).
+  std::int64_t modulation_width() const { return 3 * widths.hidden; }
+  void modulations(Context& ctx, const A* silu_vecs, std::int64_t n, A* table, std::int64_t ld) const {
+    modulation.rows(ctx, silu_vecs, n, table, ld);
+  }
+
+  void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const nn::RopeTable<B>& rope,
+                  const A* mv, std::int64_t first_out = 0) const {
     const std::int64_t D = widths.hidden, Dm = widths.mlp_hidden, n = rows.total(), m = n - first_out;
-    modulation(ctx, s.silu_vec, s.mod_a);
-    const float* mv = s.mod_a.data();
     detail::modulate_rows(ctx, s.z, s.modulated, 0, n, mv, mv + D, widths.ln_eps);
-    float* qkv = s.qkv.data();
-    const float* a_out = s.modulated.data() + first_out * D;
+    A* qkv = s.qkv.data();
+    const A* a_out = s.modulated.data() + first_out * D;
+    // cat rows 0..m = [attention | GELU(mlp)] of the updated rows: the MLP GEMM writes its
+    // columns directly, the attention the others.
     kv_part.strided(ctx, s.modulated.data(), D, n, qkv + D, 3 * D);
     q_part.strided(ctx, a_out, D, m, qkv + first_out * 3 * D, 3 * D);
-    mlp_part.strided(ctx, a_out, D, m, s.mlp.data(), Dm, BackendEpilogue<B>::GeluTanh);
-    norm.queries(ctx, qkv + first_out * 3 * D, m, 3 * D, widths.heads);
-    norm.keys(ctx, qkv + D, n, 3 * D, widths.heads);
-    nn::apply_rope_rows(ctx, qkv + first_out * 3 * D, m, 3 * D, widths.heads, rope, first_out);
-    nn::apply_rope_rows(ctx, qkv + D, n, 3 * D, widths.heads, rope);
-    // cat rows 0..m = [attention | GELU(mlp)] of the updated rows.
-    detail::joint_attention(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D);
-    copy_rows(ctx, s.mlp.data(), Dm, s.cat.data() + D, D + Dm, m, Dm);
+    mlp_part.strided(ctx, a_out, D, m, s.cat.data() + D, D + Dm, BackendEpilogue<B>::GeluTanh);
+    norm.queries_rope(ctx, qkv + first_out * 3 * D, m, 3 * D, widths.heads, rope, first_out);
+    norm.keys_rope(ctx, qkv + D, n, 3 * D, widths.heads, rope, 0);
+    detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D);
     linear2.strided(ctx, s.cat.data(), D + Dm, m, s.sub.data(), D);
     add_gated(ctx, s.z.data() + first_out * D, s.sub.data(), mv + 2 * D, m, D);
   }
@@ -239,6 +248,7 @@ struct SingleStreamBlock {
 template <class B, class W>
 struct LastLayer {
   using Context = BackendContext<B>;
+  using A = Activation<B, W>;
   DitWidths widths;
   nn::Modulation<B, W> adaLN_modulation;  // "adaLN_modulation.1." (index 0 is the SiLU)
   nn::Linear<B, W> linear;
@@ -253,9 +263,13 @@ struct LastLayer {
   }
 
   // out (target, out_channels) = linear((1 + scale)·LN(z_target) + shift); (shift, scale) halves.
-  void operator()(Context& ctx, DitScratch<B>& s, const JointRows& rows, Tensor<float, B>& out) const {
-    adaLN_modulation(ctx, s.silu_vec, s.mod_a);
-    const float* mv = s.mod_a.data();
+  // Modulation vectors in a table row: (shift, scale).
+  std::int64_t modulation_width() const { return 2 * widths.hidden; }
+  void modulations(Context& ctx, const A* silu_vecs, std::int64_t n, A* table, std::int64_t ld) const {
+    adaLN_modulation.rows(ctx, silu_vecs, n, table, ld);
+  }
+
+  void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const A* mv, Tensor<A, B>& out) const {
     detail::modulate_rows(ctx, s.z, s.modulated, rows.cond, rows.target, mv, mv + widths.hidden, widths.ln_eps);
     linear(ctx, s.modulated.slice(rows.cond, rows.total()), out);
   }

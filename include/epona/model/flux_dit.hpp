@@ -2,14 +2,19 @@
 // `FluxDiT`, prefix `module.dit.`, with `vector_in` for the action embedding) and the TrajDiT
 // (models/traj_dit.py `TrajDiT`, prefix `module.traj_dit.`, input layer `traj_in`, no
 // `vector_in`). forward(x, ids, cond, cond_ids, t, y) -> velocity, plus the rectified-flow
-// sampler; the step-invariant work (cond_in, vector_in, RoPE table, time embeddings) is
-// prepared once per sample.
+// sampler. Step-invariant work is hoisted out of the sampling loop (compute-budget.md §5): cond_in,
+// vector_in and the RoPE table once per sample, and every block's modulation for all steps at
+// once (time_in and the modulation Linears as GEMMs over the steps); the loop itself is replayed
+// as one CUDA graph on the GPU.
 #pragma once
 
+#include <algorithm>
+#include <bit>
 #include <cstdint>
 #include <cstring>
 #include <optional>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "epona/core/arena.hpp"
@@ -71,16 +76,25 @@ template <class B, class W>
 class FluxDiT {
  public:
   using Context = BackendContext<B>;
+  using A = Activation<B, W>;
+  static constexpr bool kConvertInputs = !std::is_same_v<A, float>;  // float32 inputs need a cast
 
   // What stays the same over the steps of one sample: cond_in(cond), vector_in(y) and the
   // RoPE table of the joint ids, for every batch item.
   struct Conditioning {
     std::int64_t batch = 0;
     JointRows rows;
-    Tensor<float, B> cond;   // (batch, Lc, D) = cond_in(cond)
-    Tensor<float, B> vec_y;  // (batch, D) = vector_in(y), empty without vector_in
-    Tensor<float, B> vec_y_hidden;  // (batch, D) vector_in's hidden layer
-    nn::RopeTable<B> rope;   // (batch·(Lc+Lx), head_dim/2)
+    Tensor<A, B> cond;      // (batch, Lc, D) = cond_in(cond)
+    Tensor<A, B> vec_y;     // (batch, D) = vector_in(y), empty without vector_in
+    nn::RopeTable<B> rope;  // (batch·(Lc+Lx), head_dim/2)
+  };
+
+  // Every block's modulation vectors for `times` timesteps of each batch item: row b·times + i
+  // of the table is [double 0: img 6D, cond 6D | ... | single 0: 3D | ... | final layer 2D].
+  struct Modulations {
+    std::int64_t times = 0, width = 0;
+    Tensor<A, B> table;  // (batch·times, width)
+    const A* row(std::int64_t b, std::int64_t i) const { return table.data() + (b * times + i) * width; }
   };
 
   FluxDiT() = default;
@@ -113,30 +127,31 @@ class FluxDiT {
   }
 
   // ---- workspace sizes (bytes of arena) ----
+  // What prepare() takes at most (its Conditioning stays, its scratch is released).
   std::size_t conditioning_bytes(std::int64_t batch, const JointRows& rows) const {
-    ArenaCounter<B> c;
-    plan_conditioning(c, batch, rows);
-    return c.bytes();
+    return conditioning_sizes(batch, rows).total();
   }
+  // One velocity evaluation of one batch item.
   std::size_t velocity_bytes(const JointRows& rows) const {
     ArenaCounter<B> c;
-    DitScratch<B>::plan(c, rows.total(), widths_);
+    plan_velocity(c, rows);
     return c.bytes();
   }
   // Everything sample() takes on top of its conditioning.
   std::size_t sample_bytes(std::int64_t batch, const JointRows& rows, std::int64_t steps) const {
-    ArenaCounter<B> c;
-    plan_sampler(c, batch, rows, steps);
-    return c.bytes() + velocity_bytes(rows);
+    ArenaCounter<B> v;
+    v.template take<A>({batch, rows.target, cfg_.out_channels});
+    const auto m = modulation_sizes(batch, steps);
+    return m.kept + std::max(m.scratch, v.bytes() + velocity_bytes(rows));
   }
   // Everything forward() takes.
   std::size_t forward_bytes(std::int64_t batch, const JointRows& rows) const {
-    ArenaCounter<B> c;
-    c.template take<float>({batch, cfg_.time_dim});
-    return conditioning_bytes(batch, rows) + c.bytes() + velocity_bytes(rows);
+    const auto c = conditioning_sizes(batch, rows);
+    const auto m = modulation_sizes(batch, 1);
+    return c.kept + std::max(c.scratch, m.kept + std::max(m.scratch, velocity_bytes(rows)));
   }
 
-  // cond (batch, Lc, context) and y (batch, vec_in_dim) backend; ids host (batch, L·, n_axes).
+  // cond (batch, Lc, context) and y (batch, vec_in_dim) backend float32; ids host (batch, L·, n_axes).
   Conditioning prepare(Context& ctx, Arena<B>& arena, const Tensor<float, B>& cond, const Tensor<float, Cpu>& cond_ids,
                        const Tensor<float, Cpu>& target_ids, const Tensor<float, B>& y) const {
     EPONA_CHECK(cond.dim() == 3 && cond.size(2) == cfg_.context_in_dim, "DiT condition must be (B, L, ",
@@ -149,60 +164,109 @@ class FluxDiT {
     check_shape(target_ids, {batch, rows.target, axes}, "DiT target ids");
     if (vector_in_) check_shape(y, {batch, cfg_.vec_in_dim}, "DiT vector input y");
     Conditioning c = plan_conditioning(arena, batch, rows);
-    cond_in_(ctx, cond, c.cond);
-    if (vector_in_) (*vector_in_)(ctx, y, c.vec_y_hidden, c.vec_y);
-    const auto host = nn::nd_rope_table(joint_ids(cond_ids, target_ids), cfg_.axes_dim, cfg_.theta);
+    {
+      ArenaScope<B> scope(arena);
+      auto s = plan_conditioning_scratch(arena, batch, rows);
+      cond_in_(ctx, as_activation(ctx, cond, s.cond), c.cond);
+      if (vector_in_) (*vector_in_)(ctx, as_activation(ctx, y, s.y), s.vec_hidden, c.vec_y);
+    }
+    const auto& host = rope_table(joint_ids(cond_ids, target_ids));
     BackendTraits<B>::upload_into(ctx, host.cos, c.rope.cos);
     BackendTraits<B>::upload_into(ctx, host.sin, c.rope.sin);
     return c;
   }
 
-  // v = DiT(x, t) for every batch item. x (batch, Lx, in); temb (batch or 1, time_dim) =
-  // timestep_embedding(t); out (batch, Lx, out).
-  void velocity(Context& ctx, Arena<B>& arena, const Conditioning& c, const Tensor<float, B>& x,
-                const Tensor<float, B>& temb, Tensor<float, B>& out) const {
+  // The modulation table for timesteps t (batch, times) (host): vec = time_in(temb(t)) (+
+  // vector_in(y)), then every block's Linear(SiLU(vec)) — each a GEMM over all batch·times rows.
+  Modulations modulations(Context& ctx, Arena<B>& arena, const Conditioning& c, const Tensor<float, Cpu>& t) const {
+    EPONA_CHECK(t.dim() == 2 && t.size(0) == c.batch && t.size(1) >= 1, "DiT timesteps must be (", c.batch,
+                ", times), got ", shape_str(t.shape()));
+    const std::int64_t times = t.size(1), n = t.numel(), D = cfg_.hidden_size;
+    Modulations m = plan_modulations(arena, c.batch, times);
+    ArenaScope<B> scope(arena);
+    auto s = plan_modulation_scratch(arena, c.batch, times);
+    Tensor<float, Cpu> temb({n, cfg_.time_dim});
+    nn::timestep_embedding(t.data(), n, cfg_.time_dim, cfg_.time_max_period, cfg_.time_factor, temb.data());
+    upload_as(ctx, temb, s.temb);
+    time_in_(ctx, s.temb, s.hidden, s.vec);
+    if (vector_in_)
+      for (std::int64_t b = 0; b < c.batch; ++b)
+        add_row_broadcast(ctx, s.vec.data() + b * times * D, c.vec_y[b].data(), times, D);
+    silu_to(ctx, s.vec.data(), s.silu.data(), n * D);
+    std::int64_t offset = 0;
+    const auto fill = [&](const auto& block) {
+      block.modulations(ctx, s.silu.data(), n, m.table.data() + offset, m.width);
+      offset += block.modulation_width();
+    };
+    for (const auto& block : double_blocks_) fill(block);
+    for (const auto& block : single_blocks_) fill(block);
+    fill(final_layer_);
+    return m;
+  }
+
+  // v = DiT(x, t_i) for every batch item, with the modulations of timestep `time` of m.
+  // x (batch, Lx, in) float32; out (batch, Lx, out).
+  void velocity(Context& ctx, Arena<B>& arena, const Conditioning& c, const Modulations& m, std::int64_t time,
+                const Tensor<float, B>& x, Tensor<A, B>& out) const {
     check_shape(x, {c.batch, c.rows.target, cfg_.in_channels}, "DiT input x");
     check_shape(out, {c.batch, c.rows.target, cfg_.out_channels}, "DiT velocity output");
-    EPONA_CHECK(temb.dim() == 2 && temb.size(1) == cfg_.time_dim && (temb.size(0) == 1 || temb.size(0) == c.batch),
-                "DiT time embedding must be (1 or B, ", cfg_.time_dim, "), got ", shape_str(temb.shape()));
+    EPONA_CHECK(time >= 0 && time < m.times, "DiT: timestep index ", time, " outside the ", m.times, " prepared");
     const std::int64_t n = c.rows.total();
     for (std::int64_t b = 0; b < c.batch; ++b) {
       ArenaScope<B> scope(arena);
-      auto s = DitScratch<B>::plan(arena, n, widths_);
-      embed_inputs(ctx, s, c, b, x[b], temb.size(0) == 1 ? temb : temb.slice(b, b + 1));
+      auto [s, x_in] = plan_velocity(arena, c.rows);
+      embed_inputs(ctx, s, c, b, x[b], x_in);
       const nn::RopeTable<B> rope{c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
-      for (const auto& block : double_blocks_) block(ctx, s, c.rows, rope);
-      for (std::size_t j = 0; j < single_blocks_.size(); ++j)
-        single_blocks_[j](ctx, s, c.rows, rope, first_updated_row(j, c.rows));
+      const A* mods = m.row(b, time);
+      for (const auto& block : double_blocks_) {
+        block(ctx, s, c.rows, rope, mods);
+        mods += block.modulation_width();
+      }
+      for (std::size_t j = 0; j < single_blocks_.size(); ++j) {
+        single_blocks_[j](ctx, s, c.rows, rope, mods, first_updated_row(j, c.rows));
+        mods += single_blocks_[j].modulation_width();
+      }
       auto o = out[b];
-      final_layer_(ctx, s, c.rows, o);
+      final_layer_(ctx, s, c.rows, mods, o);
     }
   }
 
   // The official forward(x, ids, cond, cond_ids, t, y) in one call; t (batch) on the host.
   void forward(Context& ctx, Arena<B>& arena, const Tensor<float, B>& x, const Tensor<float, Cpu>& x_ids,
                const Tensor<float, B>& cond, const Tensor<float, Cpu>& cond_ids, const Tensor<float, Cpu>& t,
-               const Tensor<float, B>& y, Tensor<float, B>& out) const {
+               const Tensor<float, B>& y, Tensor<A, B>& out) const {
     ArenaScope<B> scope(arena);
     const Conditioning c = prepare(ctx, arena, cond, cond_ids, x_ids, y);
     check_shape(t, {c.batch}, "DiT timesteps t");
-    auto temb = arena.template take<float>({c.batch, cfg_.time_dim});
-    upload_time_embedding(ctx, t.data(), c.batch, temb);
-    velocity(ctx, arena, c, x, temb, out);
+    const Modulations m = modulations(ctx, arena, c, t.reshape({c.batch, 1}));
+    velocity(ctx, arena, c, m, 0, x, out);
   }
 
   // Euler sampling from the noise in x (batch, Lx, in) to the sample, in place, over `grid`.
+  // The loop enqueues no host work: on the GPU it is recorded once and replayed as a graph.
   void sample(Context& ctx, Arena<B>& arena, const Conditioning& c, const std::vector<float>& grid,
               Tensor<float, B>& x) const {
     EPONA_CHECK(cfg_.in_channels == cfg_.out_channels, "DiT sampling needs in_channels == out_channels");
     const flow::RectifiedFlowEuler<B> euler(grid);
+    const std::int64_t steps = euler.steps();
     ArenaScope<B> scope(arena);
-    auto [temb, v] = plan_sampler(arena, c.batch, c.rows, euler.steps());
-    upload_time_embedding(ctx, grid.data(), euler.steps(), temb);  // t_0 .. t_{N-1}
-    euler.sample(ctx, x, v, [&](std::int64_t i, float, const Tensor<float, B>& state, Tensor<float, B>& vel) {
-      velocity(ctx, arena, c, state, temb.slice(i, i + 1), vel);
+    Tensor<float, Cpu> t({c.batch, steps});
+    for (std::int64_t b = 0; b < c.batch; ++b) std::copy_n(grid.data(), steps, t[b].data());  // t_0 .. t_{N-1}
+    const Modulations m = modulations(ctx, arena, c, t);
+    auto v = arena.template take<A>({c.batch, c.rows.target, cfg_.out_channels});
+    GraphKey key{address(this), address(x.data()), address(v.data()), address(c.cond.data()), address(m.table.data()),
+                 arena.mark(), static_cast<std::uint64_t>(c.batch), static_cast<std::uint64_t>(c.rows.cond),
+                 static_cast<std::uint64_t>(c.rows.target)};
+    for (float g : grid) key.push_back(std::bit_cast<std::uint32_t>(g));
+    graph_.run(ctx, key, [&] {
+      euler.sample(ctx, x, v, [&](std::int64_t i, float, const Tensor<float, B>& state, Tensor<A, B>& vel) {
+        velocity(ctx, arena, c, m, i, state, vel);
+      });
     });
   }
+
+  // The recorded sampling loop (on the GPU: how often it was captured, how long that took).
+  const typename BackendTraits<B>::GraphCache& sampler_graph() const { return graph_; }
 
   // FLOPs of one velocity evaluation including cond_in, batch 1: `executed` counts what runs
   // (the last single block updates only the target rows); otherwise the official count of
@@ -217,9 +281,44 @@ class FluxDiT {
   }
 
  private:
+  using Scratch = DitScratch<B, A>;
+  // Bytes a stage keeps (its result) and the scratch it releases on return.
+  struct Sizes {
+    std::size_t kept = 0, scratch = 0;
+    std::size_t total() const { return kept + scratch; }
+  };
+  struct ConditioningScratch {
+    Tensor<A, B> cond, y;      // the float32 inputs as GEMM operands (empty when A is float)
+    Tensor<A, B> vec_hidden;   // (batch, D) vector_in's hidden layer
+  };
+  struct ModulationScratch {
+    Tensor<A, B> temb;              // (n, time_dim)
+    Tensor<A, B> hidden, vec, silu; // (n, D)
+  };
+
+  static std::uint64_t address(const void* p) { return static_cast<std::uint64_t>(reinterpret_cast<std::uintptr_t>(p)); }
+
   // The last single block only needs to update the target rows (the final layer reads no others).
   std::int64_t first_updated_row(std::size_t single_index, const JointRows& rows) const {
     return single_index + 1 == single_blocks_.size() ? rows.cond : 0;
+  }
+  std::int64_t modulation_width() const {
+    std::int64_t w = final_layer_.modulation_width();
+    for (const auto& b : double_blocks_) w += b.modulation_width();
+    for (const auto& b : single_blocks_) w += b.modulation_width();
+    return w;
+  }
+
+  // A float32 input as a GEMM operand: itself when A is float, else converted into `buffer`.
+  const Tensor<A, B>& as_activation(Context& ctx, const Tensor<float, B>& x, Tensor<A, B>& buffer) const {
+    if constexpr (kConvertInputs) {
+      convert(ctx, x.data(), buffer.data(), x.numel());
+      buffer = buffer.reshape(x.shape());
+      return buffer;
+    } else {
+      (void)ctx, (void)buffer;
+      return x;
+    }
   }
 
   template <class Alloc>
@@ -228,21 +327,70 @@ class FluxDiT {
     Conditioning c;
     c.batch = batch;
     c.rows = rows;
-    c.cond = a.template take<float>({batch, rows.cond, cfg_.hidden_size});
-    if (vector_in_) {
-      c.vec_y = a.template take<float>({batch, cfg_.hidden_size});
-      c.vec_y_hidden = a.template take<float>({batch, cfg_.hidden_size});
-    }
+    c.cond = a.template take<A>({batch, rows.cond, cfg_.hidden_size});
+    if (vector_in_) c.vec_y = a.template take<A>({batch, cfg_.hidden_size});
     c.rope.cos = a.template take<float>({batch * rows.total(), pairs});
     c.rope.sin = a.template take<float>({batch * rows.total(), pairs});
     return c;
   }
   template <class Alloc>
-  std::pair<Tensor<float, B>, Tensor<float, B>> plan_sampler(Alloc& a, std::int64_t batch, const JointRows& rows,
-                                                             std::int64_t steps) const {
-    auto temb = a.template take<float>({steps, cfg_.time_dim});
-    auto v = a.template take<float>({batch, rows.target, cfg_.out_channels});
-    return {temb, v};
+  ConditioningScratch plan_conditioning_scratch(Alloc& a, std::int64_t batch, const JointRows& rows) const {
+    ConditioningScratch s;
+    if (kConvertInputs) s.cond = a.template take<A>({batch, rows.cond, cfg_.context_in_dim});
+    if (vector_in_) {
+      if (kConvertInputs) s.y = a.template take<A>({batch, cfg_.vec_in_dim});
+      s.vec_hidden = a.template take<A>({batch, cfg_.hidden_size});
+    }
+    return s;
+  }
+  Sizes conditioning_sizes(std::int64_t batch, const JointRows& rows) const {
+    ArenaCounter<B> kept, scratch;
+    plan_conditioning(kept, batch, rows);
+    plan_conditioning_scratch(scratch, batch, rows);
+    return {kept.bytes(), scratch.bytes()};
+  }
+
+  template <class Alloc>
+  Modulations plan_modulations(Alloc& a, std::int64_t batch, std::int64_t times) const {
+    Modulations m;
+    m.times = times;
+    m.width = modulation_width();
+    m.table = a.template take<A>({batch * times, m.width});
+    return m;
+  }
+  template <class Alloc>
+  ModulationScratch plan_modulation_scratch(Alloc& a, std::int64_t batch, std::int64_t times) const {
+    const std::int64_t n = batch * times, D = cfg_.hidden_size;
+    return {a.template take<A>({n, cfg_.time_dim}), a.template take<A>({n, D}), a.template take<A>({n, D}),
+            a.template take<A>({n, D})};
+  }
+  Sizes modulation_sizes(std::int64_t batch, std::int64_t times) const {
+    ArenaCounter<B> kept, scratch;
+    plan_modulations(kept, batch, times);
+    plan_modulation_scratch(scratch, batch, times);
+    return {kept.bytes(), scratch.bytes()};
+  }
+
+  // One batch item's block scratch, and its input x as a GEMM operand (empty when A is float).
+  template <class Alloc>
+  std::pair<Scratch, Tensor<A, B>> plan_velocity(Alloc& a, const JointRows& rows) const {
+    auto s = Scratch::plan(a, rows.total(), widths_);
+    Tensor<A, B> x_in;
+    if (kConvertInputs) x_in = a.template take<A>({rows.target, cfg_.in_channels});
+    return {s, x_in};
+  }
+
+  // The RoPE table of joint ids, rebuilt only when the ids change (they are fixed by the
+  // configuration in the world model; the float64 table costs ~1 ms of host time per build).
+  const nn::RopeTable<Cpu>& rope_table(const Tensor<float, Cpu>& ids) const {
+    auto& cache = rope_cache_;
+    const bool same = cache.ids.shape() == ids.shape() &&
+                      (ids.numel() == 0 || std::memcmp(cache.ids.data(), ids.data(), ids.nbytes()) == 0);
+    if (!same || cache.table.cos.empty()) {
+      cache.table = nn::nd_rope_table(ids, cfg_.axes_dim, cfg_.theta);
+      cache.ids = ids;
+    }
+    return cache.table;
   }
 
   static Tensor<float, Cpu> joint_ids(const Tensor<float, Cpu>& cond_ids, const Tensor<float, Cpu>& target_ids) {
@@ -255,21 +403,16 @@ class FluxDiT {
     return ids;
   }
 
-  void upload_time_embedding(Context& ctx, const float* t, std::int64_t n, Tensor<float, B>& dst) const {
-    Tensor<float, Cpu> host({n, cfg_.time_dim});
-    nn::timestep_embedding(t, n, cfg_.time_dim, cfg_.time_max_period, cfg_.time_factor, host.data());
-    BackendTraits<B>::upload_into(ctx, host, dst);
-  }
-
-  // z = [cond_in(cond) | input(x)], vec = time_in(temb) (+ vector_in(y)), silu_vec = SiLU(vec).
-  void embed_inputs(Context& ctx, DitScratch<B>& s, const Conditioning& c, std::int64_t b, const Tensor<float, B>& x,
-                    const Tensor<float, B>& temb) const {
+  // z = [cond_in(cond) | input(x)] of batch item b.
+  void embed_inputs(Context& ctx, Scratch& s, const Conditioning& c, std::int64_t b, const Tensor<float, B>& x,
+                    Tensor<A, B>& x_in) const {
     auto target = s.z.slice(c.rows.cond, c.rows.total());
-    input_(ctx, x, target);
+    if constexpr (kConvertInputs) {
+      input_(ctx, as_activation(ctx, x, x_in), target);
+    } else {
+      input_(ctx, x, target);
+    }
     copy(ctx, c.cond[b].data(), s.z.data(), c.rows.cond * cfg_.hidden_size);
-    time_in_(ctx, temb, s.vec_hidden, s.vec);
-    if (vector_in_) add_inplace(ctx, s.vec.data(), c.vec_y[b].data(), cfg_.hidden_size);
-    silu_to(ctx, s.vec.data(), s.silu_vec.data(), cfg_.hidden_size);
   }
 
   FluxDitConfig cfg_;
@@ -281,6 +424,12 @@ class FluxDiT {
   std::vector<DoubleStreamBlock<B, W>> double_blocks_;
   std::vector<SingleStreamBlock<B, W>> single_blocks_;
   LastLayer<B, W> final_layer_;
+  mutable typename BackendTraits<B>::GraphCache graph_;  // the recorded sampling loop
+  struct RopeCache {
+    Tensor<float, Cpu> ids;
+    nn::RopeTable<Cpu> table;
+  };
+  mutable RopeCache rope_cache_;
 };
 
 }  // namespace epona::model

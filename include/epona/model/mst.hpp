@@ -1,12 +1,15 @@
 // epona/model/mst.hpp — the Multimodal Spatiotemporal Transformer (models/stt.py
 // `SpatialTemporalTransformer`, checkpoint prefix `module.model.`): action and image
 // projectors, time_emb, CausalTimeSpaceBlocks (causal time attention, then space attention
-// with 2-D RoPE on the image tokens), `evaluate` and `get_pose_emb`.
+// with 2-D RoPE on the image tokens), `evaluate` and `get_pose_emb`. The residual stream,
+// projector outputs and results are float32 on every backend (as under the official bf16
+// autocast); GEMM inputs/outputs and attention use Activation<B, W> (bf16 on the GPU).
 #pragma once
 
 #include <cstdint>
 #include <functional>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "epona/core/arena.hpp"
@@ -67,6 +70,7 @@ enum ActionSlot : std::int64_t { kYaw = 0, kPoseX = 1, kPoseY = 2 };
 template <class B, class W>
 struct Projector {
   using Context = BackendContext<B>;
+  using A = Activation<B, W>;
   nn::SequentialMlp<B, W> mlp;  // indices 0 and 2
   nn::LayerNorm<B> norm;        // index 3
 
@@ -78,10 +82,12 @@ struct Projector {
     mlp.bind(w, prefix, r);
     norm.bind(w, prefix + "3.", r);
   }
-  // x (n, in) -> y (n, C); hidden (n, hidden) scratch.
-  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& hidden, Tensor<float, B>& y) const {
-    mlp(ctx, x, hidden, y);
-    norm(ctx, y, y);
+  // x (n, in) -> y (n, C) float32 (LayerNorm's output type under autocast); hidden (n, hidden)
+  // and projected (n, C) scratch.
+  void operator()(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& hidden, Tensor<A, B>& projected,
+                  Tensor<float, B>& y) const {
+    mlp(ctx, x, hidden, projected);
+    norm(ctx, projected, y);
   }
 };
 
@@ -90,6 +96,7 @@ struct Projector {
 template <class B, class W>
 struct MstLayer {
   using Context = BackendContext<B>;
+  using A = Activation<B, W>;
   nn::LayerNorm<B> ln1, ln2, q_norm, k_norm;
   nn::Linear<B, W> query, key, value, proj;
   nn::SequentialMlp<B, W> mlp;
@@ -115,14 +122,13 @@ struct MstLayer {
 
   // Scratch of one layer over n tokens of width C.
   struct Scratch {
-    Tensor<float, B> u, q, k, v;  // (n, C)
-    Tensor<float, B> hidden;      // (n, 4C)
+    Tensor<A, B> u, q, k, v;  // (n, C)
+    Tensor<A, B> hidden;      // (n, 4C)
   };
   template <class Alloc>
   static Scratch plan(Alloc& a, std::int64_t n, const MstConfig& c) {
-    return {a.template take<float>({n, c.n_embd}), a.template take<float>({n, c.n_embd}),
-            a.template take<float>({n, c.n_embd}), a.template take<float>({n, c.n_embd}),
-            a.template take<float>({n, c.mlp_hidden()})};
+    return {a.template take<A>({n, c.n_embd}), a.template take<A>({n, c.n_embd}), a.template take<A>({n, c.n_embd}),
+            a.template take<A>({n, c.n_embd}), a.template take<A>({n, c.mlp_hidden()})};
   }
 
   // x (n, C) += attn(ln1 x); x += mlp(ln2 x) on rows [first, first + count) of x, the queries
@@ -145,7 +151,7 @@ struct MstLayer {
     before_attention(q, k);
     attend(q, k, v, o);  // the attention output reuses u
     proj(ctx, o, q);         // ... and the projection reuses q
-    add_inplace(ctx, rows.data(), q.data(), rows.numel());
+    add_inplace(ctx, rows.data(), q.data(), rows.numel());  // float32 residual += projection
     ln2(ctx, rows, o);
     mlp(ctx, o, hidden, q);
     add_inplace(ctx, rows.data(), q.data(), rows.numel());
@@ -176,6 +182,8 @@ template <class B, class W>
 class SpatialTemporalTransformer {
  public:
   using Context = BackendContext<B>;
+  using A = Activation<B, W>;
+  static constexpr bool kConvertInputs = !std::is_same_v<A, float>;  // float32 inputs need a cast
 
   SpatialTemporalTransformer() = default;
   explicit SpatialTemporalTransformer(const MstConfig& c)
@@ -296,13 +304,15 @@ class SpatialTemporalTransformer {
  private:
   struct EvaluateScratch {
     Tensor<float, B> actions;       // (3, F+1, C): projector outputs, slots yaw, pose_x, pose_y
-    Tensor<float, B> img_hidden;    // (F·L, C/2)
+    Tensor<A, B> latents;           // (F·L, token_dim) the latents as GEMM input (empty when A is float)
+    Tensor<A, B> img_hidden;        // (F·L, C/2)
     Tensor<float, B> x;             // (F, T, C) residual stream
     typename MstLayer<B, W>::Scratch layer;  // (F·T) tokens
   };
   struct ActionScratch {
-    Tensor<float, B> fourier;  // (3, n, E)
-    Tensor<float, B> hidden;   // (n, P)
+    Tensor<A, B> fourier;    // (3, n, E)
+    Tensor<A, B> hidden;     // (n, P)
+    Tensor<A, B> projected;  // (n, C) before the projector's LayerNorm
   };
 
   template <class Alloc>
@@ -310,14 +320,16 @@ class SpatialTemporalTransformer {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
     EvaluateScratch s;
     s.actions = a.template take<float>({3, F + 1, C});
-    s.img_hidden = a.template take<float>({F * cfg_.img_tokens(), cfg_.img_hidden()});
+    if (kConvertInputs) s.latents = a.template take<A>({F * cfg_.img_tokens(), cfg_.token_dim});
+    s.img_hidden = a.template take<A>({F * cfg_.img_tokens(), cfg_.img_hidden()});
     s.x = a.template take<float>({F, T, C});
     s.layer = MstLayer<B, W>::plan(a, F * T, cfg_);
     return s;
   }
   template <class Alloc>
   ActionScratch plan_actions(Alloc& a, std::int64_t n) const {
-    return {a.template take<float>({3, n, cfg_.fourier_dim}), a.template take<float>({n, cfg_.projector_hidden})};
+    return {a.template take<A>({3, n, cfg_.fourier_dim}), a.template take<A>({n, cfg_.projector_hidden}),
+            a.template take<A>({n, cfg_.n_embd})};
   }
 
   // Coordinates [yaw_idx/yaw_vocab, x_idx/x_vocab, y_idx/y_vocab] -> Fourier -> projectors.
@@ -334,11 +346,11 @@ class SpatialTemporalTransformer {
       coords.at(kPoseY, i) = pose_idx.at(i, 1) / static_cast<float>(cfg_.y_vocab);
     }
     nn::fourier_embed(coords.data(), 3 * n, E, cfg_.fourier_max_period, fourier.data());
-    BackendTraits<B>::upload_into(ctx, fourier, s.fourier);
+    upload_as(ctx, fourier, s.fourier);  // the projectors' GEMMs take it in A (rounded on the host)
     const Projector<B, W>* projectors[3] = {&yaw_projector_, &pose_x_projector_, &pose_y_projector_};
     for (std::int64_t slot = 0; slot < 3; ++slot) {
       auto out = actions[slot];
-      (*projectors[slot])(ctx, s.fourier[slot], s.hidden, out);
+      (*projectors[slot])(ctx, s.fourier[slot], s.hidden, s.projected, out);
     }
   }
 
@@ -349,17 +361,24 @@ class SpatialTemporalTransformer {
     for (int i = 0; i < 3; ++i) copy(ctx, actions[order[i]][entry].data(), emb.data() + i * C, C);
   }
 
-  // X[f] = [yaw_f, pose_x_f, pose_y_f, img_projector(latents_f)] + time_emb[f].
+  // X[f] = [yaw_f, pose_x_f, pose_y_f, img_projector(latents_f)] + time_emb[f]. The image
+  // projector's two GEMMs run once over all F·L tokens; its LayerNorm writes each frame's rows.
   void assemble_tokens(Context& ctx, const Tensor<float, B>& latents, EvaluateScratch& s) const {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
     const std::int64_t L = cfg_.img_tokens();
     auto flat = latents.reshape({F * L, cfg_.token_dim});
-    img_projector_.mlp.fc1(ctx, flat, s.img_hidden, BackendEpilogue<B>::GeluErf);
+    if constexpr (kConvertInputs) {
+      convert(ctx, flat.data(), s.latents.data(), flat.numel());
+      img_projector_.mlp.fc1(ctx, s.latents, s.img_hidden, BackendEpilogue<B>::GeluErf);
+    } else {
+      img_projector_.mlp.fc1(ctx, flat, s.img_hidden, BackendEpilogue<B>::GeluErf);
+    }
+    auto projected = s.layer.u.slice(0, F * L);  // (F·L, C), free until the first block
+    img_projector_.mlp.fc2(ctx, s.img_hidden, projected);
     for (std::int64_t f = 0; f < F; ++f) {
       auto frame = s.x[f];                  // (T, C)
       auto image_rows = frame.slice(3, T);  // (L, C)
-      img_projector_.mlp.fc2(ctx, s.img_hidden.slice(f * L, (f + 1) * L), image_rows);
-      img_projector_.norm(ctx, image_rows, image_rows);
+      img_projector_.norm(ctx, projected.slice(f * L, (f + 1) * L), image_rows);
       for (std::int64_t slot = 0; slot < 3; ++slot) copy(ctx, s.actions[slot][f].data(), frame[slot].data(), C);
       add_row_broadcast(ctx, frame.data(), time_emb_[f].data(), T, C);
     }

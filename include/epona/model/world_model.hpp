@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <optional>
 #include <string>
 #include <utility>
@@ -148,7 +149,7 @@ class WorldModel {
   }
 
   const WorldModelConfig& config() const { return cfg_; }
-  Context& context() { return ctx_; }
+  Context& context() { return *ctx_; }
   const SpatialTemporalTransformer<B, W>& mst() const { return mst_; }
   const FluxDiT<B, W>& vis_dit() const { return vis_; }
   const FluxDiT<B, W>& traj_dit() const { return traj_; }
@@ -177,11 +178,11 @@ class WorldModel {
     StepResult result;
     StepDetails<B> details;
     auto latents = arena_.template take<float>(h.latents.shape());
-    BackendTraits<B>::upload_into(ctx_, h.latents, latents);
+    BackendTraits<B>::upload_into(*ctx_, h.latents, latents);
     details.stt_features = arena_.template take<float>({Bt, cfg_.tokens_per_frame(), cfg_.n_embd});
     details.pose_emb = arena_.template take<float>({Bt, cfg_.pose_emb_dim()});
     const auto [pose_idx, yaw_idx] = window_indices(h, action);
-    mst_.evaluate(ctx_, arena_, latents, pose_idx, yaw_idx, details.stt_features, details.pose_emb);
+    mst_.evaluate(*ctx_, arena_, latents, pose_idx, yaw_idx, details.stt_features, details.pose_emb);
     const auto ids = prepare_ids(Bt, cfg_.latent_h(), cfg_.latent_w(), cfg_.tokens_per_frame(), cfg_.traj_len);
     if (want_traj) {
       result.trajectory = sample(traj_, details, ids.cond, ids.traj, noise.trajectory(traj_noise_shape(Bt)),
@@ -294,7 +295,7 @@ class WorldModel {
     const auto tok = PoseTokenizer::from(cfg_);
     d.pred_pose_idx = tok.poses_to_indices(pose);
     d.pred_yaw_idx = tok.yaws_to_indices(yaw);
-    mst_.get_pose_emb(ctx_, arena_, d.pred_pose_idx, d.pred_yaw_idx, d.pose_emb);
+    mst_.get_pose_emb(*ctx_, arena_, d.pred_pose_idx, d.pred_yaw_idx, d.pose_emb);
   }
 
   // Samples one DiT from `noise` over get_schedule(steps, seq_len); returns the host result.
@@ -302,17 +303,17 @@ class WorldModel {
                             const Tensor<float, Cpu>& target_ids, const Tensor<float, Cpu>& noise,
                             std::int64_t seq_len, std::int64_t steps) {
     auto state = arena_.template take<float>(noise.shape());
-    BackendTraits<B>::upload_into(ctx_, noise, state);
+    BackendTraits<B>::upload_into(*ctx_, noise, state);
     ArenaScope<B> scope(arena_);
-    const auto c = dit.prepare(ctx_, arena_, d.stt_features, cond_ids, target_ids, d.pose_emb);
-    dit.sample(ctx_, arena_, c, flow::get_schedule(steps, seq_len), state);
+    const auto c = dit.prepare(*ctx_, arena_, d.stt_features, cond_ids, target_ids, d.pose_emb);
+    dit.sample(*ctx_, arena_, c, flow::get_schedule(steps, seq_len), state);
     Tensor<float, Cpu> out(noise.shape());
-    BackendTraits<B>::download_into(ctx_, state, out);
+    BackendTraits<B>::download_into(*ctx_, state, out);
     return out;
   }
 
   WorldModelConfig cfg_;
-  Context ctx_;
+  std::unique_ptr<Context> ctx_ = std::make_unique<Context>();  // a GPU context cannot move; the model can
   Arena<B> arena_;
   SpatialTemporalTransformer<B, W> mst_;
   FluxDiT<B, W> vis_, traj_;

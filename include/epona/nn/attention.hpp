@@ -9,10 +9,10 @@
 
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
-#include "epona/cpu/attention.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/nn/backend_context.hpp"
 #include "epona/nn/parameter.hpp"
+#include "epona/nn/rope.hpp"
 
 namespace epona::nn {
 
@@ -30,11 +30,11 @@ struct PackedAttention {
   std::int64_t queries() const { return q_len < 0 ? len : q_len; }
 };
 
-template <class Context>
-void packed_attention(Context& ctx, const float* q, const float* k, const float* v, float* o,
-                      const PackedAttention& p) {
+template <class Context, class T>
+void packed_attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const PackedAttention& p) {
+  using B = typename BackendOf<Context>::type;
   EPONA_CHECK(p.q_len < 0 || !p.causal, "attention: a causal mask needs as many queries as keys");
-  cpu::AttentionShape a;
+  typename BackendTraits<B>::AttentionShape a;
   a.seqs = p.seqs;
   a.heads = p.heads;
   a.lq = p.queries();
@@ -46,7 +46,8 @@ void packed_attention(Context& ctx, const float* q, const float* k, const float*
   a.q_row = p.q_len < 0 ? p.in_token_stride : p.q_token_stride;
   a.o_seq = p.out_seq_stride;
   a.o_row = p.out_token_stride;
-  a.mask = p.causal ? cpu::Mask::Causal : cpu::Mask::None;
+  using Mask = typename BackendTraits<B>::Mask;
+  a.mask = p.causal ? Mask::Causal : Mask::None;
   attention(ctx, q, k, v, o, a);
 }
 
@@ -74,16 +75,42 @@ struct QkNorm {
   }
 
   // In place on `rows` tokens; q of token r starts at q + r*stride (heads side by side), k too.
-  void operator()(Context& ctx, float* q, float* k, std::int64_t rows, std::int64_t stride,
-                  std::int64_t heads) const {
+  template <class T>
+  void operator()(Context& ctx, T* q, T* k, std::int64_t rows, std::int64_t stride, std::int64_t heads) const {
     queries(ctx, q, rows, stride, heads);
     keys(ctx, k, rows, stride, heads);
   }
-  void queries(Context& ctx, float* q, std::int64_t rows, std::int64_t stride, std::int64_t heads) const {
+  template <class T>
+  void queries(Context& ctx, T* q, std::int64_t rows, std::int64_t stride, std::int64_t heads) const {
     rms_norm_heads(ctx, q, rows, stride, heads, head_dim, query_scale.data(), eps);
   }
-  void keys(Context& ctx, float* k, std::int64_t rows, std::int64_t stride, std::int64_t heads) const {
+  template <class T>
+  void keys(Context& ctx, T* k, std::int64_t rows, std::int64_t stride, std::int64_t heads) const {
     rms_norm_heads(ctx, k, rows, stride, heads, head_dim, key_scale.data(), eps);
+  }
+
+  // The same followed by RoPE with rows [first_row, first_row + rows) of `rope` (one pass on the GPU).
+  template <class T>
+  void queries_rope(Context& ctx, T* q, std::int64_t rows, std::int64_t stride, std::int64_t heads,
+                    const RopeTable<B>& rope, std::int64_t first_row) const {
+    norm_rope(ctx, q, rows, stride, heads, query_scale, rope, first_row);
+  }
+  template <class T>
+  void keys_rope(Context& ctx, T* k, std::int64_t rows, std::int64_t stride, std::int64_t heads,
+                 const RopeTable<B>& rope, std::int64_t first_row) const {
+    norm_rope(ctx, k, rows, stride, heads, key_scale, rope, first_row);
+  }
+
+ private:
+  template <class T>
+  void norm_rope(Context& ctx, T* x, std::int64_t rows, std::int64_t stride, std::int64_t heads,
+                 const Tensor<float, B>& scale, const RopeTable<B>& rope, std::int64_t first_row) const {
+    EPONA_CHECK(first_row >= 0 && first_row + rows <= rope.rows() && 2 * rope.pairs() == head_dim, "QK-norm RoPE: rows [",
+                first_row, ", ", first_row + rows, ") of a table of ", rope.rows(), " x ", rope.pairs(), " pairs, head dim ",
+                head_dim);
+    const std::int64_t pairs = rope.pairs();
+    rms_norm_rope_heads(ctx, x, rows, stride, heads, head_dim, scale.data(), eps, rope.cos.data() + first_row * pairs,
+                        rope.sin.data() + first_row * pairs);
   }
 };
 

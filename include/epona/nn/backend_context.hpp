@@ -1,9 +1,13 @@
 // epona/nn/backend_context.hpp — what layer code needs to know about a backend: its kernel
-// context type, its GEMM epilogue enum, and how host-side parameters and tables reach its
-// memory. Specialised here for the CPU; the CUDA backend specialises BackendTraits<Cuda>.
+// context, GEMM epilogue and attention-layout types, the activation storage type for a weight
+// type, how host tensors reach its memory, and how a loop of kernels is replayed (a CUDA graph,
+// or just run). Specialised here for the CPU; epona/cuda/backend.cuh specialises BackendTraits<Cuda>.
 #pragma once
 
+#include <cstdint>
 #include <cstring>
+#include <type_traits>
+#include <vector>
 
 #include "epona/core/backend.hpp"
 #include "epona/core/tensor.hpp"
@@ -15,9 +19,27 @@ namespace epona {
 
 template <class B> struct BackendTraits;
 
+// Identity of a recorded piece of work: the buffers and sizes it was recorded with.
+using GraphKey = std::vector<std::uint64_t>;
+
+// The CPU has no launch overhead to save: work is simply run.
+struct ImmediateGraphCache {
+  template <class Context, class Work>
+  void run(Context&, const GraphKey&, Work&& work) {
+    work();
+  }
+};
+
 template <> struct BackendTraits<Cpu> {
   using Context = cpu::Context;
   using Epilogue = cpu::Epilogue;
+  using AttentionShape = cpu::AttentionShape;
+  using Mask = cpu::Mask;
+  using GraphCache = ImmediateGraphCache;
+  // Activations between layers: float32 on the CPU whatever the weights (bf16 weights are
+  // widened inside the GEMM; everything else computes in float32).
+  template <class W> using Activation = float;
+
   // A backend tensor holding a host tensor's values: host memory already is CPU memory.
   template <class T>
   static Tensor<T, Cpu> upload(const Tensor<T, Cpu>& host) { return host; }
@@ -37,7 +59,32 @@ template <> struct BackendTraits<Cpu> {
   }
 };
 
+// The backend whose kernels take a given context type (layer helpers that only see a context).
+template <class Context> struct BackendOf;
+template <> struct BackendOf<cpu::Context> { using type = Cpu; };
+
 template <class B> using BackendContext = typename BackendTraits<B>::Context;
 template <class B> using BackendEpilogue = typename BackendTraits<B>::Epilogue;
+// Storage type of the activations of a layer with weights W on backend B: float on the CPU;
+// on the GPU the weight type (bf16 GEMMs read and write bf16, as PyTorch's autocast).
+template <class B, class W> using Activation = typename BackendTraits<B>::template Activation<W>;
+
+// A host tensor converted element by element to T (bf16 rounds to nearest even).
+template <class T>
+Tensor<T, Cpu> host_as(const Tensor<float, Cpu>& src) {
+  if constexpr (std::is_same_v<T, float>) {
+    return src;
+  } else {
+    Tensor<T, Cpu> out(src.shape());
+    for (std::int64_t i = 0; i < src.numel(); ++i) out.data()[i] = T(src.data()[i]);
+    return out;
+  }
+}
+
+// Uploads a float host tensor into a backend tensor of T (converted on the host).
+template <class B, class T>
+void upload_as(BackendContext<B>& ctx, const Tensor<float, Cpu>& host, Tensor<T, B>& dst) {
+  BackendTraits<B>::upload_into(ctx, host_as<T>(host), dst);
+}
 
 }  // namespace epona

@@ -9,6 +9,8 @@
 #include <cstring>
 
 #include "epona/cpu/context.hpp"
+#include "epona/cpu/norm.hpp"
+#include "epona/cpu/rope.hpp"
 
 namespace epona::cpu {
 
@@ -33,6 +35,15 @@ inline void axpy(Context&, float* x, const float* v, float a, std::int64_t n) {
     volatile float step = a * v[i];
     x[i] += step;
   }
+}
+
+// Per head RMSNorm of `rows` tokens (heads at x + r·row_stride), then their rotation by rows r
+// of the cos/sin tables (rows, head_dim/2).
+inline void rms_norm_rope_heads(Context& ctx, float* x, std::int64_t rows, std::int64_t row_stride,
+                                std::int64_t heads, std::int64_t head_dim, const float* scale, float eps,
+                                const float* cos, const float* sin) {
+  rms_norm_heads(ctx, x, rows, row_stride, heads, head_dim, scale, eps);
+  apply_rope(ctx, x, rows, row_stride, heads, head_dim, cos, sin);
 }
 
 }  // namespace epona::cpu

@@ -31,8 +31,11 @@ struct LayerNorm {
     bias = bind_param<B, float>(report, prefix + "bias", {width});
   }
 
-  // y = LN(x) row by row over the last dimension; x and y may be the same tensor.
-  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& y) const {
+  // y = LN(x) row by row over the last dimension; x and y may be the same tensor. Statistics in
+  // float32; x and y may have different storage types (the MST's float32 residual stream
+  // normalised into a bf16 GEMM input, or a bf16 projection normalised into float32).
+  template <class TX, class TY>
+  void operator()(Context& ctx, const Tensor<TX, B>& x, Tensor<TY, B>& y) const {
     EPONA_CHECK(x.dim() >= 1 && x.size(-1) == width && y.numel() == x.numel(), "LayerNorm(", width,
                 "): input ", shape_str(x.shape()), ", output ", shape_str(y.shape()));
     layer_norm(ctx, x.data(), y.data(), x.numel() / width, width, affine ? weight.data() : nullptr,

@@ -1,6 +1,7 @@
 // epona/nn/linear.hpp — nn.Linear: y = x·Wᵀ (+ b) with PyTorch's weight layout W (out, in),
 // optionally followed by an activation fused into the GEMM epilogue. Weights in T (float or
-// bf16), activations float. Mirrors torch.nn.Linear (keys `<prefix>weight`, `<prefix>bias`).
+// bf16); activations in Activation<B, T> (float on the CPU, T on the GPU). Mirrors
+// torch.nn.Linear (keys `<prefix>weight`, `<prefix>bias`).
 #pragma once
 
 #include <cstdint>
@@ -17,6 +18,7 @@ template <class B, class T>
 struct Linear {
   using Context = BackendContext<B>;
   using Epilogue = BackendEpilogue<B>;
+  using A = Activation<B, T>;
 
   std::int64_t in = 0, out = 0;
   bool has_bias = false;
@@ -34,7 +36,7 @@ struct Linear {
   }
 
   // x (..., in) -> y (..., out); y preallocated.
-  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& y,
+  void operator()(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& y,
                   Epilogue epilogue = Epilogue::None) const {
     linear(ctx, x, weight, bias, y, epilogue);
   }
@@ -50,7 +52,7 @@ struct Linear {
 
   // Pointer form for strided rows: y[r*ldy + o] for r < rows (y may be a column block of a
   // wider buffer, x a row subset of one).
-  void strided(Context& ctx, const float* x, std::int64_t ldx, std::int64_t rows, float* y, std::int64_t ldy,
+  void strided(Context& ctx, const A* x, std::int64_t ldx, std::int64_t rows, A* y, std::int64_t ldy,
                Epilogue epilogue = Epilogue::None) const {
     linear(ctx, x, ldx, weight.data(), has_bias ? bias.data() : static_cast<const T*>(nullptr), y, ldy, rows, out, in,
            epilogue);

@@ -20,6 +20,7 @@ template <class B, class T>
 struct SequentialMlp {
   using Context = BackendContext<B>;
   using Epilogue = BackendEpilogue<B>;
+  using A = Activation<B, T>;
 
   Linear<B, T> fc1, fc2;  // "<prefix>0.", "<prefix>2."
   Gelu gelu = Gelu::Erf;
@@ -34,7 +35,7 @@ struct SequentialMlp {
   }
 
   // x (rows, in) -> y (rows, out); hidden (rows, hidden) is scratch.
-  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& hidden, Tensor<float, B>& y) const {
+  void operator()(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& hidden, Tensor<A, B>& y) const {
     fc1(ctx, x, hidden, gelu == Gelu::Erf ? Epilogue::GeluErf : Epilogue::GeluTanh);
     fc2(ctx, hidden, y);
   }
@@ -47,6 +48,7 @@ template <class B, class T>
 struct MlpEmbedder {
   using Context = BackendContext<B>;
   using Epilogue = BackendEpilogue<B>;
+  using A = Activation<B, T>;
 
   Linear<B, T> in_layer, out_layer;
 
@@ -58,7 +60,7 @@ struct MlpEmbedder {
     out_layer.bind(w, prefix + "out_layer.", report);
   }
 
-  void operator()(Context& ctx, const Tensor<float, B>& x, Tensor<float, B>& hidden, Tensor<float, B>& y) const {
+  void operator()(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& hidden, Tensor<A, B>& y) const {
     in_layer(ctx, x, hidden, Epilogue::Silu);
     out_layer(ctx, hidden, y);
   }

@@ -1,7 +1,9 @@
 // epona/nn/modulation.hpp — adaLN modulation of the FLUX blocks (`Modulation`, and the final
 // layer's `adaLN_modulation`): m = Linear(SiLU(vec)) split into `chunks` consecutive vectors
 // of width dim — (shift, scale, gate)[×2] for the blocks, (shift, scale) for the final layer.
-// SiLU(vec) is shared by every modulation of a forward, so callers pass it in once computed.
+// SiLU(vec) is shared by every modulation of a forward, so callers pass it in once computed;
+// the samplers evaluate every modulation for all their steps at once (one GEMM of M = steps
+// rows instead of one GEMV per step, compute-budget.md §5.2) into columns of one table.
 #pragma once
 
 #include <cstdint>
@@ -17,6 +19,7 @@ namespace epona::nn {
 template <class B, class T>
 struct Modulation {
   using Context = BackendContext<B>;
+  using A = Activation<B, T>;
 
   std::int64_t dim = 0;
   int chunks = 0;
@@ -32,12 +35,19 @@ struct Modulation {
 
   // silu_vec (1, dim) = SiLU(vec); the chunks*dim outputs go to the front of `out` (a buffer
   // of at least that many floats, so one buffer serves modulations of any chunk count).
-  void operator()(Context& ctx, const Tensor<float, B>& silu_vec, const Tensor<float, B>& out) const {
+  void operator()(Context& ctx, const Tensor<A, B>& silu_vec, const Tensor<A, B>& out) const {
     EPONA_CHECK(out.numel() >= chunks * dim, "modulation output buffer of ", out.numel(), " floats, needs ",
                 chunks * dim);
-    auto m = Tensor<float, B>::view(out.data(), {1, chunks * dim}, out.storage());
+    auto m = Tensor<A, B>::view(out.data(), {1, chunks * dim}, out.storage());
     lin(ctx, silu_vec, m);
   }
+
+  // Many vectors at once: silu_vecs (rows, dim) -> chunks*dim values per row into out, whose
+  // rows are `ld` apart (a column block of a wider table).
+  void rows(Context& ctx, const A* silu_vecs, std::int64_t rows, A* out, std::int64_t ld) const {
+    lin.strided(ctx, silu_vecs, dim, rows, out, ld);
+  }
+  std::int64_t width() const { return chunks * dim; }
 
   double flops() const { return lin.flops(1); }
 };

@@ -85,8 +85,8 @@ inline RopeTable<Cpu> nd_rope_table(const Tensor<float, Cpu>& ids, const std::ve
 }
 
 // Rotates `rows` tokens of one packed buffer (q or k) with table rows [first_row, first_row + rows).
-template <class Context, class B>
-void apply_rope_rows(Context& ctx, float* x, std::int64_t rows, std::int64_t stride, std::int64_t heads,
+template <class Context, class B, class T>
+void apply_rope_rows(Context& ctx, T* x, std::int64_t rows, std::int64_t stride, std::int64_t heads,
                      const RopeTable<B>& table, std::int64_t first_row = 0) {
   EPONA_CHECK(first_row >= 0 && first_row + rows <= table.rows(), "RoPE: rows [", first_row, ", ",
               first_row + rows, ") outside a table of ", table.rows());
@@ -97,8 +97,8 @@ void apply_rope_rows(Context& ctx, float* x, std::int64_t rows, std::int64_t str
 
 // Rotates q and k of `rows` tokens in place with rows [first_row, first_row + rows) of the table.
 // q of token r starts at q + r*stride; heads of head_dim = 2·pairs channels side by side.
-template <class Context, class B>
-void apply_rope_qk(Context& ctx, float* q, float* k, std::int64_t rows, std::int64_t stride, std::int64_t heads,
+template <class Context, class B, class T>
+void apply_rope_qk(Context& ctx, T* q, T* k, std::int64_t rows, std::int64_t stride, std::int64_t heads,
                    const RopeTable<B>& table, std::int64_t first_row = 0) {
   apply_rope_rows(ctx, q, rows, stride, heads, table, first_row);
   apply_rope_rows(ctx, k, rows, stride, heads, table, first_row);

@@ -1,0 +1,59 @@
+// epona/cuda/backend.cuh — the CUDA backend as the model templates see it: BackendTraits<Cuda>
+// (context, epilogue/attention types, bf16 or float32 activations = the weight type, weight
+// upload at bind time, host <-> arena copies, CUDA-graph replay) and every kernel the layers
+// call unqualified. Include it (from a .cu file) before instantiating a model on Cuda.
+#pragma once
+
+#include "epona/cuda/graph.hpp"
+#include "epona/cuda/memory.hpp"
+#include "epona/cuda/ops.cuh"
+#include "epona/cuda/qk_norm_rope.cuh"
+#include "epona/cuda/world_ops.cuh"
+#include "epona/nn/backend_context.hpp"
+
+namespace epona {
+
+template <> struct BackendTraits<Cuda> {
+  using Context = cuda::Context;
+  using Epilogue = cuda::Epilogue;
+  using AttentionShape = cuda::AttentionShape;
+  using Mask = cuda::Mask;
+  using GraphCache = cuda::GraphCache;
+  // bf16 weights: bf16 activations (GEMM inputs/outputs, attention), float32 inside kernels;
+  // float32 weights: float32 everywhere. The MST residual stream is float32 in both.
+  template <class W> using Activation = W;
+
+  // Device copy of a host tensor (an empty tensor stays empty). Synchronous: the host
+  // tensor may be released on return.
+  template <class T>
+  static Tensor<T, Cuda> upload(const Tensor<T, Cpu>& host) {
+    if (host.empty()) return {};
+    return cuda::to_device(uploader(), host);
+  }
+  template <class T>
+  static void upload_into(Context& ctx, const Tensor<T, Cpu>& host, Tensor<T, Cuda>& dst) {
+    EPONA_CHECK(host.numel() == dst.numel(), "upload_into: ", shape_str(host.shape()), " into ",
+                shape_str(dst.shape()));
+    auto view = Tensor<T, Cuda>::view(dst.data(), host.shape(), dst.storage());
+    cuda::copy(ctx, view, host);
+  }
+  template <class T>
+  static void download_into(Context& ctx, const Tensor<T, Cuda>& src, Tensor<T, Cpu>& host) {
+    EPONA_CHECK(host.numel() == src.numel(), "download_into: ", shape_str(src.shape()), " into ",
+                shape_str(host.shape()));
+    auto view = Tensor<T, Cpu>::view(host.data(), src.shape(), host.storage());
+    cuda::copy(ctx, view, src);
+  }
+
+ private:
+  // Weights are uploaded while binding, before any model context exists: a context of its own
+  // (device 0) orders those copies.
+  static cuda::Context& uploader() {
+    static cuda::Context ctx(0, 0);
+    return ctx;
+  }
+};
+
+template <> struct BackendOf<cuda::Context> { using type = Cuda; };
+
+}  // namespace epona

@@ -1,0 +1,107 @@
+// epona/cuda/graph.hpp — replaying a recorded sequence of kernels as a CUDA graph. A sampler's
+// loop (100 steps of a few hundred small launches) is captured once from the context's stream
+// and then relaunched as one graph while it is fed the same buffers: the key names those
+// buffers and sizes, and a different key records the loop again. EPONA_CUDA_GRAPHS=0 turns
+// capture off (the work then runs directly on the stream, e.g. for debugging).
+#pragma once
+
+#include <cuda_runtime.h>
+
+#include <chrono>
+#include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <utility>
+#include <vector>
+
+#include "epona/cuda/check.hpp"
+#include "epona/cuda/context.hpp"
+
+namespace epona::cuda {
+
+inline bool graphs_enabled() {
+  static const bool on = [] {
+    const char* v = std::getenv("EPONA_CUDA_GRAPHS");
+    return !(v && std::strcmp(v, "0") == 0);
+  }();
+  return on;
+}
+
+class GraphCache {
+ public:
+  GraphCache() = default;
+  // A copy starts empty: a graph is bound to the buffers of the object that recorded it.
+  GraphCache(const GraphCache&) {}
+  GraphCache& operator=(const GraphCache& o) {
+    if (this != &o) reset();
+    return *this;
+  }
+  GraphCache(GraphCache&& o) noexcept
+      : exec_(std::exchange(o.exec_, nullptr)), key_(std::move(o.key_)), captures_(o.captures_),
+        capture_ms_(o.capture_ms_) {}
+  GraphCache& operator=(GraphCache&& o) noexcept {
+    if (this != &o) {
+      reset();
+      exec_ = std::exchange(o.exec_, nullptr);
+      key_ = std::move(o.key_);
+      captures_ = o.captures_;
+      capture_ms_ = o.capture_ms_;
+    }
+    return *this;
+  }
+  ~GraphCache() { reset(); }
+
+  // Runs `work` (which only enqueues asynchronous work on ctx's stream: no host
+  // synchronisation, no allocation) through the graph recorded under `key`, recording it first
+  // when the key is new.
+  template <class Work>
+  void run(Context& ctx, const std::vector<std::uint64_t>& key, Work&& work) {
+    if (!graphs_enabled()) {
+      work();
+      return;
+    }
+    if (!exec_ || key != key_) record(ctx, key, work);
+    EPONA_CUDA_CHECK(cudaGraphLaunch(exec_, ctx.stream()));
+  }
+
+  int captures() const { return captures_; }          // how often a graph was recorded
+  double last_capture_ms() const { return capture_ms_; }  // host time of the last capture + instantiation
+  void reset() {
+    if (exec_) cudaGraphExecDestroy(exec_);
+    exec_ = nullptr;
+    key_.clear();
+  }
+
+ private:
+  template <class Work>
+  void record(Context& ctx, const std::vector<std::uint64_t>& key, Work& work) {
+    reset();
+    const auto start = std::chrono::steady_clock::now();
+    cudaGraph_t graph = nullptr;
+    // Relaxed: first calls inside the capture may build cuBLASLt plans or set kernel attributes.
+    EPONA_CUDA_CHECK(cudaStreamBeginCapture(ctx.stream(), cudaStreamCaptureModeRelaxed));
+    try {
+      work();
+    } catch (...) {
+      (void)cudaStreamEndCapture(ctx.stream(), &graph);  // leave the stream usable
+      if (graph) cudaGraphDestroy(graph);
+      (void)cudaGetLastError();
+      throw;
+    }
+    EPONA_CUDA_CHECK(cudaStreamEndCapture(ctx.stream(), &graph));
+    const cudaError_t status = cudaGraphInstantiate(&exec_, graph, 0);
+    cudaGraphDestroy(graph);
+    if (status != cudaSuccess) exec_ = nullptr;
+    EPONA_CUDA_CHECK(status);
+    key_ = key;
+    ++captures_;
+    capture_ms_ = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  }
+
+  cudaGraphExec_t exec_ = nullptr;
+  std::vector<std::uint64_t> key_;
+  int captures_ = 0;
+  double capture_ms_ = 0;
+};
+
+}  // namespace epona::cuda
