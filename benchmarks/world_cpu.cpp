@@ -101,20 +101,30 @@ void dit_forward(benchmark::State& state, bool vis) {
   report(state, dit.forward_flops(rows, false), dit.forward_flops(rows, true), b.wm.context().threads());
 }
 
-void BM_mst_evaluate_fp32(benchmark::State& s) { mst_evaluate<float>(s); }
-void BM_trajdit_eval_fp32(benchmark::State& s) { dit_forward<float>(s, false); }
-void BM_visdit_eval_fp32(benchmark::State& s) { dit_forward<float>(s, true); }
-void BM_mst_evaluate_bf16(benchmark::State& s) { mst_evaluate<bf16>(s); }
-void BM_trajdit_eval_bf16(benchmark::State& s) { dit_forward<bf16>(s, false); }
-void BM_visdit_eval_bf16(benchmark::State& s) { dit_forward<bf16>(s, true); }
+// Argument: threads (0 = all). One thread is timed in CPU time (robust on a shared machine),
+// all threads in wall-clock time.
+template <class W>
+void use_threads(benchmark::State& state) {
+  Bench<W>::get().wm.context().set_threads(static_cast<int>(state.range(0)));
+}
+void BM_mst_evaluate_fp32(benchmark::State& s) { use_threads<float>(s), mst_evaluate<float>(s); }
+void BM_trajdit_eval_fp32(benchmark::State& s) { use_threads<float>(s), dit_forward<float>(s, false); }
+void BM_visdit_eval_fp32(benchmark::State& s) { use_threads<float>(s), dit_forward<float>(s, true); }
+void BM_mst_evaluate_bf16(benchmark::State& s) { use_threads<bf16>(s), mst_evaluate<bf16>(s); }
+void BM_trajdit_eval_bf16(benchmark::State& s) { use_threads<bf16>(s), dit_forward<bf16>(s, false); }
+void BM_visdit_eval_bf16(benchmark::State& s) { use_threads<bf16>(s), dit_forward<bf16>(s, true); }
 
 }  // namespace
 
-BENCHMARK(BM_mst_evaluate_fp32)->Unit(benchmark::kMillisecond)->MinTime(2.0)->UseRealTime();
-BENCHMARK(BM_trajdit_eval_fp32)->Unit(benchmark::kMillisecond)->MinTime(1.0)->UseRealTime();
-BENCHMARK(BM_visdit_eval_fp32)->Unit(benchmark::kMillisecond)->MinTime(2.0)->UseRealTime();
-BENCHMARK(BM_mst_evaluate_bf16)->Unit(benchmark::kMillisecond)->MinTime(2.0)->UseRealTime();
-BENCHMARK(BM_trajdit_eval_bf16)->Unit(benchmark::kMillisecond)->MinTime(1.0)->UseRealTime();
-BENCHMARK(BM_visdit_eval_bf16)->Unit(benchmark::kMillisecond)->MinTime(2.0)->UseRealTime();
+#define EPONA_WORLD_BENCH(fn, seconds)                                                              \
+  BENCHMARK(fn)->Name(#fn "/threads:1")->Arg(1)->Unit(benchmark::kMillisecond)->MinTime(seconds); \
+  BENCHMARK(fn)->Name(#fn "/threads:all")->Arg(0)->Unit(benchmark::kMillisecond)->MinTime(seconds)->UseRealTime()
+
+EPONA_WORLD_BENCH(BM_mst_evaluate_fp32, 2.0);
+EPONA_WORLD_BENCH(BM_trajdit_eval_fp32, 1.0);
+EPONA_WORLD_BENCH(BM_visdit_eval_fp32, 2.0);
+EPONA_WORLD_BENCH(BM_mst_evaluate_bf16, 2.0);
+EPONA_WORLD_BENCH(BM_trajdit_eval_bf16, 1.0);
+EPONA_WORLD_BENCH(BM_visdit_eval_bf16, 2.0);
 
 BENCHMARK_MAIN();
