@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Times the official Epona PyTorch implementation the way its test scripts run it.
 
-The side-by-side harness (benchmarks/side_by_side.sh) runs this and epona's own benchmark in
+The side-by-side harness (benchmarks/gpu_side_by_side.sh) runs this and epona's own benchmark in
 one session on the same machine and prints the ratios. This file contains none of the official
 code: it imports it from the checkout given with --official.
 
@@ -13,7 +13,8 @@ warm-up, medians. On the CPU (--device cpu) everything runs in float32 with the 
 count; the Triton RMSNorm2d kernel is replaced by its formula there (Triton needs a GPU).
 
 Prints one JSON object per line: {"name": ..., "ms": median, "runs": [...]} and, on the GPU,
-{"name": "peak_memory_gib", "value": ...}.
+{"name": "peak_memory_gib", "value": ...}. "gemm2048" (a float32 2048³ torch.mm outside autocast,
+the ceiling the CPU baseline quotes) runs only when named in --only.
 """
 import argparse
 import json
@@ -173,6 +174,10 @@ def main():
         run("vis_sample", lambda: wm.dit.sample(x_img, img_ids, cond, cond_ids, pose_emb, sched_img),
             max(1, a.repeats // 2))
 
+        if "gemm2048" in only:  # the float32 GEMM ceiling (pytorch-baseline.md); only when asked for by name
+            a_mat, b_mat = torch.randn(2048, 2048, device=dev), torch.randn(2048, 2048, device=dev)
+            emit("gemm2048", timer.measure(lambda: torch.mm(a_mat, b_mat), a.repeats, a.warmup))
+
         need_ae = any(want(n) for n in ("dcae_decode", "dcae_encode", "step_decode"))
         if need_ae:
             if a.dcae_size:
@@ -187,20 +192,30 @@ def main():
             if want("dcae_encode"):
                 emit("dcae_encode", timer.measure(lambda: ae.encode(img), a.repeats, a.warmup))
 
+        devnull = open(os.devnull, "w")
+
+        def quiet(fn):  # step_eval prints unsynchronised timings
+            stdout, sys.stdout = sys.stdout, devnull
+            try:
+                return fn()
+            finally:
+                sys.stdout = stdout
+
+        def step():
+            with torch.autocast("cuda", dtype=torch.bfloat16):
+                return wm.step_eval(latents, rel_pose, rel_yaw, self_pred_traj=True)
+
+        if want("step") and dev == "cuda":
+            emit("step", quiet(lambda: timer.measure(step, max(1, a.repeats // 2), 1)))
+
         if want("step_decode") and dev == "cuda":
-            def step():
-                with torch.autocast("cuda", dtype=torch.bfloat16):
-                    _, lat = wm.step_eval(latents, rel_pose, rel_yaw, self_pred_traj=True)
+            def step_decode():
+                _, lat = step()
                 frame = ae.decode(lat.permute(0, 3, 1, 2).float(), is_video=False)  # z_to_image's layout
                 return (frame / 2 + 0.5).clamp(0, 1)
 
             torch.cuda.reset_peak_memory_stats()
-            devnull = open(os.devnull, "w")
-            stdout, sys.stdout = sys.stdout, devnull  # step_eval prints unsynchronised timings
-            try:
-                runs = timer.measure(step, max(1, a.repeats // 2), 1)
-            finally:
-                sys.stdout = stdout
+            runs = quiet(lambda: timer.measure(step_decode, max(1, a.repeats // 2), 1))
             emit("step_decode", runs)
             print(json.dumps({"name": "peak_memory_gib",
                               "value": torch.cuda.max_memory_allocated() / 2**30}), flush=True)

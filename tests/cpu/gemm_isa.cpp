@@ -123,7 +123,7 @@ TEST_CASE("a portable build runs on a CPU without AVX-512 (valgrind's emulated C
     return;
   }
   const std::string cmd =
-      "EPONA_UNDER_VALGRIND=1 valgrind -q --error-exitcode=3 /proc/" + std::to_string(::getpid()) +
+      "EPONA_UNDER_VALGRIND=1 valgrind -q --tool=none /proc/" + std::to_string(::getpid()) +
       "/exe --test-case='linear on this CPU*best kernels' > /dev/null 2>&1";
   // /proc/<pid>/exe resolves to this very program.
   const int rc = std::system(cmd.c_str());

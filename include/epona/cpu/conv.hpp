@@ -1,7 +1,9 @@
 // epona/cpu/conv.hpp — the NCHW float32 kernels of the convolutional autoencoder (DC-AE):
-// 2-D convolution (stride 1, "same" zero padding, groups) as Eigen GEMMs over im2col panels,
-// depthwise convolution as direct loops, ReLU/SiLU epilogues, per-pixel channel norms
-// (RMSNorm2d, eval BatchNorm2d), the GLU gate and LiteMLA's ReLU linear attention.
+// 2-D convolution (stride 1, "same" zero padding, groups) as GEMMs — the packed micro-kernels
+// of gemm_kernels.hpp with im2col done while packing (no panel in memory), or Eigen over
+// im2col panels on the generic path — depthwise convolution as direct loops, ReLU/SiLU
+// epilogues, per-pixel channel norms (RMSNorm2d, eval BatchNorm2d), the GLU gate and
+// LiteMLA's ReLU linear attention.
 #pragma once
 
 #include <Eigen/Core>
@@ -12,6 +14,8 @@
 #include <vector>
 
 #include "epona/cpu/context.hpp"
+#include "epona/cpu/activation.hpp"
+#include "epona/cpu/gemm.hpp"
 
 namespace epona {
 
@@ -162,6 +166,74 @@ inline void conv_group(const float* in, std::int64_t cin, std::int64_t H, std::i
   }
 }
 
+// The right operand of a convolution as a GEMM, B[K×P] = im2col(in) (K = C·k·k, P = H·W), packed
+// straight from the image: panel columns are consecutive pixels, cut into runs along image rows.
+struct PackIm2col {
+  const float* in;
+  std::int64_t H, W, k, nr;
+  void operator()(std::int64_t p0, std::int64_t cols, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
+    auto* out = reinterpret_cast<float*>(dst);
+    if (k == 1) return gemm::pack_rows(in + p0, H * W, cols, nr, s0, steps, dst);
+    const std::int64_t pad = k / 2;
+    for (std::int64_t s = 0; s < steps; ++s) {
+      const std::int64_t kr = s0 + s, c = kr / (k * k), dy = (kr / k) % k - pad, dx = kr % k - pad;
+      const float* plane = in + c * H * W;
+      float* d = out + s * nr;
+      for (std::int64_t j = 0; j < cols;) {  // one run of pixels within an image row
+        const std::int64_t p = p0 + j, y = p / W, x0 = p % W, run = std::min(cols - j, W - x0);
+        const std::int64_t ys = y + dy;
+        const std::int64_t lo = std::clamp<std::int64_t>(-dx - x0, 0, run), hi = std::clamp<std::int64_t>(W - dx - x0, lo, run);
+        if (ys < 0 || ys >= H) {
+          std::fill_n(d + j, run, 0.f);
+        } else {
+          std::fill_n(d + j, lo, 0.f);
+          std::copy(plane + ys * W + x0 + dx + lo, plane + ys * W + x0 + dx + hi, d + j + lo);
+          std::fill(d + j + hi, d + j + run, 0.f);
+        }
+        j += run;
+      }
+      std::fill(d + cols, d + nr, 0.f);
+    }
+  }
+};
+
+// Bias per output channel (row) and activation on a finished tile of the output (rows × cols).
+template <class Act>
+struct ConvTileEpilogue {
+  float* out;
+  std::int64_t HW;
+  const float* bias;
+  Act act;
+  void operator()(std::int64_t m0, std::int64_t rows, std::int64_t n0, std::int64_t cols) const {
+    using simd::Batch;
+    for (std::int64_t r = 0; r < rows; ++r) {
+      const Batch b(bias ? bias[m0 + r] : 0.f);
+      float* row = out + (m0 + r) * HW + n0;
+      simd::map(cols, row, [&](const Batch& v) { return act(v + b); }, row);
+    }
+  }
+};
+struct Relu {
+  simd::Batch operator()(const simd::Batch& v) const { return xsimd::max(v, simd::Batch(0.f)); }
+};
+
+// One group of one image through the packed micro-kernels: out[cout × HW] = W[cout × K] · im2col.
+inline void conv_group_packed(const gemm::KernelFamily& f, const float* in, std::int64_t cin, std::int64_t H,
+                              std::int64_t W, std::int64_t k, const float* w, const float* bias, std::int64_t cout,
+                              float* out, ConvAct act, int threads) {
+  const std::int64_t K = cin * k * k, HW = H * W;
+  const detail::PackActivations pack_w{f, w, K, K};  // the weights are the left operand's rows
+  const PackIm2col pack_in{in, H, W, k, f.nr};
+  const auto run = [&](auto act_fn) {
+    gemm::run_gemm(f, cout, HW, K, threads, pack_w, pack_in, out, HW, ConvTileEpilogue<decltype(act_fn)>{out, HW, bias, act_fn});
+  };
+  switch (act) {
+    case ConvAct::None: return run(detail::Identity{});
+    case ConvAct::Relu: return run(Relu{});
+    case ConvAct::Silu: return run(act::Silu{});
+  }
+}
+
 // Depthwise (one input channel per output channel): direct shifted multiply-adds per plane.
 inline void conv_depthwise(const float* in, std::int64_t planes, std::int64_t channels, std::int64_t H,
                            std::int64_t W, std::int64_t k, const float* w, const float* bias, float* out) {
@@ -205,9 +277,15 @@ void conv2d(Context& ctx, const float* x, const W* weight, const float* bias, fl
     apply_conv_act(ctx, y, s.batch * s.out_channels * HW, act);
     return;
   }
+  const gemm::KernelFamily* family = detail::kernel_family<float>(active_isa());
   for (std::int64_t n = 0; n < s.batch; ++n)
     for (std::int64_t g = 0; g < s.groups; ++g)
-      conv_detail::conv_group(x + (n * s.in_channels + g * cin_g) * HW, cin_g, s.height, s.width, k,
+      if (family)
+        conv_detail::conv_group_packed(*family, x + (n * s.in_channels + g * cin_g) * HW, cin_g, s.height, s.width, k,
+                                       w + g * cout_g * cin_g * k * k, bias ? bias + g * cout_g : nullptr, cout_g,
+                                       y + (n * s.out_channels + g * cout_g) * HW, act, ctx.threads());
+      else
+        conv_detail::conv_group(x + (n * s.in_channels + g * cin_g) * HW, cin_g, s.height, s.width, k,
                               w + g * cout_g * cin_g * k * k, bias ? bias + g * cout_g : nullptr, cout_g,
                               y + (n * s.out_channels + g * cout_g) * HW, act, ctx.threads());
 }
