@@ -80,6 +80,7 @@ def model_args(path, config):
     cfg = {k: v for k, v in cfg.items() if not k.startswith("__")}
     if config == "bench-mid":
         cfg.update(BENCH_MID)
+    cfg.setdefault("batch_size", 1)  # a command-line option of the official scripts (default 1), not in the config
     return types.SimpleNamespace(**cfg)
 
 
@@ -163,8 +164,11 @@ def main():
 
         def run(name, fn, repeats=a.repeats):
             if want(name):
-                with autocast():
-                    emit(name, timer.measure(fn, repeats, a.warmup))
+                try:
+                    with autocast():
+                        emit(name, timer.measure(fn, repeats, a.warmup))
+                except Exception as e:  # one failing row must not hide the others
+                    print(json.dumps({"name": name, "error": repr(e)}), flush=True)
 
         run("mst", lambda: wm.model.evaluate(latents, pose_idx, yaw_idx, sample_last=True))
         run("traj_eval", lambda: wm.traj_dit(x_traj, traj_ids, cond, cond_ids, t))

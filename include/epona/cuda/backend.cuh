@@ -8,6 +8,7 @@
 #include "epona/cuda/memory.hpp"
 #include "epona/cuda/ops.cuh"
 #include "epona/cuda/qk_norm_rope.cuh"
+#include "epona/cuda/side_stream.hpp"
 #include "epona/cuda/world_ops.cuh"
 #include "epona/nn/backend_context.hpp"
 
@@ -19,6 +20,7 @@ template <> struct BackendTraits<Cuda> {
   using AttentionShape = cuda::AttentionShape;
   using Mask = cuda::Mask;
   using GraphCache = cuda::GraphCache;
+  using SideQueue = cuda::SideStream;
   // bf16 weights: bf16 activations (GEMM inputs/outputs, attention), float32 inside kernels;
   // float32 weights: float32 everywhere. The MST residual stream is float32 in both.
   template <class W> using Activation = W;

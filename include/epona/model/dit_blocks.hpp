@@ -66,6 +66,9 @@ struct JointRows {
   std::int64_t total() const { return cond + target; }
 };
 
+// The second queue a block may overlap work on (a second CUDA stream; the CPU runs in order).
+template <class B> using SideQueue = typename BackendTraits<B>::SideQueue;
+
 namespace detail {
 // y = (1 + scale) ⊙ LN(x) + shift over `rows` rows of x starting at `first`.
 template <class Context, class B, class A>
@@ -166,15 +169,22 @@ struct DoubleStreamBlock {
     cond.mod.rows(ctx, silu_vecs, n, table + 6 * widths.hidden, ld);
   }
 
-  void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const nn::RopeTable<B>& rope,
-                  const A* mods) const {
+  // The two streams touch disjoint rows until the joint attention: the condition stream's
+  // work goes to the side queue, overlapping the target stream's.
+  void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
+                  const nn::RopeTable<B>& rope, const A* mods) const {
     const std::int64_t D = widths.hidden;
     const A *img_mod = mods, *cond_mod = mods + 6 * D;
-    cond.project(ctx, s, cond_mod, 0, rows.cond, widths, rope);
+    Context& side = queue.side(ctx);
+    queue.fork(ctx);
+    cond.project(side, s, cond_mod, 0, rows.cond, widths, rope);
     img.project(ctx, s, img_mod, rows.cond, rows.target, widths, rope);
+    queue.join(ctx);
     detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D);
+    queue.fork(ctx);
+    cond.finish(side, s, cond_mod, 0, rows.cond, widths);
     img.finish(ctx, s, img_mod, rows.cond, rows.target, widths);
-    cond.finish(ctx, s, cond_mod, 0, rows.cond, widths);
+    queue.join(ctx);
   }
 
   nn::Flops flops(const JointRows& rows) const {
@@ -220,19 +230,23 @@ struct SingleStreamBlock {
     modulation.rows(ctx, silu_vecs, n, table, ld);
   }
 
-  void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const nn::RopeTable<B>& rope,
-                  const A* mv, std::int64_t first_out = 0) const {
+  void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
+                  const nn::RopeTable<B>& rope, const A* mv, std::int64_t first_out = 0) const {
     const std::int64_t D = widths.hidden, Dm = widths.mlp_hidden, n = rows.total(), m = n - first_out;
     detail::modulate_rows(ctx, s.z, s.modulated, 0, n, mv, mv + D, widths.ln_eps);
     A* qkv = s.qkv.data();
     const A* a_out = s.modulated.data() + first_out * D;
     // cat rows 0..m = [attention | GELU(mlp)] of the updated rows: the MLP GEMM writes its
-    // columns directly, the attention the others.
+    // columns directly, the attention the others. Queries and MLP (rows from first_out) run
+    // on the side queue, keys and values (all rows) on the main one.
+    Context& side = queue.side(ctx);
+    queue.fork(ctx);
+    q_part.strided(side, a_out, D, m, qkv + first_out * 3 * D, 3 * D);
+    mlp_part.strided(side, a_out, D, m, s.cat.data() + D, D + Dm, BackendEpilogue<B>::GeluTanh);
+    norm.queries_rope(side, qkv + first_out * 3 * D, m, 3 * D, widths.heads, rope, first_out);
     kv_part.strided(ctx, s.modulated.data(), D, n, qkv + D, 3 * D);
-    q_part.strided(ctx, a_out, D, m, qkv + first_out * 3 * D, 3 * D);
-    mlp_part.strided(ctx, a_out, D, m, s.cat.data() + D, D + Dm, BackendEpilogue<B>::GeluTanh);
-    norm.queries_rope(ctx, qkv + first_out * 3 * D, m, 3 * D, widths.heads, rope, first_out);
     norm.keys_rope(ctx, qkv + D, n, 3 * D, widths.heads, rope, 0);
+    queue.join(ctx);
     detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D);
     linear2.strided(ctx, s.cat.data(), D + Dm, m, s.sub.data(), D);
     add_gated(ctx, s.z.data() + first_out * D, s.sub.data(), mv + 2 * D, m, D);

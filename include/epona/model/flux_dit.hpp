@@ -164,6 +164,7 @@ class FluxDiT {
     check_shape(target_ids, {batch, rows.target, axes}, "DiT target ids");
     if (vector_in_) check_shape(y, {batch, cfg_.vec_in_dim}, "DiT vector input y");
     Conditioning c = plan_conditioning(arena, batch, rows);
+    side_.side(ctx);  // the blocks' second queue exists before any sampling loop is recorded
     {
       ArenaScope<B> scope(arena);
       auto s = plan_conditioning_scratch(arena, batch, rows);
@@ -219,11 +220,11 @@ class FluxDiT {
       const nn::RopeTable<B> rope{c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
       const A* mods = m.row(b, time);
       for (const auto& block : double_blocks_) {
-        block(ctx, s, c.rows, rope, mods);
+        block(ctx, side_, s, c.rows, rope, mods);
         mods += block.modulation_width();
       }
       for (std::size_t j = 0; j < single_blocks_.size(); ++j) {
-        single_blocks_[j](ctx, s, c.rows, rope, mods, first_updated_row(j, c.rows));
+        single_blocks_[j](ctx, side_, s, c.rows, rope, mods, first_updated_row(j, c.rows));
         mods += single_blocks_[j].modulation_width();
       }
       auto o = out[b];
@@ -430,6 +431,7 @@ class FluxDiT {
     nn::RopeTable<Cpu> table;
   };
   mutable RopeCache rope_cache_;
+  mutable SideQueue<B> side_;  // the second queue of the blocks (a second stream on the GPU)
 };
 
 }  // namespace epona::model

@@ -6,6 +6,7 @@
 // autocast); GEMM inputs/outputs and attention use Activation<B, W> (bf16 on the GPU).
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -197,7 +198,7 @@ class SpatialTemporalTransformer {
     EPONA_CHECK(c.condition_frames >= 1 && c.condition_frames <= c.time_emb_rows, "MST: condition_frames ",
                 c.condition_frames, " outside [1, ", c.time_emb_rows, "]");
     for (std::int64_t i = 0; i < c.n_layer; ++i) blocks_.emplace_back(c);
-    rope_ = nn::upload<B>(nn::axial_rope_table(c.head_dim(), c.latent_h, c.latent_w, c.rope_theta));
+    rope_ = nn::upload<B>(window_rope_table(c));
   }
 
   const MstConfig& config() const { return cfg_; }
@@ -413,15 +414,27 @@ class SpatialTemporalTransformer {
   void run_space(Context& ctx, const MstLayer<B, W>& layer, Tensor<float, B>& x, typename MstLayer<B, W>::Scratch& s,
                  std::int64_t frames) const {
     const std::int64_t T = cfg_.tokens_per_frame(), C = cfg_.n_embd, H = cfg_.n_head, d = cfg_.head_dim();
-    const std::int64_t L = cfg_.img_tokens();
     const nn::PackedAttention space{frames, T, H, d, T * C, C, T * C, C, false};
+    // One pass over all frames' tokens: the table leaves the action tokens unrotated
+    // (cos 1, sin 0 rotate exactly to themselves).
     const auto rotate_images = [&](auto& q, auto& k) {
-      for (std::int64_t f = 0; f < frames; ++f) {
-        const std::int64_t first = f * T + constants::action_tokens;
-        nn::apply_rope_qk(ctx, q.data() + first * C, k.data() + first * C, L, C, H, rope_);
-      }
+      nn::apply_rope_qk(ctx, q.data(), k.data(), frames * T, C, H, rope_);
     };
     layer(ctx, x, s, 0, frames * T, rotate_images, attention_with(ctx, space));
+  }
+
+  // compute_axial_cis for the image tokens of every frame of the window, identity rows
+  // (cos 1, sin 0) for the action tokens: (F·T, head_dim/2).
+  static nn::RopeTable<Cpu> window_rope_table(const MstConfig& c) {
+    const auto image = nn::axial_rope_table(c.head_dim(), c.latent_h, c.latent_w, c.rope_theta);
+    const std::int64_t T = c.tokens_per_frame(), pairs = image.pairs(), rows = c.condition_frames * T;
+    nn::RopeTable<Cpu> t{Tensor<float, Cpu>::full({rows, pairs}, 1.0f), Tensor<float, Cpu>::zeros({rows, pairs})};
+    for (std::int64_t f = 0; f < c.condition_frames; ++f) {
+      const std::int64_t first = (f * T + constants::action_tokens) * pairs;
+      std::copy_n(image.cos.data(), image.cos.numel(), t.cos.data() + first);
+      std::copy_n(image.sin.data(), image.sin.numel(), t.sin.data() + first);
+    }
+    return t;
   }
 
   static constexpr auto no_rotation = [](auto&, auto&) {};
@@ -435,7 +448,7 @@ class SpatialTemporalTransformer {
   Tensor<float, B> time_emb_;  // (rows, C)
   Projector<B, W> img_projector_, pose_x_projector_, pose_y_projector_, yaw_projector_;
   std::vector<CausalTimeSpaceBlock<B, W>> blocks_;
-  nn::RopeTable<B> rope_;  // (L, head_dim/2)
+  nn::RopeTable<B> rope_;  // (F·T, head_dim/2): every frame's rows, the action tokens unrotated
 };
 
 }  // namespace epona::model

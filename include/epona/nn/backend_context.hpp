@@ -30,12 +30,26 @@ struct ImmediateGraphCache {
   }
 };
 
+// Work split over two queues that may run concurrently (the two streams of a DiT double
+// block): on the CPU both queues are the one context and everything runs in order.
+struct InOrderQueues {
+  template <class Context>
+  Context& side(Context& main) {
+    return main;
+  }
+  template <class Context>
+  void fork(Context&) {}
+  template <class Context>
+  void join(Context&) {}
+};
+
 template <> struct BackendTraits<Cpu> {
   using Context = cpu::Context;
   using Epilogue = cpu::Epilogue;
   using AttentionShape = cpu::AttentionShape;
   using Mask = cpu::Mask;
   using GraphCache = ImmediateGraphCache;
+  using SideQueue = InOrderQueues;
   // Activations between layers: float32 on the CPU whatever the weights (bf16 weights are
   // widened inside the GEMM; everything else computes in float32).
   template <class W> using Activation = float;

@@ -1,0 +1,248 @@
+// epona's world model on the GPU at the real configuration (512x1024 frames -> 16x32 latents,
+// 10 condition frames, the shipped widths and depths, 100 sampling steps), random weights
+// (model/random_weights.hpp), bf16 weights and activations (float32 MST residual stream):
+// MST over 10 frames; TrajDiT and VisDiT one evaluation (forward: cond_in, modulations and one
+// velocity) and 100-step sample (prepare + the recorded sampling loop); one autoregressive
+// step (MST + TrajDiT 100 + VisDiT 100, self-predicted action, host to host); the bf16 GEMM
+// ceiling through the same cuBLASLt path (8192^3, rotating buffers); device memory in use.
+// CUDA events around each call after warm-up; medians. One JSON object per line (the
+// side-by-side harness reads them), then a readable table.
+// Usage: bench_gpu_world [--repeats N] [--steps S] [--only a,b,...] [--fp32]
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <functional>
+#include <set>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "epona/core/rng.hpp"
+#include "epona/cuda/backend.cuh"
+#include "epona/flow/schedule.hpp"
+#include "epona/model/pose_tokenizer.hpp"
+#include "epona/model/random_weights.hpp"
+#include "epona/model/world_model.hpp"
+
+using namespace epona;
+
+namespace {
+
+struct Options {
+  int repeats = 10;
+  std::int64_t steps = 100;
+  std::set<std::string> only;
+  bool fp32 = false;
+  bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
+};
+
+Options parse(int argc, char** argv) {
+  Options o;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    const auto next = [&]() -> std::string {
+      EPONA_CHECK(i + 1 < argc, "missing value after ", a);
+      return argv[++i];
+    };
+    if (a == "--repeats") o.repeats = std::stoi(next());
+    else if (a == "--steps") o.steps = std::stoll(next());
+    else if (a == "--fp32") o.fp32 = true;
+    else if (a == "--only") {
+      std::stringstream ss(next());
+      for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
+    } else fail("unknown option ", a, " (--repeats N, --steps S, --only a,b, --fp32)");
+  }
+  return o;
+}
+
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  const std::size_t n = v.size();
+  return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+// Milliseconds of `fn` (which enqueues on ctx's stream, possibly synchronising) between two
+// events, `repeats` times after `warmup` calls.
+std::vector<double> time_ms(cuda::Context& ctx, int repeats, int warmup, const std::function<void()>& fn) {
+  for (int i = 0; i < warmup; ++i) fn();
+  ctx.synchronize();
+  cudaEvent_t a, b;
+  EPONA_CUDA_CHECK(cudaEventCreate(&a));
+  EPONA_CUDA_CHECK(cudaEventCreate(&b));
+  std::vector<double> runs;
+  for (int i = 0; i < repeats; ++i) {
+    EPONA_CUDA_CHECK(cudaEventRecord(a, ctx.stream()));
+    fn();
+    EPONA_CUDA_CHECK(cudaEventRecord(b, ctx.stream()));
+    EPONA_CUDA_CHECK(cudaEventSynchronize(b));
+    float ms = 0;
+    EPONA_CUDA_CHECK(cudaEventElapsedTime(&ms, a, b));
+    runs.push_back(ms);
+  }
+  cudaEventDestroy(a);
+  cudaEventDestroy(b);
+  return runs;
+}
+
+void emit(const std::string& name, const std::vector<double>& runs, double tflop) {
+  std::printf("{\"name\": \"%s\", \"ms\": %.4f, \"tflop\": %.6f, \"runs\": [", name.c_str(), median(runs), tflop);
+  for (std::size_t i = 0; i < runs.size(); ++i) std::printf("%s%.4f", i ? ", " : "", runs[i]);
+  std::printf("]}\n");
+  std::fflush(stdout);
+}
+void emit_value(const std::string& name, double value) {
+  std::printf("{\"name\": \"%s\", \"value\": %.6f}\n", name.c_str(), value);
+  std::fflush(stdout);
+}
+
+std::size_t used_device_bytes() {
+  std::size_t free_b = 0, total_b = 0;
+  EPONA_CUDA_CHECK(cudaMemGetInfo(&free_b, &total_b));
+  return total_b - free_b;
+}
+
+// The bf16 GEMM ceiling through epona's cuBLASLt path: 8192^3, operands rotating over buffers
+// larger than L2.
+double gemm_ceiling_tflops(cuda::Context& ctx) {
+  constexpr std::int64_t n = 8192;
+  constexpr int sets = 2;
+  std::vector<Tensor<bf16, Cuda>> x, w, y;
+  TorchGenerator gen(3);
+  auto host = gen.randn({n, n});
+  Tensor<bf16, Cpu> hb(host.shape());
+  for (std::int64_t i = 0; i < hb.numel(); ++i) hb.data()[i] = bf16(host.data()[i]);
+  for (int s = 0; s < sets; ++s) {
+    x.push_back(cuda::to_device(ctx, hb));
+    w.push_back(cuda::to_device(ctx, hb));
+    y.emplace_back(Shape{n, n});
+  }
+  const Tensor<bf16, Cuda> none;
+  int k = 0;
+  const auto runs = time_ms(ctx, 10, 3, [&] {
+    cuda::linear(ctx, x[k % sets], w[k % sets], none, y[k % sets]);
+    ++k;
+  });
+  return 2.0 * n * n * n / (median(runs) * 1e-3) / 1e12;
+}
+
+template <class W>
+int run(const Options& o) {
+  WorldModelConfig cfg;  // the shipped configuration
+  cfg.num_sampling_steps = o.steps;
+  cuda::Context probe;
+  const auto& info = probe.info();
+  int driver = 0, runtime = 0;
+  cudaDriverGetVersion(&driver);
+  cudaRuntimeGetVersion(&runtime);
+  std::printf("# device: %s, %d SMs, sm_%d%d, %.1f GiB; driver %d, runtime %d; weights %s\n", info.name.c_str(),
+              info.multiprocessors, info.major, info.minor, info.global_bytes / 1073741824.0, driver, runtime,
+              std::is_same_v<W, float> ? "float32" : "bf16");
+  const double ceiling = o.want("gemm") ? gemm_ceiling_tflops(probe) : 0;
+  if (ceiling > 0) emit_value("gemm_tflops", ceiling);
+
+  const std::size_t base_bytes = used_device_bytes();
+  const auto t0 = std::chrono::steady_clock::now();
+  auto wm = [&] {
+    const auto weights = model::random_world_weights(cfg, 1);
+    return WorldModel<Cuda, W>::load(weights, cfg);
+  }();
+  std::printf("# random weights generated, converted and uploaded in %.1f s\n",
+              std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  auto& ctx = wm.context();
+  const std::int64_t F = cfg.condition_frames, L = cfg.img_tokens();
+  TorchGenerator gen(0);
+  const auto tok = model::PoseTokenizer::from(cfg);
+  History h{gen.randn({1, F, L, cfg.token_dim()}), gen.randn({1, F, 2}), gen.randn({1, F, 1})};
+  for (std::int64_t f = 0; f < F; ++f) h.rel_pose.at(0, f, 0) = 2.0f + 0.5f * h.rel_pose.at(0, f, 0);  // driving forward
+  Tensor<float, Cpu> pose_full({1, F + 1, 2}), yaw_full({1, F + 1, 1});
+  for (std::int64_t f = 0; f <= F; ++f) {
+    const std::int64_t src = std::min(f, F - 1);
+    pose_full.at(0, f, 0) = h.rel_pose.at(0, src, 0);
+    pose_full.at(0, f, 1) = h.rel_pose.at(0, src, 1);
+    yaw_full.at(0, f, 0) = h.rel_yaw.at(0, src, 0);
+  }
+  const auto pose_idx = tok.poses_to_indices(pose_full), yaw_idx = tok.yaws_to_indices(yaw_full);
+  const auto& mst = wm.mst();
+  const auto ids = model::prepare_ids(1, cfg.latent_h(), cfg.latent_w(), cfg.tokens_per_frame(), cfg.traj_len);
+  const model::JointRows traj_rows{cfg.tokens_per_frame(), cfg.traj_len}, img_rows{cfg.tokens_per_frame(), L};
+  const auto& traj = wm.traj_dit();
+  const auto& vis = wm.vis_dit();
+  // One arena for the component timings, sized for the largest of them.
+  const std::size_t bytes = std::max({mst.evaluate_workspace_bytes(), traj.forward_bytes(1, traj_rows),
+                                      traj.conditioning_bytes(1, traj_rows) + traj.sample_bytes(1, traj_rows, o.steps),
+                                      vis.forward_bytes(1, img_rows),
+                                      vis.conditioning_bytes(1, img_rows) + vis.sample_bytes(1, img_rows, o.steps)});
+  Arena<Cuda> arena(bytes);
+  const auto latents = cuda::to_device(ctx, h.latents);
+  Tensor<float, Cuda> stt({1, cfg.tokens_per_frame(), cfg.n_embd}), pose_emb({1, cfg.pose_emb_dim()});
+  const int R = o.repeats;
+  const double mst_tflop = mst.evaluate_flops(false).total() / 1e12;
+  const auto mst_once = [&] {
+    arena.reset();
+    mst.evaluate(ctx, arena, latents, pose_idx, yaw_idx, stt, pose_emb);
+  };
+  mst_once();
+  if (o.want("mst")) emit("mst", time_ms(ctx, R, 3, mst_once), mst_tflop);
+
+  const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
+  for (const bool is_vis : {false, true}) {
+    const auto& dit = is_vis ? vis : traj;
+    const std::string name = is_vis ? "vis" : "traj";
+    const auto& rows = dit_rows(is_vis);
+    const auto& target_ids = is_vis ? ids.img : ids.traj;
+    const auto x0 = gen.randn({1, rows.target, is_vis ? cfg.token_dim() : std::int64_t{3}});
+    const auto x = cuda::to_device(ctx, x0);
+    Tensor<W, Cuda> v(x.shape());
+    Tensor<float, Cpu> t({1});
+    t.data()[0] = 0.3f;
+    const double eval_tflop = dit.forward_flops(rows, false).total() / 1e12;
+    if (o.want(name + "_eval"))
+      emit(name + "_eval", time_ms(ctx, std::max(R, 20), 3, [&] {
+             arena.reset();
+             dit.forward(ctx, arena, x, target_ids, stt, ids.cond, t, pose_emb, v);
+           }),
+           eval_tflop);
+    const auto grid = flow::get_schedule(o.steps, rows.target);
+    Tensor<float, Cuda> state(x.shape());
+    const auto sample_once = [&] {
+      arena.reset();
+      cuda::copy(ctx, x.data(), state.data(), x.numel());  // the same noise every run
+      const auto c = dit.prepare(ctx, arena, stt, ids.cond, target_ids, pose_emb);
+      dit.sample(ctx, arena, c, grid, state);
+    };
+    sample_once();  // records the sampling graph
+    std::printf("# %s sampler graph: %d capture(s), last %.1f ms (host, capture + instantiate)\n", name.c_str(),
+                dit.sampler_graph().captures(), dit.sampler_graph().last_capture_ms());
+    if (o.want(name + "_sample"))
+      emit(name + "_sample", time_ms(ctx, std::max(3, R / 2), 1, sample_once), eval_tflop * double(o.steps));
+  }
+  arena = Arena<Cuda>();  // the step uses the model's own arena
+
+  if (o.want("step")) {
+    SampleOptions opt;
+    opt.seed = 7;
+    const double step_tflop = mst_tflop + double(o.steps) * (traj.forward_flops(traj_rows, false).total() +
+                                                             vis.forward_flops(img_rows, false).total()) / 1e12;
+    emit("step", time_ms(ctx, std::max(3, R / 2), 1, [&] { (void)wm.predict_next(h, std::nullopt, opt); }), step_tflop);
+  }
+  emit_value("device_memory_gib", double(used_device_bytes() - base_bytes) / 1073741824.0);
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    const Options o = parse(argc, argv);
+    if (!cuda::has_gpu()) {
+      std::printf("no CUDA device: nothing to measure\n");
+      return 0;
+    }
+    return o.fp32 ? run<float>(o) : run<bf16>(o);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "bench_gpu_world: %s\n", e.what());
+    return 1;
+  }
+}

@@ -1,0 +1,428 @@
+// The world model's layers and blocks on the GPU against the CPU backend on random data and
+// random weights (model/random_weights.hpp) at head dim 128 (the real one): the world-model
+// kernels added for the GPU (copy, strided copy, float32 -> bf16 conversion, Euler update),
+// the DiT blocks one by one (DoubleStreamBlock, SingleStreamBlock full and pruned, LastLayer),
+// the MST block by block (observer), whole DiT evaluations and samples (batch 2: modulation
+// tables, input conversion, recorded sampler graph) and world-model steps. Bounds: float32
+// within 1e-5 (max |gpu - cpu| / max |cpu|, per block; 1e-4 after a 10-step sample, as the
+// golden README for float32 ports); bf16 (bf16 weights and activations vs the float32 CPU)
+// within twice the official bf16 recipe's error of the matching golden stage (manifest.json).
+// Outputs and the arena are poisoned (0xFF: NaN) before every GPU call.
+#include <doctest/doctest.h>
+
+#include <cmath>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "../model/world_golden.hpp"
+#include "cuda_test_util.cuh"
+#include "epona/cuda/backend.cuh"
+#include "epona/flow/schedule.hpp"
+#include "epona/model/random_weights.hpp"
+#include "epona/model/world_model.hpp"
+
+using namespace epona;
+
+namespace {
+
+// Small, but with the real head dim 128, several frames, and 32 image tokens.
+WorldModelConfig small_config() {
+  WorldModelConfig c;
+  c.image_h = 128;
+  c.image_w = 256;  // latent 4 x 8
+  c.condition_frames = 3;
+  c.n_embd = 256;
+  c.n_head = 2;
+  c.n_layer = {2, 2, 2};
+  c.n_embd_dit = 256;
+  c.n_head_dit = 2;
+  c.axes_dim_dit = {16, 56, 56};
+  c.n_layer_traj = {1, 1};
+  c.n_embd_dit_traj = 256;
+  c.n_head_dit_traj = 2;
+  c.axes_dim_dit_traj = {16, 56, 56};
+  c.num_sampling_steps = 10;
+  return c;
+}
+
+const WorldModelConfig& config() {
+  static const WorldModelConfig c = small_config();
+  return c;
+}
+const io::TensorMap& weights() {
+  static const io::TensorMap w = model::random_world_weights(config(), 11);
+  return w;
+}
+
+cuda::Context& gpu() {
+  static cuda::Context ctx;
+  return ctx;
+}
+cpu::Context& cpu_ctx() {
+  static cpu::Context ctx;
+  return ctx;
+}
+
+double official_bf16_error(const std::string& name) {
+  static const nlohmann::json manifest = [] {
+    std::ifstream in(test::golden_dir() + "/manifest.json");
+    return nlohmann::json::parse(in);
+  }();
+  return manifest.at("tolerance_official_bf16_recipe").at("official_recipe_vs_fp32_golden").at(name).at("rel_max").get<double>();
+}
+
+// The bound of a GPU result of weight type W against the float32 CPU: 1e-5 (float32, or
+// `f32_bound` for composed runs) or twice the official bf16 recipe's error at `stage`.
+template <class W>
+double bound(const std::string& stage, double f32_bound = 1e-5) {
+  return std::is_same_v<W, float> ? f32_bound : 2 * official_bf16_error(stage);
+}
+
+void expect_close(const std::string& what, const Tensor<float, Cpu>& gpu_out, const Tensor<float, Cpu>& cpu_out,
+                  double limit) {
+  REQUIRE(gpu_out.shape() == cpu_out.shape());
+  const double rel = test::rel_error(gpu_out, cpu_out);
+  MESSAGE(what, ": rel ", rel, " (limit ", limit, ")");
+  CHECK(rel <= limit);
+}
+
+void poison_arena(Arena<Cuda>& arena) {
+  arena.reset();
+  auto all = arena.take<unsigned char>({static_cast<std::int64_t>(arena.capacity())});
+  cuda::fill_bytes(gpu(), all, 0xFF);
+  arena.reset();
+}
+
+template <class T>
+Tensor<T, Cuda> upload(const Tensor<float, Cpu>& h) {
+  return test::upload<T>(gpu(), h);
+}
+template <class T>
+Tensor<float, Cpu> download(const Tensor<T, Cuda>& d) {
+  return test::download(gpu(), d);
+}
+
+template <class Context>
+using BackendOf_t = typename BackendOf<std::decay_t<Context>>::type;
+
+template <class Block>
+void bind(Block& block, const std::string& prefix) {
+  io::BindReport report(weights());
+  block.bind(weights(), prefix, report);
+  report.finish(true, [&](const std::string& k) { return k.rfind(prefix, 0) != 0; });
+}
+
+}  // namespace
+
+TEST_CASE("world-model kernels: copy, strided copy, conversion, Euler update (float32 and bf16 velocity)") {
+  EPONA_REQUIRE_GPU();
+  auto& ctx = gpu();
+  const auto src = test::random_tensor({37, 53}, 1);
+  auto dst = test::upload<float>(ctx, test::random_tensor({37, 53}, 2));
+  cuda::copy(ctx, upload<float>(src).data(), dst.data(), src.numel());
+  CHECK(test::rel_error(download(dst), src) == 0);
+  // Strided: columns [5, 5 + 17) of 11 rows of src into columns [3, 20) of rows 64 apart.
+  auto wide = upload<float>(test::random_tensor({11, 64}, 3));
+  const auto before = download(wide);
+  const auto dsrc = upload<float>(src);
+  cuda::copy_rows(ctx, dsrc.data() + 5, 53, wide.data() + 3, 64, 11, 17);
+  const auto after = download(wide);
+  int wrong = 0;
+  for (int r = 0; r < 11; ++r)
+    for (int c = 0; c < 64; ++c)
+      wrong += after.at(r, c) != (c >= 3 && c < 20 ? src.at(r, c + 2) : before.at(r, c));
+  CHECK(wrong == 0);
+  // Conversion rounds to nearest even like epona::bf16 (n = 1001: element path; 4096: packs).
+  for (const std::int64_t n : {1001, 4096}) {
+    const auto x = test::random_tensor({n}, 4, -100.f, 100.f);
+    auto y = Tensor<bf16, Cuda>({n});
+    cuda::fill_bytes(ctx, y, 0xFF);
+    cuda::convert(ctx, upload<float>(x).data(), y.data(), n);
+    const auto back = download(y);
+    int mismatches = 0;
+    for (std::int64_t i = 0; i < n; ++i) mismatches += back.data()[i] != float(bf16(x.data()[i]));
+    CHECK(mismatches == 0);
+  }
+  // Euler update: x += round_V(a * v), two roundings, bit-exact against the host.
+  for (const std::int64_t n : {1001, 4096}) {
+    const auto x = test::random_tensor({n}, 5), v = test::random_tensor({n}, 6, -3.f, 3.f);
+    const float a = 0.0123f;
+    auto dx = upload<float>(x);
+    cuda::axpy(ctx, dx.data(), upload<float>(v).data(), a, n);
+    auto dxb = upload<float>(x);
+    const auto vb = upload<bf16>(v);
+    cuda::axpy(ctx, dxb.data(), vb.data(), a, n);
+    const auto got = download(dx), got_b = download(dxb);
+    int wrong_f = 0, wrong_b = 0;
+    for (std::int64_t i = 0; i < n; ++i) {
+      volatile float step = a * v.data()[i];
+      wrong_f += got.data()[i] != x.data()[i] + step;
+      const float vbi = float(bf16(v.data()[i]));
+      volatile float step_b = a * vbi;
+      wrong_b += got_b.data()[i] != x.data()[i] + float(bf16(step_b));
+    }
+    CHECK(wrong_f == 0);
+    CHECK(wrong_b == 0);
+  }
+}
+
+namespace {
+
+// One DiT block on the CPU (float32) and on the GPU (weights W) from the same residual z,
+// modulation vectors and RoPE table; returns (cpu z or out, gpu z or out).
+struct DitBlockCase {
+  model::DitWidths widths = model::FluxDitConfig::vis(config()).widths();
+  model::JointRows rows{config().tokens_per_frame(), config().img_tokens()};
+  Tensor<float, Cpu> z = test::random_tensor({rows.total(), widths.hidden}, 21, -2.f, 2.f);
+  nn::RopeTable<Cpu> rope = [this] {
+    const auto ids = model::prepare_ids(1, config().latent_h(), config().latent_w(), rows.cond, config().traj_len);
+    Tensor<float, Cpu> joint({rows.total(), 3});
+    std::copy_n(ids.cond.data(), rows.cond * 3, joint.data());
+    std::copy_n(ids.img.data(), rows.target * 3, joint.data() + rows.cond * 3);
+    return nn::nd_rope_table(joint, {16, 56, 56}, 10000.0);
+  }();
+
+  template <class B, class A>
+  static model::DitScratch<B, A> scratch(Arena<B>& arena, std::int64_t n, const model::DitWidths& w) {
+    return model::DitScratch<B, A>::plan(arena, n, w);
+  }
+
+  // run(block, scratch, mods, rope) for CPU float and GPU W; compares z rows [first, total).
+  template <class W, class MakeBlock, class Run>
+  void compare(const std::string& what, const std::string& prefix, std::int64_t mod_width, MakeBlock make, Run run,
+               std::int64_t first = 0, bool whole_z = true) {
+    using A = Activation<Cuda, W>;
+    const auto mods = test::random_tensor({mod_width}, 22, -0.5f, 0.5f);
+    auto cpu_block = make.template operator()<Cpu, float>();
+    bind(cpu_block, prefix);
+    ArenaCounter<Cpu> counter;
+    model::DitScratch<Cpu, float>::plan(counter, rows.total(), widths);
+    Arena<Cpu> ca(counter.bytes());
+    auto cs = model::DitScratch<Cpu, float>::plan(ca, rows.total(), widths);
+    std::copy_n(z.data(), z.numel(), cs.z.data());
+    Tensor<float, Cpu> cpu_out = run(cpu_ctx(), cpu_block, cs, mods.data(), rope);
+
+    auto gpu_block = make.template operator()<Cuda, W>();
+    bind(gpu_block, prefix);
+    Arena<Cuda> ga(counter.bytes() * 2);
+    poison_arena(ga);
+    auto gs = model::DitScratch<Cuda, A>::plan(ga, rows.total(), widths);
+    auto zin = upload<A>(z);
+    cuda::copy(gpu(), zin.data(), gs.z.data(), z.numel());
+    const auto dmods = upload<A>(mods);
+    const nn::RopeTable<Cuda> drope{upload<float>(rope.cos), upload<float>(rope.sin)};
+    Tensor<float, Cpu> gpu_out = run(gpu(), gpu_block, gs, dmods.data(), drope);
+    if (whole_z) {
+      // Rows before `first` are not updated: bit-identical to the (rounded) input.
+      const auto zin_host = download(zin);
+      int changed = 0;
+      for (std::int64_t i = 0; i < first * widths.hidden; ++i) changed += gpu_out.data()[i] != zin_host.data()[i];
+      CHECK(changed == 0);
+      const auto rows_of = [&](const Tensor<float, Cpu>& t) { return t.slice(first, rows.total()).clone(); };
+      expect_close(what, rows_of(gpu_out), rows_of(cpu_out), bound<W>("vis.velocity"));
+    } else {
+      expect_close(what, gpu_out, cpu_out, bound<W>("vis.velocity"));
+    }
+  }
+};
+
+template <class W>
+void dit_blocks() {
+  DitBlockCase k;
+  const auto w = k.widths;
+  const std::int64_t D = w.hidden;
+  const auto dl = [w]<class B, class T>() { return model::DoubleStreamBlock<B, T>(w); };
+  const auto sl = [w]<class B, class T>() { return model::SingleStreamBlock<B, T>(w); };
+  const auto ll = [w]<class B, class T>() { return model::LastLayer<B, T>(w, config().token_dim()); };
+  const auto z_of = [](auto& ctx, auto& s) {
+    if constexpr (std::is_same_v<std::decay_t<decltype(ctx)>, cuda::Context>)
+      return download(s.z);
+    else
+      return s.z.clone();
+  };
+  const std::string tag = std::is_same_v<W, float> ? " (GPU f32 vs CPU)" : " (GPU bf16 vs CPU f32)";
+  k.template compare<W>("DoubleStreamBlock" + tag, "module.dit.double_blocks.0.", 12 * D, dl,
+                        [&](auto& ctx, const auto& b, auto& s, const auto* mods, const auto& rope) {
+                          model::SideQueue<BackendOf_t<decltype(ctx)>> queue;
+                          b(ctx, queue, s, k.rows, rope, mods);
+                          return z_of(ctx, s);
+                        });
+  for (const std::int64_t first : {std::int64_t{0}, k.rows.cond})
+    k.template compare<W>("SingleStreamBlock, rows from " + std::to_string(first) + tag,
+                          "module.dit.single_blocks.1.", 3 * D, sl,
+                          [&](auto& ctx, const auto& b, auto& s, const auto* mods, const auto& rope) {
+                            model::SideQueue<BackendOf_t<decltype(ctx)>> queue;
+                            b(ctx, queue, s, k.rows, rope, mods, first);
+                            return z_of(ctx, s);
+                          },
+                          first);
+  k.template compare<W>("LastLayer" + tag, "module.dit.final_layer.", 2 * D, ll,
+                        [&](auto& ctx, const auto& b, auto& s, const auto* mods, const auto&) {
+                          using B = typename std::decay_t<decltype(s.z)>::backend;
+                          using A = typename std::decay_t<decltype(s.z)>::value_type;
+                          Tensor<A, B> out({k.rows.target, config().token_dim()});
+                          if constexpr (std::is_same_v<B, Cuda>) cuda::fill_bytes(gpu(), out, 0xFF);
+                          b(ctx, s, k.rows, mods, out);
+                          if constexpr (std::is_same_v<B, Cuda>)
+                            return download(out);
+                          else
+                            return out;
+                        },
+                        0, false);
+}
+
+}  // namespace
+
+TEST_CASE("DiT blocks on the GPU vs the CPU: float32 and bf16") {
+  EPONA_REQUIRE_GPU();
+  dit_blocks<float>();
+  dit_blocks<bf16>();
+}
+
+namespace {
+
+std::int64_t kBatch = 2;
+
+Tensor<float, Cpu> scaled(Tensor<float, Cpu> t, float k) {
+  for (std::int64_t i = 0; i < t.numel(); ++i) t.data()[i] *= k;
+  return t;
+}
+
+template <class W>
+void mst_blocks() {
+  const auto& c = config();
+  const auto cfg = model::MstConfig::from(c);
+  model::SpatialTemporalTransformer<Cpu, float> cpu_mst(cfg);
+  model::SpatialTemporalTransformer<Cuda, W> gpu_mst(cfg);
+  bind(cpu_mst, "module.model.");
+  bind(gpu_mst, "module.model.");
+  const auto latents = test::random_tensor({kBatch, c.condition_frames, c.img_tokens(), c.token_dim()}, 31, -2.f, 2.f);
+  const auto tok = model::PoseTokenizer::from(c);
+  const auto pose_idx = tok.poses_to_indices(scaled(test::random_tensor({kBatch, c.condition_frames + 1, 2}, 32), 3.f));
+  const auto yaw_idx = tok.yaws_to_indices(scaled(test::random_tensor({kBatch, c.condition_frames + 1, 1}, 33), 4.f));
+  const std::string tag = std::is_same_v<W, float> ? " (GPU f32 vs CPU)" : " (GPU bf16 vs CPU f32)";
+  for (const bool observed : {true, false}) {
+    std::map<std::string, Tensor<float, Cpu>> cpu_stages;
+    Tensor<float, Cpu> stt({kBatch, c.tokens_per_frame(), c.n_embd}), emb({kBatch, c.pose_emb_dim()});
+    Arena<Cpu> ca(cpu_mst.evaluate_workspace_bytes());
+    model::MstObserver<Cpu> cpu_obs = [&](std::int64_t b, const std::string& stage, const Tensor<float, Cpu>& x) {
+      cpu_stages[stage + std::to_string(b)] = x.clone();
+    };
+    cpu_mst.evaluate(cpu_ctx(), ca, latents, pose_idx, yaw_idx, stt, emb, observed ? cpu_obs : nullptr);
+
+    auto dstt = Tensor<float, Cuda>({kBatch, c.tokens_per_frame(), c.n_embd});
+    auto demb = Tensor<float, Cuda>({kBatch, c.pose_emb_dim()});
+    cuda::fill_bytes(gpu(), dstt, 0xFF);
+    cuda::fill_bytes(gpu(), demb, 0xFF);
+    Arena<Cuda> ga(gpu_mst.evaluate_workspace_bytes());
+    poison_arena(ga);
+    int seen = 0;
+    model::MstObserver<Cuda> gpu_obs = [&](std::int64_t b, const std::string& stage, const Tensor<float, Cuda>& x) {
+      const std::string recipe = stage == "tokens_in" ? "mst.tokens_in" : "mst.block0_out";
+      expect_close("MST " + stage + "[" + std::to_string(b) + "]" + tag, download(x),
+                   cpu_stages.at(stage + std::to_string(b)), bound<W>(recipe));
+      ++seen;
+    };
+    gpu_mst.evaluate(gpu(), ga, upload<float>(latents), pose_idx, yaw_idx, dstt, demb, observed ? gpu_obs : nullptr);
+    CHECK(ga.high_water() <= gpu_mst.evaluate_workspace_bytes());
+    if (observed) CHECK(seen == kBatch * (1 + c.mst_depth()));
+    const std::string how = observed ? ", observed" : ", pruned";
+    expect_close("MST stt_features" + how + tag, download(dstt), stt, bound<W>("mst.stt_features"));
+    expect_close("MST pose_emb" + how + tag, download(demb), emb, bound<W>("mst.pose_emb"));
+  }
+}
+
+// A whole DiT (batch 2): forward and a 10-step sample, CPU float32 vs GPU.
+template <class W>
+void dit_network(bool vis) {
+  const auto& c = config();
+  const auto dc = vis ? model::FluxDitConfig::vis(c) : model::FluxDitConfig::traj(c);
+  const std::string prefix = vis ? "module.dit." : "module.traj_dit.", name = vis ? "vis" : "traj";
+  model::FluxDiT<Cpu, float> cpu_dit(dc);
+  model::FluxDiT<Cuda, W> gpu_dit(dc);
+  bind(cpu_dit, prefix);
+  bind(gpu_dit, prefix);
+  const auto ids = model::prepare_ids(kBatch, c.latent_h(), c.latent_w(), c.tokens_per_frame(), c.traj_len);
+  const auto& target_ids = vis ? ids.img : ids.traj;
+  const std::int64_t Lx = target_ids.size(1);
+  const model::JointRows rows{c.tokens_per_frame(), Lx};
+  const auto cond = test::random_tensor({kBatch, rows.cond, c.n_embd}, 41, -2.f, 2.f);
+  const auto y = test::random_tensor({kBatch, c.pose_emb_dim()}, 42, -2.f, 2.f);
+  const auto x = test::random_tensor({kBatch, Lx, dc.in_channels}, 43, -2.f, 2.f);
+  Tensor<float, Cpu> t({kBatch});
+  t.data()[0] = 0.3f, t.data()[1] = 0.85f;
+  const auto grid = flow::get_schedule(c.num_sampling_steps, Lx);
+  const std::string tag = std::is_same_v<W, float> ? " (GPU f32 vs CPU)" : " (GPU bf16 vs CPU f32)";
+
+  Tensor<float, Cpu> v_cpu(x.shape());
+  auto sample_cpu = x.clone();
+  {
+    Arena<Cpu> arena(std::max(cpu_dit.forward_bytes(kBatch, rows),
+                              cpu_dit.conditioning_bytes(kBatch, rows) + cpu_dit.sample_bytes(kBatch, rows, grid.size() - 1)));
+    cpu_dit.forward(cpu_ctx(), arena, x, target_ids, cond, ids.cond, t, y, v_cpu);
+    arena.reset();
+    const auto cc = cpu_dit.prepare(cpu_ctx(), arena, cond, ids.cond, target_ids, y);
+    cpu_dit.sample(cpu_ctx(), arena, cc, grid, sample_cpu);
+  }
+  const auto dcond = upload<float>(cond), dy = upload<float>(y), dx = upload<float>(x);
+  Arena<Cuda> arena(std::max(gpu_dit.forward_bytes(kBatch, rows),
+                             gpu_dit.conditioning_bytes(kBatch, rows) + gpu_dit.sample_bytes(kBatch, rows, grid.size() - 1)));
+  poison_arena(arena);
+  auto v = Tensor<Activation<Cuda, W>, Cuda>(x.shape());
+  cuda::fill_bytes(gpu(), v, 0xFF);
+  gpu_dit.forward(gpu(), arena, dx, target_ids, dcond, ids.cond, t, dy, v);
+  {
+    // forward_bytes is exactly what forward takes (a poisoned arena's high water is its capacity).
+    Arena<Cuda> exact(gpu_dit.forward_bytes(kBatch, rows));
+    auto v2 = Tensor<Activation<Cuda, W>, Cuda>(x.shape());
+    gpu_dit.forward(gpu(), exact, dx, target_ids, dcond, ids.cond, t, dy, v2);
+    CHECK(exact.high_water() == gpu_dit.forward_bytes(kBatch, rows));
+  }
+  expect_close(name + " DiT forward, batch 2" + tag, download(v), v_cpu, bound<W>(name + ".velocity"));
+  for (int run = 0; run < 2; ++run) {  // the second run replays the recorded graph
+    poison_arena(arena);
+    auto state = upload<float>(x);
+    {
+      ArenaScope<Cuda> scope(arena);
+      const auto gc = gpu_dit.prepare(gpu(), arena, dcond, ids.cond, target_ids, dy);
+      gpu_dit.sample(gpu(), arena, gc, grid, state);
+    }
+    expect_close(name + " DiT 10-step sample, batch 2, run " + std::to_string(run) + tag, download(state), sample_cpu,
+                 bound<W>(name + ".sample.out", 1e-4));
+  }
+  if (cuda::graphs_enabled()) CHECK(gpu_dit.sampler_graph().captures() == 1);
+}
+
+}  // namespace
+
+TEST_CASE("MST on the GPU vs the CPU, block by block (batch 2): float32 and bf16") {
+  EPONA_REQUIRE_GPU();
+  mst_blocks<float>();
+  mst_blocks<bf16>();
+}
+
+TEST_CASE("VisDiT and TrajDiT networks on the GPU vs the CPU (batch 2): forward and 10-step sample") {
+  EPONA_REQUIRE_GPU();
+  for (const bool vis : {false, true}) {
+    dit_network<float>(vis);
+    dit_network<bf16>(vis);
+  }
+}
+
+TEST_CASE("world-model steps on the GPU vs the CPU: plan and predict_next with a given action (float32)") {
+  EPONA_REQUIRE_GPU();
+  const auto& c = config();
+  auto cpu_wm = WorldModel<Cpu, float>::load(weights(), c);
+  auto gpu_wm = WorldModel<Cuda, float>::load(weights(), c);
+  const History h{test::random_tensor({1, c.condition_frames, c.img_tokens(), c.token_dim()}, 51, -2.f, 2.f),
+                  scaled(test::random_tensor({1, c.condition_frames, 2}, 52, 0.f, 1.f), 4.f),
+                  test::random_tensor({1, c.condition_frames, 1}, 53)};
+  SampleOptions opt;
+  opt.seed = 5;
+  expect_close("plan (GPU f32 vs CPU)", gpu_wm.plan(h, opt), cpu_wm.plan(h, opt), 1e-4);
+  const NextAction a{scaled(test::random_tensor({1, 1, 2}, 54, 0.f, 1.f), 3.f), test::random_tensor({1, 1, 1}, 55)};
+  const auto r_cpu = cpu_wm.predict_next(h, a, opt), r_gpu = gpu_wm.predict_next(h, a, opt);
+  CHECK(r_gpu.trajectory.empty());
+  expect_close("predict_next latent, given action (GPU f32 vs CPU)", r_gpu.latent, r_cpu.latent, 1e-4);
+}
