@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdint>
 #include <functional>
+#include <utility>
 #include <string>
 #include <variant>
 #include <vector>
@@ -18,6 +19,7 @@
 #include "epona/model/latent_layout.hpp"
 #include "epona/nn/conv2d.hpp"
 #include "epona/nn/dcae_blocks.hpp"
+#include "epona/nn/feature_map.hpp"
 #include "epona/nn/llama_block.hpp"
 #include "epona/nn/norm2d.hpp"
 #include "epona/nn/pixel_shuffle.hpp"
@@ -76,14 +78,19 @@ struct StageBlocks {
       std::visit([&](auto& b) { b.visit_params(prefix + std::to_string(first_index + i) + ".", v); }, blocks[i]);
   }
   template <class Ctx>
-  void forward_inplace(Ctx& ctx, Tensor<float, B>& x) const {
+  void forward_inplace(Ctx& ctx, Tensor<activation_t<B, T>, B>& x) const {
     for (const auto& block : blocks) std::visit([&](const auto& b) { b.forward_inplace(ctx, x); }, block);
   }
 };
 
-template <class B>
-void notify(const DcaeObserver<B>& obs, DcaePoint p, int stage, std::int64_t image, const Tensor<float, B>& t) {
-  if (obs) obs(p, stage, image, t);
+// Shows a map to the observer as public NCHW float32 (converted only where the backend's maps differ).
+template <class Ctx, class A, class B>
+void notify(Ctx& ctx, const DcaeObserver<B>& obs, DcaePoint p, int stage, std::int64_t image, const Tensor<A, B>& t) {
+  if (!obs) return;
+  if constexpr (!channels_last_maps<B> && std::is_same_v<A, float>)
+    obs(p, stage, image, t);
+  else
+    obs(p, stage, image, nn::map_to_nchw(ctx, t));
 }
 }  // namespace dcae_detail
 
@@ -122,21 +129,22 @@ struct DcaeEncoder : nn::Bindable<DcaeEncoder<B, T>> {
     project_out.visit_params(prefix + "project_out.main.op_list.0.conv.", v);
   }
 
-  // image (1, in, H, W) -> latent (1, latent, H/32, W/32)
+  using Map = Tensor<activation_t<B, T>, B>;
+
+  // image map (1 image, `in` channels, H x W) -> latent map (latent channels, H/32 x W/32), in B's layout
   template <class Ctx>
-  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& image, std::int64_t index,
-                           const DcaeObserver<B>& obs) const {
+  Map forward(Ctx& ctx, const Map& image, std::int64_t index, const DcaeObserver<B>& obs) const {
     using dcae_detail::notify;
-    Tensor<float, B> x = project_in.forward(ctx, image);
-    notify(obs, DcaePoint::EncoderProjectIn, 0, index, x);
+    Map x = project_in.forward(ctx, image);
+    notify(ctx, obs, DcaePoint::EncoderProjectIn, 0, index, x);
     for (std::size_t s = 1; s < stages.size(); ++s) {
       stages[s].forward_inplace(ctx, x);
       if (has_downsample(s)) x = downsample[s].forward(ctx, x);
-      notify(obs, DcaePoint::EncoderStage, static_cast<int>(s), index, x);
+      notify(ctx, obs, DcaePoint::EncoderStage, static_cast<int>(s), index, x);
     }
-    Tensor<float, B> z = project_out.forward(ctx, x);
+    Map z = project_out.forward(ctx, x);
     nn::add_channel_average_down(ctx, x, z, 1);
-    notify(obs, DcaePoint::EncoderLatent, 0, index, z);
+    notify(ctx, obs, DcaePoint::EncoderLatent, 0, index, z);
     return z;
   }
 
@@ -183,21 +191,23 @@ struct DcaeDecoder : nn::Bindable<DcaeDecoder<B, T>> {
     project_out.visit_params(prefix + "project_out.op_list.2.", v);  // op_list.1 is the activation
   }
 
-  // latent (1, latent, h, w) -> image (1, in, 32h, 32w)
+  using Map = Tensor<activation_t<B, T>, B>;
+
+  // latent map (1 image, latent channels, h x w) -> image map (`in` channels, 32h x 32w), in B's layout
   template <class Ctx>
-  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& z, std::int64_t index, const DcaeObserver<B>& obs) const {
+  Map forward(Ctx& ctx, const Map& z, std::int64_t index, const DcaeObserver<B>& obs) const {
     using dcae_detail::notify;
-    Tensor<float, B> x = project_in.forward(ctx, z);
+    Map x = project_in.forward(ctx, z);
     nn::add_channel_duplicate_up(ctx, z, x, 1);
-    notify(obs, DcaePoint::DecoderProjectIn, 0, index, x);
+    notify(ctx, obs, DcaePoint::DecoderProjectIn, 0, index, x);
     for (std::size_t s = stages.size(); s-- > 1;) {
       if (has_upsample(s)) x = upsample[s].forward(ctx, x);
       stages[s].forward_inplace(ctx, x);
-      notify(obs, DcaePoint::DecoderStage, static_cast<int>(s), index, x);
+      notify(ctx, obs, DcaePoint::DecoderStage, static_cast<int>(s), index, x);
     }
     out_norm.forward_inplace(ctx, x, out_act);
-    Tensor<float, B> image = project_out.forward(ctx, x);
-    notify(obs, DcaePoint::DecoderImage, 0, index, image);
+    Map image = project_out.forward(ctx, x);
+    notify(ctx, obs, DcaePoint::DecoderImage, 0, index, image);
     return image;
   }
 
@@ -229,26 +239,54 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
     }
   }
 
-  // latent (N, C, h, w) with N = clips · frames (clip-major) -> same shape.
+  using Map = Tensor<activation_t<B, T>, B>;
+
+  // latent map (N = clips · frames latents, clip-major) -> same extents, in B's layout.
   template <class Ctx>
-  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& latent, std::int64_t frames) const {
-    const std::int64_t N = latent.size(0), L = latent.size(2) * latent.size(3);
+  Map forward(Ctx& ctx, const Map& latent, std::int64_t frames) const {
+    const nn::MapDims d = nn::map_dims(latent, "temporal blocks");
+    const std::int64_t N = d.batch, L = d.pixels(), C = d.channels;
     EPONA_CHECK(frames > 0 && N % frames == 0, "temporal blocks: ", N, " latents are not whole clips of ", frames,
                 " frames");
     const std::int64_t clips = N / frames;
-    Tensor<float, B> x = latent_to_tokens(ctx, latent).reshape({N * L, latent.size(1)});  // rows (clip, f, l)
+    Map x = to_tokens(ctx, latent).reshape({N * L, C});  // rows (clip, f, l)
     const nn::TokenSequences time{clips, L, frames, 1, L, true}, space{clips, frames, L, L, 1, false};
-    std::vector<float> time_cos, time_sin, space_cos, space_sin;
     if (!time_blocks.empty()) {
       const auto& b = time_blocks.front();
-      nn::rope_table_1d(time, b.head_dim(), b.rope_theta, time_cos, time_sin);
-      nn::rope_table_1d(space, b.head_dim(), b.rope_theta, space_cos, space_sin);
+      const auto time_rope = rope_tables(ctx, time, b), space_rope = rope_tables(ctx, space, b);
+      for (std::size_t i = 0; i < time_blocks.size(); ++i) {
+        time_blocks[i].forward_inplace(ctx, x, time, time_rope.first.data(), time_rope.second.data());
+        space_blocks[i].forward_inplace(ctx, x, space, space_rope.first.data(), space_rope.second.data());
+      }
     }
-    for (std::size_t i = 0; i < time_blocks.size(); ++i) {
-      time_blocks[i].forward_inplace(ctx, x, time, time_cos.data(), time_sin.data());
-      space_blocks[i].forward_inplace(ctx, x, space, space_cos.data(), space_sin.data());
-    }
-    return tokens_to_latent(ctx, x.reshape({N, L, latent.size(1)}), latent.size(2), latent.size(3));
+    return from_tokens(ctx, x.reshape({N, L, C}), d);
+  }
+
+ private:
+  // (cos, sin) of rope_table_1d in B's memory (intermediate tensors of ctx).
+  template <class Ctx>
+  static std::pair<Tensor<float, B>, Tensor<float, B>> rope_tables(Ctx& ctx, const nn::TokenSequences& seq,
+                                                                   const nn::TransformerBlock<B, T>& b) {
+    std::vector<float> c, s;
+    nn::rope_table_1d(seq, b.head_dim(), b.rope_theta, c, s);
+    const Shape shape{seq.rows(), b.head_dim() / 2};
+    const auto place = [&](std::vector<float>& v) {
+      Tensor<float, B> t = nn::new_tensor<float, B>(ctx, shape);
+      BackendTraits<B>::upload_into(ctx, Tensor<float, Cpu>::view(v.data(), shape), t);
+      return t;
+    };
+    return {place(c), place(s)};
+  }
+  // A latent map as (N, L, C) tokens (a new tensor) and back: a copy channels-last, a transpose in NCHW.
+  template <class Ctx>
+  static Map to_tokens(Ctx& ctx, const Map& latent) {
+    if constexpr (channels_last_maps<B>) return nn::copy_of(ctx, latent);
+    else return latent_to_tokens(ctx, latent);
+  }
+  template <class Ctx>
+  static Map from_tokens(Ctx& ctx, const Map& tokens, const nn::MapDims& d) {
+    if constexpr (channels_last_maps<B>) return tokens.reshape(nn::map_shape<B>(d));
+    else return tokens_to_latent(ctx, tokens, d.height, d.width);
   }
 };
 
@@ -309,6 +347,9 @@ inline DcaeFlops dcae_flops(const DcaeConfig& c, std::int64_t height, std::int64
 template <class B, class T>
 class Dcae : public nn::Bindable<Dcae<B, T>> {
  public:
+  using Act = activation_t<B, T>;  // feature maps inside (float on the CPU; T on CUDA)
+  using Map = Tensor<Act, B>;
+
   explicit Dcae(DcaeConfig config) : config_((config.validate(), std::move(config))) {
     encoder = DcaeEncoder<B, T>(config_);
     decoder = DcaeDecoder<B, T>(config_);
@@ -336,17 +377,23 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
     temporal.visit_params(prefix, v);
   }
 
+  // images (N, in, H, W) float32 NCHW in [-1, 1] -> latents (N, latent, H/32, W/32) float32 NCHW.
   template <class Ctx>
   Tensor<float, B> encode(Ctx& ctx, const Tensor<float, B>& images, const DcaeObserver<B>& obs = {}) const {
     EPONA_CHECK(images.dim() == 4 && images.size(1) == config_.in_channels, "Dcae::encode: images must be (N, ",
                 config_.in_channels, ", H, W), got ", shape_str(images.shape()));
     check_multiple(images.size(2), images.size(3), "Dcae::encode: image");
     const std::int64_t N = images.size(0), f = constants::dcae_downsample;
-    Tensor<float, B> latents({N, config_.latent_channels, images.size(2) / f, images.size(3) / f});
-    for (std::int64_t n = 0; n < N; ++n) copy_into(latents, n, encoder.forward(ctx, images.slice(n, n + 1), n, obs));
+    Tensor<float, B> latents = nn::new_result<float, B>(ctx, {N, config_.latent_channels, images.size(2) / f, images.size(3) / f});
+    for (std::int64_t n = 0; n < N; ++n) {
+      const Map image = nn::map_from_nchw<Act>(ctx, images.slice(n, n + 1));
+      Tensor<float, B> out = latents.slice(n, n + 1);
+      nn::map_to_nchw(ctx, encoder.forward(ctx, image, n, obs), out);
+    }
     return latents;
   }
 
+  // latents (N, latent, h, w) float32 NCHW -> images (N, in, 32h, 32w) float32 NCHW (not clamped).
   template <class Ctx>
   Tensor<float, B> decode(Ctx& ctx, const Tensor<float, B>& latents, bool is_video,
                           const DcaeObserver<B>& obs = {}) const {
@@ -356,13 +403,17 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
     const std::int64_t frames = is_video ? config_.condition_frames : 1;
     EPONA_CHECK(N % frames == 0, "Dcae::decode(is_video): ", N, " latents are not whole clips of condition_frames = ",
                 frames);
-    Tensor<float, B> z = latents;
+    Map z = nn::map_from_nchw<Act>(ctx, latents);
     if (config_.add_decoder_temporal) {
-      z = temporal.forward(ctx, latents, frames);
-      for (std::int64_t n = 0; n < N; ++n) dcae_detail::notify(obs, DcaePoint::DecoderTemporal, 0, n, z.slice(n, n + 1));
+      z = temporal.forward(ctx, z, frames);
+      for (std::int64_t n = 0; n < N; ++n)
+        dcae_detail::notify(ctx, obs, DcaePoint::DecoderTemporal, 0, n, z.slice(n, n + 1));
     }
-    Tensor<float, B> images({N, config_.in_channels, latents.size(2) * f, latents.size(3) * f});
-    for (std::int64_t n = 0; n < N; ++n) copy_into(images, n, decoder.forward(ctx, z.slice(n, n + 1), n, obs));
+    Tensor<float, B> images = nn::new_result<float, B>(ctx, {N, config_.in_channels, latents.size(2) * f, latents.size(3) * f});
+    for (std::int64_t n = 0; n < N; ++n) {
+      Tensor<float, B> out = images.slice(n, n + 1);
+      nn::map_to_nchw(ctx, decoder.forward(ctx, z.slice(n, n + 1), n, obs), out);
+    }
     return images;
   }
 
@@ -375,13 +426,6 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
     const std::int64_t f = constants::dcae_downsample;
     EPONA_CHECK(h > 0 && w > 0 && h % f == 0 && w % f == 0, what, " size ", h, "x", w, " is not a multiple of ", f);
   }
-  static void copy_into(Tensor<float, B>& batch, std::int64_t n, const Tensor<float, B>& one) {
-    static_assert(is_host_backend<B>, "Dcae batches are assembled on the host backend");
-    Tensor<float, B> dst = batch.slice(n, n + 1);
-    check_shape(one, dst.shape(), "Dcae: per-image result");
-    std::copy_n(one.data(), one.numel(), dst.data());
-  }
-
   DcaeConfig config_;
 };
 

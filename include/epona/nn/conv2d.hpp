@@ -15,9 +15,27 @@
 #include "epona/cpu/conv.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/nn/backend_context.hpp"
+#include "epona/nn/feature_map.hpp"
 #include "epona/nn/parameter.hpp"
 
 namespace epona::nn {
+
+// A conv weight [out, in/groups, k, k] (PyTorch) in backend B's layout: unchanged for NCHW
+// backends, [out, k, k, in/groups] for channels-last ones (the GEMM's K = (ky, kx, c) order).
+template <class B, class T>
+Tensor<T, Cpu> conv_weight_layout(Tensor<T, Cpu> w) {
+  if constexpr (!channels_last_maps<B>) {
+    return w;
+  } else {
+    EPONA_CHECK(w.dim() == 4 && w.size(2) == w.size(3), "conv weight must be [out, in, k, k], got ", shape_str(w.shape()));
+    const std::int64_t O = w.size(0), C = w.size(1), k = w.size(2);
+    Tensor<T, Cpu> out({O, k, k, C});
+    for (std::int64_t o = 0; o < O; ++o)
+      for (std::int64_t c = 0; c < C; ++c)
+        for (std::int64_t t = 0; t < k * k; ++t) out.data()[(o * k * k + t) * C + c] = w.data()[(o * C + c) * k * k + t];
+    return out;
+  }
+}
 
 // Fills parameter slots from a weight map; problems (missing, mis-shaped) go to the report.
 // Vectors (norm affine, BatchNorm statistics, conv biases) stay float32 whatever T is.
@@ -28,6 +46,12 @@ class ParamBinder {
   template <class T, class B>
   void param(const std::string& name, Tensor<T, B>& slot, const Shape& shape) {
     slot = bind_param<B, T>(report_, name, shape);
+  }
+  // A conv weight [out, in/groups, k, k], stored in backend B's conv layout (conv_weight_layout).
+  template <class T, class B>
+  void conv_weight(const std::string& name, Tensor<T, B>& slot, const Shape& shape) {
+    const io::RawTensor* raw = report_.take(name, shape);
+    slot = raw ? BackendTraits<B>::upload(conv_weight_layout<B>(io::to_tensor<T>(*raw))) : Tensor<T, B>();
   }
   // BatchNorm's `num_batches_tracked`: an int64 scalar that inference ignores. Absent is fine
   // (PyTorch tolerates that too); present with another type or shape is reported.
@@ -50,13 +74,24 @@ class ParamBinder {
 
 // Fills parameter slots with seeded random values of a sensible scale (benchmarks, tests):
 // weights uniform with variance 1/fan_in, norm scales near 1, biases and means near 0,
-// variances near 1.
+// variances near 1. Values depend only on the seed and the visiting order (not on the backend).
 class ParamRandomizer {
  public:
   explicit ParamRandomizer(std::uint64_t seed) : rng_(seed) {}
 
   template <class T, class B>
   void param(const std::string& name, Tensor<T, B>& slot, const Shape& shape) {
+    slot = BackendTraits<B>::upload(values<T>(name, shape));
+  }
+  template <class T, class B>
+  void conv_weight(const std::string& name, Tensor<T, B>& slot, const Shape& shape) {
+    slot = BackendTraits<B>::upload(conv_weight_layout<B>(values<T>(name, shape)));
+  }
+  void counter(const std::string&) {}
+
+ private:
+  template <class T>
+  Tensor<T, Cpu> values(const std::string& name, const Shape& shape) {
     Tensor<T, Cpu> host(shape);
     const bool is_vector = shape.size() == 1;
     const auto ends_with = [&](const char* s) {
@@ -72,15 +107,28 @@ class ParamRandomizer {
     } else {
       half_width = 0.1f;
     }
-    std::uniform_real_distribution<float> u(center - half_width, center + half_width);
-    for (std::int64_t i = 0; i < host.numel(); ++i) host.data()[i] = T(u(rng_));
-    slot = BackendTraits<B>::upload(host);
+    // 24 random bits per value -> uniform in [center - half_width, center + half_width): one
+    // generator step per value (the real model has 324 M of them).
+    constexpr float unit = 1.0f / 16777216.0f;
+    for (std::int64_t i = 0; i < host.numel(); ++i) {
+      const float u = static_cast<float>(rng_() >> 40) * unit;
+      host.data()[i] = T(center + half_width * (2.0f * u - 1.0f));
+    }
+    return host;
   }
-  void counter(const std::string&) {}
 
- private:
   std::mt19937_64 rng_;
 };
+
+// Routes a conv weight to the visitor's `conv_weight` when it has one (binding, randomising),
+// else to its plain `param` (visitors that only read names and shapes).
+template <class V, class T, class B>
+void visit_conv_weight(V& v, const std::string& name, Tensor<T, B>& slot, const Shape& shape) {
+  if constexpr (requires { v.conv_weight(name, slot, shape); })
+    v.conv_weight(name, slot, shape);
+  else
+    v.param(name, slot, shape);
+}
 
 // Mixin giving a module (with `template <class V> void visit_params(const std::string&, V&)`)
 // the binding entry point of every epona layer.
@@ -96,14 +144,18 @@ struct Bindable {
   }
 };
 
-// Conv2d(in, out, kernel, padding=kernel//2, groups, bias). Names: `weight` [out, in/groups, k, k],
-// `bias` [out].
+// Conv2d(in, out, kernel, padding=kernel//2, groups, bias). Names: `weight` [out, in/groups, k, k]
+// (stored as [out, k, k, in/groups] on channels-last backends), `bias` [out].
+// Feature maps are Tensor<activation_t<B, T>, B> in B's layout (nn/feature_map.hpp).
 template <class B, class T>
 struct Conv2d : Bindable<Conv2d<B, T>> {
+  using Act = activation_t<B, T>;
+  using Map = Tensor<Act, B>;
+
   std::int64_t in_channels = 0, out_channels = 0, kernel = 1, groups = 1;
   bool has_bias = true;
   Tensor<T, B> weight;
-  Tensor<float, B> bias;
+  Tensor<Act, B> bias;  // float on the CPU; the activation type on CUDA (as autocast casts it)
 
   Conv2d() = default;
   Conv2d(std::int64_t in, std::int64_t out, std::int64_t k, std::int64_t g = 1, bool with_bias = true)
@@ -111,28 +163,31 @@ struct Conv2d : Bindable<Conv2d<B, T>> {
 
   template <class V>
   void visit_params(const std::string& prefix, V& v) {
-    v.param(prefix + "weight", weight, {out_channels, in_channels / groups, kernel, kernel});
+    visit_conv_weight(v, prefix + "weight", weight, {out_channels, in_channels / groups, kernel, kernel});
     if (has_bias) v.param(prefix + "bias", bias, {out_channels});
   }
 
-  // (N, out, H, W) for an input (N, in, H, W); anything else is an error naming the layer.
-  Shape output_shape(const Tensor<float, B>& x) const {
-    EPONA_CHECK(x.dim() == 4 && x.size(1) == in_channels, "Conv2d(", in_channels, "->", out_channels,
-                "): input must be (N, ", in_channels, ", H, W), got ", shape_str(x.shape()));
-    EPONA_CHECK(!weight.empty(), "Conv2d(", in_channels, "->", out_channels, "): weights not bound");
-    return {x.size(0), out_channels, x.size(2), x.size(3)};
+  // Extents of the output for input x; a wrong input is an error naming the layer.
+  MapDims output_dims(const Map& x) const {
+    const std::string what = "Conv2d(" + std::to_string(in_channels) + "->" + std::to_string(out_channels) + ")";
+    MapDims d = map_dims(x, what, in_channels);
+    EPONA_CHECK(!weight.empty(), what, ": weights not bound");
+    d.channels = out_channels;
+    return d;
   }
+  Shape output_shape(const Map& x) const { return map_shape<B>(output_dims(x)); }
 
-  // y = act(conv(x) + bias); x (N, in, H, W), y (N, out, H, W) preallocated, not aliasing x.
+  // y = act(conv(x) + bias); y preallocated with output_shape(x), not aliasing x.
   template <class Ctx>
-  void forward_into(Ctx& ctx, const Tensor<float, B>& x, Tensor<float, B>& y, ConvAct act = ConvAct::None) const {
-    check_shape(y, output_shape(x), "Conv2d output");
-    const Conv2dShape s{x.size(0), in_channels, x.size(2), x.size(3), out_channels, kernel, groups};
+  void forward_into(Ctx& ctx, const Map& x, Map& y, ConvAct act = ConvAct::None) const {
+    const MapDims d = output_dims(x);
+    check_shape(y, map_shape<B>(d), "Conv2d output");
+    const Conv2dShape s{d.batch, in_channels, d.height, d.width, out_channels, kernel, groups};
     conv2d(ctx, x.data(), weight.data(), has_bias ? bias.data() : nullptr, y.data(), s, act);
   }
   template <class Ctx>
-  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& x, ConvAct act = ConvAct::None) const {
-    Tensor<float, B> y(output_shape(x));
+  Map forward(Ctx& ctx, const Map& x, ConvAct act = ConvAct::None) const {
+    Map y = new_map<Act, B>(ctx, output_dims(x));
     forward_into(ctx, x, y, act);
     return y;
   }

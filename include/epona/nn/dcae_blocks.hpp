@@ -11,6 +11,7 @@
 #include "epona/cpu/conv.hpp"
 #include "epona/cpu/elementwise.hpp"
 #include "epona/nn/conv2d.hpp"
+#include "epona/nn/feature_map.hpp"
 #include "epona/nn/glu_mbconv.hpp"
 #include "epona/nn/lite_mla.hpp"
 #include "epona/nn/norm2d.hpp"
@@ -37,13 +38,13 @@ struct ResBlock : Bindable<ResBlock<B, T>> {
     norm.visit_params(prefix + "main.conv2.norm.", v);
   }
 
-  // x (N, C, H, W), updated in place.
+  using Map = Tensor<activation_t<B, T>, B>;
+
+  // x (a map of C channels), updated in place.
   template <class Ctx>
-  void forward_inplace(Ctx& ctx, Tensor<float, B>& x) const {
-    Tensor<float, B> h = conv1.forward(ctx, x, act);
-    Tensor<float, B> branch = conv2.forward(ctx, h);
-    norm.forward_inplace(ctx, branch);
-    add_inplace(ctx, x.data(), branch.data(), x.numel());
+  void forward_inplace(Ctx& ctx, Map& x) const {
+    Map branch = conv2.forward(ctx, conv1.forward(ctx, x, act));
+    norm.add_to(ctx, branch, x);
   }
 };
 
@@ -66,11 +67,9 @@ struct EfficientViTBlock : Bindable<EfficientViTBlock<B, T>> {
   }
 
   template <class Ctx>
-  void forward_inplace(Ctx& ctx, Tensor<float, B>& x) const {
-    Tensor<float, B> attended = context.forward(ctx, x);
-    add_inplace(ctx, x.data(), attended.data(), x.numel());
-    Tensor<float, B> mixed = local.forward(ctx, x);
-    add_inplace(ctx, x.data(), mixed.data(), x.numel());
+  void forward_inplace(Ctx& ctx, Tensor<activation_t<B, T>, B>& x) const {
+    context.add_to(ctx, x);
+    local.add_to(ctx, x);
   }
 };
 
@@ -95,10 +94,10 @@ struct DownsampleBlock : Bindable<DownsampleBlock<B, T>> {
     conv.visit_params(prefix + (shortcut ? "main.conv.conv." : "conv.conv."), v);
   }
 
-  // (N, in, H, W) -> (N, out, H/2, W/2)
+  // in channels at H x W -> out channels at H/2 x W/2
   template <class Ctx>
-  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& x) const {
-    Tensor<float, B> y = pixel_unshuffle(ctx, conv.forward(ctx, x), factor);
+  Tensor<activation_t<B, T>, B> forward(Ctx& ctx, const Tensor<activation_t<B, T>, B>& x) const {
+    auto y = pixel_unshuffle(ctx, conv.forward(ctx, x), factor);
     if (shortcut) add_channel_average_down(ctx, x, y, factor);
     return y;
   }
@@ -122,10 +121,10 @@ struct UpsampleBlock : Bindable<UpsampleBlock<B, T>> {
     conv.visit_params(prefix + (shortcut ? "main.conv.conv." : "conv.conv."), v);
   }
 
-  // (N, in, H, W) -> (N, out, 2H, 2W)
+  // in channels at H x W -> out channels at 2H x 2W
   template <class Ctx>
-  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& x) const {
-    Tensor<float, B> y = pixel_shuffle(ctx, conv.forward(ctx, x), factor);
+  Tensor<activation_t<B, T>, B> forward(Ctx& ctx, const Tensor<activation_t<B, T>, B>& x) const {
+    auto y = pixel_shuffle(ctx, conv.forward(ctx, x), factor);
     if (shortcut) add_channel_duplicate_up(ctx, x, y, factor);
     return y;
   }

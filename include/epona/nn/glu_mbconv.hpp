@@ -9,6 +9,7 @@
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/conv.hpp"
 #include "epona/nn/conv2d.hpp"
+#include "epona/nn/feature_map.hpp"
 #include "epona/nn/norm2d.hpp"
 
 namespace epona::nn {
@@ -38,19 +39,38 @@ struct GLUMBConv : Bindable<GLUMBConv<B, T>> {
     point_norm.visit_params(prefix + "point_conv.norm.", v);
   }
 
-  // x (N, C, H, W) -> branch output (N, C, H, W) (the EfficientViT block adds x).
+  using Act = activation_t<B, T>;
+  using Map = Tensor<Act, B>;
+
+  // x (a map of C channels) -> the branch output, same extents (the EfficientViT block adds x).
   template <class Ctx>
-  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& x) const {
-    const std::int64_t N = x.size(0), HW = x.size(2) * x.size(3);
-    Tensor<float, B> expanded = inverted_conv.forward(ctx, x, act);  // (N, 8C, H, W)
-    Tensor<float, B> mixed = depth_conv.forward(ctx, expanded);                 // (N, 8C, H, W)
-    Tensor<float, B> gated({N, hidden, x.size(2), x.size(3)});                  // (N, 4C, H, W)
-    // value = channels [0, 4C), gate = channels [4C, 8C) of each image
-    gated_act(ctx, mixed.data(), mixed.data() + hidden * HW, gated.data(), N, hidden * HW, 2 * hidden * HW,
-              hidden * HW, act);
-    Tensor<float, B> y = point_conv.forward(ctx, gated);
+  Map forward(Ctx& ctx, const Map& x) const {
+    Map y = expand_gate_project(ctx, x);
     point_norm.forward_inplace(ctx, y);
     return y;
+  }
+  // x += forward(x).
+  template <class Ctx>
+  void add_to(Ctx& ctx, Map& x) const {
+    Map y = expand_gate_project(ctx, x);
+    point_norm.add_to(ctx, y, x);
+  }
+
+ private:
+  template <class Ctx>
+  Map expand_gate_project(Ctx& ctx, const Map& x) const {
+    MapDims d = map_dims(x, "GLUMBConv(" + std::to_string(channels) + ")", channels);
+    Map expanded = inverted_conv.forward(ctx, x, act);  // 8C channels
+    Map mixed = depth_conv.forward(ctx, expanded);      // 8C channels
+    d.channels = hidden;
+    Map gated = new_map<Act, B>(ctx, d);                // 4C channels
+    // value = channels [0, 4C), gate = channels [4C, 8C) of `mixed`
+    const MapDims dm{d.batch, 2 * hidden, d.height, d.width};
+    const ChannelBlock value = channel_block<B>(dm, 0, hidden), gate = channel_block<B>(dm, hidden, hidden);
+    const ChannelBlock out = channel_block<B>(d, 0, hidden);
+    gated_act(ctx, mixed.data() + value.offset, mixed.data() + gate.offset, gated.data(), value.rows, value.width,
+              value.stride, out.stride, act);
+    return point_conv.forward(ctx, gated);
   }
 };
 

@@ -9,6 +9,7 @@
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/conv.hpp"
 #include "epona/nn/conv2d.hpp"
+#include "epona/nn/feature_map.hpp"
 #include "epona/nn/norm2d.hpp"
 
 namespace epona::nn {
@@ -38,16 +39,32 @@ struct LiteMLA : Bindable<LiteMLA<B, T>> {
     proj_norm.visit_params(prefix + "proj.norm.", v);
   }
 
-  // x (N, C, H, W) -> branch output (N, C, H, W) (the EfficientViT block adds x).
+  using Act = activation_t<B, T>;
+  using Map = Tensor<Act, B>;
+
+  // x (a map of C channels) -> the branch output, same extents (the EfficientViT block adds x).
   // H·W > head_dim takes the linear evaluation order, otherwise the quadratic one, as the reference.
   template <class Ctx>
-  Tensor<float, B> forward(Ctx& ctx, const Tensor<float, B>& x) const {
-    Tensor<float, B> q_k_v = qkv.forward(ctx, x);  // (N, 3C, H, W)
-    Tensor<float, B> att(x.shape());               // (N, C, H, W)
-    relu_linear_attention(ctx, q_k_v.data(), att.data(), x.size(0), heads(), head_dim, x.size(2) * x.size(3), eps);
-    Tensor<float, B> y = proj_conv.forward(ctx, att);
+  Map forward(Ctx& ctx, const Map& x) const {
+    Map y = attend_and_project(ctx, x);
     proj_norm.forward_inplace(ctx, y);
     return y;
+  }
+  // x += forward(x).
+  template <class Ctx>
+  void add_to(Ctx& ctx, Map& x) const {
+    Map y = attend_and_project(ctx, x);
+    proj_norm.add_to(ctx, y, x);
+  }
+
+ private:
+  template <class Ctx>
+  Map attend_and_project(Ctx& ctx, const Map& x) const {
+    const MapDims d = map_dims(x, "LiteMLA(" + std::to_string(channels) + ")", channels);
+    Map q_k_v = qkv.forward(ctx, x);     // 3C channels: per head [q, k, v]
+    Map att = new_map<Act, B>(ctx, d);  // C channels
+    relu_linear_attention(ctx, q_k_v.data(), att.data(), d.batch, heads(), head_dim, d.pixels(), eps);
+    return proj_conv.forward(ctx, att);
   }
 };
 

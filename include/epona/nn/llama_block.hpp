@@ -17,6 +17,7 @@
 #include "epona/cpu/norm.hpp"
 #include "epona/cpu/rope.hpp"
 #include "epona/nn/conv2d.hpp"
+#include "epona/nn/feature_map.hpp"
 
 namespace epona::nn {
 
@@ -80,15 +81,18 @@ struct TransformerBlock : Bindable<TransformerBlock<B, T>> {
     v.param(prefix + "ffn_norm.weight", ffn_norm, {dim});
   }
 
-  // x (rows, D) updated in place; cos/sin from rope_table_1d(seq, head_dim(), rope_theta).
+  using Act = activation_t<B, T>;
+  using Rows = Tensor<Act, B>;
+
+  // x (rows, D) updated in place; cos/sin (backend memory) from rope_table_1d(seq, head_dim(), rope_theta).
   template <class Ctx>
-  void forward_inplace(Ctx& ctx, Tensor<float, B>& x, const TokenSequences& seq, const float* cos_t,
-                       const float* sin_t) const {
+  void forward_inplace(Ctx& ctx, Rows& x, const TokenSequences& seq, const float* cos_t, const float* sin_t) const {
     const std::int64_t rows = seq.rows(), D = dim;
     check_shape(x, {rows, D}, "TransformerBlock input");
     const Tensor<T, B> none;
-    Tensor<float, B> h = normed(ctx, x, attention_norm);
-    Tensor<float, B> q({rows, D}), k({rows, D}), v({rows, D}), o({rows, D}), proj({rows, D});
+    const auto make = [&](std::int64_t width) { return new_tensor<Act, B>(ctx, {rows, width}); };
+    Rows h = normed(ctx, x, attention_norm);
+    Rows q = make(D), k = make(D), v = make(D), o = make(D), proj = make(D);
     linear(ctx, h, wq, none, q);
     linear(ctx, h, wk, none, k);
     linear(ctx, h, wv, none, v);
@@ -98,8 +102,8 @@ struct TransformerBlock : Bindable<TransformerBlock<B, T>> {
     linear(ctx, o, wo, none, proj);
     add_inplace(ctx, x.data(), proj.data(), x.numel());
 
-    Tensor<float, B> h2 = normed(ctx, x, ffn_norm);
-    Tensor<float, B> gate({rows, ffn_hidden}), value({rows, ffn_hidden});
+    Rows h2 = normed(ctx, x, ffn_norm);
+    Rows gate = make(ffn_hidden), value = make(ffn_hidden);
     linear(ctx, h2, w1, none, gate);
     linear(ctx, h2, w3, none, value);
     gated_act(ctx, value.data(), gate.data(), gate.data(), rows, ffn_hidden, ffn_hidden, ffn_hidden, ConvAct::Silu);
@@ -110,22 +114,22 @@ struct TransformerBlock : Bindable<TransformerBlock<B, T>> {
  private:
   // RMSNorm without bias: v · 1/sqrt(mean(v²) + eps) · weight, into a copy.
   template <class Ctx>
-  Tensor<float, B> normed(Ctx& ctx, const Tensor<float, B>& x, const Tensor<float, B>& weight) const {
-    Tensor<float, B> h = x.clone();
+  Rows normed(Ctx& ctx, const Rows& x, const Tensor<float, B>& weight) const {
+    Rows h = copy_of(ctx, x);
     rms_norm_heads(ctx, h.data(), x.size(0), dim, 1, dim, weight.data(), norm_eps);
     return h;
   }
 
   template <class Ctx>
-  void attend(Ctx& ctx, const Tensor<float, B>& q, const Tensor<float, B>& k, const Tensor<float, B>& v,
-              Tensor<float, B>& o, const TokenSequences& seq) const {
+  void attend(Ctx& ctx, const Rows& q, const Rows& k, const Rows& v, Rows& o, const TokenSequences& seq) const {
     const std::int64_t D = dim, group = seq.seqs * seq.length * D;
-    cpu::AttentionShape a;
+    using Mask = typename BackendTraits<B>::Mask;
+    typename BackendTraits<B>::AttentionShape a;
     a.seqs = seq.seqs, a.heads = heads, a.lq = a.lk = seq.length, a.head_dim = head_dim();
     a.q_seq = a.k_seq = a.v_seq = a.o_seq = seq.seq_step * D;
     a.q_row = a.k_row = a.v_row = a.o_row = seq.pos_step * D;
     a.scale = 1.0f / std::sqrt(static_cast<float>(head_dim()));
-    a.mask = seq.causal ? cpu::Mask::Causal : cpu::Mask::None;
+    a.mask = seq.causal ? Mask::Causal : Mask::None;
     for (std::int64_t g = 0; g < seq.groups; ++g)
       attention(ctx, q.data() + g * group, k.data() + g * group, v.data() + g * group, o.data() + g * group, a);
   }
