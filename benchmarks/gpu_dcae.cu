@@ -1,0 +1,261 @@
+// bench_gpu_dcae: the DC-AE f32c32 at its real widths and depths (DcaeConfig{}, random weights
+// from nn::Bindable::randomize) on one GPU: decode (temporal blocks + decoder) and encode of
+// one 512x1024 frame, bf16 and float32, with the cuDNN and the GEMM convolution engines; plus
+// the largest single convolutions. Median of CUDA-event timings after warm-up; peak memory =
+// weights + the scratch pool's high-water mark + inputs/outputs. One JSON object per line:
+//   {"name": "dcae_decode", "dtype": "bf16", "engine": "auto", "ms": ..., "tflops": ..., ...}
+// Options: --reps N (timed repetitions, default 20; float32 uses N/4), --hw H,W, --quick.
+#include <cuda_runtime.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <functional>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "epona/cuda/backend.cuh"
+#include "epona/cuda/dcae_ops.cuh"
+#include "epona/model/dcae.hpp"
+
+using namespace epona;
+
+namespace {
+
+struct Options {
+  int reps = 20;
+  std::int64_t height = 512, width = 1024;
+  bool quick = false;
+};
+
+Options parse(int argc, char** argv) {
+  Options o;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--reps" && i + 1 < argc) {
+      o.reps = std::max(1, std::atoi(argv[++i]));
+    } else if (a == "--hw" && i + 1 < argc) {
+      long long h = 0, w = 0;
+      EPONA_CHECK(std::sscanf(argv[++i], "%lld,%lld", &h, &w) == 2 && h % 32 == 0 && w % 32 == 0 && h > 0 && w > 0,
+                  "--hw wants H,W, multiples of 32");
+      o.height = h, o.width = w;
+    } else if (a == "--quick") {
+      o.quick = true;
+    } else {
+      fail("unknown option '", a, "' (--reps N, --hw H,W, --quick)");
+    }
+  }
+  return o;
+}
+
+Tensor<float, Cuda> random_device(cuda::Context& ctx, Shape shape, std::uint32_t seed) {
+  Tensor<float, Cpu> h(std::move(shape));
+  std::mt19937 gen(seed);
+  std::uniform_real_distribution<float> u(-1.f, 1.f);
+  for (std::int64_t i = 0; i < h.numel(); ++i) h.data()[i] = u(gen);
+  return cuda::to_device(ctx, h);
+}
+
+// Median milliseconds of `reps` runs of f (CUDA events on ctx's stream), after `warmup` runs.
+double median_ms(cuda::Context& ctx, int warmup, int reps, const std::function<void()>& f) {
+  for (int i = 0; i < warmup; ++i) f();
+  ctx.synchronize();
+  cudaEvent_t start, stop;
+  EPONA_CUDA_CHECK(cudaEventCreate(&start));
+  EPONA_CUDA_CHECK(cudaEventCreate(&stop));
+  std::vector<double> ms;
+  for (int i = 0; i < reps; ++i) {
+    EPONA_CUDA_CHECK(cudaEventRecord(start, ctx.stream()));
+    f();
+    EPONA_CUDA_CHECK(cudaEventRecord(stop, ctx.stream()));
+    EPONA_CUDA_CHECK(cudaEventSynchronize(stop));
+    float t = 0;
+    EPONA_CUDA_CHECK(cudaEventElapsedTime(&t, start, stop));
+    ms.push_back(t);
+  }
+  EPONA_CUDA_CHECK(cudaEventDestroy(start));
+  EPONA_CUDA_CHECK(cudaEventDestroy(stop));
+  std::sort(ms.begin(), ms.end());
+  return ms[ms.size() / 2];
+}
+
+const char* engine_name(cuda::ConvEngine e) {
+  return e == cuda::ConvEngine::Gemm ? "gemm" : e == cuda::ConvEngine::Cudnn ? "cudnn" : "auto";
+}
+
+// Bytes of every parameter of a module.
+struct ByteCounter {
+  double bytes = 0;
+  template <class T, class B>
+  void param(const std::string&, Tensor<T, B>& t, const Shape&) {
+    bytes += double(t.nbytes());
+  }
+  void counter(const std::string&) {}
+};
+
+void line(const char* name, const char* dtype, const char* engine, double ms, double gflop, double peak_mib,
+          int reps, const std::string& extra = "") {
+  std::printf("{\"name\": \"%s\", \"dtype\": \"%s\", \"engine\": \"%s\", \"ms\": %.3f, \"tflops\": %.1f, "
+              "\"gflop\": %.1f, \"peak_mib\": %.0f, \"reps\": %d%s}\n",
+              name, dtype, engine, ms, gflop / ms, gflop, peak_mib, reps, extra.c_str());
+  std::fflush(stdout);
+}
+
+template <class T>
+void bench_model(cuda::Context& ctx, const Options& o, const char* dtype) {
+  DcaeConfig cfg;
+  cfg.image_h = o.height, cfg.image_w = o.width;
+  Dcae<Cuda, T> model(cfg);
+  model.randomize(1);
+  ByteCounter weights;
+  model.visit_params("", weights);
+  const DcaeFlops flops = dcae_flops(cfg, o.height, o.width, 1);
+  const auto latents = random_device(ctx, {1, cfg.latent_channels, o.height / 32, o.width / 32}, 2);
+  const auto images = random_device(ctx, {1, 3, o.height, o.width}, 3);
+  const bool fp32 = std::is_same_v<T, float>;
+  const int reps = fp32 ? std::max(3, o.reps / 4) : o.reps;
+  const std::string cudnn = cuda::cudnn_unavailable(ctx);
+  std::vector<cuda::ConvEngine> engines{cuda::ConvEngine::Auto};
+  if (!o.quick) engines.push_back(cuda::ConvEngine::Gemm);
+  for (const auto engine : engines) {
+    cuda::set_conv_engine(engine);
+    const char* eng = engine == cuda::ConvEngine::Auto ? (cudnn.empty() ? "cudnn" : "gemm") : engine_name(engine);
+    const auto peak_of = [&](const std::function<void()>& f, double io_bytes) {
+      ctx.synchronize();
+      cuda::reset_scratch_peak(ctx);
+      f();
+      ctx.synchronize();
+      return (weights.bytes + double(cuda::scratch_usage(ctx).peak) + io_bytes) / (1024.0 * 1024.0);
+    };
+    Tensor<float, Cuda> out;
+    const auto decode = [&] { out = model.decode(ctx, latents, false); };
+    const auto encode = [&] { out = model.encode(ctx, images); };
+    cuda::reset_conv_counts();
+    const double dec_ms = median_ms(ctx, 2, reps, decode);
+    const auto counts = cuda::conv_counts();
+    const double dec_peak = peak_of(decode, double(latents.nbytes() + images.nbytes()));
+    char extra[160];
+    std::snprintf(extra, sizeof extra, ", \"convs_per_pass\": {\"cudnn\": %lld, \"gemm\": %lld, \"depthwise\": %lld}",
+                  (long long)(counts.cudnn / (reps + 2)), (long long)(counts.gemm / (reps + 2)),
+                  (long long)(counts.depthwise / (reps + 2)));
+    line("dcae_decode", dtype, eng, dec_ms, flops.decode_total() * 1e-9, dec_peak, reps, extra);
+    const double enc_ms = median_ms(ctx, 2, reps, encode);
+    const double enc_peak = peak_of(encode, double(latents.nbytes() + images.nbytes()));
+    line("dcae_encode", dtype, eng, enc_ms, flops.encode * 1e-9, enc_peak, reps);
+  }
+  cuda::set_conv_engine(cuda::ConvEngine::Auto);
+}
+
+// Where decode time goes: the decoder's pieces timed one by one (median each), in bf16 with
+// the default engine, on the maps they see in a real decode.
+template <class T>
+void bench_decoder_stages(cuda::Context& ctx, const Options& o, const char* dtype) {
+  DcaeConfig cfg;
+  cfg.image_h = o.height, cfg.image_w = o.width;
+  Dcae<Cuda, T> model(cfg);
+  model.randomize(1);
+  using Map = typename Dcae<Cuda, T>::Map;
+  const auto latents = random_device(ctx, {1, cfg.latent_channels, o.height / 32, o.width / 32}, 2);
+  const auto& dec = model.decoder;
+  const DcaeObserver<Cuda> none;
+  const int reps = 10;
+  Map z = nn::map_from_nchw<T>(ctx, latents);
+  {
+    const double ms = median_ms(ctx, 2, reps, [&] { (void)model.temporal.forward(ctx, z, 1); });
+    line("decode_part_temporal", dtype, "auto", ms, dcae_flops(cfg, o.height, o.width, 1).temporal * 1e-9, 0, reps);
+  }
+  Map x;
+  const double pin = median_ms(ctx, 2, reps, [&] {
+    x = dec.project_in.forward(ctx, z);
+    nn::add_channel_duplicate_up(ctx, z, x, 1);
+  });
+  line("decode_part_project_in", dtype, "auto", pin, 0, 0, reps);
+  for (std::size_t s = dec.stages.size(); s-- > 1;) {
+    const std::string id = std::to_string(s);
+    if (dec.upsample[s].conv.out_channels > 0) {
+      Map up;
+      const double ms = median_ms(ctx, 2, reps, [&] { up = dec.upsample[s].forward(ctx, x); });
+      const auto& c = dec.upsample[s].conv;
+      const nn::MapDims d = nn::map_dims(x, "bench");
+      const double gflop = 2.0 * 9 * c.in_channels * c.out_channels * double(d.pixels()) * 1e-9;
+      line(("decode_part_stage" + id + "_upsample").c_str(), dtype, "auto", ms, gflop, 0, reps);
+      x = up;
+    }
+    Map y = nn::copy_of(ctx, x);
+    const double ms = median_ms(ctx, 2, reps, [&] { dec.stages[s].forward_inplace(ctx, y); });
+    line(("decode_part_stage" + id + "_blocks").c_str(), dtype, "auto", ms, 0, 0, reps);
+    dec.stages[s].forward_inplace(ctx, x);
+  }
+  Map img;
+  const double pout = median_ms(ctx, 2, reps, [&] {
+    Map t = nn::copy_of(ctx, x);
+    dec.out_norm.forward_inplace(ctx, t, dec.out_act);
+    img = dec.project_out.forward(ctx, t);
+  });
+  line("decode_part_project_out", dtype, "auto", pout, 0, 0, reps);
+  Tensor<float, Cuda> out;
+  const double conv_ms = median_ms(ctx, 2, reps, [&] { out = nn::map_to_nchw(ctx, img); });
+  line("decode_part_to_nchw_float", dtype, "auto", conv_ms, 0, 0, reps);
+}
+
+// The largest convolutions of the decoder, alone: 3x3 at full width on the biggest maps.
+template <class T>
+void bench_convs(cuda::Context& ctx, const Options& o, const char* dtype) {
+  struct Conv {
+    const char* name;
+    std::int64_t C, H, W, O;
+  };
+  const std::int64_t h = o.height, w = o.width;
+  const Conv convs[] = {{"conv3x3_stage1_128", 128, h / 2, w / 2, 128},
+                        {"conv3x3_stage2_256", 256, h / 4, w / 4, 256},
+                        {"conv3x3_up1_256to512", 256, h / 4, w / 4, 512}};
+  for (const Conv& c : convs) {
+    const Conv2dShape s{1, c.C, c.H, c.W, c.O, 3, 1};
+    Tensor<T, Cuda> x({1, c.H, c.W, c.C}), wt({c.O, 3, 3, c.C}), b({c.O}), y({1, c.H, c.W, c.O});
+    const auto fill = [&](auto& t, std::uint32_t seed) {
+      Tensor<T, Cpu> hst(t.shape());
+      std::mt19937 gen(seed);
+      std::uniform_real_distribution<float> u(-1.f, 1.f);
+      for (std::int64_t i = 0; i < hst.numel(); ++i) hst.data()[i] = T(u(gen));
+      cuda::copy(ctx, t, hst);
+    };
+    fill(x, 1), fill(wt, 2), fill(b, 3);
+    const double gflop = 2.0 * 9 * double(c.C) * double(c.O) * double(c.H) * double(c.W) * 1e-9;
+    for (const auto engine : {cuda::ConvEngine::Auto, cuda::ConvEngine::Gemm}) {
+      cuda::set_conv_engine(engine);
+      if (engine == cuda::ConvEngine::Auto && !cuda::cudnn_unavailable(ctx).empty()) continue;
+      const double ms = median_ms(ctx, 3, 20, [&] { cuda::conv2d(ctx, x.data(), wt.data(), b.data(), y.data(), s, ConvAct::Relu); });
+      line(c.name, dtype, engine == cuda::ConvEngine::Auto ? "cudnn" : "gemm", ms, gflop, 0, 20);
+    }
+  }
+  cuda::set_conv_engine(cuda::ConvEngine::Auto);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    const Options o = parse(argc, argv);
+    if (!cuda::has_gpu()) {
+      std::printf("no CUDA device: nothing to measure\n");
+      return 0;
+    }
+    cuda::Context ctx;
+    const std::string cudnn = cuda::cudnn_unavailable(ctx);
+    std::printf("# %s, %d SMs; DC-AE f32c32 at %lldx%lld; cuDNN: %s\n", ctx.info().name.c_str(),
+                ctx.info().multiprocessors, (long long)o.height, (long long)o.width,
+                cudnn.empty() ? "available" : cudnn.c_str());
+    bench_model<bf16>(ctx, o, "bf16");
+    if (!o.quick) {
+      bench_decoder_stages<bf16>(ctx, o, "bf16");
+      bench_convs<bf16>(ctx, o, "bf16");
+    }
+    bench_model<float>(ctx, o, "f32");
+    return 0;
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "bench_gpu_dcae: %s\n", e.what());
+    return 1;
+  }
+}

@@ -1,0 +1,310 @@
+// epona/cuda/conv.cuh — the DC-AE's convolutions on the GPU over channels-last (NHWC) maps, as
+// the CPU's cpu/conv.hpp: conv2d (cuDNN implicit GEMM, or our GEMM engine: im2col panel +
+// cuBLASLt; depthwise as a direct kernel), bias + ReLU/SiLU epilogues, and the GLU gate.
+// float32 never uses TF32; bf16 stores bf16 and accumulates in float32.
+#pragma once
+
+#include <algorithm>
+#include <atomic>
+#include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <string>
+
+#include "epona/cpu/conv.hpp"
+#include "epona/cuda/activation.cuh"
+#include "epona/cuda/conv_cudnn.cuh"
+#include "epona/cuda/device.cuh"
+#include "epona/cuda/gemm.cuh"
+#include "epona/cuda/scratch.hpp"
+
+namespace epona::cuda {
+
+// Which implementation runs the dense (non-depthwise) convolutions. Auto: cuDNN where it is
+// loadable and has an exact algorithm for the geometry, the GEMM engine otherwise.
+enum class ConvEngine { Auto, Cudnn, Gemm };
+
+namespace conv_detail {
+
+inline ConvEngine engine_from_env() {
+  const char* e = std::getenv("EPONA_CUDA_CONV");
+  if (!e || !*e || std::strcmp(e, "auto") == 0) return ConvEngine::Auto;
+  if (std::strcmp(e, "cudnn") == 0) return ConvEngine::Cudnn;
+  if (std::strcmp(e, "gemm") == 0) return ConvEngine::Gemm;
+  fail("EPONA_CUDA_CONV must be auto, cudnn or gemm, got '", e, "'");
+}
+inline std::atomic<ConvEngine>& engine_setting() {
+  static std::atomic<ConvEngine> e{engine_from_env()};
+  return e;
+}
+
+// Convolutions run per engine since the start (or the last reset): reports and tests.
+struct EngineCounts {
+  std::atomic<std::int64_t> cudnn{0}, gemm{0}, depthwise{0};
+};
+inline EngineCounts& counts() {
+  static EngineCounts c;
+  return c;
+}
+
+struct ReluOp {
+  __device__ float operator()(float v) const { return v > 0.f ? v : 0.f; }
+};
+
+// Calls f(op) with the device functor of `act` (Identity for None).
+template <class F>
+void with_act(ConvAct act, F&& f) {
+  switch (act) {
+    case ConvAct::None: f(detail::Identity{}); return;
+    case ConvAct::Relu: f(ReluOp{}); return;
+    case ConvAct::Silu: f(detail::SiluOp{}); return;
+  }
+}
+
+// y[p, o] = act(y[p, o] + bias[o]) over pixels x channels (bias may be null). The sum is rounded
+// to T before the activation, as a biased conv's output would be.
+template <class T>
+void bias_act(Context& ctx, T* y, std::int64_t pixels, std::int64_t channels, const T* bias, ConvAct act) {
+  if (!bias && act == ConvAct::None) return;
+  with_act(act, [&](auto op) { detail::bias_activation(ctx, y, channels, pixels, channels, bias, op); });
+}
+
+// ---- depthwise: one thread per (pixel, channel pack), taps summed in (ky, kx) order from the bias
+template <class T, class Op, int kVec>
+__global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ w, const T* __restrict__ bias,
+                                 T* __restrict__ y, std::int64_t images, int H, int W, int C, int k, bool act, Op op) {
+  const int packs = C / kVec, pad = k / 2;
+  const std::int64_t total = images * H * W * packs;
+  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
+       i += std::int64_t{gridDim.x} * blockDim.x) {
+    const int c0 = static_cast<int>(i % packs) * kVec;
+    const std::int64_t pixel = i / packs;
+    const int xo = static_cast<int>(pixel % W), yo = static_cast<int>((pixel / W) % H);
+    const std::int64_t n = pixel / (std::int64_t{H} * W);
+    float acc[kVec];
+#pragma unroll
+    for (int j = 0; j < kVec; ++j) acc[j] = bias ? detail::to_f32(bias[c0 + j]) : 0.f;
+    for (int ky = 0; ky < k; ++ky) {
+      const int ys = yo + ky - pad;
+      if (ys < 0 || ys >= H) continue;
+      for (int kx = 0; kx < k; ++kx) {
+        const int xs = xo + kx - pad;
+        if (xs < 0 || xs >= W) continue;
+        const T* src = x + ((n * H + ys) * W + xs) * C + c0;
+        float v[kVec];
+        if constexpr (kVec == detail::kPack) {
+          detail::load8(src, v);
+        } else {
+          v[0] = detail::to_f32(src[0]);
+        }
+        const int tap = ky * k + kx;
+#pragma unroll
+        for (int j = 0; j < kVec; ++j) acc[j] += detail::to_f32(w[(c0 + j) * k * k + tap]) * v[j];
+      }
+    }
+#pragma unroll
+    for (int j = 0; j < kVec; ++j) acc[j] = act ? op(detail::round_to<T>(acc[j])) : acc[j];
+    T* dst = y + pixel * C + c0;
+    if constexpr (kVec == detail::kPack) {
+      detail::store8(dst, acc);
+    } else {
+      dst[0] = detail::from_f32<T>(acc[0]);
+    }
+  }
+}
+
+template <class T>
+void depthwise(Context& ctx, const T* x, const T* w, const T* bias, T* y, const Conv2dShape& s, ConvAct act) {
+  const std::int64_t C = s.in_channels;
+  EPONA_CHECK(s.height <= 0x7fffffff && s.width <= 0x7fffffff && C <= 0x7fffffff && s.kernel <= 0x7fffffff,
+              "depthwise conv2d: extents exceed int range");
+  const bool packed = C % detail::kPack == 0 && detail::aligned16(x) && detail::aligned16(y);
+  const std::int64_t items = s.batch * s.height * s.width * (packed ? C / detail::kPack : C);
+  if (items == 0) return;
+  constexpr int threads = 256;
+  const unsigned blocks = detail::grid_for(items, threads);
+  const int H = static_cast<int>(s.height), W = static_cast<int>(s.width), k = static_cast<int>(s.kernel);
+  const bool activate = act != ConvAct::None;
+  conv_detail::with_act(act, [&](auto op) {
+    if (packed)
+      depthwise_kernel<T, decltype(op), detail::kPack><<<blocks, threads, 0, ctx.stream()>>>(
+          x, w, bias, y, s.batch, H, W, static_cast<int>(C), k, activate, op);
+    else
+      depthwise_kernel<T, decltype(op), 1><<<blocks, threads, 0, ctx.stream()>>>(x, w, bias, y, s.batch, H, W,
+                                                                                 static_cast<int>(C), k, activate, op);
+    EPONA_CUDA_CHECK_LAUNCH();
+  });
+}
+
+// value · round(act(gate)) over strided rows (gated_act's element-wise work).
+template <class T, class Op>
+struct GatedEach {
+  const T *value, *gate;
+  T* out;
+  std::int64_t in_stride, out_stride;
+  Op op;
+  __device__ void pack(std::int64_t r, std::int64_t c) const {
+    float a[detail::kPack], b[detail::kPack];
+    detail::load8(value + r * in_stride + c, a);
+    detail::load8(gate + r * in_stride + c, b);
+#pragma unroll
+    for (int i = 0; i < detail::kPack; ++i) a[i] *= detail::round_to<T>(op(b[i]));
+    detail::store8(out + r * out_stride + c, a);
+  }
+  __device__ void one(std::int64_t r, std::int64_t c) const {
+    const float g = detail::round_to<T>(op(detail::to_f32(gate[r * in_stride + c])));
+    out[r * out_stride + c] = detail::from_f32<T>(detail::to_f32(value[r * in_stride + c]) * g);
+  }
+};
+
+// ---- GEMM engine: panel[r, (ky·k + kx)·cg + c] = x[pixel p0 + r shifted by (ky, kx), channel c0 + c]
+// (zero outside the image), then y[p, o] = panel · w[o]ᵀ through cuBLASLt.
+template <class T>
+struct Im2colEach {
+  const T* x;  // one image, (H, W, C)
+  T* panel;    // (rows, k·k·cg)
+  std::int64_t p0;
+  int H, W, C, c0, cg, k;
+  // column c of the panel row `r` (c in [0, k·k·cg)), 8 columns of one tap at a time when packed
+  __device__ const T* source(std::int64_t r, std::int64_t col) const {
+    const int tap = static_cast<int>(col / cg), c = static_cast<int>(col % cg);
+    const std::int64_t p = p0 + r;
+    const int ys = static_cast<int>(p / W) + tap / k - k / 2, xs = static_cast<int>(p % W) + tap % k - k / 2;
+    if (ys < 0 || ys >= H || xs < 0 || xs >= W) return nullptr;
+    return x + (std::int64_t{ys} * W + xs) * C + c0 + c;
+  }
+  __device__ void pack(std::int64_t r, std::int64_t col) const {
+    const T* s = source(r, col);
+    T* d = panel + r * (std::int64_t{k} * k * cg) + col;
+    if (s) {
+      *reinterpret_cast<uint4*>(d) = *reinterpret_cast<const uint4*>(s);
+      if constexpr (sizeof(T) == 4) reinterpret_cast<uint4*>(d)[1] = reinterpret_cast<const uint4*>(s)[1];
+    } else {
+      *reinterpret_cast<uint4*>(d) = make_uint4(0, 0, 0, 0);
+      if constexpr (sizeof(T) == 4) reinterpret_cast<uint4*>(d)[1] = make_uint4(0, 0, 0, 0);
+    }
+  }
+  __device__ void one(std::int64_t r, std::int64_t col) const {
+    const T* s = source(r, col);
+    panel[r * (std::int64_t{k} * k * cg) + col] = s ? *s : detail::from_f32<T>(0.f);
+  }
+};
+
+// Largest im2col panel (bytes): bounds the engine's scratch memory on big maps.
+inline constexpr std::int64_t kMaxPanelBytes = std::int64_t{512} << 20;
+inline std::atomic<std::int64_t>& panel_bytes_setting() {
+  static std::atomic<std::int64_t> bytes{kMaxPanelBytes};
+  return bytes;
+}
+
+template <class T>
+void gemm_conv(Context& ctx, const T* x, const T* w, const T* bias, T* y, const Conv2dShape& s, ConvAct act) {
+  const std::int64_t C = s.in_channels, O = s.out_channels, k = s.kernel, HW = s.height * s.width;
+  const std::int64_t cg = C / s.groups, og = O / s.groups, K = k * k * cg;
+  // SiLU rides on linear's epilogue (after its bias); ReLU runs as a pass after the product.
+  const Epilogue epi = act == ConvAct::Silu ? Epilogue::Silu : Epilogue::None;
+  const auto product = [&](const T* a, std::int64_t lda, std::int64_t rows, std::int64_t g, T* out) {
+    linear(ctx, a, lda, w + g * og * K, bias ? bias + g * og : nullptr, out + g * og, O, rows, og, K, epi);
+  };
+  if (k == 1) {
+    for (std::int64_t g = 0; g < s.groups; ++g) product(x + g * cg, C, s.batch * HW, g, y);
+  } else {
+    const std::int64_t rows = std::clamp<std::int64_t>(panel_bytes_setting().load() / (K * std::int64_t{sizeof(T)}), 1, HW);
+    Tensor<T, Cuda> panel = scratch_tensor<T>(ctx, {rows, K});
+    const bool packed = cg % detail::kPack == 0 && detail::aligned16(x) && detail::aligned16(panel.data());
+    for (std::int64_t n = 0; n < s.batch; ++n)
+      for (std::int64_t g = 0; g < s.groups; ++g)
+        for (std::int64_t p0 = 0; p0 < HW; p0 += rows) {
+          const std::int64_t r = std::min(rows, HW - p0);
+          const Im2colEach<T> f{x + n * HW * C, panel.data(), p0, static_cast<int>(s.height),
+                                static_cast<int>(s.width), static_cast<int>(C), static_cast<int>(g * cg),
+                                static_cast<int>(cg), static_cast<int>(k)};
+          detail::for_each(ctx.stream(), r, K, packed, f);
+          product(panel.data(), K, r, g, y + (n * HW + p0) * O);
+        }
+  }
+  if (act == ConvAct::Relu) detail::map(ctx, y, y, s.batch * HW * O, ReluOp{});
+}
+
+}  // namespace conv_detail
+
+// The engine for dense convolutions from now on (process-wide; EPONA_CUDA_CONV sets the start).
+inline void set_conv_engine(ConvEngine e) { conv_detail::engine_setting().store(e); }
+inline ConvEngine conv_engine() { return conv_detail::engine_setting().load(); }
+// The GEMM engine's im2col panel budget in bytes (0: the default, 512 MiB); tests use small ones.
+inline void set_conv_panel_bytes(std::int64_t bytes) {
+  conv_detail::panel_bytes_setting().store(bytes > 0 ? bytes : conv_detail::kMaxPanelBytes);
+}
+// Why cuDNN does not run on ctx's device ("" when it does).
+inline std::string cudnn_unavailable(Context& ctx) { return cudnn::Engine::get().unavailable(ctx); }
+
+struct ConvCounts {
+  std::int64_t cudnn = 0, gemm = 0, depthwise = 0;
+};
+inline ConvCounts conv_counts() {
+  auto& c = conv_detail::counts();
+  return {c.cudnn.load(), c.gemm.load(), c.depthwise.load()};
+}
+inline void reset_conv_counts() {
+  auto& c = conv_detail::counts();
+  c.cudnn = 0, c.gemm = 0, c.depthwise = 0;
+}
+
+// x += y-style activation in place: ReLU, SiLU or nothing.
+template <class T>
+void apply_conv_act(Context& ctx, T* x, std::int64_t n, ConvAct act) {
+  static_assert(is_device_float<T>, "apply_conv_act takes float or bf16");
+  if (act == ConvAct::None || n == 0) return;
+  conv_detail::with_act(act, [&](auto op) { detail::map(ctx, x, x, n, op); });
+}
+
+// y = act(conv(x) + bias): x (N, H, W, C) channels-last, weight [O, k, k, C/groups] (the
+// channels-last layout of nn::conv_weight_layout), bias [O] or null, y (N, H, W, O), not
+// aliasing x. Stride 1, zero padding k/2. Asynchronous on ctx's stream.
+template <class T>
+void conv2d(Context& ctx, const T* x, const T* weight, const T* bias, T* y, const Conv2dShape& s,
+            ConvAct act = ConvAct::None) {
+  static_assert(is_device_float<T>, "conv2d takes float or bf16");
+  cpu::conv_detail::check_shape(s);
+  EPONA_CHECK(x && weight && y, "conv2d: null input, weight or output");
+  if (s.batch == 0) return;
+  EPONA_CHECK(s.height * s.width <= 0x7fffffff, "conv2d: ", s.height, "x", s.width, " exceeds one image's index range");
+  auto& counts = conv_detail::counts();
+  if (s.in_channels == s.groups && s.out_channels == s.groups) {
+    conv_detail::depthwise(ctx, x, weight, bias, y, s, act);
+    ++counts.depthwise;
+    return;
+  }
+  const ConvEngine engine = conv_engine();
+  if (engine != ConvEngine::Gemm) {
+    if (cudnn::Engine::get().forward(ctx, x, weight, y, s)) {
+      conv_detail::bias_act(ctx, y, s.batch * s.height * s.width, s.out_channels, bias, act);
+      ++counts.cudnn;
+      return;
+    }
+    EPONA_CHECK(engine != ConvEngine::Cudnn, "conv2d: the cuDNN engine was requested but cannot run ", s.in_channels,
+                "->", s.out_channels, " k=", s.kernel, " at ", s.height, "x", s.width, ": ",
+                cudnn::Engine::get().plan_problem<T>(ctx, s));
+  }
+  conv_detail::gemm_conv(ctx, x, weight, bias, y, s, act);
+  ++counts.gemm;
+}
+
+// out[r·out_stride + i] = value[r·in_stride + i] · act(gate[r·in_stride + i]) for i < width
+// (GLUMBConv's x · act(gate), SwiGLU's silu(w1 x) · (w3 x)); act(gate) is rounded to T first,
+// as the reference's separate activation. out may be gate (same index).
+template <class T>
+void gated_act(Context& ctx, const T* value, const T* gate, T* out, std::int64_t rows, std::int64_t width,
+               std::int64_t in_stride, std::int64_t out_stride, ConvAct act) {
+  static_assert(is_device_float<T>, "gated_act takes float or bf16");
+  EPONA_CHECK(rows >= 0 && width >= 0 && in_stride >= width && out_stride >= width, "gated_act: bad extents (rows ",
+              rows, ", width ", width, ", strides ", in_stride, ", ", out_stride, ")");
+  const bool packed = detail::packable(value, width, in_stride) && detail::packable(gate, width, in_stride) &&
+                      detail::packable(out, width, out_stride);
+  conv_detail::with_act(act, [&](auto op) {
+    detail::for_each(ctx.stream(), rows, width, packed,
+                     conv_detail::GatedEach<T, decltype(op)>{value, gate, out, in_stride, out_stride, op});
+  });
+}
+
+}  // namespace epona::cuda

@@ -1,0 +1,161 @@
+// epona/cuda/pixel_shuffle.cuh — the DC-AE's data movement on the GPU over channels-last maps,
+// as cpu/pixel_shuffle.hpp: pixel (un)shuffle in torch's channel order with the averaging and
+// duplicating shortcuts in the same pass (optionally accumulating into a residual), and the
+// (n, a, b) -> (n, b, a) transpose (with a type conversion) between NCHW and channels-last.
+#pragma once
+
+#include <algorithm>
+#include <cstdint>
+
+#include "epona/cpu/pixel_shuffle.hpp"
+#include "epona/cuda/context.hpp"
+#include "epona/cuda/device.cuh"
+
+namespace epona::cuda {
+
+namespace shuffle_detail {
+
+// Geometry of a shuffle in the index type I (32-bit when everything fits: the kernels are
+// bound by index arithmetic otherwise).
+template <class I>
+struct Geometry {
+  I H, W, C, r, g_or_rep, Ho, Wo, Co;  // input extents, factor, group or repeat count, output extents
+};
+
+// out[n, yo, xo, k] (+)= (1/g) Σ_t x[n, r·yo + sub/r, r·xo + sub%r, cu/r²], cu = k·g + t, sub = cu % r².
+// One thread per output element, consecutive threads along k.
+template <class T, class I>
+__global__ void unshuffle_kernel(const T* __restrict__ x, T* __restrict__ out, Geometry<I> q, I total, bool accumulate) {
+  const I r2 = q.r * q.r, g = q.g_or_rep;
+  for (I i = blockIdx.x * blockDim.x + threadIdx.x; i < total; i += gridDim.x * blockDim.x) {
+    const I k = i % q.Co, pixel = i / q.Co;
+    const I xo = pixel % q.Wo, rest = pixel / q.Wo, yo = rest % q.Ho, n = rest / q.Ho;
+    float sum = 0.f;
+    for (I t = 0; t < g; ++t) {
+      const I cu = k * g + t, sub = cu % r2;
+      sum += detail::to_f32(x[((n * q.H + q.r * yo + sub / q.r) * q.W + q.r * xo + sub % q.r) * q.C + cu / r2]);
+    }
+    float v = g == 1 ? sum : sum / static_cast<float>(g);
+    if (accumulate) v += detail::to_f32(out[i]);
+    out[i] = detail::from_f32<T>(v);
+  }
+}
+
+// out[n, yo, xo, c] (+)= x[n, yo/r, xo/r, m/rep], m = c·r² + (yo%r)·r + xo%r.
+template <class T, class I>
+__global__ void shuffle_kernel(const T* __restrict__ x, T* __restrict__ out, Geometry<I> q, I total, bool accumulate) {
+  const I rep = q.g_or_rep;
+  for (I i = blockIdx.x * blockDim.x + threadIdx.x; i < total; i += gridDim.x * blockDim.x) {
+    const I c = i % q.Co, pixel = i / q.Co;
+    const I xo = pixel % q.Wo, rest = pixel / q.Wo, yo = rest % q.Ho, n = rest / q.Ho;
+    const I m = c * q.r * q.r + (yo % q.r) * q.r + xo % q.r;
+    float v = detail::to_f32(x[((n * q.H + yo / q.r) * q.W + xo / q.r) * q.C + m / rep]);
+    if (accumulate) v += detail::to_f32(out[i]);
+    out[i] = detail::from_f32<T>(v);
+  }
+}
+
+// Launches kernel<T, I> with 32-bit indices when every index fits, 64-bit otherwise.
+template <template <class, class> class Launch, class T>
+void launch_shuffle(Context& ctx, const T* x, T* out, const Geometry<std::int64_t>& q, std::int64_t in_total,
+                    std::int64_t out_total, bool accumulate) {
+  if (out_total == 0) return;
+  constexpr int threads = 256;
+  const unsigned blocks = detail::grid_for(out_total, threads);
+  if (std::max(in_total, out_total) < (std::int64_t{1} << 31)) {
+    const auto c = [](std::int64_t v) { return static_cast<std::uint32_t>(v); };
+    const Geometry<std::uint32_t> q32{c(q.H), c(q.W), c(q.C), c(q.r), c(q.g_or_rep), c(q.Ho), c(q.Wo), c(q.Co)};
+    Launch<T, std::uint32_t>::run(blocks, threads, ctx.stream(), x, out, q32, c(out_total), accumulate);
+  } else {
+    Launch<T, std::int64_t>::run(blocks, threads, ctx.stream(), x, out, q, out_total, accumulate);
+  }
+  EPONA_CUDA_CHECK_LAUNCH();
+}
+template <class T, class I>
+struct UnshuffleLaunch {
+  static void run(unsigned b, int t, cudaStream_t s, const T* x, T* o, Geometry<I> q, I n, bool acc) {
+    unshuffle_kernel<T, I><<<b, t, 0, s>>>(x, o, q, n, acc);
+  }
+};
+template <class T, class I>
+struct ShuffleLaunch {
+  static void run(unsigned b, int t, cudaStream_t s, const T* x, T* o, Geometry<I> q, I n, bool acc) {
+    shuffle_kernel<T, I><<<b, t, 0, s>>>(x, o, q, n, acc);
+  }
+};
+
+template <class TI, class TO>
+__global__ void transpose_kernel(const TI* __restrict__ x, TO* __restrict__ y, std::int64_t A, std::int64_t B) {
+  __shared__ float tile[32][33];
+  const std::int64_t n = blockIdx.z, a0 = std::int64_t{blockIdx.y} * 32, b0 = std::int64_t{blockIdx.x} * 32;
+  const TI* xs = x + n * A * B;
+  TO* ys = y + n * A * B;
+  for (int i = threadIdx.y; i < 32; i += blockDim.y) {
+    const std::int64_t a = a0 + i, b = b0 + threadIdx.x;
+    if (a < A && b < B) tile[i][threadIdx.x] = detail::to_f32(xs[a * B + b]);
+  }
+  __syncthreads();
+  for (int i = threadIdx.y; i < 32; i += blockDim.y) {
+    const std::int64_t b = b0 + i, a = a0 + threadIdx.x;
+    if (a < A && b < B) ys[b * A + a] = detail::from_f32<TO>(tile[threadIdx.x][i]);
+  }
+}
+
+}  // namespace shuffle_detail
+
+// x (N, H, W, C) channels-last -> out (N, H/r, W/r, channels_out) (+)= unshuffle(x), each output
+// channel the mean of g = C·r²/channels_out consecutive unshuffled channels (g = 1: the plain
+// unshuffle). Sums in float32, one rounding to T.
+template <class T>
+void pixel_unshuffle_average(Context& ctx, const T* x, T* out, const ShuffleShape& s, std::int64_t channels_out,
+                             bool accumulate = false) {
+  static_assert(is_device_float<T>, "pixel_unshuffle_average takes float or bf16");
+  const std::int64_t r = s.factor, r2 = r * r;
+  EPONA_CHECK(s.batch >= 0 && s.channels > 0 && s.height > 0 && s.width > 0 && r >= 1,
+              "pixel_unshuffle: bad geometry N=", s.batch, " C=", s.channels, " H=", s.height, " W=", s.width,
+              " r=", r);
+  EPONA_CHECK(s.height % r == 0 && s.width % r == 0, "pixel_unshuffle: ", s.height, "x", s.width,
+              " is not divisible by factor ", r);
+  EPONA_CHECK(channels_out > 0 && (s.channels * r2) % channels_out == 0, "channel averaging: ", s.channels, "·", r2,
+              " unshuffled channels do not split into ", channels_out, " groups");
+  const std::int64_t Ho = s.height / r, Wo = s.width / r;
+  const shuffle_detail::Geometry<std::int64_t> q{s.height, s.width, s.channels, r, s.channels * r2 / channels_out,
+                                                 Ho, Wo, channels_out};
+  shuffle_detail::launch_shuffle<shuffle_detail::UnshuffleLaunch>(
+      ctx, x, out, q, s.batch * s.height * s.width * s.channels, s.batch * Ho * Wo * channels_out, accumulate);
+}
+
+// x (N, H, W, C) -> out (N, H·r, W·r, channels_out) (+)= shuffle(repeat_interleave(x, rep)),
+// rep = channels_out·r²/C (rep = 1: the plain shuffle).
+template <class T>
+void pixel_shuffle_duplicate(Context& ctx, const T* x, T* out, const ShuffleShape& s, std::int64_t channels_out,
+                             bool accumulate = false) {
+  static_assert(is_device_float<T>, "pixel_shuffle_duplicate takes float or bf16");
+  const std::int64_t r = s.factor, r2 = r * r;
+  EPONA_CHECK(s.batch >= 0 && s.channels > 0 && s.height > 0 && s.width > 0 && r >= 1,
+              "pixel_shuffle: bad geometry N=", s.batch, " C=", s.channels, " H=", s.height, " W=", s.width,
+              " r=", r);
+  EPONA_CHECK(channels_out > 0 && (channels_out * r2) % s.channels == 0, "channel duplication: ", channels_out, "·",
+              r2, " shuffled channels are not a multiple of the ", s.channels, " input channels");
+  const shuffle_detail::Geometry<std::int64_t> q{s.height, s.width, s.channels, r, channels_out * r2 / s.channels,
+                                                 s.height * r, s.width * r, channels_out};
+  shuffle_detail::launch_shuffle<shuffle_detail::ShuffleLaunch>(ctx, x, out, q, s.batch * s.height * s.width * s.channels,
+                                                                s.batch * s.height * r * s.width * r * channels_out,
+                                                                accumulate);
+}
+
+// y[n, j, i] = x[n, i, j] for x (N, A, B): NCHW (N, C, HW) <-> channels-last (N, HW, C), with
+// the element type converted (float <-> bf16 rounds to nearest even).
+template <class TI, class TO>
+void transpose_last2(Context& ctx, const TI* x, TO* y, std::int64_t N, std::int64_t A, std::int64_t B) {
+  static_assert(is_device_float<TI> && is_device_float<TO>, "transpose_last2 takes float or bf16");
+  EPONA_CHECK(N >= 0 && A >= 0 && B >= 0, "transpose_last2: negative extent");
+  EPONA_CHECK(N <= 65535 && (A + 31) / 32 <= 65535 && (B + 31) / 32 <= 0x7fffffff,
+              "transpose_last2: (", N, ", ", A, ", ", B, ") exceeds one launch");
+  if (N == 0 || A == 0 || B == 0) return;
+  const dim3 grid(static_cast<unsigned>((B + 31) / 32), static_cast<unsigned>((A + 31) / 32), static_cast<unsigned>(N));
+  shuffle_detail::transpose_kernel<<<grid, dim3(32, 8), 0, ctx.stream()>>>(x, y, A, B);
+  EPONA_CUDA_CHECK_LAUNCH();
+}
+
+}  // namespace epona::cuda

@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# Runs the prebuilt DC-AE GPU tests, compute-sanitizer memcheck over them and bench_gpu_dcae on
+# a GPU machine in one go (binaries built elsewhere: the GPU machine has no doctest/Eigen).
+# cuDNN is loaded at run time: the first libcudnn.so.9 found on the machine goes on the path.
+# Usage: tests/cuda/dcae_device_run.sh <dir with test_cuda_dcae_* and bench_gpu_dcae> <out dir> [tests|bench|all]
+set -u
+BIN=$(cd "$1" && pwd)
+OUT=$2
+WHAT=${3:-all}
+mkdir -p "$OUT"
+lt=$(find /usr/local /opt /usr/lib -name 'libcublasLt.so.13' 2>/dev/null | head -1)
+dnn=$(find /usr/local /opt /usr/lib -name 'libcudnn.so.9' 2>/dev/null | head -1)
+export LD_LIBRARY_PATH="$(dirname "${lt:-/usr/local/cuda/lib64/x}"):$(dirname "${dnn:-/usr/local/cuda/lib64/x}"):/usr/local/cuda/lib64:${LD_LIBRARY_PATH:-}:$BIN/lib"
+SAN=$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)
+summary() { echo "$*" | tee -a "$OUT/summary.txt"; }
+
+nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.mem,temperature.gpu,power.draw --format=csv,noheader \
+  | tee -a "$OUT/summary.txt"
+summary "cublasLt: ${lt:-not found}; cudnn: ${dnn:-not found}"
+
+if [ "$WHAT" != bench ]; then
+  for t in dcae_ops dcae_layers dcae_model; do
+    start=$(date +%s%N)
+    timeout 240 "$BIN/test_cuda_$t" >"$OUT/$t.log" 2>&1
+    rc=$?
+    summary "test_cuda_$t rc=$rc ($(( ($(date +%s%N) - start) / 1000000 )) ms): $(grep -E 'test cases:' "$OUT/$t.log" | tail -1)"
+    grep -B3 -A10 -E "ERROR|FAILED|CHECK\(|REQUIRE\(" "$OUT/$t.log" | head -40
+  done
+  grep -hE "cuDNN engine|rel_max =" "$OUT"/dcae_ops.log "$OUT"/dcae_model.log | head -60
+fi
+
+if [ "$WHAT" != tests ]; then
+  timeout 300 "$BIN/bench_gpu_dcae" ${BENCH_ARGS:-} >"$OUT/bench.log" 2>&1
+  summary "bench rc=$?"
+  cat "$OUT/bench.log"
+fi
+
+if [ "$WHAT" != bench ]; then
+  for t in dcae_ops dcae_layers dcae_model; do
+    timeout 200 "$SAN" --tool memcheck --leak-check full "$BIN/test_cuda_$t" >"$OUT/memcheck_$t.log" 2>&1
+    summary "memcheck test_cuda_$t rc=$? $(grep -E 'ERROR SUMMARY' "$OUT/memcheck_$t.log" | tail -1)"
+  done
+fi

@@ -1,0 +1,75 @@
+// Shared helpers of the DC-AE GPU tests (tests/cuda/dcae_*.cu): NCHW <-> channels-last on the
+// host, the error bounds of bf16 paths, and a switch that poisons every buffer the model code
+// allocates on the GPU (so an element nobody writes shows as NaN even in reused pool memory).
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "cuda_test_util.cuh"
+#include "epona/cuda/dcae_ops.cuh"
+#include "epona/nn/feature_map.hpp"
+
+namespace epona::test {
+
+// (N, C, H, W) host values -> (N, H, W, C), and back.
+inline HostF to_nhwc(const HostF& x) {
+  const std::int64_t N = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3), HW = H * W;
+  HostF y({N, H, W, C});
+  for (std::int64_t n = 0; n < N; ++n)
+    for (std::int64_t c = 0; c < C; ++c)
+      for (std::int64_t p = 0; p < HW; ++p) y.data()[(n * HW + p) * C + c] = x.data()[(n * C + c) * HW + p];
+  return y;
+}
+inline HostF to_nchw(const HostF& y) {
+  const std::int64_t N = y.size(0), H = y.size(1), W = y.size(2), C = y.size(3), HW = H * W;
+  HostF x({N, C, H, W});
+  for (std::int64_t n = 0; n < N; ++n)
+    for (std::int64_t c = 0; c < C; ++c)
+      for (std::int64_t p = 0; p < HW; ++p) x.data()[(n * C + c) * HW + p] = y.data()[(n * HW + p) * C + c];
+  return x;
+}
+
+// A host NCHW map uploaded as a channels-last device map of T (values converted to T).
+template <class T>
+Dev<T> upload_map(cuda::Context& ctx, const HostF& nchw) {
+  return upload<T>(ctx, to_nhwc(nchw));
+}
+// A channels-last device map downloaded as host NCHW float.
+template <class T>
+HostF download_map(cuda::Context& ctx, const Dev<T>& nhwc) {
+  return to_nchw(download(ctx, nhwc));
+}
+
+// bf16 errors of a chain of operations (a block, a model stage): twice the per-stage error of
+// the official recipe under bf16 autocast (golden README, "DCAE in bf16": 1e-2 .. 2e-2 rel_max).
+inline Bound bf16_stage_bound(double max_ref) { return {2e-2, 4e-2 * max_ref}; }
+
+template <class T>
+Bound stage_bound(double max_ref) {
+  if constexpr (std::is_same_v<T, float>) return {kF32Tol, kF32Tol * max_ref};
+  return bf16_stage_bound(max_ref);
+}
+
+// Poisons every scratch/result buffer handed out while alive (tests only).
+struct PoisonBuffers {
+  PoisonBuffers() { cuda::set_poison_new_buffers(true); }
+  ~PoisonBuffers() { cuda::set_poison_new_buffers(false); }
+  PoisonBuffers(const PoisonBuffers&) = delete;
+  PoisonBuffers& operator=(const PoisonBuffers&) = delete;
+};
+
+// Runs the dense convolutions with engine e while alive, then restores the previous engine.
+struct UseEngine {
+  cuda::ConvEngine before;
+  explicit UseEngine(cuda::ConvEngine e) : before(cuda::conv_engine()) { cuda::set_conv_engine(e); }
+  ~UseEngine() { cuda::set_conv_engine(before); }
+  UseEngine(const UseEngine&) = delete;
+  UseEngine& operator=(const UseEngine&) = delete;
+};
+
+inline const char* engine_name(cuda::ConvEngine e) {
+  return e == cuda::ConvEngine::Gemm ? "gemm" : e == cuda::ConvEngine::Cudnn ? "cudnn" : "auto";
+}
+
+}  // namespace epona::test
