@@ -21,7 +21,7 @@ summary "cublasLt: ${lt:-not found}; cudnn: ${dnn:-not found}"
 if [ "$WHAT" != bench ]; then
   for t in dcae_ops dcae_layers dcae_model; do
     start=$(date +%s%N)
-    timeout 240 "$BIN/test_cuda_$t" >"$OUT/$t.log" 2>&1
+    timeout 150 "$BIN/test_cuda_$t" >"$OUT/$t.log" 2>&1
     rc=$?
     summary "test_cuda_$t rc=$rc ($(( ($(date +%s%N) - start) / 1000000 )) ms): $(grep -E 'test cases:' "$OUT/$t.log" | tail -1)"
     grep -B3 -A10 -E "ERROR|FAILED|CHECK\(|REQUIRE\(" "$OUT/$t.log" | head -40
@@ -30,14 +30,14 @@ if [ "$WHAT" != bench ]; then
 fi
 
 if [ "$WHAT" != tests ]; then
-  timeout 300 "$BIN/bench_gpu_dcae" ${BENCH_ARGS:-} >"$OUT/bench.log" 2>&1
+  timeout 200 "$BIN/bench_gpu_dcae" ${BENCH_ARGS:-} >"$OUT/bench.log" 2>&1
   summary "bench rc=$?"
   cat "$OUT/bench.log"
 fi
 
 if [ "$WHAT" != bench ]; then
   for t in dcae_ops dcae_layers dcae_model; do
-    timeout 200 "$SAN" --tool memcheck --leak-check full "$BIN/test_cuda_$t" >"$OUT/memcheck_$t.log" 2>&1
+    timeout 100 "$SAN" --tool memcheck --leak-check full "$BIN/test_cuda_$t" >"$OUT/memcheck_$t.log" 2>&1
     summary "memcheck test_cuda_$t rc=$? $(grep -E 'ERROR SUMMARY' "$OUT/memcheck_$t.log" | tail -1)"
   done
 fi
