@@ -125,7 +125,9 @@ std::string json_list(const std::vector<double>& v) {
   return s.str() + ']';
 }
 
+// The AVX-512 tile when an AVX-512 kernel family runs, else "-".
 const char* tile_name() {
+  if (cpu::active_isa() != cpu::Isa::Avx512 && cpu::active_isa() != cpu::Isa::Avx512Bf16) return "-";
   return cpu::detail::avx512_tile() == cpu::gemm::Tile::Wide ? "6x64" : "14x32";
 }
 

@@ -167,32 +167,55 @@ inline void conv_group(const float* in, std::int64_t cin, std::int64_t H, std::i
 }
 
 // The right operand of a convolution as a GEMM, B[K×P] = im2col(in) (K = C·k·k, P = H·W), packed
-// straight from the image: panel columns are consecutive pixels, cut into runs along image rows.
+// straight from the image: panel columns are consecutive pixels, cut into runs along image
+// rows (one run per panel when the width is a multiple of the tile, the usual case).
 struct PackIm2col {
   const float* in;
   std::int64_t H, W, k, nr;
+
+  // d[0, cols) = row[x0 + dx + j] for pixels j of image row `ys` (zero outside the image).
+  void copy_shifted(const float* plane, std::int64_t ys, std::int64_t x0, std::int64_t dx, std::int64_t cols,
+                    float* d) const {
+    if (ys < 0 || ys >= H) {
+      std::fill_n(d, cols, 0.f);
+      return;
+    }
+    const std::int64_t lo = std::clamp<std::int64_t>(-dx - x0, 0, cols), hi = std::clamp<std::int64_t>(W - dx - x0, lo, cols);
+    const float* src = plane + ys * W + x0 + dx;
+    // Plain loops: at most a tile's width (<= 64 floats), where a library call costs more than the copy.
+    for (std::int64_t j = 0; j < lo; ++j) d[j] = 0.f;
+    for (std::int64_t j = lo; j < hi; ++j) d[j] = src[j];
+    for (std::int64_t j = hi; j < cols; ++j) d[j] = 0.f;
+  }
+
+  // Panels of columns [p0, p0 + cols); step by step across all of them, so each step reads
+  // one stretch of an image row (whole cache lines, in order).
   void operator()(std::int64_t p0, std::int64_t cols, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
     auto* out = reinterpret_cast<float*>(dst);
-    if (k == 1) return gemm::pack_rows(in + p0, H * W, cols, nr, s0, steps, dst);
+    const std::int64_t panels = (cols + nr - 1) / nr;
+    if (k == 1) {
+      for (std::int64_t j = 0; j < panels; ++j)
+        gemm::pack_rows(in + p0 + j * nr, H * W, std::min(nr, cols - j * nr), nr, s0, steps, dst + j * nr * steps);
+      return;
+    }
     const std::int64_t pad = k / 2;
+    std::int64_t c = s0 / (k * k), dy = (s0 / k) % k - pad, dx = s0 % k - pad;
     for (std::int64_t s = 0; s < steps; ++s) {
-      const std::int64_t kr = s0 + s, c = kr / (k * k), dy = (kr / k) % k - pad, dx = kr % k - pad;
       const float* plane = in + c * H * W;
-      float* d = out + s * nr;
-      for (std::int64_t j = 0; j < cols;) {  // one run of pixels within an image row
-        const std::int64_t p = p0 + j, y = p / W, x0 = p % W, run = std::min(cols - j, W - x0);
-        const std::int64_t ys = y + dy;
-        const std::int64_t lo = std::clamp<std::int64_t>(-dx - x0, 0, run), hi = std::clamp<std::int64_t>(W - dx - x0, lo, run);
-        if (ys < 0 || ys >= H) {
-          std::fill_n(d + j, run, 0.f);
-        } else {
-          std::fill_n(d + j, lo, 0.f);
-          std::copy(plane + ys * W + x0 + dx + lo, plane + ys * W + x0 + dx + hi, d + j + lo);
-          std::fill(d + j + hi, d + j + run, 0.f);
+      for (std::int64_t j = 0; j < panels; ++j) {
+        const std::int64_t q0 = p0 + j * nr, n = std::min(nr, cols - j * nr);
+        float* d = out + (j * steps + s) * nr;
+        for (std::int64_t i = 0; i < n;) {  // runs of pixels within an image row
+          const std::int64_t p = q0 + i, run = std::min(n - i, W - p % W);
+          copy_shifted(plane, p / W + dy, p % W, dx, run, d + i);
+          i += run;
         }
-        j += run;
+        for (std::int64_t i = n; i < nr; ++i) d[i] = 0.f;
       }
-      std::fill(d + cols, d + nr, 0.f);
+      if (++dx > pad) {  // next (c, dy, dx)
+        dx = -pad;
+        if (++dy > pad) dy = -pad, ++c;
+      }
     }
   }
 };
@@ -277,7 +300,7 @@ void conv2d(Context& ctx, const float* x, const W* weight, const float* bias, fl
     apply_conv_act(ctx, y, s.batch * s.out_channels * HW, act);
     return;
   }
-  const gemm::KernelFamily* family = detail::kernel_family<float>(active_isa());
+  const gemm::KernelFamily* family = detail::kernel_family<float>(active_isa(), HW);
   for (std::int64_t n = 0; n < s.batch; ++n)
     for (std::int64_t g = 0; g < s.groups; ++g)
       if (family)

@@ -206,16 +206,18 @@ inline gemm::Tile avx512_tile() {
   return tile;
 }
 
-// The micro-kernel family for weights W under `isa`; null for the generic (Eigen) path. bf16
-// weights take the BF16 dot-product kernels where the CPU has them, else are widened to
-// float32 while packing (no rounding of the activations then).
+// The micro-kernel family for weights W under `isa` and a product N columns wide; null for
+// the generic (Eigen) path. bf16 weights take the BF16 dot-product kernels where the CPU has
+// them, else are widened to float32 while packing (no rounding of the activations then).
+// Products narrower than the wide tile take the tall one (no half-empty tiles).
 template <class W>
-const gemm::KernelFamily* kernel_family(Isa isa) {
+const gemm::KernelFamily* kernel_family(Isa isa, std::int64_t N) {
 #if defined(EPONA_GEMM_X86)
+  const gemm::Tile tile = N <= 32 ? gemm::Tile::Tall : avx512_tile();
   switch (isa) {
     case Isa::Avx512Bf16:
-      return std::is_same_v<W, bf16> ? &gemm::avx512_bf16(avx512_tile()) : &gemm::avx512_f32(avx512_tile());
-    case Isa::Avx512: return &gemm::avx512_f32(avx512_tile());
+      return std::is_same_v<W, bf16> ? &gemm::avx512_bf16(tile) : &gemm::avx512_f32(tile);
+    case Isa::Avx512: return &gemm::avx512_f32(tile);
     case Isa::Avx2: return &gemm::avx2_f32();
     case Isa::Generic: break;
   }
@@ -238,13 +240,18 @@ struct PackActivations {
   }
 };
 
-// Packs rows of the weights w (N×K): float32 steps (bf16 widened), or bf16 pairs as stored.
+// Packs rows of the weights w (N×K): float32 steps (bf16 widened), or bf16 pairs as stored;
+// panel by panel.
 template <class W>
 struct PackWeights {
   const gemm::KernelFamily& f;
   const W* w;
   std::int64_t K;
   void operator()(std::int64_t n0, std::int64_t cols, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
+    for (std::int64_t j = 0; j < cols; j += f.nr)
+      pack_panel(n0 + j, std::min<std::int64_t>(f.nr, cols - j), s0, steps, dst + j * steps);
+  }
+  void pack_panel(std::int64_t n0, std::int64_t cols, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
     const W* rows_w = w + n0 * K;
 #if defined(EPONA_GEMM_X86)
     if (f.avx512_packing) {
@@ -311,7 +318,7 @@ void linear(Context& ctx, const float* x, std::int64_t ldx, const W* w, const W*
     b = bias_f.data();
   }
   if (M <= detail::kDotRows) return detail::linear_dot_rows(x, ldx, w, b, y, ldy, M, N, K, epi);
-  if (const gemm::KernelFamily* f = detail::kernel_family<W>(active_isa()))
+  if (const gemm::KernelFamily* f = detail::kernel_family<W>(active_isa(), N))
     return detail::linear_packed(*f, ctx.threads(), x, ldx, w, b, y, ldy, M, N, K, epi);
   // Generic path. Large fp32 GEMM: Eigen's own multi-threaded GEMM, then one parallel epilogue.
   if constexpr (std::is_same_v<W, float>) {

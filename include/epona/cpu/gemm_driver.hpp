@@ -105,9 +105,7 @@ void run_task(const KernelFamily& f, const GemmPlan& p, std::int64_t pm0, std::i
     for (std::int64_t kb = 0; kb < p.k_blocks; ++kb) {
       const std::int64_t steps = p.block_steps(kb), s0 = kb * p.kc;
       const bool last = kb + 1 == p.k_blocks;
-      if (!p.shared_b)
-        for (std::int64_t j = j0; j < j1; ++j)
-          pack_b(j * p.nr, std::min(p.nr, p.N - j * p.nr), s0, steps, block + (j - j0) * p.nr * steps);
+      if (!p.shared_b) pack_b(j0 * p.nr, std::min(j1 * p.nr, p.N) - j0 * p.nr, s0, steps, block);
       for (std::int64_t i = pm0; i < pm1; ++i) {
         const std::int64_t m0 = i * p.mr, rows = std::min(p.mr, p.M - m0);
         const MicroKernel kernel = f.for_rows(rows);
@@ -125,8 +123,9 @@ void run_task(const KernelFamily& f, const GemmPlan& p, std::int64_t pm0, std::i
 
 // C[M×N] (ldc) = A·B over S steps with the family's micro-kernels, then epilogue(m0, rows, n0,
 // cols) on each finished tile. pack_a(m0, rows, s0, steps, dst) packs one A panel (rows ≤ MR),
-// pack_b(n0, cols, s0, steps, dst) one B panel (cols ≤ NR), zero-padded; both are called from
-// several threads at once.
+// pack_b(n0, cols, s0, steps, dst) the B panels covering columns [n0, n0 + cols), panel j at
+// dst + j·NR·steps, zero-padded (cols may span several panels: a packer may then walk the
+// source in its own order); both are called from several threads at once.
 template <class PackA, class PackB, class Epilogue>
 void run_gemm(const KernelFamily& f, std::int64_t M, std::int64_t N, std::int64_t S, int threads, PackA&& pack_a,
               PackB&& pack_b, float* c, std::int64_t ldc, Epilogue&& epilogue) {
