@@ -66,7 +66,7 @@ wait
 summary=$work/summary.md
 found=0
 {
-  echo "| target | seconds | executions | exec/s | cov | ft | corpus (files/bytes) | peak RSS MB | findings |"
+  echo "| target | seconds run | executions | exec/s | cov | ft | corpus (files/bytes) | peak RSS MB | findings |"
   echo "|---|---|---|---|---|---|---|---|---|"
   for t in "${targets[@]}"; do
     log=$work/logs/$t.log
@@ -76,7 +76,8 @@ found=0
     artifacts=$(find "$work/artifacts/$t" -type f -newer "$stamp" | wc -l)
     what=$(grep -m1 -oE 'ERROR: (AddressSanitizer|LeakSanitizer|UndefinedBehaviorSanitizer|libFuzzer)[^(]*|epona fuzz: [^:]*|runtime error: .*' "$log" || true)
     ((artifacts)) && found=1
-    echo "| $t | $seconds | $(final_stat number_of_executed_units) | $(final_stat average_exec_per_sec) | $(field cov) | $(field ft) |" \
+    ran=$(sed -n 's/^Done [0-9]* runs in \([0-9]*\) second.*/\1/p' "$log" | tail -1)
+    echo "| $t | ${ran:-stopped early} | $(final_stat number_of_executed_units) | $(final_stat average_exec_per_sec) | $(field cov) | $(field ft) |" \
          "$(field corp) | $(final_stat peak_rss_mb) | $( ((artifacts)) && echo "$artifacts: ${what:-see log}" || echo none) |"
   done
 } | tee "$summary"

@@ -6,10 +6,7 @@
 
 #include <algorithm>
 #include <cstdint>
-#include <cstdio>
 #include <cstring>
-#include <filesystem>
-#include <fstream>
 #include <map>
 #include <memory>
 #include <set>
@@ -18,13 +15,12 @@
 #include <string_view>
 #include <vector>
 
-#include <unistd.h>
-
 #include <nlohmann/json.hpp>
 
 #include "epona/core/dtype.hpp"
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/io/atomic_file.hpp"
 #include "epona/io/mmap.hpp"
 #include "epona/io/tensor_map.hpp"
 
@@ -219,8 +215,8 @@ RawTensor raw_view(const Tensor<T, Cpu>& t) {
 }
 
 // Writes `tensors` (in name order, packed) and `metadata`; the header is padded with spaces
-// to a multiple of 8 so that data starts aligned. Writes `<path>.tmp-<pid>` and renames it,
-// so a crash never leaves a half-written file under `path`.
+// to a multiple of 8 so that data starts aligned. Written atomically (io/atomic_file.hpp), so
+// a failure or a crash never leaves a half-written file under `path`.
 inline void save_safetensors(const std::string& path, const TensorMap& tensors,
                              const SafetensorsMetadata& metadata = {}) {
   namespace sd = safetensors_detail;
@@ -237,29 +233,13 @@ inline void save_safetensors(const std::string& path, const TensorMap& tensors,
   std::string text = header.dump();
   text.resize((text.size() + 7) / 8 * 8, ' ');
 
-  const std::string tmp = path + ".tmp-" + std::to_string(::getpid());
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    EPONA_CHECK(out, tmp, ": cannot create file for writing");
+  write_atomically(path, [&](AtomicFileSink& out) {
     unsigned char len[8];
     for (int i = 0; i < 8; ++i) len[i] = static_cast<unsigned char>((std::uint64_t(text.size()) >> (8 * i)) & 0xff);
-    out.write(reinterpret_cast<const char*>(len), 8);
-    out.write(text.data(), static_cast<std::streamsize>(text.size()));
-    for (const auto& [name, t] : tensors.entries())
-      out.write(reinterpret_cast<const char*>(t.bytes.data()), static_cast<std::streamsize>(t.bytes.size()));
-    out.flush();
-    if (!out) {
-      out.close();
-      std::remove(tmp.c_str());
-      fail(tmp, ": write failed (disk full?)");
-    }
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::remove(tmp.c_str());
-    fail(path, ": cannot rename the written file into place: ", ec.message());
-  }
+    out.write(len, 8);
+    out.write(text);
+    for (const auto& [name, t] : tensors.entries()) out.write(t.bytes.data(), t.bytes.size());
+  });
 }
 
 }  // namespace epona::io
