@@ -299,9 +299,9 @@ int main(int argc, char** argv) {
     const Options o = parse(argc, argv);
     const auto& f = cpu::cpu_features();
     std::printf("{\"name\": \"machine\", \"cpu\": \"%s\", \"hardware_threads\": %d, \"best_isa\": \"%s\", "
-                "\"active_isa\": \"%s\", \"tile\": \"%s\", \"avx512\": %s, \"avx512_bf16\": %s}\n",
+                "\"active_isa\": \"%s\", \"tile\": \"%s\", \"avx512\": %s, \"avx512_bf16\": %s, \"amx_bf16\": %s}\n",
                 cpu_model_name().c_str(), hardware_threads(), cpu::isa_name(f.best()), cpu::isa_name(cpu::active_isa()),
-                tile_name(), f.avx512 ? "true" : "false", f.avx512_bf16 ? "true" : "false");
+                tile_name(), f.avx512 ? "true" : "false", f.avx512_bf16 ? "true" : "false", f.amx_bf16 ? "true" : "false");
     std::fflush(stdout);
     if (o.wants("gemm2048")) bench_gemm(o);
     if (o.wants("gemm_shapes")) bench_gemm_shapes(o);

@@ -38,6 +38,7 @@ struct CpuFeatures {
   bool avx512 = false;       // AVX-512 F, BW, DQ, VL, with the OS saving zmm and mask state
   bool avx512_bf16 = false;  // AVX512_BF16 (vdpbf16ps, vcvtne2ps2bf16)
   bool amd = false;          // "AuthenticAMD": Zen 4/5 run a 512-bit FMA as two 256-bit halves
+  bool amx_bf16 = false;     // AMX tiles + BF16 with the OS supporting tile state (reported, not used)
 
   Isa best() const {
     if (avx512 && avx512_bf16) return Isa::Avx512Bf16;
@@ -86,6 +87,7 @@ inline CpuFeatures detect_cpu_features() {
   f.avx512 = f.avx2_fma && zmm_state && bit(l7.b, 16) /*f*/ && bit(l7.b, 17) /*dq*/ && bit(l7.b, 30) /*bw*/ &&
              bit(l7.b, 31) /*vl*/;
   if (f.avx512 && l7.a >= 1) f.avx512_bf16 = bit(detail::cpuid(7, 1).a, 5);
+  f.amx_bf16 = bit(l7.d, 22) && bit(l7.d, 24) && (xcr & 0x60000) == 0x60000;  // XTILECFG, XTILEDATA
 #endif
   return f;
 }

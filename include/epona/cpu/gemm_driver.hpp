@@ -64,8 +64,10 @@ struct GemmPlan {
   }
 };
 
-// Below this many multiply-adds a product runs on one thread (a parallel region costs ~µs).
-inline constexpr double kParallelMacs = 1 << 20;
+// Each thread gets at least this many multiply-adds (~10 µs of one core's work): a parallel
+// region and its barriers cost a few µs, so small products (TrajDiT's 15-token stream) use
+// fewer threads than the context has.
+inline constexpr double kMacsPerThread = 1 << 20;
 
 inline GemmPlan plan_gemm(const KernelFamily& f, std::int64_t M, std::int64_t N, std::int64_t S, int threads) {
   GemmPlan p;
@@ -76,7 +78,7 @@ inline GemmPlan plan_gemm(const KernelFamily& f, std::int64_t M, std::int64_t N,
   p.n_panels = (N + f.nr - 1) / f.nr;
   p.nc_panels = std::max<std::int64_t>(1, f.nc / f.nr);
   const double macs = double(M) * double(N) * double(S) * f.k_per_step;
-  const std::int64_t T = macs < kParallelMacs ? 1 : std::max(1, threads);
+  const std::int64_t T = std::clamp<std::int64_t>(static_cast<std::int64_t>(macs / kMacsPerThread), 1, std::max(1, threads));
   // Columns first: each task then packs its own B block and reads the weights once. Narrow
   // the tasks (down to one panel) until every thread has one.
   p.n_per_task = std::min(p.n_panels, p.nc_panels);
