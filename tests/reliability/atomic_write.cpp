@@ -3,7 +3,8 @@
 // of include/epona (save_safetensors, write_npy, write_trajectory as .csv/.json/.npy) interrupted
 // by a failing write (a file-size limit, RLIMIT_FSIZE, makes write() fail with EFBIG part-way, as a
 // full disk would), leave no file at a new destination, the old bytes at an existing one, and no
-// temporary file behind. Concurrent writers of one path leave one complete version.
+// temporary file behind. Concurrent writers of one path (threads of one process) leave one
+// complete version.
 #include <doctest/doctest.h>
 
 #include <signal.h>
@@ -11,6 +12,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <filesystem>
 #include <fstream>
 #include <set>
@@ -190,6 +192,47 @@ TEST_CASE("concurrent writers of one path leave one complete version") {
   REQUIRE(got.size() == kBytes);
   CHECK(std::count(got.begin(), got.end(), got[0]) == static_cast<std::ptrdiff_t>(kBytes));
   CHECK(dir.names() == std::set<std::string>{"shared.bin"});
+}
+
+// Threads of one process writing one path with a writer: the file left is one thread's complete output.
+template <class Write, class Read>
+void check_concurrent_writer(const std::string& file_name, Write&& write, Read&& read) {
+  TempDir dir;
+  const fs::path dest = dir.path / file_name;
+  constexpr int kThreads = 4, kRounds = 6;
+  std::vector<std::thread> threads;
+  std::atomic<int> failures{0};  // a writer whose temporary file another thread took fails here
+  for (int t = 0; t < kThreads; ++t)
+    threads.emplace_back([&, t] {
+      Tensor<float> values = Tensor<float>::full({64, 15, 3}, static_cast<float>(t + 1));
+      for (int r = 0; r < kRounds; ++r) try {
+          write(dest, values);
+        } catch (const Error&) {
+          ++failures;
+        }
+    });
+  for (auto& th : threads) th.join();
+  CHECK(failures == 0);
+  const Tensor<float> got = read(dest);
+  REQUIRE(got.numel() == 64 * 15 * 3);
+  const float first = got.data()[0];
+  CHECK((first >= 1 && first <= kThreads));
+  CHECK(std::all_of(got.data(), got.data() + got.numel(), [&](float v) { return v == first; }));
+  CHECK(dir.names() == std::set<std::string>{file_name});
+}
+
+TEST_CASE("concurrent writers through save_safetensors and write_npy leave one complete file") {
+  check_concurrent_writer(
+      "c.safetensors",
+      [](const fs::path& p, const Tensor<float>& t) {
+        io::TensorMap map;
+        map.add("t", io::raw_view(t));
+        io::save_safetensors(p.string(), map);
+      },
+      [](const fs::path& p) { return io::to_tensor<float>(io::read_safetensors(p.string()).tensors.at("t")); });
+  check_concurrent_writer(
+      "c.npy", [](const fs::path& p, const Tensor<float>& t) { io::write_npy(p, t); },
+      [](const fs::path& p) { return io::read_npy<float>(p).values; });
 }
 
 TEST_CASE("every writer, interrupted part-way, leaves no partial output") {
