@@ -117,34 +117,51 @@ void bench_model(cuda::Context& ctx, const Options& o, const char* dtype) {
   const bool fp32 = std::is_same_v<T, float>;
   const int reps = fp32 ? std::max(3, o.reps / 4) : o.reps;
   const std::string cudnn = cuda::cudnn_unavailable(ctx);
-  std::vector<cuda::ConvEngine> engines{cuda::ConvEngine::Auto};
-  if (!o.quick) engines.push_back(cuda::ConvEngine::Gemm);
-  for (const auto engine : engines) {
-    cuda::set_conv_engine(engine);
-    const char* eng = engine == cuda::ConvEngine::Auto ? (cudnn.empty() ? "cudnn" : "gemm") : engine_name(engine);
+  struct Variant {
+    cuda::ConvEngine engine;
+    bool graphs;
+  };
+  std::vector<Variant> variants{{cuda::ConvEngine::Auto, true}};
+  if (!o.quick) {
+    variants.push_back({cuda::ConvEngine::Auto, false});
+    if (cudnn.empty()) variants.push_back({cuda::ConvEngine::Cudnn, true});
+    if (!fp32) variants.push_back({cuda::ConvEngine::Gemm, true});  // float32 Auto already is the GEMM engine
+  }
+  for (const auto& v : variants) {
+    cuda::set_conv_engine(v.engine);
+    model.use_graphs = v.graphs;
+    const char* eng = v.engine != cuda::ConvEngine::Auto ? engine_name(v.engine)
+                      : fp32 || !cudnn.empty()          ? "auto(gemm)"
+                                                        : "auto(cudnn3x3+cublaslt1x1)";
     const auto peak_of = [&](const std::function<void()>& f, double io_bytes) {
       ctx.synchronize();
       cuda::reset_scratch_peak(ctx);
       f();
       ctx.synchronize();
-      return (weights.bytes + double(cuda::scratch_usage(ctx).peak) + io_bytes) / (1024.0 * 1024.0);
+      const double scratch = double(std::max<std::uint64_t>(cuda::scratch_usage(ctx).peak, cuda::graph_memory_peak(ctx)));
+      return (weights.bytes + scratch + io_bytes) / (1024.0 * 1024.0);
     };
     Tensor<float, Cuda> out;
     const auto decode = [&] { out = model.decode(ctx, latents, false); };
     const auto encode = [&] { out = model.encode(ctx, images); };
+    // staged copies of input and output when graphs replay, plus the caller's input and result
+    const double io = double(latents.nbytes() + images.nbytes()) * (v.graphs ? 2 : 1);
     cuda::reset_conv_counts();
-    const double dec_ms = median_ms(ctx, 2, reps, decode);
+    const double dec_ms = median_ms(ctx, 3, reps, decode);
     const auto counts = cuda::conv_counts();
-    const double dec_peak = peak_of(decode, double(latents.nbytes() + images.nbytes()));
-    char extra[160];
-    std::snprintf(extra, sizeof extra, ", \"convs_per_pass\": {\"cudnn\": %lld, \"gemm\": %lld, \"depthwise\": %lld}",
-                  (long long)(counts.cudnn / (reps + 2)), (long long)(counts.gemm / (reps + 2)),
-                  (long long)(counts.depthwise / (reps + 2)));
+    const double dec_peak = peak_of(decode, io);
+    char extra[200];
+    std::snprintf(extra, sizeof extra,
+                  ", \"graph\": %s, \"convs_eager_first_3\": {\"cudnn\": %lld, \"gemm\": %lld, \"depthwise\": %lld}",
+                  v.graphs ? "true" : "false", (long long)counts.cudnn, (long long)counts.gemm,
+                  (long long)counts.depthwise);
     line("dcae_decode", dtype, eng, dec_ms, flops.decode_total() * 1e-9, dec_peak, reps, extra);
-    const double enc_ms = median_ms(ctx, 2, reps, encode);
-    const double enc_peak = peak_of(encode, double(latents.nbytes() + images.nbytes()));
-    line("dcae_encode", dtype, eng, enc_ms, flops.encode * 1e-9, enc_peak, reps);
+    const double enc_ms = median_ms(ctx, 3, reps, encode);
+    const double enc_peak = peak_of(encode, io);
+    std::snprintf(extra, sizeof extra, ", \"graph\": %s", v.graphs ? "true" : "false");
+    line("dcae_encode", dtype, eng, enc_ms, flops.encode * 1e-9, enc_peak, reps, extra);
   }
+  model.use_graphs = true;
   cuda::set_conv_engine(cuda::ConvEngine::Auto);
 }
 
@@ -205,15 +222,23 @@ template <class T>
 void bench_convs(cuda::Context& ctx, const Options& o, const char* dtype) {
   struct Conv {
     const char* name;
-    std::int64_t C, H, W, O;
+    std::int64_t C, H, W, O, k;
   };
   const std::int64_t h = o.height, w = o.width;
-  const Conv convs[] = {{"conv3x3_stage1_128", 128, h / 2, w / 2, 128},
-                        {"conv3x3_stage2_256", 256, h / 4, w / 4, 256},
-                        {"conv3x3_up1_256to512", 256, h / 4, w / 4, 512}};
+  // decoder stage 1 (256 ch at H/2), stage 2 (512 ch at H/4), the upsample into stage 1
+  // (512 -> 4·256 at H/4), and stage 3's 1x1 convs (512 ch at H/8: LiteMLA qkv, GLU expansion)
+  const Conv convs[] = {{"conv3x3_stage1_256", 256, h / 2, w / 2, 256, 3},
+                        {"conv3x3_stage2_512", 512, h / 4, w / 4, 512, 3},
+                        {"conv3x3_up1_512to1024", 512, h / 4, w / 4, 1024, 3},
+                        {"conv1x1_stage3_qkv_512to1536", 512, h / 8, w / 8, 1536, 1},
+                        {"conv1x1_stage3_expand_512to4096", 512, h / 8, w / 8, 4096, 1},
+                        {"conv1x1_stage3_point_2048to512", 2048, h / 8, w / 8, 512, 1},
+                        {"conv_depthwise3x3_stage3_4096", 4096, h / 8, w / 8, 4096, 3}};
   for (const Conv& c : convs) {
-    const Conv2dShape s{1, c.C, c.H, c.W, c.O, 3, 1};
-    Tensor<T, Cuda> x({1, c.H, c.W, c.C}), wt({c.O, 3, 3, c.C}), b({c.O}), y({1, c.H, c.W, c.O});
+    const bool depthwise = c.C == c.O && c.k == 3 && std::string(c.name).find("depthwise") != std::string::npos;
+    const std::int64_t groups = depthwise ? c.C : 1;
+    const Conv2dShape s{1, c.C, c.H, c.W, c.O, c.k, groups};
+    Tensor<T, Cuda> x({1, c.H, c.W, c.C}), wt({c.O, c.k, c.k, c.C / groups}), b({c.O}), y({1, c.H, c.W, c.O});
     const auto fill = [&](auto& t, std::uint32_t seed) {
       Tensor<T, Cpu> hst(t.shape());
       std::mt19937 gen(seed);
@@ -222,15 +247,56 @@ void bench_convs(cuda::Context& ctx, const Options& o, const char* dtype) {
       cuda::copy(ctx, t, hst);
     };
     fill(x, 1), fill(wt, 2), fill(b, 3);
-    const double gflop = 2.0 * 9 * double(c.C) * double(c.O) * double(c.H) * double(c.W) * 1e-9;
-    for (const auto engine : {cuda::ConvEngine::Auto, cuda::ConvEngine::Gemm}) {
+    const double gflop = 2.0 * double(c.k * c.k) * double(c.C / groups) * double(c.O) * double(c.H) * double(c.W) * 1e-9;
+    const double bytes = double(x.nbytes() + y.nbytes());
+    for (const auto engine : {cuda::ConvEngine::Cudnn, cuda::ConvEngine::Gemm}) {
+      if (engine == cuda::ConvEngine::Cudnn && !cuda::cudnn_unavailable(ctx).empty()) continue;
+      if (depthwise && engine == cuda::ConvEngine::Gemm) continue;  // one kernel either way
       cuda::set_conv_engine(engine);
-      if (engine == cuda::ConvEngine::Auto && !cuda::cudnn_unavailable(ctx).empty()) continue;
       const double ms = median_ms(ctx, 3, 20, [&] { cuda::conv2d(ctx, x.data(), wt.data(), b.data(), y.data(), s, ConvAct::Relu); });
-      line(c.name, dtype, engine == cuda::ConvEngine::Auto ? "cudnn" : "gemm", ms, gflop, 0, 20);
+      char extra[64];
+      std::snprintf(extra, sizeof extra, ", \"gb_per_s\": %.0f", bytes / (ms * 1e-3) * 1e-9);
+      line(c.name, dtype, depthwise ? "own" : engine_name(engine), ms, gflop, 0, 20, extra);
     }
   }
   cuda::set_conv_engine(cuda::ConvEngine::Auto);
+}
+
+// The memory-bound passes of the biggest maps: GB/s (bytes read + written).
+template <class T>
+void bench_elementwise(cuda::Context& ctx, const Options& o, const char* dtype) {
+  const std::int64_t H = o.height / 2, W = o.width / 2, C = 256, P = H * W;  // decoder stage 1
+  Tensor<T, Cuda> a({P, C}), b({P, C}), up({P / 4, 4 * C}), wide({P / 16, 4096});  // wide: stage 3's 8C map
+  Tensor<float, Cuda> wt({C}), bs({C}), mean({C}), var({C});
+  for (auto* t : {&a, &b}) cuda::fill_bytes(ctx, *t, 0x3c);
+  for (auto* t : {&wt, &bs, &mean, &var}) cuda::fill_bytes(ctx, *t, 0x3f);
+  cuda::fill_bytes(ctx, up, 0x3c);
+  cuda::fill_bytes(ctx, wide, 0x3c);
+  const double map = double(a.nbytes());
+  const auto report = [&](const char* name, double bytes, const std::function<void()>& f) {
+    const double ms = median_ms(ctx, 3, 20, f);
+    char extra[64];
+    std::snprintf(extra, sizeof extra, ", \"gb_per_s\": %.0f", bytes / (ms * 1e-3) * 1e-9);
+    line(name, dtype, "own", ms, 0, 0, 20, extra);
+  };
+  report("norm_2d_add_bn_stage1", 3 * map, [&] {
+    cuda::norm_2d_add(ctx, a.data(), b.data(), P, C, wt.data(), bs.data(), mean.data(), var.data(), 1e-5f);
+  });
+  report("rms_norm_2d_stage1", 2 * map, [&] { cuda::rms_norm_2d(ctx, a.data(), a.data(), 1, C, P, wt.data(), bs.data(), 1e-5f); });
+  report("apply_relu_stage1", 2 * map, [&] { cuda::apply_conv_act(ctx, a.data(), a.numel(), ConvAct::Relu); });
+  report("pixel_shuffle_into_stage1", 2 * map, [&] {
+    cuda::pixel_shuffle_duplicate(ctx, up.data(), b.data(), ShuffleShape{1, 4 * C, H / 2, W / 2, 2}, C, false);
+  });
+  report("duplicate_shortcut_add_stage1", 2.5 * map, [&] {
+    cuda::pixel_shuffle_duplicate(ctx, up.data(), b.data(), ShuffleShape{1, 2 * C, H / 2, W / 2, 2}, C, true);
+  });
+  report("gated_silu_stage3_4096to2048", 1.5 * double(wide.nbytes()), [&] {
+    cuda::gated_act(ctx, wide.data(), wide.data() + 2048, a.data(), P / 16, 2048, 4096, 2048, ConvAct::Silu);
+  });
+  // stage 3's qkv (8192 pixels x 1536, read once) -> 8192 x 512
+  report("lite_mla_stage3_16heads", double(P / 16) * (1536 + 512) * sizeof(T), [&] {
+    cuda::relu_linear_attention(ctx, wide.data(), a.data(), 1, 16, 32, P / 16, 1e-15f);
+  });
 }
 
 }  // namespace
@@ -253,6 +319,7 @@ int main(int argc, char** argv) {
       bench_convs<bf16>(ctx, o, "bf16");
     }
     bench_model<float>(ctx, o, "f32");
+    if (!o.quick) bench_elementwise<bf16>(ctx, o, "bf16");
     return 0;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "bench_gpu_dcae: %s\n", e.what());

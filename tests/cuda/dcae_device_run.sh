@@ -37,7 +37,19 @@ fi
 
 if [ "$WHAT" != bench ]; then
   for t in dcae_ops dcae_layers dcae_model; do
-    timeout 100 "$SAN" --tool memcheck --leak-check full "$BIN/test_cuda_$t" >"$OUT/memcheck_$t.log" 2>&1
-    summary "memcheck test_cuda_$t rc=$? $(grep -E 'ERROR SUMMARY' "$OUT/memcheck_$t.log" | tail -1)"
+    echo "=== memcheck test_cuda_$t" >>"$OUT/memcheck.log"
+    timeout 100 "$SAN" --tool memcheck --leak-check full "$BIN/test_cuda_$t" >"$OUT/mc.tmp" 2>&1
+    rc=$?
+    cat "$OUT/mc.tmp" >>"$OUT/memcheck.log"
+    summary "memcheck test_cuda_$t rc=$rc $(grep -E 'ERROR SUMMARY' "$OUT/mc.tmp" | tail -1) $(grep -E 'LEAK SUMMARY' "$OUT/mc.tmp" | tail -1)"
   done
+  # the same with cuDNN off the library path (GEMM engine): the sanitizer on our own code alone
+  echo "=== memcheck test_cuda_dcae_model without cuDNN" >>"$OUT/memcheck.log"
+  LD_LIBRARY_PATH=$(echo "$LD_LIBRARY_PATH" | sed "s|$(dirname "${dnn:-/none/x}"):||") \
+    timeout 100 "$SAN" --tool memcheck --leak-check full "$BIN/test_cuda_dcae_model" >"$OUT/mc.tmp" 2>&1
+  rc=$?
+  cat "$OUT/mc.tmp" >>"$OUT/memcheck.log"
+  summary "memcheck test_cuda_dcae_model (no cuDNN) rc=$rc $(grep -E 'ERROR SUMMARY' "$OUT/mc.tmp" | tail -1) $(grep -m1 -o 'cuDNN engine: .*' "$OUT/mc.tmp")"
+  rm -f "$OUT/mc.tmp"
+  grep -B2 -A8 "Invalid\|Leaked" "$OUT/memcheck.log" | grep -E "Invalid|Leaked|Host Frame" | head -24
 fi

@@ -149,7 +149,10 @@ void transformer_blocks() {
 
 TEST_CASE("DC-AE layers and blocks: GPU (channels-last) vs CPU, float32") {
   EPONA_REQUIRE_GPU();
-  for (const auto engine : {cuda::ConvEngine::Auto, cuda::ConvEngine::Gemm}) {
+  // float32: Auto is cuBLASLt throughout; cuDNN's FMA path is checked too where it loads.
+  std::vector<cuda::ConvEngine> engines{cuda::ConvEngine::Auto};
+  if (cuda::cudnn_unavailable(gpu()).empty()) engines.push_back(cuda::ConvEngine::Cudnn);
+  for (const auto engine : engines) {
     UseEngine use(engine);
     std::printf("engine %s\n", engine_name(engine));
     all_layers<float>();
@@ -158,7 +161,11 @@ TEST_CASE("DC-AE layers and blocks: GPU (channels-last) vs CPU, float32") {
 
 TEST_CASE("DC-AE layers and blocks: GPU (channels-last) vs CPU, bf16") {
   EPONA_REQUIRE_GPU();
-  all_layers<bf16>();
+  for (const auto engine : {cuda::ConvEngine::Auto, cuda::ConvEngine::Gemm}) {
+    UseEngine use(engine);
+    std::printf("engine %s\n", engine_name(engine));
+    all_layers<bf16>();
+  }
 }
 
 TEST_CASE("DC-AE temporal TransformerBlock: GPU vs CPU, both layouts, float32 and bf16") {
@@ -179,4 +186,11 @@ TEST_CASE("DC-AE layers name the channels-last layout in their input errors") {
   CHECK_THROWS_WITH_AS(norm.forward_inplace(gpu(), x), doctest::Contains("RMSNorm2d(3): input must be (N, H, W, 3)"),
                        Error);
   CHECK(conv.weight.shape() == Shape{4, 3, 3, 3});  // [out, k, k, in] on the GPU
+}
+
+TEST_CASE("cuDNN state released before exit (and made again on demand)") {
+  EPONA_REQUIRE_GPU();
+  cuda::release_cudnn();
+  CHECK(cuda::cudnn_unavailable(gpu()) == cuda::cudnn_unavailable(gpu()));
+  cuda::release_cudnn();
 }

@@ -13,6 +13,7 @@
 #include <map>
 #include <set>
 #include <string>
+#include <vector>
 
 #include "dcae_testing.cuh"
 #include "epona/cuda/backend.cuh"
@@ -116,7 +117,9 @@ void run_golden(Check check) {
 
 TEST_CASE("DC-AE on the GPU, float32: every dcae.* golden case within 1e-4, with each conv engine") {
   EPONA_REQUIRE_GPU();
-  for (const auto engine : {cuda::ConvEngine::Auto, cuda::ConvEngine::Gemm}) {
+  std::vector<cuda::ConvEngine> engines{cuda::ConvEngine::Auto};  // float32 Auto: cuBLASLt
+  if (cuda::cudnn_unavailable(gpu()).empty()) engines.push_back(cuda::ConvEngine::Cudnn);
+  for (const auto engine : engines) {
     UseEngine use(engine);
     std::printf("DC-AE golden set %s, float32 on the GPU, conv engine %s\n", golden_dir().c_str(), engine_name(engine));
     std::set<std::string> checked;
@@ -168,12 +171,47 @@ TEST_CASE("DC-AE on the GPU vs the CPU, random weights, 64x96 (quadratic LiteMLA
   const auto compare = [](const char* what, const HostF& out, const HostF& ref) {
     check_error(measure(out, ref), {kF32Tol, 1e-4 * max_abs(ref)}, what);
   };
-  compare("encode 2 images", download(ctx, gpu_model.encode(ctx, upload<float>(ctx, images))),
-          cpu_model.encode(host(), images));
-  compare("decode 2 single frames", download(ctx, gpu_model.decode(ctx, upload<float>(ctx, latents), false)),
+  // Three calls of each with new inputs: the first runs eagerly, the second records the pass as
+  // a CUDA graph, the third replays it (inputs staged into the buffer the graph reads).
+  for (int call = 0; call < 3; ++call) {
+    const std::string n = " (call " + std::to_string(call + 1) + ")";
+    const HostF images = random_tensor({2, 3, 64, 96}, 11 + call);
+    const HostF latents = random_tensor({2, 32, 2, 3}, 21 + call, -2.f, 2.f);
+    compare(("encode 2 images" + n).c_str(), download(ctx, gpu_model.encode(ctx, upload<float>(ctx, images))),
+            cpu_model.encode(host(), images));
+    compare(("decode 2 single frames" + n).c_str(),
+            download(ctx, gpu_model.decode(ctx, upload<float>(ctx, latents), false)),
+            cpu_model.decode(host(), latents, false));
+    compare(("decode a clip of 2" + n).c_str(), download(ctx, gpu_model.decode(ctx, upload<float>(ctx, latents), true)),
+            cpu_model.decode(host(), latents, true));
+  }
+  gpu_model.use_graphs = false;
+  compare("decode 2 single frames, graphs off", download(ctx, gpu_model.decode(ctx, upload<float>(ctx, latents), false)),
           cpu_model.decode(host(), latents, false));
-  compare("decode a clip of 2", download(ctx, gpu_model.decode(ctx, upload<float>(ctx, latents), true)),
-          cpu_model.decode(host(), latents, true));
   CHECK_THROWS_WITH_AS(gpu_model.decode(ctx, upload<float>(ctx, images), false),
                        doctest::Contains("latents must be (N, 32, h, w)"), Error);
+}
+
+TEST_CASE("DC-AE on the GPU, bf16, replayed graph: equal to the eager pass bit for bit") {
+  EPONA_REQUIRE_GPU();
+  DcaeConfig c = golden().config;
+  Dcae<Cuda, bf16> model(c);
+  model.randomize(3);
+  cuda::Context& ctx = gpu();
+  const Dev<float> latents = upload<float>(ctx, random_tensor({1, 32, 4, 9}, 31, -2.f, 2.f));
+  model.use_graphs = false;
+  const HostF eager = download(ctx, model.decode(ctx, latents, false));
+  model.use_graphs = true;
+  HostF replayed;
+  for (int call = 0; call < 3; ++call) replayed = download(ctx, model.decode(ctx, latents, false));
+  const Diff e = measure(replayed, eager);
+  CHECK(e.nans == 0);
+  CHECK(e.max_abs == 0);
+}
+
+TEST_CASE("cuDNN state released before exit (and made again on demand)") {
+  EPONA_REQUIRE_GPU();
+  cuda::release_cudnn();
+  CHECK(cuda::cudnn_unavailable(gpu()) == cuda::cudnn_unavailable(gpu()));  // a handle is made again, same verdict
+  cuda::release_cudnn();
 }

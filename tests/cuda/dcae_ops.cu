@@ -370,3 +370,10 @@ TEST_CASE("cuda transpose_last2 with type conversion is exact (up to bf16 roundi
     CHECK(eh.max_abs == 0);
   }
 }
+
+TEST_CASE("cuDNN state released before exit (and made again on demand)") {
+  EPONA_REQUIRE_GPU();
+  cuda::release_cudnn();
+  CHECK(cuda::cudnn_unavailable(gpu()) == cuda::cudnn_unavailable(gpu()));
+  cuda::release_cudnn();
+}

@@ -10,6 +10,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <string>
+#include <type_traits>
 
 #include "epona/cpu/conv.hpp"
 #include "epona/cuda/activation.cuh"
@@ -20,8 +21,12 @@
 
 namespace epona::cuda {
 
-// Which implementation runs the dense (non-depthwise) convolutions. Auto: cuDNN where it is
-// loadable and has an exact algorithm for the geometry, the GEMM engine otherwise.
+// Which implementation runs the dense (non-depthwise) convolutions. Auto: bf16 k x k
+// convolutions through cuDNN where it is loadable and has an exact algorithm for the geometry
+// (implicit GEMM on tensor cores, no im2col traffic); 1x1 ones (plain GEMMs over pixels) and
+// every float32 one through cuBLASLt (float32: cuDNN's FMA-only kernels measured 1.4x slower
+// than an im2col panel + cuBLASLt's float32 GEMM on an H200). Cudnn: every dense conv through
+// cuDNN (an error where it cannot); Gemm: never cuDNN (im2col panel + cuBLASLt for k > 1).
 enum class ConvEngine { Auto, Cudnn, Gemm };
 
 namespace conv_detail {
@@ -69,27 +74,41 @@ void bias_act(Context& ctx, T* y, std::int64_t pixels, std::int64_t channels, co
   with_act(act, [&](auto op) { detail::bias_activation(ctx, y, channels, pixels, channels, bias, op); });
 }
 
-// ---- depthwise: one thread per (pixel, channel pack), taps summed in (ky, kx) order from the bias
-template <class T, class Op, int kVec>
+// ---- depthwise: one thread per (channel pack, run of kRun pixels along a row); the pack's
+// k·k weights stay in registers across the run. Taps are summed in (ky, kx) order from the bias.
+constexpr int kRun = 8;
+constexpr int kMaxTaps = 9;  // 3x3 kernels (kSmall) keep their weights in registers; others read them per tap
+
+template <class T, class Op, int kVec, bool kSmall>
 __global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ w, const T* __restrict__ bias,
                                  T* __restrict__ y, std::int64_t images, int H, int W, int C, int k, bool act, Op op) {
-  const int packs = C / kVec, pad = k / 2;
-  const std::int64_t total = images * H * W * packs;
+  const int packs = C / kVec, pad = k / 2, runs = (W + kRun - 1) / kRun, taps = k * k;
+  const std::int64_t total = images * H * runs * packs;
   for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
        i += std::int64_t{gridDim.x} * blockDim.x) {
     const int c0 = static_cast<int>(i % packs) * kVec;
-    const std::int64_t pixel = i / packs;
-    const int xo = static_cast<int>(pixel % W), yo = static_cast<int>((pixel / W) % H);
-    const std::int64_t n = pixel / (std::int64_t{H} * W);
-    float acc[kVec];
+    const std::int64_t row_run = i / packs;
+    const int x0 = static_cast<int>(row_run % runs) * kRun;
+    const std::int64_t image_row = row_run / runs;  // n·H + y
+    const int yo = static_cast<int>(image_row % H);
+    const std::int64_t n = image_row / H;
+    float wr[kSmall ? kMaxTaps : 1][kVec];
+    if constexpr (kSmall) {
 #pragma unroll
-    for (int j = 0; j < kVec; ++j) acc[j] = bias ? detail::to_f32(bias[c0 + j]) : 0.f;
-    for (int ky = 0; ky < k; ++ky) {
-      const int ys = yo + ky - pad;
-      if (ys < 0 || ys >= H) continue;
-      for (int kx = 0; kx < k; ++kx) {
-        const int xs = xo + kx - pad;
-        if (xs < 0 || xs >= W) continue;
+      for (int t = 0; t < kMaxTaps; ++t)
+#pragma unroll
+        for (int j = 0; j < kVec; ++j) wr[t][j] = detail::to_f32(w[(c0 + j) * taps + t]);
+    }
+    float b[kVec];
+#pragma unroll
+    for (int j = 0; j < kVec; ++j) b[j] = bias ? detail::to_f32(bias[c0 + j]) : 0.f;
+    const int x_end = min(W, x0 + kRun);
+    for (int xo = x0; xo < x_end; ++xo) {
+      float acc[kVec];
+#pragma unroll
+      for (int j = 0; j < kVec; ++j) acc[j] = b[j];
+      // acc += w(tap) · x(ys, xs) for one in-image tap
+      const auto add_tap = [&](int ys, int xs, int tap) {
         const T* src = x + ((n * H + ys) * W + xs) * C + c0;
         float v[kVec];
         if constexpr (kVec == detail::kPack) {
@@ -97,18 +116,43 @@ __global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ 
         } else {
           v[0] = detail::to_f32(src[0]);
         }
-        const int tap = ky * k + kx;
 #pragma unroll
-        for (int j = 0; j < kVec; ++j) acc[j] += detail::to_f32(w[(c0 + j) * k * k + tap]) * v[j];
+        for (int j = 0; j < kVec; ++j) {
+          if constexpr (kSmall)
+            acc[j] += wr[tap][j] * v[j];
+          else
+            acc[j] += detail::to_f32(w[(c0 + j) * taps + tap]) * v[j];
+        }
+      };
+      if constexpr (kSmall) {  // 3x3: taps unrolled, weights indexed by constants
+#pragma unroll
+        for (int ky = 0; ky < 3; ++ky) {
+          const int ys = yo + ky - 1;
+          if (ys < 0 || ys >= H) continue;
+#pragma unroll
+          for (int kx = 0; kx < 3; ++kx) {
+            const int xs = xo + kx - 1;
+            if (xs >= 0 && xs < W) add_tap(ys, xs, ky * 3 + kx);
+          }
+        }
+      } else {
+        for (int ky = 0; ky < k; ++ky) {
+          const int ys = yo + ky - pad;
+          if (ys < 0 || ys >= H) continue;
+          for (int kx = 0; kx < k; ++kx) {
+            const int xs = xo + kx - pad;
+            if (xs >= 0 && xs < W) add_tap(ys, xs, ky * k + kx);
+          }
+        }
       }
-    }
 #pragma unroll
-    for (int j = 0; j < kVec; ++j) acc[j] = act ? op(detail::round_to<T>(acc[j])) : acc[j];
-    T* dst = y + pixel * C + c0;
-    if constexpr (kVec == detail::kPack) {
-      detail::store8(dst, acc);
-    } else {
-      dst[0] = detail::from_f32<T>(acc[0]);
+      for (int j = 0; j < kVec; ++j) acc[j] = act ? op(detail::round_to<T>(acc[j])) : acc[j];
+      T* dst = y + ((n * H + yo) * W + xo) * C + c0;
+      if constexpr (kVec == detail::kPack) {
+        detail::store8(dst, acc);
+      } else {
+        dst[0] = detail::from_f32<T>(acc[0]);
+      }
     }
   }
 }
@@ -119,19 +163,24 @@ void depthwise(Context& ctx, const T* x, const T* w, const T* bias, T* y, const 
   EPONA_CHECK(s.height <= 0x7fffffff && s.width <= 0x7fffffff && C <= 0x7fffffff && s.kernel <= 0x7fffffff,
               "depthwise conv2d: extents exceed int range");
   const bool packed = C % detail::kPack == 0 && detail::aligned16(x) && detail::aligned16(y);
-  const std::int64_t items = s.batch * s.height * s.width * (packed ? C / detail::kPack : C);
+  const std::int64_t runs = (s.width + kRun - 1) / kRun;
+  const std::int64_t items = s.batch * s.height * runs * (packed ? C / detail::kPack : C);
   if (items == 0) return;
-  constexpr int threads = 256;
+  constexpr int threads = 128;
   const unsigned blocks = detail::grid_for(items, threads);
   const int H = static_cast<int>(s.height), W = static_cast<int>(s.width), k = static_cast<int>(s.kernel);
-  const bool activate = act != ConvAct::None;
+  const bool activate = act != ConvAct::None, small = k == 3;
+  const auto launch = [&](auto op, auto vec, auto small_taps) {
+    depthwise_kernel<T, decltype(op), decltype(vec)::value, decltype(small_taps)::value>
+        <<<blocks, threads, 0, ctx.stream()>>>(x, w, bias, y, s.batch, H, W, static_cast<int>(C), k, activate, op);
+  };
+  using Pack = std::integral_constant<int, detail::kPack>;
+  using One = std::integral_constant<int, 1>;
   conv_detail::with_act(act, [&](auto op) {
-    if (packed)
-      depthwise_kernel<T, decltype(op), detail::kPack><<<blocks, threads, 0, ctx.stream()>>>(
-          x, w, bias, y, s.batch, H, W, static_cast<int>(C), k, activate, op);
-    else
-      depthwise_kernel<T, decltype(op), 1><<<blocks, threads, 0, ctx.stream()>>>(x, w, bias, y, s.batch, H, W,
-                                                                                 static_cast<int>(C), k, activate, op);
+    if (packed && small) launch(op, Pack{}, std::true_type{});
+    else if (packed) launch(op, Pack{}, std::false_type{});
+    else if (small) launch(op, One{}, std::true_type{});
+    else launch(op, One{}, std::false_type{});
     EPONA_CUDA_CHECK_LAUNCH();
   });
 }
@@ -237,6 +286,15 @@ inline void set_conv_panel_bytes(std::int64_t bytes) {
 }
 // Why cuDNN does not run on ctx's device ("" when it does).
 inline std::string cudnn_unavailable(Context& ctx) { return cudnn::Engine::get().unavailable(ctx); }
+// What a recorded graph of convolutions depends on beyond its buffers and sizes: the engine
+// setting and the GEMM engine's panel budget (model code keys its graphs with it).
+inline std::uint64_t graph_variant(const Context&) {
+  return static_cast<std::uint64_t>(conv_engine()) |
+         (static_cast<std::uint64_t>(conv_detail::panel_bytes_setting().load()) << 8);
+}
+// Destroys the cuDNN handles and plans (they are made again on the next convolution): frees
+// cuDNN's memory before a program's CUDA teardown.
+inline void release_cudnn() { cudnn::Engine::get().release(); }
 
 struct ConvCounts {
   std::int64_t cudnn = 0, gemm = 0, depthwise = 0;
@@ -276,7 +334,8 @@ void conv2d(Context& ctx, const T* x, const T* weight, const T* bias, T* y, cons
     return;
   }
   const ConvEngine engine = conv_engine();
-  if (engine != ConvEngine::Gemm) {
+  const bool auto_cudnn = engine == ConvEngine::Auto && s.kernel > 1 && !std::is_same_v<T, float>;
+  if (engine == ConvEngine::Cudnn || auto_cudnn) {
     if (cudnn::Engine::get().forward(ctx, x, weight, y, s)) {
       conv_detail::bias_act(ctx, y, s.batch * s.height * s.width, s.out_channels, bias, act);
       ++counts.cudnn;

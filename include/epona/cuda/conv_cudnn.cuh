@@ -134,10 +134,16 @@ class Engine {
   }
   Engine(const Engine&) = delete;
   Engine& operator=(const Engine&) = delete;
-  ~Engine() {
+  ~Engine() { release(); }
+
+  // Destroys every plan and handle (made again on demand).
+  void release() {
+    std::lock_guard<std::mutex> lock(mutex_);
     plans_.clear();
     for (auto& [device, h] : handles_)
       if (h) Api::get().cudnnDestroy(h);
+    handles_.clear();
+    reasons_.clear();
   }
 
   // Why cuDNN cannot run on ctx's device (empty when it can).
@@ -268,6 +274,7 @@ class Engine {
     return e;
   }
   std::string unavailable(Context&) { return "built without cuDNN headers"; }
+  void release() {}
   template <class T>
   bool forward(Context&, const T*, const T*, T*, const Conv2dShape&) {
     return false;

@@ -113,6 +113,14 @@ inline void reset_scratch_peak(const Context& ctx) {
     std::uint64_t zero = 0;
     EPONA_CUDA_CHECK(cudaMemPoolSetAttribute(pool, cudaMemPoolAttrUsedMemHigh, &zero));
   }
+  std::uint64_t zero = 0;
+  EPONA_CUDA_CHECK(cudaDeviceSetGraphMemAttribute(ctx.info().device, cudaGraphMemAttrUsedMemHigh, &zero));
+}
+// Bytes of graph-owned memory (scratch allocated inside recorded graphs) at most since the last reset.
+inline std::uint64_t graph_memory_peak(const Context& ctx) {
+  std::uint64_t v = 0;
+  EPONA_CUDA_CHECK(cudaDeviceGetGraphMemAttribute(ctx.info().device, cudaGraphMemAttrUsedMemHigh, &v));
+  return v;
 }
 
 }  // namespace epona::cuda

@@ -7,7 +7,11 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <array>
 #include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
 #include <utility>
 #include <string>
 #include <variant>
@@ -81,6 +85,17 @@ struct StageBlocks {
   void forward_inplace(Ctx& ctx, Tensor<activation_t<B, T>, B>& x) const {
     for (const auto& block : blocks) std::visit([&](const auto& b) { b.forward_inplace(ctx, x); }, block);
   }
+};
+
+// A pass (encode or decode) recorded as a graph: the staged input/output buffers it reads and
+// writes, the key of the sizes last seen, and whether recording failed.
+template <class B>
+struct PassGraph {
+  std::mutex mutex;
+  typename BackendTraits<B>::GraphCache graph;
+  Tensor<float, B> input, output;
+  GraphKey seen;
+  bool failed = false;
 };
 
 // Shows a map to the observer as public NCHW float32 (converted only where the backend's maps differ).
@@ -252,8 +267,8 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
     Map x = to_tokens(ctx, latent).reshape({N * L, C});  // rows (clip, f, l)
     const nn::TokenSequences time{clips, L, frames, 1, L, true}, space{clips, frames, L, L, 1, false};
     if (!time_blocks.empty()) {
-      const auto& b = time_blocks.front();
-      const auto time_rope = rope_tables(ctx, time, b), space_rope = rope_tables(ctx, space, b);
+      const auto& time_rope = rope_tables(time);
+      const auto& space_rope = rope_tables(space);
       for (std::size_t i = 0; i < time_blocks.size(); ++i) {
         time_blocks[i].forward_inplace(ctx, x, time, time_rope.first.data(), time_rope.second.data());
         space_blocks[i].forward_inplace(ctx, x, space, space_rope.first.data(), space_rope.second.data());
@@ -262,21 +277,41 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
     return from_tokens(ctx, x.reshape({N, L, C}), d);
   }
 
- private:
-  // (cos, sin) of rope_table_1d in B's memory (intermediate tensors of ctx).
-  template <class Ctx>
-  static std::pair<Tensor<float, B>, Tensor<float, B>> rope_tables(Ctx& ctx, const nn::TokenSequences& seq,
-                                                                   const nn::TransformerBlock<B, T>& b) {
-    std::vector<float> c, s;
-    nn::rope_table_1d(seq, b.head_dim(), b.rope_theta, c, s);
-    const Shape shape{seq.rows(), b.head_dim() / 2};
-    const auto place = [&](std::vector<float>& v) {
-      Tensor<float, B> t = nn::new_tensor<float, B>(ctx, shape);
-      BackendTraits<B>::upload_into(ctx, Tensor<float, Cpu>::view(v.data(), shape), t);
-      return t;
-    };
-    return {place(c), place(s)};
+  // Makes the RoPE tables a forward over N latents of h x w in clips of `frames` will use, so that
+  // the forward itself only launches work (it may then be recorded as a CUDA graph).
+  void prepare(std::int64_t N, std::int64_t h, std::int64_t w, std::int64_t frames) const {
+    if (time_blocks.empty() || frames <= 0 || N % frames != 0) return;
+    const std::int64_t L = h * w, clips = N / frames;
+    rope_tables({clips, L, frames, 1, L, true});
+    rope_tables({clips, frames, L, L, 1, false});
   }
+
+ private:
+  using Tables = std::pair<Tensor<float, B>, Tensor<float, B>>;
+  struct RopeCache {
+    std::mutex mutex;
+    std::map<std::array<std::int64_t, 6>, Tables> tables;
+  };
+
+  // (cos, sin) of rope_table_1d in B's memory, made once per sequence layout and kept.
+  const Tables& rope_tables(const nn::TokenSequences& seq) const {
+    const auto& b = time_blocks.front();
+    const std::array<std::int64_t, 6> key{seq.groups, seq.seqs, seq.length, seq.seq_step, seq.pos_step, b.head_dim()};
+    std::lock_guard<std::mutex> lock(rope_cache_->mutex);
+    auto it = rope_cache_->tables.find(key);
+    if (it == rope_cache_->tables.end()) {
+      std::vector<float> c, s;
+      nn::rope_table_1d(seq, b.head_dim(), b.rope_theta, c, s);
+      const Shape shape{seq.rows(), b.head_dim() / 2};
+      const auto place = [&](std::vector<float>& v) {
+        return BackendTraits<B>::upload(Tensor<float, Cpu>::view(v.data(), shape).clone());
+      };
+      it = rope_cache_->tables.emplace(key, Tables{place(c), place(s)}).first;
+    }
+    return it->second;
+  }
+  std::shared_ptr<RopeCache> rope_cache_ = std::make_shared<RopeCache>();
+
   // A latent map as (N, L, C) tokens (a new tensor) and back: a copy channels-last, a transpose in NCHW.
   template <class Ctx>
   static Map to_tokens(Ctx& ctx, const Map& latent) {
@@ -383,14 +418,10 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
     EPONA_CHECK(images.dim() == 4 && images.size(1) == config_.in_channels, "Dcae::encode: images must be (N, ",
                 config_.in_channels, ", H, W), got ", shape_str(images.shape()));
     check_multiple(images.size(2), images.size(3), "Dcae::encode: image");
-    const std::int64_t N = images.size(0), f = constants::dcae_downsample;
-    Tensor<float, B> latents = nn::new_result<float, B>(ctx, {N, config_.latent_channels, images.size(2) / f, images.size(3) / f});
-    for (std::int64_t n = 0; n < N; ++n) {
-      const Map image = nn::map_from_nchw<Act>(ctx, images.slice(n, n + 1));
-      Tensor<float, B> out = latents.slice(n, n + 1);
-      nn::map_to_nchw(ctx, encoder.forward(ctx, image, n, obs), out);
-    }
-    return latents;
+    const std::int64_t f = constants::dcae_downsample;
+    const Shape out{images.size(0), config_.latent_channels, images.size(2) / f, images.size(3) / f};
+    const auto work = [&](const Tensor<float, B>& in, Tensor<float, B>& latents) { encode_into(ctx, in, latents, obs); };
+    return run_pass(ctx, *encode_graph_, images, out, 0, !obs, work);
   }
 
   // latents (N, latent, h, w) float32 NCHW -> images (N, in, 32h, 32w) float32 NCHW (not clamped).
@@ -403,19 +434,18 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
     const std::int64_t frames = is_video ? config_.condition_frames : 1;
     EPONA_CHECK(N % frames == 0, "Dcae::decode(is_video): ", N, " latents are not whole clips of condition_frames = ",
                 frames);
-    Map z = nn::map_from_nchw<Act>(ctx, latents);
-    if (config_.add_decoder_temporal) {
-      z = temporal.forward(ctx, z, frames);
-      for (std::int64_t n = 0; n < N; ++n)
-        dcae_detail::notify(ctx, obs, DcaePoint::DecoderTemporal, 0, n, z.slice(n, n + 1));
-    }
-    Tensor<float, B> images = nn::new_result<float, B>(ctx, {N, config_.in_channels, latents.size(2) * f, latents.size(3) * f});
-    for (std::int64_t n = 0; n < N; ++n) {
-      Tensor<float, B> out = images.slice(n, n + 1);
-      nn::map_to_nchw(ctx, decoder.forward(ctx, z.slice(n, n + 1), n, obs), out);
-    }
-    return images;
+    if (config_.add_decoder_temporal) temporal.prepare(N, latents.size(2), latents.size(3), frames);
+    const Shape out{N, config_.in_channels, latents.size(2) * f, latents.size(3) * f};
+    const auto work = [&](const Tensor<float, B>& in, Tensor<float, B>& images) {
+      decode_into(ctx, in, frames, images, obs);
+    };
+    return run_pass(ctx, *decode_graph_, latents, out, static_cast<std::uint64_t>(frames), !obs, work);
   }
+
+  // Backends with graphs (CUDA): from the second call with the same sizes on, encode/decode
+  // without an observer replay the pass recorded as one CUDA graph (the inputs are copied into
+  // a buffer the graph reads; results are copied out of the one it writes). Off: always eager.
+  bool use_graphs = true;
 
   DcaeEncoder<B, T> encoder;
   DcaeDecoder<B, T> decoder;
@@ -426,6 +456,71 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
     const std::int64_t f = constants::dcae_downsample;
     EPONA_CHECK(h > 0 && w > 0 && h % f == 0 && w % f == 0, what, " size ", h, "x", w, " is not a multiple of ", f);
   }
+
+  template <class Ctx>
+  void encode_into(Ctx& ctx, const Tensor<float, B>& images, Tensor<float, B>& latents, const DcaeObserver<B>& obs) const {
+    for (std::int64_t n = 0; n < images.size(0); ++n) {
+      const Map image = nn::map_from_nchw<Act>(ctx, images.slice(n, n + 1));
+      Tensor<float, B> out = latents.slice(n, n + 1);
+      nn::map_to_nchw(ctx, encoder.forward(ctx, image, n, obs), out);
+    }
+  }
+
+  template <class Ctx>
+  void decode_into(Ctx& ctx, const Tensor<float, B>& latents, std::int64_t frames, Tensor<float, B>& images,
+                   const DcaeObserver<B>& obs) const {
+    Map z = nn::map_from_nchw<Act>(ctx, latents);
+    if (config_.add_decoder_temporal) {
+      z = temporal.forward(ctx, z, frames);
+      for (std::int64_t n = 0; n < z.size(0); ++n)
+        dcae_detail::notify(ctx, obs, DcaePoint::DecoderTemporal, 0, n, z.slice(n, n + 1));
+    }
+    for (std::int64_t n = 0; n < latents.size(0); ++n) {
+      Tensor<float, B> out = images.slice(n, n + 1);
+      nn::map_to_nchw(ctx, decoder.forward(ctx, z.slice(n, n + 1), n, obs), out);
+    }
+  }
+
+  // One pass into a new result of `out_shape`: eager, or (graph-capable backends, `replayable`)
+  // through the staged buffers and the recorded graph of `g`. The first call with given sizes
+  // runs eagerly (it makes cuDNN/cuBLASLt plans and tables outside any recording); the next
+  // records; later ones replay. A pass that cannot be recorded stays eager from then on.
+  template <class Ctx, class Work>
+  Tensor<float, B> run_pass(Ctx& ctx, dcae_detail::PassGraph<B>& g, const Tensor<float, B>& in, const Shape& out_shape,
+                            std::uint64_t variant, bool replayable, const Work& work) const {
+    Tensor<float, B> result = nn::new_result<float, B>(ctx, out_shape);
+    if constexpr (!is_host_backend<B>) {
+      if (replayable && use_graphs) {
+        std::lock_guard<std::mutex> lock(g.mutex);
+        if (!g.failed) {
+          if (g.input.shape() != in.shape()) g.input = Tensor<float, B>(in.shape());
+          if (g.output.shape() != out_shape) g.output = Tensor<float, B>(out_shape);
+          copy(ctx, g.input, in);
+          GraphKey key{reinterpret_cast<std::uint64_t>(g.input.data()), reinterpret_cast<std::uint64_t>(g.output.data()),
+                       variant, graph_variant(ctx)};
+          for (const auto d : in.shape()) key.push_back(static_cast<std::uint64_t>(d));
+          if (key != g.seen) {
+            work(g.input, g.output);  // eager first run with these sizes
+            g.seen = key;
+          } else {
+            try {
+              g.graph.run(ctx, key, [&] { work(g.input, g.output); });
+            } catch (const Error&) {
+              g.failed = true;  // not recordable here: run eagerly from now on
+              work(g.input, g.output);
+            }
+          }
+          copy(ctx, result, g.output);
+          return result;
+        }
+      }
+    }
+    work(in, result);
+    return result;
+  }
+
+  std::shared_ptr<dcae_detail::PassGraph<B>> encode_graph_ = std::make_shared<dcae_detail::PassGraph<B>>();
+  std::shared_ptr<dcae_detail::PassGraph<B>> decode_graph_ = std::make_shared<dcae_detail::PassGraph<B>>();
   DcaeConfig config_;
 };
 
