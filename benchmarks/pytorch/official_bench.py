@@ -60,6 +60,8 @@ def load_official(path, device):
     from models.modules.tokenizer import poses_to_indices, yaws_to_indices  # noqa: E402
     if device == "cpu":
         patch_triton_rmsnorm()
+        import models.modules.sampling as sampling  # prepare_ids defaults to device="cuda"
+        sampling.prepare_ids.__defaults__ = ("cpu",)
     return types.SimpleNamespace(TrainTransformersDiT=TrainTransformersDiT, dcae=dcae_module,
                                  get_schedule=get_schedule, prepare_ids=prepare_ids,
                                  poses_to_indices=poses_to_indices, yaws_to_indices=yaws_to_indices)
