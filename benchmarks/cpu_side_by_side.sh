@@ -10,8 +10,9 @@
 #   (benchmarks/build_cpu_portable.sh); the v4 build is used when the CPU has AVX-512 F/BW/DQ/VL.
 #   Default: build-perf/portable.
 # --tests: a folder with portable test programs (test_cpu_gemm_*) to run on this CPU first.
-# Extras (unless --no-extras): the other AVX-512 tile (EPONA_CPU_TILE) on gemm2048 + MST, and
-#   bf16 weights widened to float32 (EPONA_CPU_ISA=avx512) on MST + VisDiT: what the kernel
+# Extras (unless --no-extras): the other AVX-512 tile (EPONA_CPU_TILE) on gemm2048 + MST,
+#   bf16 weights widened to float32 (EPONA_CPU_ISA=avx512) on MST + VisDiT, and, where the CPU
+#   has AMX, the opt-in AMX kernels (EPONA_CPU_ISA=amx) on the bf16 calls: what the kernel
 #   choices are worth on this CPU.
 # The PyTorch run hides the GPUs (CUDA_VISIBLE_DEVICES=) so that nothing of it can run there.
 # Raw JSON lines and the table are kept in --out (default: out/cpu_side_by_side).
@@ -113,6 +114,11 @@ for t in "${thread_list[@]}"; do
     if grep -q '"avx512_bf16": true' "$out/epona_$t.jsonl"; then
       EPONA_CPU_ISA=avx512 "$bench_bin" --threads "$t" --repeats "$repeats" --warmup "$warmup" --weights bf16 \
         --calls mst,vis_eval | grep -v '"machine"' | sed 's/"name": "/"name": "widened:/' >> "$out/epona_extra_$t.jsonl" || true
+    fi
+    if grep -q '"amx_bf16": true' "$out/epona_$t.jsonl"; then  # the opt-in AMX kernels
+      EPONA_CPU_ISA=amx "$bench_bin" --threads "$t" --repeats "$repeats" --warmup "$warmup" --weights bf16 \
+        --calls mst,traj_eval,vis_eval 2>> "$out/epona_$t.log" | grep -v '"machine"' | sed 's/"name": "/"name": "amx:/' \
+        >> "$out/epona_extra_$t.jsonl" || log "AMX run failed at $t threads (see $out/epona_$t.log)"
     fi
   fi
 done

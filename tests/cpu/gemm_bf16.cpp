@@ -56,17 +56,19 @@ std::vector<float> run(cpu::Isa isa, const Case& c, const Data& d, int threads) 
 
 }  // namespace
 
-TEST_CASE("bf16 weights with AVX512-BF16 dot products: within the stated bound of float32") {
+TEST_CASE("bf16 weights with AVX512-BF16 dot products (and AMX where present): within the stated bound of float32") {
   if (!cpu::cpu_features().supports(cpu::Isa::Avx512Bf16)) {
     MESSAGE("this CPU has no AVX512-BF16: bf16 weights are widened to float32 (tested in gemm.cpp)");
     return;
   }
   const cpu::Isa f32_path = cpu::Isa::Avx512;  // the same weights widened: float32 arithmetic
+  for (cpu::Isa bf16_path : {cpu::Isa::Avx512Bf16, cpu::Isa::Amx})
   for (const Case& c : {Case{131, 1024, 1024}, Case{15, 512, 2048}, Case{300, 200, 4096}, Case{7, 33, 5},
                         Case{64, 64, 1}, Case{29, 100, 999}})
     for (int threads : {1, 3}) {
+      if (!cpu::cpu_features().supports(bf16_path)) continue;  // AMX: only where the CPU has it
       const Data d = make(c, static_cast<std::uint32_t>(c.K + c.N));
-      const auto got = run(cpu::Isa::Avx512Bf16, c, d, threads);
+      const auto got = run(bf16_path, c, d, threads);
       const auto f32 = run(f32_path, c, d, threads);
       const double eps = eps_bf16_path(c.K);
       int outside_emulation = 0, outside_bound = 0, outside_vs_f32 = 0;
@@ -94,6 +96,7 @@ TEST_CASE("bf16 weights with AVX512-BF16 dot products: within the stated bound o
             sq_norm += 1;
           }
         }
+      CAPTURE(cpu::isa_name(bf16_path));
       CAPTURE(c.M);
       CAPTURE(c.N);
       CAPTURE(c.K);

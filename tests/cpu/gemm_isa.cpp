@@ -24,7 +24,7 @@ using cpu::Isa;
 
 namespace {
 
-constexpr Isa kAllIsas[] = {Isa::Generic, Isa::Avx2, Isa::Avx512, Isa::Avx512Bf16};
+constexpr Isa kAllIsas[] = {Isa::Generic, Isa::Avx2, Isa::Avx512, Isa::Avx512Bf16, Isa::Amx};
 
 double gelu_tanh(double x) { return 0.5 * x * (1.0 + std::tanh(std::sqrt(2.0 / M_PI) * (x + 0.044715 * x * x * x))); }
 
@@ -59,7 +59,7 @@ void check_linear_matches_float64(double tol) {
 
 // bf16 weights on the dot-product path round the activations (gemm_bf16.cpp): here a bound
 // for K <= 520 from its ε_K, relative to the largest output (outputs are O(1)).
-double bf16_tolerance(Isa isa) { return isa == Isa::Avx512Bf16 ? 2e-2 : 1e-5; }
+double bf16_tolerance(Isa isa) { return isa == Isa::Avx512Bf16 || isa == Isa::Amx ? 2e-2 : 1e-5; }
 
 }  // namespace
 

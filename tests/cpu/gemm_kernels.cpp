@@ -1,5 +1,6 @@
 // Tests for epona/cpu/gemm_kernels.hpp and gemm_driver.hpp: every micro-kernel family this CPU
-// can run (AVX2 6×16; AVX-512 14×32 and 6×64; their BF16 dot-product twins), driven through
+// can run (AVX2 6×16; AVX-512 14×32 and 6×64; their BF16 dot-product twins; AMX 32×32 where
+// present, and always with emulated tile instructions), driven through
 // linear's packing and the blocked, threaded driver, against a float64 loop. Sizes cover the
 // edges of every tile (rows 1..MR+1, columns across the 16-lane masks), several K blocks, odd K,
 // one and several threads, and the shared-B plan (fewer column tasks than threads). The
@@ -10,6 +11,7 @@
 #include <doctest/doctest.h>
 
 #include <cmath>
+#include <cstring>
 #include <string>
 #include <vector>
 
@@ -26,6 +28,52 @@ struct Family {
   const cpu::gemm::KernelFamily* f;
 };
 
+// AMX's tile instructions written from their definition (Intel SDM: TILELOADD, TILESTORED,
+// TILEZERO, TDPBF16PS; tiles of 16 rows × 64 bytes), so the AMX kernel's data layout, K tiling
+// and edges are tested on any CPU; the instructions themselves run where the CPU has them.
+struct EmulatedTiles {
+  using Word = cpu::gemm::Word;
+  Word tile[8][16][16] = {};
+  void configure() {}
+  void release() {}
+  template <int T>
+  void load(const void* p, std::int64_t stride) {
+    for (int r = 0; r < 16; ++r) std::memcpy(tile[T][r], static_cast<const char*>(p) + r * stride, 64);
+  }
+  template <int T>
+  void store(void* p, std::int64_t stride) {
+    for (int r = 0; r < 16; ++r) std::memcpy(static_cast<char*>(p) + r * stride, tile[T][r], 64);
+  }
+  template <int T>
+  void zero() {
+    std::memset(tile[T], 0, sizeof tile[T]);
+  }
+  static float half(Word w, int which) { return bf16::to_float(static_cast<std::uint16_t>(which ? w >> 16 : w & 0xffffu)); }
+  // C[m][n] += Σ_p A[m].bf16[2p]·B[p].bf16[2n] + A[m].bf16[2p+1]·B[p].bf16[2n+1], in float32.
+  template <int C, int A, int B>
+  void dot() {
+    for (int m = 0; m < 16; ++m)
+      for (int n = 0; n < 16; ++n) {
+        float acc;
+        std::memcpy(&acc, &tile[C][m][n], 4);
+        for (int p = 0; p < 16; ++p) {
+          acc += half(tile[A][m][p], 0) * half(tile[B][p][n], 0);
+          acc += half(tile[A][m][p], 1) * half(tile[B][p][n], 1);
+        }
+        std::memcpy(&tile[C][m][n], &acc, 4);
+      }
+  }
+};
+
+const cpu::gemm::KernelFamily& amx_emulated() {
+  static const cpu::gemm::KernelFamily f = [] {
+    auto fam = cpu::gemm::make_amx_family<EmulatedTiles>(std::make_integer_sequence<int, 32>{});
+    fam.avx512_packing = cpu::cpu_features().supports(cpu::Isa::Avx512Bf16);  // else the portable packers
+    return fam;
+  }();
+  return f;
+}
+
 // The families this CPU can execute.
 std::vector<Family> runnable_families() {
   std::vector<Family> out;
@@ -40,6 +88,8 @@ std::vector<Family> runnable_families() {
     out.push_back({"avx512bf16 14x32", &cpu::gemm::avx512_bf16(cpu::gemm::Tile::Tall)});
     out.push_back({"avx512bf16 6x64", &cpu::gemm::avx512_bf16(cpu::gemm::Tile::Wide)});
   }
+  if (feat.supports(cpu::Isa::Amx)) out.push_back({"amx 32x32", &cpu::gemm::amx_bf16()});
+  out.push_back({"amx 32x32 (emulated tiles)", &amx_emulated()});
 #endif
   return out;
 }

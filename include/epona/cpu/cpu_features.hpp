@@ -1,6 +1,7 @@
 // epona/cpu/cpu_features.hpp — which x86 vector extensions this CPU and its OS offer (cpuid +
 // xgetbv), and which GEMM kernel family the library runs: the best available, or a lower one
-// forced with EPONA_CPU_ISA=generic|avx2|avx512|avx512bf16 (tests, comparisons, a faulty CPU).
+// forced with EPONA_CPU_ISA=generic|avx2|avx512|avx512bf16 (tests, comparisons, a faulty CPU),
+// or the opt-in AMX kernels with EPONA_CPU_ISA=amx.
 #pragma once
 
 #include <atomic>
@@ -12,6 +13,10 @@
 #if defined(__x86_64__) || defined(__i386__)
 #include <cpuid.h>
 #endif
+#if defined(__linux__)
+#include <sys/syscall.h>
+#include <unistd.h>
+#endif
 
 #include "epona/core/error.hpp"
 
@@ -20,8 +25,11 @@ namespace epona::cpu {
 // The kernel families, lowest first. Generic: Eigen, compiled for the build's target.
 // Avx2: AVX2 + FMA micro-kernels. Avx512: AVX-512 F/BW/DQ/VL micro-kernels (bf16 weights
 // widened to float32 while packing). Avx512Bf16: as Avx512, but bf16 weights multiply with
-// AVX512-BF16 dot products (activations rounded to bf16; fp32 accumulation).
-enum class Isa : int { Generic = 0, Avx2 = 1, Avx512 = 2, Avx512Bf16 = 3 };
+// AVX512-BF16 dot products (activations rounded to bf16; fp32 accumulation). Amx: as
+// Avx512Bf16 with the bf16 products on Sapphire Rapids' AMX tiles — opt-in only (never
+// chosen by itself): it could not be run where it was written; its layout is tested through
+// an emulation of the instructions, the instructions themselves only on a CPU that has them.
+enum class Isa : int { Generic = 0, Avx2 = 1, Avx512 = 2, Avx512Bf16 = 3, Amx = 4 };
 
 inline const char* isa_name(Isa isa) {
   switch (isa) {
@@ -29,6 +37,7 @@ inline const char* isa_name(Isa isa) {
     case Isa::Avx2: return "avx2";
     case Isa::Avx512: return "avx512";
     case Isa::Avx512Bf16: return "avx512bf16";
+    case Isa::Amx: return "amx";
   }
   return "?";
 }
@@ -40,14 +49,35 @@ struct CpuFeatures {
   bool amd = false;          // "AuthenticAMD": Zen 4/5 run a 512-bit FMA as two 256-bit halves
   bool amx_bf16 = false;     // AMX tiles + BF16 with the OS supporting tile state (reported, not used)
 
-  Isa best() const {
+  Isa best() const {  // AMX is never chosen by itself (see Isa)
     if (avx512 && avx512_bf16) return Isa::Avx512Bf16;
     if (avx512) return Isa::Avx512;
     if (avx2_fma) return Isa::Avx2;
     return Isa::Generic;
   }
-  bool supports(Isa isa) const { return static_cast<int>(isa) <= static_cast<int>(best()); }
+  bool supports(Isa isa) const;
 };
+
+namespace detail {
+// Linux lends the AMX tile state to a process only on request (arch_prctl); asked once, the
+// first time the AMX kernels are wanted.
+inline bool amx_permitted() {
+#if defined(__linux__) && defined(__x86_64__)
+  static const bool ok = [] {
+    constexpr long kReqXcompPerm = 0x1023, kXfeatureXtiledata = 18;
+    return syscall(SYS_arch_prctl, kReqXcompPerm, kXfeatureXtiledata) == 0;
+  }();
+  return ok;
+#else
+  return false;
+#endif
+}
+}  // namespace detail
+
+inline bool CpuFeatures::supports(Isa isa) const {
+  if (isa == Isa::Amx) return avx512 && avx512_bf16 && amx_bf16 && detail::amx_permitted();
+  return static_cast<int>(isa) <= static_cast<int>(best());
+}
 
 namespace detail {
 #if defined(__x86_64__) || defined(__i386__)
@@ -97,11 +127,11 @@ inline const CpuFeatures& cpu_features() {
   return f;
 }
 
-// "generic" | "avx2" | "avx512" | "avx512bf16" (case-sensitive); anything else is an error.
+// "generic" | "avx2" | "avx512" | "avx512bf16" | "amx" (case-sensitive); anything else is an error.
 inline Isa parse_isa(std::string_view s) {
-  for (Isa isa : {Isa::Generic, Isa::Avx2, Isa::Avx512, Isa::Avx512Bf16})
+  for (Isa isa : {Isa::Generic, Isa::Avx2, Isa::Avx512, Isa::Avx512Bf16, Isa::Amx})
     if (s == isa_name(isa)) return isa;
-  fail("EPONA_CPU_ISA='", std::string(s), "' is not one of generic, avx2, avx512, avx512bf16");
+  fail("EPONA_CPU_ISA='", std::string(s), "' is not one of generic, avx2, avx512, avx512bf16, amx");
 }
 
 namespace detail {
@@ -113,7 +143,7 @@ inline std::atomic<int>& isa_override() {
 inline Isa checked_isa(Isa want, const char* source) {
   const CpuFeatures& f = cpu_features();
   EPONA_CHECK(f.supports(want), source, " asks for the '", isa_name(want), "' kernels, but this CPU offers at most '",
-              isa_name(f.best()), "'");
+              isa_name(f.best()), "'", want == Isa::Amx ? " (AMX needs AMX-BF16 and the OS's permission)" : "");
   return want;
 }
 }  // namespace detail

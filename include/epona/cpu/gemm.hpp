@@ -215,6 +215,9 @@ const gemm::KernelFamily* kernel_family(Isa isa, std::int64_t N) {
 #if defined(EPONA_GEMM_X86)
   const gemm::Tile tile = N <= 32 ? gemm::Tile::Tall : avx512_tile();
   switch (isa) {
+    case Isa::Amx:
+      if (std::is_same_v<W, bf16>) return &gemm::amx_bf16();
+      [[fallthrough]];
     case Isa::Avx512Bf16:
       return std::is_same_v<W, bf16> ? &gemm::avx512_bf16(tile) : &gemm::avx512_f32(tile);
     case Isa::Avx512: return &gemm::avx512_f32(tile);
@@ -232,6 +235,7 @@ struct PackActivations {
   std::int64_t ldx, K;
   void operator()(std::int64_t m0, std::int64_t rows, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
     const float* rows_x = x + m0 * ldx;
+    if (f.a_rows_major) return gemm::pack_bf16_pairs_rows(rows_x, ldx, rows, f.mr, K, s0, steps, dst, f.avx512_packing);
 #if defined(EPONA_GEMM_X86)
     if (f.k_per_step == 2) return gemm::pack_bf16_pairs_rounded(rows_x, ldx, rows, f.mr, K, s0, steps, dst);
     if (f.avx512_packing) return gemm::pack_f32_avx512(rows_x, ldx, rows, f.mr, s0, steps, dst);
@@ -248,8 +252,13 @@ struct PackWeights {
   const W* w;
   std::int64_t K;
   void operator()(std::int64_t n0, std::int64_t cols, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
-    for (std::int64_t j = 0; j < cols; j += f.nr)
-      pack_panel(n0 + j, std::min<std::int64_t>(f.nr, cols - j), s0, steps, dst + j * steps);
+    // Steps past K (a kernel taking K in whole tiles) are zero.
+    const std::int64_t valid = std::clamp<std::int64_t>((K + f.k_per_step - 1) / f.k_per_step - s0, 0, steps);
+    for (std::int64_t j = 0; j < cols; j += f.nr) {
+      gemm::Word* panel = dst + j * steps;
+      pack_panel(n0 + j, std::min<std::int64_t>(f.nr, cols - j), s0, valid, panel);
+      std::fill(panel + valid * f.nr, panel + steps * f.nr, gemm::Word{0});
+    }
   }
   void pack_panel(std::int64_t n0, std::int64_t cols, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
     const W* rows_w = w + n0 * K;
@@ -286,7 +295,7 @@ template <class W>
 void linear_packed(const gemm::KernelFamily& f, int threads, const float* x, std::int64_t ldx, const W* w,
                    const float* b, float* y, std::int64_t ldy, std::int64_t M, std::int64_t N, std::int64_t K,
                    Epilogue epi) {
-  const std::int64_t steps = (K + f.k_per_step - 1) / f.k_per_step;
+  const std::int64_t steps = ((K + f.k_per_step - 1) / f.k_per_step + f.k_align - 1) / f.k_align * f.k_align;
   const PackActivations pack_a{f, x, ldx, K};
   const PackWeights<W> pack_b{f, w, K};
   if (epi == Epilogue::None && !b) return gemm::run_gemm(f, M, N, steps, threads, pack_a, pack_b, y, ldy, NoEpilogue{});

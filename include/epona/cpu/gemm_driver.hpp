@@ -73,7 +73,7 @@ inline GemmPlan plan_gemm(const KernelFamily& f, std::int64_t M, std::int64_t N,
   GemmPlan p;
   p.M = M, p.N = N, p.S = S, p.mr = f.mr, p.nr = f.nr;
   p.k_blocks = std::max<std::int64_t>(1, (S + f.kc - 1) / f.kc);
-  p.kc = (S + p.k_blocks - 1) / p.k_blocks;  // even blocks
+  p.kc = ((S + p.k_blocks - 1) / p.k_blocks + f.k_align - 1) / f.k_align * f.k_align;  // even, aligned blocks
   p.m_panels = (M + f.mr - 1) / f.mr;
   p.n_panels = (N + f.nr - 1) / f.nr;
   p.nc_panels = std::max<std::int64_t>(1, f.nc / f.nr);

@@ -329,6 +329,146 @@ EPONA_TARGET_AVX2 void micro_avx2_f32(const Word* a, const Word* b, std::int64_t
 
 #endif  // EPONA_GEMM_X86
 
+// ---- AMX BF16 (opt-in): a 32×32 tile of C in four 16×16 fp32 tiles ------------------------
+// A panels as [row][step] (a tile row is 16 pairs of one row of A), B panels as everywhere
+// (a tile row is one step of 16 columns). Per 16 steps: 2 A tiles, 2 B tiles, 4 tdpbf16ps.
+// The tile operations come from a policy: AmxTiles (the instructions, inline assembly) or an
+// emulation written from the instruction's definition, which the tests run on any CPU to
+// check this kernel's data layout and edges.
+
+// The A panel of AMX: rows [0, rows) of float32 x (ld apart) rounded to bf16 pairs for steps
+// [s0, s0 + steps) (K columns; pairs past K are zero), as [row][step]; rows up to R zero.
+inline void pack_bf16_pairs_rows(const float* x, std::int64_t ld, std::int64_t rows, std::int64_t R, std::int64_t K,
+                                 std::int64_t s0, std::int64_t steps, Word* dst, bool avx512) {
+  const std::int64_t k0 = 2 * s0, n = std::clamp<std::int64_t>(K - k0, 0, 2 * steps), words = (n + 1) / 2;
+  for (std::int64_t r = 0; r < R; ++r) {
+    Word* out = dst + r * steps;
+    std::int64_t done = 0;
+    if (r < rows) {
+#if defined(EPONA_GEMM_X86)
+      if (avx512) round_row_to_bf16_pairs(x + r * ld + k0, n, out), done = words;
+#endif
+      for (; done < words; ++done) out[done] = Bf16PairStep{K}(x + r * ld, s0 + done);
+    }
+    std::fill(out + done, out + steps, Word{0});
+  }
+}
+
+template <class Tiles, int Rows>
+void micro_amx(const Word* a, const Word* b, std::int64_t steps, float* c, std::int64_t ldc, std::int64_t cols,
+               bool accumulate) {
+  constexpr std::int64_t kNR = 32;
+  Tiles t;
+  t.configure();
+  const bool full = Rows == 32 && cols == 32;
+  alignas(64) float edge[32 * 32];  // the C tile when it is not whole (edge rows or columns)
+  if (!full) {
+    for (int r = 0; r < 32; ++r)
+      for (int j = 0; j < 32; ++j) edge[r * 32 + j] = accumulate && r < Rows && j < cols ? c[r * ldc + j] : 0.f;
+  }
+  float* cbase = full ? c : edge;
+  const std::int64_t cstride = (full ? ldc : 32) * 4;
+  if (accumulate || !full) {
+    t.template load<0>(cbase, cstride);
+    t.template load<1>(cbase + 16, cstride);
+    t.template load<2>(cbase + 16 * cstride / 4, cstride);
+    t.template load<3>(cbase + 16 * cstride / 4 + 16, cstride);
+  } else {
+    t.template zero<0>();
+    t.template zero<1>();
+    t.template zero<2>();
+    t.template zero<3>();
+  }
+  const std::int64_t astride = steps * 4;
+  for (std::int64_t s = 0; s < steps; s += 16) {
+    t.template load<4>(a + s, astride);
+    t.template load<5>(a + 16 * steps + s, astride);
+    t.template load<6>(b + s * kNR, kNR * 4);
+    t.template load<7>(b + s * kNR + 16, kNR * 4);
+    t.template dot<0, 4, 6>();
+    t.template dot<1, 4, 7>();
+    t.template dot<2, 5, 6>();
+    t.template dot<3, 5, 7>();
+  }
+  t.template store<0>(cbase, cstride);
+  t.template store<1>(cbase + 16, cstride);
+  t.template store<2>(cbase + 16 * cstride / 4, cstride);
+  t.template store<3>(cbase + 16 * cstride / 4 + 16, cstride);
+  t.release();
+  if (!full)
+    for (int r = 0; r < Rows; ++r)
+      for (std::int64_t j = 0; j < cols; ++j) c[r * ldc + j] = edge[r * 32 + j];
+}
+
+#if defined(EPONA_GEMM_X86)
+// The AMX instructions. Every tile: 16 rows of 64 bytes (fp32 C, bf16 A, bf16-pair B).
+struct AmxTiles {
+  static void configure() {
+    alignas(64) std::uint8_t cfg[64] = {};
+    cfg[0] = 1;  // palette 1
+    for (int i = 0; i < 8; ++i) {
+      cfg[16 + 2 * i] = 64;  // bytes per row (little-endian uint16)
+      cfg[48 + i] = 16;      // rows
+    }
+    __asm__ volatile("ldtilecfg %0" : : "m"(cfg));
+  }
+  static void release() { __asm__ volatile("tilerelease" ::); }
+#define EPONA_AMX_TILE_OPS(T)                                                                                   \
+  void load_##T(const void* p, std::int64_t stride) {                                                          \
+    __asm__ volatile("tileloadd (%0,%1,1), %%tmm" #T : : "r"(p), "r"(stride) : "memory");                      \
+  }                                                                                                             \
+  void store_##T(void* p, std::int64_t stride) {                                                                \
+    __asm__ volatile("tilestored %%tmm" #T ", (%0,%1,1)" : : "r"(p), "r"(stride) : "memory");                  \
+  }
+  EPONA_AMX_TILE_OPS(0)
+  EPONA_AMX_TILE_OPS(1)
+  EPONA_AMX_TILE_OPS(2)
+  EPONA_AMX_TILE_OPS(3)
+  EPONA_AMX_TILE_OPS(4)
+  EPONA_AMX_TILE_OPS(5)
+  EPONA_AMX_TILE_OPS(6)
+  EPONA_AMX_TILE_OPS(7)
+#undef EPONA_AMX_TILE_OPS
+  template <int T>
+  void load(const void* p, std::int64_t stride) {
+    if constexpr (T == 0) load_0(p, stride);
+    else if constexpr (T == 1) load_1(p, stride);
+    else if constexpr (T == 2) load_2(p, stride);
+    else if constexpr (T == 3) load_3(p, stride);
+    else if constexpr (T == 4) load_4(p, stride);
+    else if constexpr (T == 5) load_5(p, stride);
+    else if constexpr (T == 6) load_6(p, stride);
+    else load_7(p, stride);
+  }
+  template <int T>
+  void store(void* p, std::int64_t stride) {
+    static_assert(T < 4, "only the C tiles are stored");
+    if constexpr (T == 0) store_0(p, stride);
+    else if constexpr (T == 1) store_1(p, stride);
+    else if constexpr (T == 2) store_2(p, stride);
+    else store_3(p, stride);
+  }
+  template <int T>
+  void zero() {
+    if constexpr (T == 0) __asm__ volatile("tilezero %%tmm0" ::);
+    else if constexpr (T == 1) __asm__ volatile("tilezero %%tmm1" ::);
+    else if constexpr (T == 2) __asm__ volatile("tilezero %%tmm2" ::);
+    else __asm__ volatile("tilezero %%tmm3" ::);
+  }
+  // C += A·B (AT&T order: B, A, C).
+  template <int C, int A, int B>
+  void dot() {
+    if constexpr (C == 0) __asm__ volatile("tdpbf16ps %%tmm6, %%tmm4, %%tmm0" ::);
+    else if constexpr (C == 1) __asm__ volatile("tdpbf16ps %%tmm7, %%tmm4, %%tmm1" ::);
+    else if constexpr (C == 2) __asm__ volatile("tdpbf16ps %%tmm6, %%tmm5, %%tmm2" ::);
+    else __asm__ volatile("tdpbf16ps %%tmm7, %%tmm5, %%tmm3" ::);
+    static_assert((C == 0 && A == 4 && B == 6) || (C == 1 && A == 4 && B == 7) || (C == 2 && A == 5 && B == 6) ||
+                      (C == 3 && A == 5 && B == 7),
+                  "the kernel's four products only");
+  }
+};
+#endif
+
 // A micro-kernel: C[rows × cols] (+)= A panel · B panel over `steps` steps.
 using MicroKernel = void (*)(const Word* a, const Word* b, std::int64_t steps, float* c, std::int64_t ldc,
                              std::int64_t cols, bool accumulate);
@@ -341,7 +481,9 @@ struct KernelFamily {
   int k_per_step = 1;     // 2 for bf16 pairs
   std::int64_t kc = 256;  // steps per K block: an A micro-panel (MR×kc) stays in L1
   std::int64_t nc = 256;  // columns per B block: a kc×nc block stays in L2
-  MicroKernel micro[16] = {};
+  MicroKernel micro[32] = {};
+  std::int64_t k_align = 1;    // K blocks hold a multiple of this many steps (AMX: 16)
+  bool a_rows_major = false;   // A panels as [row][step] (AMX tiles) instead of [step][row]
   MicroKernel for_rows(std::int64_t rows) const { return micro[rows - 1]; }
 };
 
@@ -388,6 +530,20 @@ inline const KernelFamily& avx512_bf16(Tile t) {
       detail::make_family<detail::Avx512Bf16, 6, 4>(16, 2, 256, true, std::make_integer_sequence<int, 6>{});
   return t == Tile::Tall ? tall : wide;
 }
+// The AMX family with a given tile policy (AmxTiles on the CPU; an emulation in the tests).
+template <class Tiles, int... R>
+KernelFamily make_amx_family(std::integer_sequence<int, R...>) {
+  KernelFamily f{32, 32, true, 2, 512, 256, {}};  // 1024 k per call: amortises ldtilecfg and the C tiles
+  ((f.micro[R] = &micro_amx<Tiles, R + 1>), ...);
+  f.k_align = 16;
+  f.a_rows_major = true;
+  return f;
+}
+inline const KernelFamily& amx_bf16() {
+  static const KernelFamily f = make_amx_family<AmxTiles>(std::make_integer_sequence<int, 32>{});
+  return f;
+}
+
 inline const KernelFamily& avx2_f32() {
   static const KernelFamily f =
       detail::make_family<detail::Avx2F32, 6, 2>(8, 1, 128, false, std::make_integer_sequence<int, 6>{});
