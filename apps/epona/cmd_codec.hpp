@@ -12,6 +12,7 @@
 #include "args.hpp"
 #include "cmd_common.hpp"
 #include "console.hpp"
+#include "engine.hpp"
 #include "frames.hpp"
 #include "models.hpp"
 #include "epona/io/image.hpp"
@@ -87,16 +88,13 @@ inline int run_encode(const ParsedArgs& a, const Console& con) {
   }
   const std::filesystem::path out = a.text("out", "out/encode/latents.npy");
   if (out.has_parent_path()) std::filesystem::create_directories(out.parent_path());
-  return with_weight_type(compute, [&](auto weight_tag) {
-    using T = decltype(weight_tag);
-    cpu::Context ctx(compute.threads);
-    const auto dcae = load_dcae<T>(files, con);
-    const Tensor<float> latents = encode_frames(ctx, dcae, images, con);
-    io::write_npy(out, latents);
-    con.out << "encoded " << images.size() << " image(s) of " << H << "x" << W << " into " << out.string()
-            << ": latents " << shape_str(latents.shape()) << " float32\n";
-    return 0;
-  });
+  const auto engine = make_engine(compute);
+  engine->load_dcae(files, con);
+  const Tensor<float> latents = encode_frames(*engine, images, con);
+  io::write_npy(out, latents);
+  con.out << "encoded " << images.size() << " image(s) of " << H << "x" << W << " into " << out.string()
+          << ": latents " << shape_str(latents.shape()) << " float32\n";
+  return 0;
 }
 
 inline int run_decode(const ParsedArgs& a, const Console& con) {
@@ -109,27 +107,25 @@ inline int run_decode(const ParsedArgs& a, const Console& con) {
   for (std::int64_t i = 0; i < latents.numel(); ++i)
     EPONA_CHECK(std::isfinite(latents.data()[i]), path, ": non-finite latent value at flat index ", i);
   const auto dir = output_dir(a, "out/decode");
-  return with_weight_type(compute, [&](auto weight_tag) {
-    using T = decltype(weight_tag);
-    cpu::Context ctx(compute.threads);
-    const auto dcae = load_dcae<T>(files, con);
-    const bool video = a.flag("video") && dcae.config().add_decoder_temporal;
-    const std::int64_t N = latents.size(0), group = video ? dcae.config().condition_frames : 1;
-    EPONA_CHECK(N % group == 0, path, ": ", N, " latents are not whole clips of ", group, " frames (--video)");
-    Progress bar(con, "decode  ", N, "frame");
-    for (std::int64_t first = 0; first < N; first += group) {
-      const Tensor<float> images = dcae.decode(ctx, latents.slice(first, first + group), video);
-      for (std::int64_t i = 0; i < group; ++i) {
-        char name[32];
-        std::snprintf(name, sizeof name, "frame_%04lld.png", static_cast<long long>(first + i));
-        io::write_png((dir / name).string(), io::tensor_to_image(images, i));
-      }
-      bar.advance(group);
+  const auto engine = make_engine(compute);
+  engine->load_dcae(files, con);
+  const DcaeConfig& dc = engine->dcae_config();
+  const bool video = a.flag("video") && dc.add_decoder_temporal;
+  const std::int64_t N = latents.size(0), group = video ? dc.condition_frames : 1;
+  EPONA_CHECK(N % group == 0, path, ": ", N, " latents are not whole clips of ", group, " frames (--video)");
+  Progress bar(con, "decode  ", N, "frame");
+  for (std::int64_t first = 0; first < N; first += group) {
+    const Tensor<float> images = engine->decode(latents.slice(first, first + group), video);
+    for (std::int64_t i = 0; i < group; ++i) {
+      char name[32];
+      std::snprintf(name, sizeof name, "frame_%04lld.png", static_cast<long long>(first + i));
+      io::write_png((dir / name).string(), io::tensor_to_image(images, i));
     }
-    con.out << "decoded " << N << " frame(s) of " << 32 * latents.size(2) << "x" << 32 * latents.size(3) << " into "
-            << dir.string() << "/frame_0000.png ...\n";
-    return 0;
-  });
+    bar.advance(group);
+  }
+  con.out << "decoded " << N << " frame(s) of " << 32 * latents.size(2) << "x" << 32 * latents.size(3) << " into "
+          << dir.string() << "/frame_0000.png ...\n";
+  return 0;
 }
 
 }  // namespace epona::app

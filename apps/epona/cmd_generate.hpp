@@ -14,6 +14,7 @@
 #include "cmd_common.hpp"
 #include "console.hpp"
 #include "drawing.hpp"
+#include "engine.hpp"
 #include "frames.hpp"
 #include "models.hpp"
 #include "epona/io/image.hpp"
@@ -100,14 +101,13 @@ class FrameSink {
 
 // Decodes generated latents (tokens (1, L, C) each) as one group: a temporal clip when
 // `is_video`, else frame by frame.
-template <class T>
-void decode_group(cpu::Context& ctx, const Dcae<Cpu, T>& dcae, const WorldModelConfig& w,
-                  const std::vector<Tensor<float>>& tokens, bool is_video, FrameSink& sink) {
+inline void decode_group(cpu::Context& ctx, Engine& engine, const WorldModelConfig& w,
+                         const std::vector<Tensor<float>>& tokens, bool is_video, FrameSink& sink) {
   if (tokens.empty()) return;
   const std::int64_t L = w.img_tokens(), C = w.token_dim(), n = static_cast<std::int64_t>(tokens.size());
   Tensor<float> group({n, L, C});
   for (std::int64_t i = 0; i < n; ++i) std::copy_n(tokens[static_cast<std::size_t>(i)].data(), L * C, group[i].data());
-  const Tensor<float> images = dcae.decode(ctx, tokens_to_latent(ctx, group, w.latent_h(), w.latent_w()), is_video);
+  const Tensor<float> images = engine.decode(tokens_to_latent(ctx, group, w.latent_h(), w.latent_w()), is_video);
   for (std::int64_t i = 0; i < n; ++i) sink.put(io::tensor_to_image(images, i));
 }
 
@@ -135,84 +135,114 @@ inline NextAction action_at(const io::PoseSequence& p, std::size_t i) {
   return act;
 }
 
+// What drives a rollout, and what it keeps.
+struct RolloutPlan {
+  std::int64_t frames = 0, steps = 0, clip_len = 1;  // clip_len: latents decoded together
+  std::uint64_t seed = 0;
+  std::optional<io::PoseSequence> actions;  // one per step; none: self-predicted
+  bool keep_latents = false;
+};
+
+// What drove each step and what it made.
+struct RolloutLog {
+  Tensor<float> steps;       // (N, W, 3): each step's plan (W = traj_len) or its given action (W = 1)
+  io::PoseSequence motions;  // the motion into each generated frame (waypoint 0 / the action)
+  Tensor<float> latents;     // (N, L, C) when kept
+};
+
+// Runs the rollout from `window`: one noise generator for all steps (the official draw order),
+// the window slid after each step, frames decoded into `sink` as soon as a clip is complete.
+inline RolloutLog roll_out(Engine& engine, cpu::Context& ctx, History window, const WorldModelConfig& wc,
+                           const RolloutPlan& p, FrameSink& sink, const Console& con) {
+  const std::int64_t W = p.actions ? 1 : wc.traj_len;
+  RolloutLog log{Tensor<float>({p.frames, W, 3}), {},
+                 p.keep_latents ? Tensor<float>({p.frames, wc.img_tokens(), wc.token_dim()}) : Tensor<float>()};
+  std::vector<Tensor<float>> pending;
+  NoiseSource noise = NoiseSource::seeded(p.seed);
+  Progress bar(con, "generate", p.frames, "frame");
+  for (std::int64_t i = 0; i < p.frames; ++i) {
+    const auto act = p.actions ? std::optional(action_at(*p.actions, std::size_t(i))) : std::nullopt;
+    const StepResult r = engine.step(window, act ? &*act : nullptr, p.steps, noise);
+    const Tensor<float> used = log.steps[i].reshape({1, W, 3});  // what drove this step
+    if (act) {
+      used.data()[0] = act->rel_pose.data()[0], used.data()[1] = act->rel_pose.data()[1];
+      used.data()[2] = act->rel_yaw.data()[0];
+    } else {
+      std::copy_n(r.trajectory.data(), used.numel(), used.data());
+    }
+    log.motions.x.push_back(used.data()[0]), log.motions.y.push_back(used.data()[1]);
+    log.motions.yaw.push_back(used.data()[2]);
+    if (p.keep_latents) std::copy_n(r.latent.data(), r.latent.numel(), log.latents[i].data());
+    model::slide_window(window, r.latent, used);
+    pending.push_back(r.latent);
+    if (static_cast<std::int64_t>(pending.size()) == p.clip_len) {
+      decode_group(ctx, engine, wc, pending, p.clip_len > 1, sink);
+      pending.clear();
+    }
+    bar.advance();
+  }
+  decode_group(ctx, engine, wc, pending, false, sink);  // an incomplete last clip: frame by frame (test_nuplan.py)
+  return log;
+}
+
+inline void print_generate_summary(std::ostream& out, const std::filesystem::path& dir, const WorldModelConfig& wc,
+                                   std::int64_t N, double seconds, const io::Image& sheet, std::size_t inputs,
+                                   std::size_t shown, bool given_actions, bool latents) {
+  char last[32];
+  std::snprintf(last, sizeof last, "frame_%04lld.png", static_cast<long long>(N - 1));
+  out << "generated " << N << " frame(s) of " << wc.image_h << "x" << wc.image_w << " in " << seconds << " s\n"
+      << "wrote " << (dir / "frames" / "frame_0000.png").string() << (N > 1 ? std::string(" ... ") + last : "") << "\n"
+      << "wrote " << (dir / "contact_sheet.png").string() << " (" << size_text(sheet) << ": " << inputs
+      << " input frame(s) framed blue, " << shown << " generated framed orange)\n"
+      << "wrote " << (dir / "trajectory.json").string() << ", " << (dir / "trajectory.csv").string() << " ("
+      << (given_actions ? "the action of each step" : "each step's plan") << "), " << (dir / "poses.csv").string() << "\n";
+  if (latents) out << "wrote " << (dir / "latents.npy").string() << "\n";
+}
+
 inline int run_generate(const ParsedArgs& a, const Console& con) {
   const ComputeOptions compute = compute_options(a);
   const ModelFiles files = resolve_models(a, true, true);
   const WorldModelConfig& wc = files.configs.world;
-  const SampleOptions sample = sample_options(a, wc);
-  const auto actions = read_step_actions(a);
-  const std::int64_t N = frames_to_generate(a, actions);
+  RolloutPlan plan;
+  plan.steps = *sample_options(a, wc).steps;
+  plan.seed = sample_options(a, wc).seed;
+  plan.actions = read_step_actions(a);
+  plan.frames = frames_to_generate(a, plan.actions);
+  plan.keep_latents = a.flag("latents");
   const bool clip_decode = a.choice("decode", {"clip", "frame"}, "clip") == "clip";
   const Clip clip = load_clip_for(a, files, con);
   const auto dir = output_dir(a, "out/generate");
 
-  return with_weight_type(compute, [&](auto weight_tag) {
-    using W = decltype(weight_tag);
-    cpu::Context ctx(compute.threads);
-    const auto dcae = load_dcae<W>(files, con);
-    History window = make_history(ctx, encode_frames(ctx, dcae, clip.frames, con), clip.poses);
-    auto wm = load_world<W>(files, compute, con);
-    const std::int64_t clip_len = clip_decode && dcae.config().add_decoder_temporal ? dcae.config().condition_frames : 1;
-    con.note("generating ", N, " frame(s): ", *sample.steps, " sampling steps, seed ", sample.seed, ", ",
-             actions ? "actions from " + *a.get("trajectory") : std::string("self-predicted trajectory"),
-             ", decoded ", clip_len > 1 ? "in clips of " + std::to_string(clip_len) : std::string("frame by frame"));
+  const auto engine = make_engine(compute);
+  cpu::Context ctx(compute.threads);
+  engine->load_dcae(files, con);
+  const History window = make_history(ctx, encode_frames(*engine, clip.frames, con), clip.poses);
+  engine->load_world(files, con);
+  const DcaeConfig& dc = engine->dcae_config();
+  plan.clip_len = clip_decode && dc.add_decoder_temporal ? dc.condition_frames : 1;
+  con.note("generating ", plan.frames, " frame(s): ", plan.steps, " sampling steps, seed ", plan.seed, ", ",
+           plan.actions ? "actions from " + *a.get("trajectory") : std::string("self-predicted trajectory"), ", decoded ",
+           plan.clip_len > 1 ? "in clips of " + std::to_string(plan.clip_len) : std::string("frame by frame"));
 
-    const std::int64_t W_log = actions ? 1 : wc.traj_len;  // waypoints logged per step
-    Tensor<float> log({N, W_log, 3});
-    Tensor<float> all_latents = a.flag("latents") ? Tensor<float>({N, wc.img_tokens(), wc.token_dim()}) : Tensor<float>();
-    io::PoseSequence motions;
-    const auto slots = std::max<std::int64_t>(kSheetTiles - static_cast<std::int64_t>(clip.frames.size()), 5);
-    FrameSink sink(dir / "frames", sheet_picks(N, slots));
-    std::vector<Tensor<float>> pending;
-    NoiseSource noise = NoiseSource::seeded(sample.seed);
-    Progress bar(con, "generate", N, "frame");
-    for (std::int64_t i = 0; i < N; ++i) {
-      const std::optional<NextAction> act = actions ? std::optional(action_at(*actions, std::size_t(i))) : std::nullopt;
-      const StepResult r = wm.run_step(window, act ? &*act : nullptr, true, *sample.steps, noise, {});
-      Tensor<float> used({1, W_log, 3});  // what drove this step
-      if (act) {
-        used.data()[0] = act->rel_pose.data()[0], used.data()[1] = act->rel_pose.data()[1];
-        used.data()[2] = act->rel_yaw.data()[0];
-      } else {
-        std::copy_n(r.trajectory.data(), used.numel(), used.data());
-      }
-      std::copy_n(used.data(), used.numel(), log[i].data());
-      motions.x.push_back(used.data()[0]), motions.y.push_back(used.data()[1]), motions.yaw.push_back(used.data()[2]);
-      if (!all_latents.empty()) std::copy_n(r.latent.data(), r.latent.numel(), all_latents[i].data());
-      model::slide_window(window, r.latent, used);
-      pending.push_back(r.latent);
-      if (static_cast<std::int64_t>(pending.size()) == clip_len) {
-        decode_group(ctx, dcae, wc, pending, clip_len > 1, sink);
-        pending.clear();
-      }
-      bar.advance();
-    }
-    decode_group(ctx, dcae, wc, pending, false, sink);  // an incomplete last clip: frame by frame (test_nuplan.py)
+  const auto slots = std::max<std::int64_t>(kSheetTiles - static_cast<std::int64_t>(clip.frames.size()), 5);
+  FrameSink sink(dir / "frames", sheet_picks(plan.frames, slots));
+  const auto t0 = std::chrono::steady_clock::now();
+  const RolloutLog log = roll_out(*engine, ctx, window, wc, plan, sink, con);
+  const double seconds = seconds_since(t0);
 
-    std::vector<SheetTile> tiles;
-    for (const auto& f : clip.frames) tiles.push_back({f, true});
-    for (const auto& f : sink.kept()) tiles.push_back({f, false});
-    const io::Image sheet = contact_sheet(tiles);
-    io::write_png((dir / "contact_sheet.png").string(), sheet);
-    io::write_trajectory(dir / "trajectory.json", log);
-    io::write_trajectory(dir / "trajectory.csv", log);
-    write_pose_csv(dir / "poses.csv", motions);
-    if (!all_latents.empty())
-      io::write_npy(dir / "latents.npy", tokens_to_latent(ctx, all_latents, wc.latent_h(), wc.latent_w()));
-
-    con.out << "generated " << N << " frame(s) of " << wc.image_h << "x" << wc.image_w << " in " << bar.elapsed()
-            << " s\nwrote " << (sink.dir() / "frame_0000.png").string()
-            << (N > 1 ? " ... frame_" + std::string(4 - std::min<std::size_t>(4, std::to_string(N - 1).size()), '0') +
-                            std::to_string(N - 1) + ".png"
-                      : std::string())
-            << "\nwrote " << (dir / "contact_sheet.png").string() << " (" << size_text(sheet) << ": "
-            << clip.frames.size() << " input frame(s) framed blue, " << sink.kept().size()
-            << " generated framed orange)\nwrote " << (dir / "trajectory.json").string() << ", "
-            << (dir / "trajectory.csv").string() << " (" << (actions ? "the action of each step" : "each step's plan")
-            << "), " << (dir / "poses.csv").string() << "\n";
-    if (!all_latents.empty()) con.out << "wrote " << (dir / "latents.npy").string() << "\n";
-    return 0;
-  });
+  std::vector<SheetTile> tiles;
+  for (const auto& f : clip.frames) tiles.push_back({f, true});
+  for (const auto& f : sink.kept()) tiles.push_back({f, false});
+  const io::Image sheet = contact_sheet(tiles);
+  io::write_png((dir / "contact_sheet.png").string(), sheet);
+  io::write_trajectory(dir / "trajectory.json", log.steps);
+  io::write_trajectory(dir / "trajectory.csv", log.steps);
+  write_pose_csv(dir / "poses.csv", log.motions);
+  if (plan.keep_latents)
+    io::write_npy(dir / "latents.npy", tokens_to_latent(ctx, log.latents, wc.latent_h(), wc.latent_w()));
+  print_generate_summary(con.out, dir, wc, plan.frames, seconds, sheet, clip.frames.size(), sink.kept().size(),
+                         plan.actions.has_value(), plan.keep_latents);
+  return 0;
 }
 
 }  // namespace epona::app

@@ -11,6 +11,7 @@
 #include "cmd_common.hpp"
 #include "console.hpp"
 #include "drawing.hpp"
+#include "engine.hpp"
 #include "frames.hpp"
 #include "models.hpp"
 #include "epona/io/image.hpp"
@@ -52,34 +53,30 @@ inline int run_plan(const ParsedArgs& a, const Console& con) {
   const SampleOptions sample = sample_options(a, files.configs.world);
   const Clip clip = load_clip_for(a, files, con);
   const auto dir = output_dir(a, "out/plan");
-  return with_weight_type(compute, [&](auto weight_tag) {
-    using W = decltype(weight_tag);
-    cpu::Context ctx(compute.threads);
-    Tensor<float> latents;
-    {  // the DC-AE is only needed to encode the window: freed before the world model loads
-      const auto dcae = load_dcae<W>(files, con);
-      latents = encode_frames(ctx, dcae, clip.frames, con);
-    }
-    const History history = make_history(ctx, latents, clip.poses);
-    auto wm = load_world<W>(files, compute, con);
-    con.note("planning: ", *sample.steps, " sampling steps, seed ", sample.seed);
-    const auto t0 = std::chrono::steady_clock::now();
-    const Tensor<float> plan = wm.plan(history, sample);  // (1, traj_len, 3)
-    con.note("  planned in ", seconds_since(t0), " s");
+  const auto engine = make_engine(compute);
+  engine->load_dcae(files, con);  // only needed to encode the window: freed before the world model loads
+  const Tensor<float> latents = encode_frames(*engine, clip.frames, con);
+  engine->release_dcae();
+  cpu::Context ctx(compute.threads);
+  const History history = make_history(ctx, latents, clip.poses);
+  engine->load_world(files, con);
+  con.note("planning: ", *sample.steps, " sampling steps, seed ", sample.seed);
+  const auto t0 = std::chrono::steady_clock::now();
+  const Tensor<float> plan = engine->plan(history, sample);  // (1, traj_len, 3)
+  con.note("  planned in ", seconds_since(t0), " s");
 
-    const Tensor<float> waypoints = plan[0];  // (traj_len, 3)
-    io::write_trajectory(dir / "trajectory.json", plan);
-    io::write_trajectory(dir / "trajectory.csv", plan);
-    TopDownView view;
-    const io::Image picture = draw_plan(clip.frames.back(), waypoints, &view);
-    io::write_png((dir / "plan.png").string(), picture);
+  const Tensor<float> waypoints = plan[0];  // (traj_len, 3)
+  io::write_trajectory(dir / "trajectory.json", plan);
+  io::write_trajectory(dir / "trajectory.csv", plan);
+  TopDownView view;
+  const io::Image picture = draw_plan(clip.frames.back(), waypoints, &view);
+  io::write_png((dir / "plan.png").string(), picture);
 
-    print_waypoints(con.out, waypoints);
-    con.out << "wrote " << (dir / "trajectory.json").string() << ", " << (dir / "trajectory.csv").string() << "\n"
-            << "wrote " << (dir / "plan.png").string() << " (" << size_text(picture) << ", top-down: "
-            << view.pixels_per_metre << " px per metre, ego at the bottom centre)\n";
-    return 0;
-  });
+  print_waypoints(con.out, waypoints);
+  con.out << "wrote " << (dir / "trajectory.json").string() << ", " << (dir / "trajectory.csv").string() << "\n"
+          << "wrote " << (dir / "plan.png").string() << " (" << size_text(picture) << ", top-down: "
+          << view.pixels_per_metre << " px per metre, ego at the bottom centre)\n";
+  return 0;
 }
 
 }  // namespace epona::app

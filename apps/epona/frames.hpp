@@ -11,11 +11,11 @@
 #include <vector>
 
 #include "console.hpp"
+#include "engine.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/context.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/poses.hpp"
-#include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/world_model.hpp"
 
@@ -119,21 +119,17 @@ inline Clip load_clip(const std::filesystem::path& frames_dir, const std::filesy
   return c;
 }
 
-// Encodes frames one by one (progress per frame) -> latents (N, C, h, w).
-template <class T>
-Tensor<float> encode_frames(cpu::Context& ctx, const Dcae<Cpu, T>& dcae, const std::vector<io::Image>& frames,
-                            const Console& con) {
+// Encodes frames one by one (progress per frame) -> latents (N, C, h, w) on the host.
+inline Tensor<float> encode_frames(Engine& engine, const std::vector<io::Image>& frames, const Console& con) {
   Progress bar(con, "encode  ", static_cast<std::int64_t>(frames.size()), "frame");
-  std::vector<Tensor<float>> parts;
-  for (const auto& f : frames) {
-    parts.push_back(dcae.encode(ctx, io::image_to_tensor(f)));
+  Tensor<float> out;
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    const Tensor<float> z = engine.encode(frames[i]);  // (1, C, h, w)
+    if (out.empty()) out = Tensor<float>({static_cast<std::int64_t>(frames.size()), z.size(1), z.size(2), z.size(3)});
+    check_shape(z, {1, out.size(1), out.size(2), out.size(3)}, "encoded frame");
+    std::copy_n(z.data(), z.numel(), out[static_cast<std::int64_t>(i)].data());
     bar.advance();
   }
-  Shape shape = parts.front().shape();
-  shape[0] = static_cast<std::int64_t>(parts.size());
-  Tensor<float> out(shape);
-  for (std::size_t i = 0; i < parts.size(); ++i)
-    std::copy_n(parts[i].data(), parts[i].numel(), out.data() + static_cast<std::int64_t>(i) * parts[i].numel());
   return out;
 }
 

@@ -8,6 +8,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <string>
+#include <type_traits>
 
 #include "console.hpp"
 #include "args.hpp"
@@ -48,12 +49,15 @@ inline void add_compute_options(ArgParser& p) {
       .option("threads", "N", "CPU threads", "all");
 }
 
-// Refuses a backend this build cannot run, naming why.
+// Refuses a backend this program cannot run, naming why. The epona program gets its CUDA engine
+// (apps/epona/cuda_engine.cu, EPONA_APP_CUDA) when CMake finds nvcc.
 inline void check_backend(const std::string& backend) {
   if (backend == "cpu") return;
-#if defined(EPONA_WITH_CUDA)
-  fail("CUDA backend not yet available for the world model and the DC-AE in the epona program "
-       "(the CUDA kernels are built, the models do not run on them yet); use --backend cpu");
+#if defined(EPONA_APP_CUDA)
+  return;
+#elif defined(EPONA_WITH_CUDA)
+  fail("this program was built without its CUDA engine (apps/epona/cuda_engine.cu, compiled into the epona "
+       "program when the build has CUDA); use --backend cpu");
 #else
   fail("this build has no CUDA backend (configure with -DEPONA_CUDA=ON on a machine with nvcc); use --backend cpu");
 #endif
@@ -67,13 +71,6 @@ inline ComputeOptions compute_options(const ParsedArgs& a) {
   if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 1, 4096));
   check_backend(c.backend);
   return c;
-}
-
-// Calls fn(float{}) or fn(bf16{}): the weight type the models are instantiated with.
-template <class Fn>
-decltype(auto) with_weight_type(const ComputeOptions& c, Fn&& fn) {
-  if (c.bf16_weights) return fn(bf16{});
-  return fn(float{});
 }
 
 // ---- which files ------------------------------------------------------------------------
@@ -160,14 +157,15 @@ inline std::string join(const std::vector<std::string>& v, const std::string& se
        "and pass it with --config FILE)");
 }
 
-template <class W>
-WorldModel<Cpu, W> load_world(const ModelFiles& f, const ComputeOptions& c, const Console& con) {
+template <class B, class W>
+WorldModel<B, W> load_world(const ModelFiles& f, const ComputeOptions& c, const Console& con) {
   const auto t0 = std::chrono::steady_clock::now();
   con.note("loading the world model from ", f.world, f.demo ? " (bundled demo: small random conformance weights)" : "");
   const io::TensorMap weights = io::load_weights(f.world);
   try {
-    auto wm = WorldModel<Cpu, W>::load(weights, f.configs.world);
-    if (c.threads > 0) wm.context().set_threads(c.threads);
+    auto wm = WorldModel<B, W>::load(weights, f.configs.world);
+    if constexpr (std::is_same_v<B, Cpu>)
+      if (c.threads > 0) wm.context().set_threads(c.threads);
     con.note("  ", std::int64_t(f.configs.world.parameter_count()), " parameters in ", seconds_since(t0), " s");
     return wm;
   } catch (const Error& e) {
@@ -184,8 +182,8 @@ inline io::TensorMap dcae_entries(const io::TensorMap& m) {
   return out;
 }
 
-template <class T>
-Dcae<Cpu, T> load_dcae(const ModelFiles& f, const Console& con) {
+template <class B, class T>
+Dcae<B, T> load_dcae(const ModelFiles& f, const Console& con) {
   const auto t0 = std::chrono::steady_clock::now();
   con.note("loading the DC-AE from ", f.dcae, f.demo ? " (bundled demo: small random conformance weights)" : "");
   const io::TensorMap all = io::load_weights(f.dcae);
@@ -194,7 +192,7 @@ Dcae<Cpu, T> load_dcae(const ModelFiles& f, const Console& con) {
     fail(f.dcae, ": holds no DC-AE weights (no 'encoder.*' keys", weights.size() == 0 && all.size() ? "; it is a world-model checkpoint" : "",
          "); give the DC-AE checkpoint with --dcae FILE");
   try {
-    auto model = Dcae<Cpu, T>::load(weights, f.configs.dcae);
+    auto model = Dcae<B, T>::load(weights, f.configs.dcae);
     con.note("  ", std::int64_t(f.configs.dcae.parameter_count()), " parameters in ", seconds_since(t0), " s");
     return model;
   } catch (const Error& e) {
