@@ -6,6 +6,8 @@
 #include <bit>
 #include <cmath>
 #include <cstdint>
+#include <fstream>
+#include <iterator>
 #include <limits>
 #include <string>
 #include <vector>
@@ -86,4 +88,31 @@ TEST_CASE("image: a JPEG Huffman table with more than 256 codes is refused befor
   counts[0] = 1;  // a well-formed table passes the check and reaches stb (which finds no frame header)
   CHECK_THROWS_WITH_AS(io::decode_image(jpeg_with_dht(counts, 1), "dht.jpg"), doctest::Contains("cannot decode image"),
                        Error);
+}
+
+// fuzz_image, timeout-1b39fa58 (fuzz/regressions/image/jpeg-89-megapixels-in-973-bytes.jpg.in): 973
+// bytes of JPEG declared a 3072 x 28960 image, which stb decoded (filling what the file lacked)
+// into 267 MB and the model mapping into 1 GB, for 12 s of CPU under ASan. decode_image now refuses
+// images over ImageReadOptions::max_pixels (default 2^25, 8K UHD) before decoding.
+TEST_CASE("image: a file declaring more than max_pixels is refused before decoding") {
+  std::ifstream in(std::string(EPONA_TEST_DATA_DIR) + "/../../fuzz/corpus/image/rgb_32x32_q30.jpg.in", std::ios::binary);
+  std::vector<std::uint8_t> jpeg{std::istreambuf_iterator<char>(in), {}};
+  REQUIRE(jpeg.size() > 100);
+  jpeg.erase(jpeg.begin());  // the fuzz target's option byte
+  CHECK(io::decode_image(jpeg, "ok.jpg").height == 32);
+
+  io::ImageReadOptions small;
+  small.max_pixels = 32 * 32 - 1;
+  CHECK_THROWS_WITH_AS(io::decode_image(jpeg, "ok.jpg", small),
+                       doctest::Contains("ok.jpg: image is 32x32 (1024 pixels), more than ImageReadOptions::max_pixels = 1023"),
+                       Error);
+
+  // The same data under a start-of-frame declaring 3072 x 28960: refused at once.
+  std::size_t sof = 0;
+  while (sof + 8 < jpeg.size() && !(jpeg[sof] == 0xFF && jpeg[sof + 1] == 0xC0)) ++sof;
+  REQUIRE(sof + 8 < jpeg.size());
+  jpeg[sof + 5] = 0x0C, jpeg[sof + 6] = 0x00;  // height 3072
+  jpeg[sof + 7] = 0x71, jpeg[sof + 8] = 0x20;  // width 28960
+  CHECK_THROWS_WITH_AS(io::decode_image(jpeg, "bomb.jpg"),
+                       doctest::Contains("bomb.jpg: image is 3072x28960 (88965120 pixels), more than"), Error);
 }

@@ -58,6 +58,9 @@ struct ImageReadOptions {
   // false (default): only 8-bit RGB files are accepted. true: grayscale is replicated to RGB,
   // an alpha channel is dropped (not composited), 16-bit samples keep their high byte.
   bool convert_to_rgb8 = false;
+  // Files declaring more pixels are refused before decoding: a few hundred bytes of JPEG can
+  // declare a 28960 x 3072 image (a decompression bomb, found by fuzz/fuzz_image). 2^25 holds 8K UHD.
+  std::int64_t max_pixels = std::int64_t{1} << 25;
 };
 
 inline constexpr std::int64_t kImageMultiple = 32;  // the DC-AE's total downsampling
@@ -275,6 +278,8 @@ inline Image decode_image(std::span<const std::uint8_t> bytes, const std::string
   int w = 0, h = 0, comp = 0;
   EPONA_CHECK(stbi_info_from_memory(bytes.data(), len, &w, &h, &comp), source, ": cannot decode image (",
               stbi_failure_reason(), ")");
+  EPONA_CHECK(std::int64_t{w} * h <= opt.max_pixels, source, ": image is ", h, "x", w, " (", std::int64_t{w} * h,
+              " pixels), more than ImageReadOptions::max_pixels = ", opt.max_pixels);
   const bool deep = stbi_is_16_bit_from_memory(bytes.data(), len) != 0;
   if (!opt.convert_to_rgb8) {
     EPONA_CHECK(comp == 3, source, ": image has ", comp, " channel(s) (", image_detail::channel_name(comp),
