@@ -37,6 +37,9 @@ declare -A dicts=(
   [safetensors]="json safetensors" [zip]="zip" [pickle]="pickle" [torch_checkpoint]="pickle"
   [config_json]="json config" [npy]="npy" [poses_csv]="csv" [poses_json]="json poses" [poses_npy]="npy"
   [trajectory_csv]="csv" [trajectory_json]="json poses" [image]="image")
+# Seconds one input may run before it counts as a hang: 10, and 30 for images (decoding and
+# resizing up to ImageReadOptions::max_pixels = 33 Mpixel legitimately takes seconds under ASan).
+declare -A timeouts=([image]=30)
 mkdir -p "$work/logs" "$build/dicts"
 stamp=$work/logs/.started
 touch "$stamp"  # findings are the artifacts newer than this
@@ -47,10 +50,10 @@ run_target() {
   for d in ${dicts[$t]:-}; do [ -f "fuzz/dict/$d.dict" ] && cat "fuzz/dict/$d.dict" >>"$dict"; done
   [ -s "$dict" ] && args+=(-dict="$dict")
   mkdir -p "$work/$t" "$work/artifacts/$t" fuzz/corpus/"$t"
-  # -timeout: an input running 10 s is a hang; -rss_limit_mb/-malloc_limit_mb: an input that makes
-  # a reader allocate 1 GB at once or hold over 2 GB (an unchecked size) is a finding.
+  # -rss_limit_mb/-malloc_limit_mb: an input that makes a reader allocate 1 GB at once or hold
+  # over 2 GB (an unchecked size) is a finding.
   nice -n 10 "$build/fuzz/fuzz_$t" "$work/$t" "fuzz/corpus/$t" "${args[@]}" -max_total_time="$seconds" \
-    -timeout=10 -rss_limit_mb=2048 -malloc_limit_mb=1024 -print_final_stats=1 \
+    -timeout="${timeouts[$t]:-10}" -rss_limit_mb=2048 -malloc_limit_mb=1024 -print_final_stats=1 \
     -artifact_prefix="$work/artifacts/$t/" >"$work/logs/$t.log" 2>&1 || true
   echo "fuzz: $t finished"
 }
