@@ -138,7 +138,7 @@ void transformer_blocks() {
     round_to<T>(x);
     HostF ref = x.clone();
     c.forward_inplace(host(), ref, seq, cos_t.data(), sin_t.data());
-    Dev<T> dx = upload<T>(gpu(), x);
+    Dev<float> dx = upload<float>(gpu(), x);  // the residual stream is float32 (bf16: GEMMs in bf16)
     g.forward_inplace(gpu(), dx, seq, dcos.data(), dsin.data());
     check_error(measure(download(gpu(), dx), ref), stage_bound<T>(max_abs(ref)),
                 std::string("TransformerBlock ") + name + " " + type_name<T>());

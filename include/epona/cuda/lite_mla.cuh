@@ -156,8 +156,9 @@ void relu_linear_attention(Context& ctx, const T* qkv, T* out, std::int64_t N, s
   if (N == 0 || HW == 0) return;
   const Geometry g{HW, static_cast<int>(heads), static_cast<int>(d)};
   const bool linear = order == cpu::AttentionOrder::Auto ? HW > d : order == cpu::AttentionOrder::Linear;
-  constexpr int warps = kThreads / 32;
-  const std::int64_t pixel_blocks = std::min<std::int64_t>((HW + warps - 1) / warps, 65535);
+  constexpr int warps = kThreads / 32, pixels_per_warp = 16;  // amortise each block's load of the matrix
+  const std::int64_t pixel_blocks =
+      std::min<std::int64_t>((HW + warps * pixels_per_warp - 1) / (warps * pixels_per_warp), 65535);
   if (!linear) {
     quadratic_kernel<<<grid(pixel_blocks, heads, N), kThreads, 0, ctx.stream()>>>(qkv, out, g, eps);
     EPONA_CUDA_CHECK_LAUNCH();

@@ -41,17 +41,33 @@ __global__ void unshuffle_kernel(const T* __restrict__ x, T* __restrict__ out, G
   }
 }
 
-// out[n, yo, xo, c] (+)= x[n, yo/r, xo/r, m/rep], m = c·r² + (yo%r)·r + xo%r.
-template <class T, class I>
+// out[n, yo, xo, c] (+)= x[n, yo/r, xo/r, m/rep], m = c·r² + (yo%r)·r + xo%r. One thread per
+// kVec consecutive output channels of one pixel (kVec = 8: 16-byte stores, the pixel's index
+// arithmetic done once for the pack).
+template <class T, class I, int kVec>
 __global__ void shuffle_kernel(const T* __restrict__ x, T* __restrict__ out, Geometry<I> q, I total, bool accumulate) {
-  const I rep = q.g_or_rep;
-  for (I i = blockIdx.x * blockDim.x + threadIdx.x; i < total; i += gridDim.x * blockDim.x) {
-    const I c = i % q.Co, pixel = i / q.Co;
+  const I rep = q.g_or_rep, packs = q.Co / kVec, items = total / kVec;
+  for (I i = blockIdx.x * blockDim.x + threadIdx.x; i < items; i += gridDim.x * blockDim.x) {
+    const I c0 = (i % packs) * kVec, pixel = i / packs;
     const I xo = pixel % q.Wo, rest = pixel / q.Wo, yo = rest % q.Ho, n = rest / q.Ho;
-    const I m = c * q.r * q.r + (yo % q.r) * q.r + xo % q.r;
-    float v = detail::to_f32(x[((n * q.H + yo / q.r) * q.W + xo / q.r) * q.C + m / rep]);
-    if (accumulate) v += detail::to_f32(out[i]);
-    out[i] = detail::from_f32<T>(v);
+    const I sub = (yo % q.r) * q.r + xo % q.r;
+    const T* src = x + ((n * q.H + yo / q.r) * q.W + xo / q.r) * q.C;
+    float v[kVec];
+#pragma unroll
+    for (int j = 0; j < kVec; ++j) v[j] = detail::to_f32(src[((c0 + j) * q.r * q.r + sub) / rep]);
+    T* dst = out + pixel * q.Co + c0;
+    if constexpr (kVec == detail::kPack) {
+      if (accumulate) {
+        float o[kVec];
+        detail::load8(dst, o);
+#pragma unroll
+        for (int j = 0; j < kVec; ++j) v[j] += o[j];
+      }
+      detail::store8(dst, v);
+    } else {
+      if (accumulate) v[0] += detail::to_f32(dst[0]);
+      dst[0] = detail::from_f32<T>(v[0]);
+    }
   }
 }
 
@@ -80,7 +96,10 @@ struct UnshuffleLaunch {
 template <class T, class I>
 struct ShuffleLaunch {
   static void run(unsigned b, int t, cudaStream_t s, const T* x, T* o, Geometry<I> q, I n, bool acc) {
-    shuffle_kernel<T, I><<<b, t, 0, s>>>(x, o, q, n, acc);
+    if (q.Co % detail::kPack == 0 && detail::aligned16(o))
+      shuffle_kernel<T, I, detail::kPack><<<std::max(1u, b / detail::kPack), t, 0, s>>>(x, o, q, n, acc);
+    else
+      shuffle_kernel<T, I, 1><<<b, t, 0, s>>>(x, o, q, n, acc);
   }
 };
 

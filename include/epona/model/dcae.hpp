@@ -264,7 +264,7 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
     EPONA_CHECK(frames > 0 && N % frames == 0, "temporal blocks: ", N, " latents are not whole clips of ", frames,
                 " frames");
     const std::int64_t clips = N / frames;
-    Map x = to_tokens(ctx, latent).reshape({N * L, C});  // rows (clip, f, l)
+    Tensor<float, B> x = to_tokens(ctx, latent).reshape({N * L, C});  // rows (clip, f, l), float32
     const nn::TokenSequences time{clips, L, frames, 1, L, true}, space{clips, frames, L, L, 1, false};
     if (!time_blocks.empty()) {
       const auto& time_rope = rope_tables(time);
@@ -312,15 +312,16 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
   }
   std::shared_ptr<RopeCache> rope_cache_ = std::make_shared<RopeCache>();
 
-  // A latent map as (N, L, C) tokens (a new tensor) and back: a copy channels-last, a transpose in NCHW.
+  // A latent map as float32 (N, L, C) tokens (a new tensor) and back: a copy (with the type
+  // conversion) channels-last, a transpose in NCHW.
   template <class Ctx>
-  static Map to_tokens(Ctx& ctx, const Map& latent) {
-    if constexpr (channels_last_maps<B>) return nn::copy_of(ctx, latent);
+  static Tensor<float, B> to_tokens(Ctx& ctx, const Map& latent) {
+    if constexpr (channels_last_maps<B>) return nn::converted<float>(ctx, latent);
     else return latent_to_tokens(ctx, latent);
   }
   template <class Ctx>
-  static Map from_tokens(Ctx& ctx, const Map& tokens, const nn::MapDims& d) {
-    if constexpr (channels_last_maps<B>) return tokens.reshape(nn::map_shape<B>(d));
+  static Map from_tokens(Ctx& ctx, const Tensor<float, B>& tokens, const nn::MapDims& d) {
+    if constexpr (channels_last_maps<B>) return nn::converted<activation_t<B, T>>(ctx, tokens).reshape(nn::map_shape<B>(d));
     else return tokens_to_latent(ctx, tokens, d.height, d.width);
   }
 };

@@ -115,6 +115,19 @@ Tensor<A, B> copy_of(Ctx& ctx, const Tensor<A, B>& x) {
   }
 }
 
+// A copy of x with elements of type TO (float <-> bf16 rounds to nearest even), in a new
+// intermediate tensor.
+template <class TO, class Ctx, class TI, class B>
+Tensor<TO, B> converted(Ctx& ctx, const Tensor<TI, B>& x) {
+  if constexpr (std::is_same_v<TO, TI>) {
+    return copy_of(ctx, x);
+  } else {
+    Tensor<TO, B> y = new_tensor<TO, B>(ctx, x.shape());
+    convert(ctx, x.data(), y.data(), x.numel());  // the backend's element-type conversion
+    return y;
+  }
+}
+
 // Public NCHW float32 (N, C, H, W) -> a map of B in its own order and type A. The CPU's maps
 // already are that: the same tensor is returned (treat it as read-only).
 template <class A, class Ctx, class B>

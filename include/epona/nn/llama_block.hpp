@@ -85,8 +85,11 @@ struct TransformerBlock : Bindable<TransformerBlock<B, T>> {
   using Rows = Tensor<Act, B>;
 
   // x (rows, D) updated in place; cos/sin (backend memory) from rope_table_1d(seq, head_dim(), rope_theta).
+  // The residual stream x stays float32 whatever T (as under the reference's autocast, where
+  // x + bf16 branch promotes to float32); the norms feed the GEMMs in Act, which run in Act.
   template <class Ctx>
-  void forward_inplace(Ctx& ctx, Rows& x, const TokenSequences& seq, const float* cos_t, const float* sin_t) const {
+  void forward_inplace(Ctx& ctx, Tensor<float, B>& x, const TokenSequences& seq, const float* cos_t,
+                       const float* sin_t) const {
     const std::int64_t rows = seq.rows(), D = dim;
     check_shape(x, {rows, D}, "TransformerBlock input");
     const Tensor<T, B> none;
@@ -112,11 +115,16 @@ struct TransformerBlock : Bindable<TransformerBlock<B, T>> {
   }
 
  private:
-  // RMSNorm without bias: v · 1/sqrt(mean(v²) + eps) · weight, into a copy.
+  // RMSNorm without bias: v · 1/sqrt(mean(v²) + eps) · weight, into a new tensor of Act.
   template <class Ctx>
-  Rows normed(Ctx& ctx, const Rows& x, const Tensor<float, B>& weight) const {
-    Rows h = copy_of(ctx, x);
-    rms_norm_heads(ctx, h.data(), x.size(0), dim, 1, dim, weight.data(), norm_eps);
+  Rows normed(Ctx& ctx, const Tensor<float, B>& x, const Tensor<float, B>& weight) const {
+    Rows h = new_tensor<Act, B>(ctx, x.shape());
+    if constexpr (is_host_backend<B>) {
+      copy(ctx, x.data(), h.data(), x.numel());
+      rms_norm_heads(ctx, h.data(), x.size(0), dim, 1, dim, weight.data(), norm_eps);
+    } else {
+      rms_norm_rows(ctx, x.data(), h.data(), x.size(0), dim, weight.data(), norm_eps);
+    }
     return h;
   }
 
