@@ -14,6 +14,7 @@
 
 #include "epona/cpu/context.hpp"
 #include "epona/io/config_json.hpp"
+#include "epona/io/load_weights.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/model/dcae.hpp"
 
@@ -29,8 +30,14 @@ std::string golden_dir() {
   return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
 }
 
+// $EPONA_DCAE_WEIGHTS (.safetensors or official-format .pkl) overrides the golden weights file.
+std::string dcae_weights_path() {
+  const char* env = std::getenv("EPONA_DCAE_WEIGHTS");
+  return env && *env ? env : golden_dir() + "/weights_dcae.safetensors";
+}
+
 struct Golden {
-  io::TensorMap weights = io::load_safetensors(golden_dir() + "/weights_dcae.safetensors");
+  io::TensorMap weights = io::load_weights(dcae_weights_path());
   io::TensorMap cases = io::load_safetensors(golden_dir() + "/cases.safetensors");
   DcaeConfig config = io::load_configs(golden_dir() + "/configs.json").dcae;
   HostTensor input(const std::string& name) const { return io::to_tensor<float>(cases.at(name)); }

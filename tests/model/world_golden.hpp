@@ -13,6 +13,7 @@
 
 #include "epona/core/tensor.hpp"
 #include "epona/io/config_json.hpp"
+#include "epona/io/load_weights.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/io/tensor_map.hpp"
 
@@ -32,8 +33,15 @@ struct WorldGolden {
   const WorldModelConfig& world() const { return configs.world; }
 };
 
+// The world-model weights: $EPONA_WORLD_WEIGHTS (a .safetensors or an official-format .pkl, so
+// the same parity checks run on weights read by the checkpoint loader), else the golden file.
+inline std::string world_weights_path() {
+  const char* env = std::getenv("EPONA_WORLD_WEIGHTS");
+  return env && *env ? std::string(env) : golden_dir() + "/weights_world.safetensors";
+}
+
 inline const WorldGolden& world_golden() {
-  static const WorldGolden g{io::load_safetensors(golden_dir() + "/weights_world.safetensors"),
+  static const WorldGolden g{io::load_weights(world_weights_path()),
                              io::load_safetensors(golden_dir() + "/cases.safetensors"),
                              io::load_configs(golden_dir() + "/configs.json")};
   return g;
