@@ -1,0 +1,33 @@
+// epona/epona.hpp — the umbrella header: the CPU backend, the readers, the models (MST,
+// TrajDiT/VisDiT, DC-AE with its temporal decoder), the samplers and the world-model API.
+// The CUDA backend is added by including epona/cuda/backend.cuh from a .cu file; the stb
+// implementation by including epona/io/stb_implementation.hpp in exactly one source file.
+#pragma once
+
+#include "epona/core/arena.hpp"
+#include "epona/core/backend.hpp"
+#include "epona/core/dtype.hpp"
+#include "epona/core/error.hpp"
+#include "epona/core/rng.hpp"
+#include "epona/core/tensor.hpp"
+
+#include "epona/cpu/ops.hpp"
+
+#include "epona/flow/euler.hpp"
+#include "epona/flow/schedule.hpp"
+
+#include "epona/io/config_json.hpp"
+#include "epona/io/image.hpp"
+#include "epona/io/load_weights.hpp"
+#include "epona/io/npy.hpp"
+#include "epona/io/poses.hpp"
+#include "epona/io/safetensors.hpp"
+#include "epona/io/torch_checkpoint.hpp"
+#include "epona/io/trajectory_io.hpp"
+
+#include "epona/model/config.hpp"
+#include "epona/model/dcae.hpp"
+#include "epona/model/latent_layout.hpp"
+#include "epona/model/relative_pose.hpp"
+#include "epona/model/rollout.hpp"
+#include "epona/model/world_model.hpp"
