@@ -1,0 +1,147 @@
+// The epona program's CUDA engine (apps/epona/engine.hpp, ModelEngine<Cuda, W>, what
+// `--backend cuda` runs) against its CPU engine on the golden model (EPONA_GOLDEN_DIR): DC-AE
+// encode and decode (frame and clip), plan, and two rollout steps sharing one noise source.
+// Tolerances as the GPU parity tests (golden README): float32 rel_max <= 1e-4 per stage, 1e-3
+// after a rollout step; bf16 runs and gives finite values of the right shapes. Skips without a GPU.
+#include <doctest/doctest.h>
+
+#include <cmath>
+#include <cstdlib>
+#include <string>
+
+#include "../../apps/epona/engine.hpp"
+#include "../../apps/epona/frames.hpp"
+#include "../cuda/cuda_test_util.cuh"
+#include "epona/cuda/backend.cuh"
+#include "epona/cuda/dcae_ops.cuh"
+#include "epona/model/rollout.hpp"
+
+using namespace epona;
+
+namespace {
+
+std::string golden_dir() {
+  const char* env = std::getenv("EPONA_GOLDEN_DIR");
+  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
+}
+
+app::ModelFiles golden_files() {
+  app::ModelFiles f;
+  f.world = golden_dir() + "/weights_world.safetensors";
+  f.dcae = golden_dir() + "/weights_dcae.safetensors";
+  f.configs = io::load_configs(golden_dir() + "/configs.json");
+  f.config_source = golden_dir() + "/configs.json";
+  return f;
+}
+
+// max |a - b| / max |b|; infinite when a has a non-finite value.
+double rel_max(const Tensor<float>& a, const Tensor<float>& b) {
+  REQUIRE(a.shape() == b.shape());
+  double d = 0, m = 0;
+  for (std::int64_t i = 0; i < a.numel(); ++i) {
+    if (!std::isfinite(a.data()[i])) return INFINITY;
+    d = std::max(d, std::abs(double(a.data()[i]) - double(b.data()[i])));
+    m = std::max(m, std::abs(double(b.data()[i])));
+  }
+  return d / std::max(m, 1e-30);
+}
+
+bool all_finite(const Tensor<float>& t) {
+  for (std::int64_t i = 0; i < t.numel(); ++i)
+    if (!std::isfinite(t.data()[i])) return false;
+  return true;
+}
+
+std::unique_ptr<app::Engine> loaded(const std::string& backend, bool bf16_weights, const app::ModelFiles& f) {
+  std::ostringstream sink;
+  const app::Console quiet{sink, sink, true, false};
+  app::ComputeOptions c;
+  c.backend = backend;
+  c.bf16_weights = bf16_weights;
+  std::unique_ptr<app::Engine> e;  // what apps/epona/cuda_engine.cu's make_cuda_engine builds
+  if (backend == "cuda" && bf16_weights)
+    e = std::make_unique<app::ModelEngine<Cuda, bf16>>(c);
+  else if (backend == "cuda")
+    e = std::make_unique<app::ModelEngine<Cuda, float>>(c);
+  else
+    e = app::make_engine(c);
+  e->load_dcae(f, quiet);
+  e->load_world(f, quiet);
+  return e;
+}
+
+// The golden model's window from the demo frames (resized) and 2 m-per-frame motions.
+History window_of(app::Engine& e, const WorldModelConfig& w) {
+  std::vector<io::Image> frames;
+  io::PoseSequence poses;
+  for (std::int64_t i = 0; i < w.condition_frames; ++i) {
+    const auto img = io::read_image(std::string(EPONA_TEST_DATA_DIR) + "/demo/frame_0" + std::to_string(i % 3) + ".png");
+    frames.push_back(io::resize_bicubic(img, w.image_h, w.image_w));
+    poses.x.push_back(2.0f), poses.y.push_back(0.1f), poses.yaw.push_back(0.5f);
+  }
+  std::ostringstream sink;
+  cpu::Context ctx;
+  return app::make_history(ctx, app::encode_frames(e, frames, app::Console{sink, sink, true, false}), poses);
+}
+
+}  // namespace
+
+TEST_CASE("CUDA engine, float32: encode, decode, plan and rollout steps match the CPU engine") {
+  EPONA_REQUIRE_GPU();
+  const auto files = golden_files();
+  const auto& w = files.configs.world;
+  auto cpu_engine = loaded("cpu", false, files);
+  auto gpu_engine = loaded("cuda", false, files);
+
+  const History h_cpu = window_of(*cpu_engine, w), h_gpu = window_of(*gpu_engine, w);
+  CHECK(rel_max(h_gpu.latents, h_cpu.latents) <= 1e-4);
+
+  cpu::Context ctx;
+  const Tensor<float> z = tokens_to_latent(ctx, h_cpu.latents.reshape({w.condition_frames, w.img_tokens(), w.token_dim()}),
+                                           w.latent_h(), w.latent_w());
+  CHECK(rel_max(gpu_engine->decode(z, false), cpu_engine->decode(z, false)) <= 1e-4);
+  const std::int64_t clip = files.configs.dcae.condition_frames;
+  if (files.configs.dcae.add_decoder_temporal && z.size(0) >= clip)
+    CHECK(rel_max(gpu_engine->decode(z.slice(0, clip), true), cpu_engine->decode(z.slice(0, clip), true)) <= 1e-4);
+
+  SampleOptions opt;
+  opt.seed = 5;
+  opt.steps = 3;
+  CHECK(rel_max(gpu_engine->plan(h_cpu, opt), cpu_engine->plan(h_cpu, opt)) <= 1e-4);
+
+  NoiseSource n_cpu = NoiseSource::seeded(9), n_gpu = NoiseSource::seeded(9);
+  History a = h_cpu, b = h_cpu;
+  for (int s = 0; s < 2; ++s) {
+    const StepResult rc = cpu_engine->step(a, nullptr, 3, n_cpu);
+    const StepResult rg = gpu_engine->step(b, nullptr, 3, n_gpu);
+    CHECK(rel_max(rg.trajectory, rc.trajectory) <= 1e-3);
+    CHECK(rel_max(rg.latent, rc.latent) <= 1e-3);
+    model::slide_window(a, rc.latent, rc.trajectory);
+    model::slide_window(b, rg.latent, rg.trajectory);
+  }
+}
+
+TEST_CASE("CUDA engine, bf16: runs end to end with finite results") {
+  EPONA_REQUIRE_GPU();
+  const auto files = golden_files();
+  const auto& w = files.configs.world;
+  auto gpu_engine = loaded("cuda", true, files);
+  const History h = window_of(*gpu_engine, w);
+  CHECK(all_finite(h.latents));
+  SampleOptions opt;
+  opt.steps = 2;
+  const Tensor<float> plan = gpu_engine->plan(h, opt);
+  CHECK(plan.shape() == Shape{1, w.traj_len, 3});
+  CHECK(all_finite(plan));
+  NoiseSource noise = NoiseSource::seeded(0);
+  const StepResult r = gpu_engine->step(h, nullptr, 2, noise);
+  CHECK(all_finite(r.latent));
+  cpu::Context ctx;
+  const Tensor<float> images =
+      gpu_engine->decode(tokens_to_latent(ctx, r.latent, w.latent_h(), w.latent_w()), false);
+  CHECK(images.shape() == Shape{1, 3, w.image_h, w.image_w});
+  CHECK(all_finite(images));
+}
+
+// The one translation unit of this program that compiles stb (after every other include).
+#include "epona/io/stb_implementation.hpp"
