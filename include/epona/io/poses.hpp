@@ -180,7 +180,7 @@ inline PoseSequence parse_pose_csv(std::string_view text, const std::string& sou
   std::array<int, 3> col{0, 1, 2};
   bool first_row = true;
   for_each_csv_line(text, [&](std::size_t line_no, std::string_view line) {
-    const auto where = [&] { return detail::concat(source, ": line ", line_no); };
+    const auto where = [&] { return epona::detail::concat(source, ": line ", line_no); };
     const auto fields = split_fields(line);
     double v[3];
     const bool numeric = fields.size() == 3 && parse_number(fields[0], v[0]) && parse_number(fields[1], v[1]) &&
@@ -209,7 +209,7 @@ inline PoseSequence parse_pose_csv(std::string_view text, const std::string& sou
 namespace poses_detail {
 
 inline void push_json_entry(PoseSequence& s, const nlohmann::json& e, std::size_t i, const std::string& source) {
-  const std::string where = detail::concat(source, ": pose ", i);
+  const std::string where = epona::detail::concat(source, ": pose ", i);
   if (e.is_array()) {
     EPONA_CHECK(e.size() == 3, where, ": expected [x, y, yaw], got ", e.size(), " values");
     push_motion(s, json_number(e[0], "x", where), json_number(e[1], "y", where), json_number(e[2], "yaw", where),
@@ -229,7 +229,7 @@ inline Tensor<double> json_matrices(const nlohmann::json& a, const std::string& 
   EPONA_CHECK(a.is_array(), source, ": \"absolute\" must be a list of 4x4 matrices");
   Tensor<double> t({1, static_cast<std::int64_t>(a.size()), 4, 4});
   for (std::size_t i = 0; i < a.size(); ++i) {
-    const std::string where = detail::concat(source, ": absolute pose ", i);
+    const std::string where = epona::detail::concat(source, ": absolute pose ", i);
     EPONA_CHECK(a[i].is_array() && a[i].size() == 4, where, ": expected a 4x4 matrix (4 rows of 4 numbers)");
     for (std::size_t r = 0; r < 4; ++r) {
       EPONA_CHECK(a[i][r].is_array() && a[i][r].size() == 4, where, ": row ", r, " must hold 4 numbers");
@@ -267,7 +267,7 @@ PoseSequence poses_from_absolute(const Tensor<S>& absolute, const std::string& s
   PoseSequence s;
   for (std::int64_t i = 0; i < n; ++i)
     poses_detail::push_motion(s, rel.pose.data()[2 * i], rel.pose.data()[2 * i + 1], rel.yaw.data()[i],
-                              [&] { return detail::concat(source, ": motion into absolute pose ", i); });
+                              [&] { return epona::detail::concat(source, ": motion into absolute pose ", i); });
   return s;
 }
 
@@ -311,7 +311,7 @@ inline PoseSequence read_demo_poses(const std::filesystem::path& pose_npy, const
   PoseSequence s;
   for (std::int64_t i = 0; i < n; ++i)
     poses_detail::push_motion(s, pose.data()[2 * i], pose.data()[2 * i + 1], yaw.data()[i], [&] {
-      return detail::concat(pose_npy.string(), " / ", yaw_npy.filename().string(), ": row ", i);
+      return epona::detail::concat(pose_npy.string(), " / ", yaw_npy.filename().string(), ": row ", i);
     });
   return s;
 }
@@ -334,7 +334,7 @@ inline PoseSequence load_poses(const std::filesystem::path& path) {
       PoseSequence s;
       for (std::int64_t i = 0; i < a.size(0); ++i)
         poses_detail::push_motion(s, a.at(i, 0), a.at(i, 1), a.at(i, 2),
-                                  [&] { return detail::concat(path.string(), ": row ", i); });
+                                  [&] { return epona::detail::concat(path.string(), ": row ", i); });
       poses_detail::check_not_empty(s, path.string());
       return s;
     }

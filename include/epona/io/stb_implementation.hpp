@@ -32,3 +32,7 @@
 #if defined(__GNUC__)
 #pragma GCC diagnostic pop
 #endif
+
+// Later inclusions of the stb headers must not compile the implementation again.
+#undef STB_IMAGE_IMPLEMENTATION
+#undef STB_IMAGE_WRITE_IMPLEMENTATION

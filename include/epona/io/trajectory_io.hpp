@@ -170,7 +170,7 @@ inline Tensor<float> parse_trajectory_csv(std::string_view text, const std::stri
   traj_detail::GridBuilder grid;
   bool header_seen = false;
   for_each_csv_line(text, [&](std::size_t line_no, std::string_view line) {
-    const auto where = [&] { return detail::concat(source, ": line ", line_no); };
+    const auto where = [&] { return epona::detail::concat(source, ": line ", line_no); };
     const auto fields = split_fields(line);
     if (!header_seen) {
       std::string joined;
@@ -214,7 +214,7 @@ inline Tensor<float> parse_trajectory_json(std::string_view text, const std::str
   for (std::size_t s = 0; s < steps.size(); ++s) {
     EPONA_CHECK(steps[s].is_array() && !steps[s].empty(), source, ": step ", s, " must be a non-empty list of waypoints");
     for (std::size_t w = 0; w < steps[s].size(); ++w) {
-      const std::string where = detail::concat(source, ": step ", s, ", waypoint ", w);
+      const std::string where = epona::detail::concat(source, ": step ", s, ", waypoint ", w);
       const auto& e = steps[s][w];
       EPONA_CHECK(e.is_array() && e.size() == 3, where, ": expected [x, y, yaw], got ", e.dump());
       const double v[3] = {poses_detail::json_number(e[0], "x", where), poses_detail::json_number(e[1], "y", where),
