@@ -125,9 +125,12 @@ std::string json_list(const std::vector<double>& v) {
   return s.str() + ']';
 }
 
-// The AVX-512 tile when an AVX-512 kernel family runs, else "-".
-const char* tile_name() {
-  if (cpu::active_isa() != cpu::Isa::Avx512 && cpu::active_isa() != cpu::Isa::Avx512Bf16) return "-";
+// The GEMM tile of the kernels that ran: AMX's for bf16 weights under it, the AVX-512 one when
+// an AVX-512 family runs (float32 weights under AMX too), else "-".
+const char* tile_name(bool bf16_weights = false) {
+  const cpu::Isa isa = cpu::active_isa();
+  if (isa == cpu::Isa::Amx && bf16_weights) return "amx32x32";
+  if (isa != cpu::Isa::Avx512 && isa != cpu::Isa::Avx512Bf16 && isa != cpu::Isa::Amx) return "-";
   return cpu::detail::avx512_tile() == cpu::gemm::Tile::Wide ? "6x64" : "14x32";
 }
 
@@ -138,7 +141,7 @@ void emit(const std::string& name, const std::string& weights, int threads, doub
       "\"gflops\": %.1f, \"process_cpu_ms\": %.4f, \"thread_cpu_ms\": %.4f, \"isa\": \"%s\", \"tile\": \"%s\", "
       "\"runs\": %s}\n",
       name.c_str(), weights.c_str(), threads, ms, minimum(r.wall_ms), gflop, gflop / (ms * 1e-3),
-      median(r.process_cpu_ms), median(r.thread_cpu_ms), cpu::isa_name(cpu::active_isa()), tile_name(),
+      median(r.process_cpu_ms), median(r.thread_cpu_ms), cpu::isa_name(cpu::active_isa()), tile_name(weights == "bf16"),
       json_list(r.wall_ms).c_str());
   std::fflush(stdout);
 }

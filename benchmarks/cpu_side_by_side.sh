@@ -10,10 +10,12 @@
 #   (benchmarks/build_cpu_portable.sh); the v4 build is used when the CPU has AVX-512 F/BW/DQ/VL.
 #   Default: build-perf/portable.
 # --tests: a folder with portable test programs (test_cpu_gemm_*) to run on this CPU first.
+# The main columns run the default dispatch: for bf16 weights the AMX tiles where the CPU (and
+#   the OS) offer them, else the AVX512-BF16 dot products, else widening.
 # Extras (unless --no-extras): the other AVX-512 tile (EPONA_CPU_TILE) on gemm2048 + MST,
-#   bf16 weights widened to float32 (EPONA_CPU_ISA=avx512) on MST + VisDiT, and, where the CPU
-#   has AMX, the opt-in AMX kernels (EPONA_CPU_ISA=amx) on the bf16 calls: what the kernel
-#   choices are worth on this CPU.
+#   bf16 weights widened to float32 (EPONA_CPU_ISA=avx512) on MST + VisDiT, and, where the
+#   default is AMX, the AVX512-BF16 dot-product kernels (EPONA_CPU_ISA=avx512bf16) on the bf16
+#   calls: what the kernel choices are worth on this CPU.
 # The PyTorch run hides the GPUs (CUDA_VISIBLE_DEVICES=) so that nothing of it can run there.
 # Raw JSON lines and the table are kept in --out (default: out/cpu_side_by_side).
 set -euo pipefail
@@ -115,10 +117,11 @@ for t in "${thread_list[@]}"; do
       EPONA_CPU_ISA=avx512 "$bench_bin" --threads "$t" --repeats "$repeats" --warmup "$warmup" --weights bf16 \
         --calls mst,vis_eval | grep -v '"machine"' | sed 's/"name": "/"name": "widened:/' >> "$out/epona_extra_$t.jsonl" || true
     fi
-    if grep -q '"amx_bf16": true' "$out/epona_$t.jsonl"; then  # the opt-in AMX kernels
-      EPONA_CPU_ISA=amx "$bench_bin" --threads "$t" --repeats "$repeats" --warmup "$warmup" --weights bf16 \
-        --calls mst,traj_eval,vis_eval 2>> "$out/epona_$t.log" | grep -v '"machine"' | sed 's/"name": "/"name": "amx:/' \
-        >> "$out/epona_extra_$t.jsonl" || log "AMX run failed at $t threads (see $out/epona_$t.log)"
+    if grep -q '"active_isa": "amx"' "$out/epona_$t.jsonl"; then  # AMX by default: the dot products beside it
+      EPONA_CPU_ISA=avx512bf16 "$bench_bin" --threads "$t" --repeats "$repeats" --warmup "$warmup" --weights bf16 \
+        --calls mst,traj_eval,vis_eval 2>> "$out/epona_$t.log" | grep -v '"machine"' \
+        | sed 's/"name": "/"name": "avx512bf16:/' >> "$out/epona_extra_$t.jsonl" \
+        || log "AVX512-BF16 run failed at $t threads (see $out/epona_$t.log)"
     fi
   fi
 done
@@ -143,7 +146,8 @@ calls = [("mst", "MST evaluate, 10 frames"), ("traj_eval", "TrajDiT one evaluati
          ("vis_eval", "VisDiT one evaluation"), ("dcae_decode", "DC-AE decode 128x256"),
          ("gemm2048", "fp32 GEMM 2048³ (ceiling)")]
 machine = next((r for r in load(os.path.join(out, f"epona_{threads[0]}.jsonl")) if r["name"] == "machine"), {})
-print(f"CPU: {machine.get('cpu', '?')}; epona kernels: {machine.get('active_isa', '?')}, AVX-512 tile {machine.get('tile', '?')}")
+print(f"CPU: {machine.get('cpu', '?')}; epona kernels: {machine.get('active_isa', '?')} (bf16 weights: "
+      f"{'AMX tiles' if machine.get('active_isa') == 'amx' else 'as named'}), AVX-512 tile {machine.get('tile', '?')}")
 print()
 print("| call | threads | PyTorch fp32 ms | epona fp32 ms | fp32 ratio | epona bf16w ms | bf16w ratio | epona fp32 GFLOP/s |")
 print("|---|---:|---:|---:|---:|---:|---:|---:|")
@@ -164,7 +168,7 @@ for t in threads:
             verdicts.append(f"{'ok  ' if p['ms'] / b['ms'] >= 1.5 else 'MISS'} bf16 >= 1.5x PyTorch fp32: {label}, "
                             f"{t} threads ({p['ms'] / b['ms']:.2f}x)")
 print()
-print("ratio = epona / PyTorch (below 1: epona faster). bf16w = bf16 weights, fp32 accumulation.")
+print("ratio = epona / PyTorch (below 1: epona faster). bf16w = bf16 weights, fp32 accumulation, default kernels.")
 print()
 for v in verdicts:
     print(v)

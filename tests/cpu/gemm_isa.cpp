@@ -1,4 +1,5 @@
-// The run-time choice of GEMM kernels (epona/cpu/cpu_features.hpp) and its fallbacks: every
+// The run-time choice of GEMM kernels (epona/cpu/cpu_features.hpp) and its fallbacks: the
+// default chain AMX > AVX512-BF16 > AVX-512 > AVX2 > generic on synthetic feature sets; every
 // kernel family forced in turn (set_isa / ScopedIsa, what EPONA_CPU_ISA does) gives linear's
 // float64 result; a family the CPU lacks is refused with a message, never run; EPONA_CPU_ISA
 // values are parsed strictly. "No illegal instruction on an older CPU": in a portable build
@@ -77,6 +78,40 @@ TEST_CASE("every kernel family this CPU offers can be forced and gives the float
     CHECK(cpu::active_isa() == isa);
     check_linear_matches_float64<float>(1e-5);
     check_linear_matches_float64<bf16>(bf16_tolerance(isa));
+  }
+}
+
+TEST_CASE("the default is the highest family the CPU and OS offer: AMX > AVX512-BF16 > AVX-512 > AVX2 > generic") {
+  // best() on feature sets with one capability taken away at a time: each falls back one step.
+  cpu::CpuFeatures f;
+  f.avx2_fma = f.avx512 = f.avx512_bf16 = f.amx_bf16 = f.amx_permitted = true;
+  CHECK(f.best() == Isa::Amx);
+  for (Isa isa : kAllIsas) CHECK(f.supports(isa));
+  f.amx_permitted = false;  // the tile unit is there, but Linux refused the tile state
+  CHECK(f.best() == Isa::Avx512Bf16);
+  CHECK_FALSE(f.supports(Isa::Amx));
+  f.amx_permitted = true;
+  f.avx512_bf16 = false;  // AMX without AVX512-BF16 (its A packing needs vcvtne2ps2bf16)
+  CHECK(f.best() == Isa::Avx512);
+  f.amx_bf16 = false;
+  CHECK(f.best() == Isa::Avx512);
+  f.avx512 = false;
+  CHECK(f.best() == Isa::Avx2);
+  CHECK(f.supports(Isa::Generic));
+  CHECK_FALSE(f.supports(Isa::Avx512));
+  f.avx2_fma = false;
+  CHECK(f.best() == Isa::Generic);
+  CHECK_FALSE(f.supports(Isa::Avx2));
+
+  // This CPU: AMX is the default exactly when the tile unit, AVX512-BF16 and the permission are there.
+  const cpu::CpuFeatures& here = cpu::cpu_features();
+  MESSAGE("amx_bf16 ", here.amx_bf16, ", permitted ", here.amx_permitted, " -> default '",
+          cpu::isa_name(cpu::isa_from_setting(nullptr)), "'");
+  CHECK((here.best() == Isa::Amx) == (here.avx512 && here.avx512_bf16 && here.amx_bf16 && here.amx_permitted));
+  CHECK(here.amx_permitted <= here.amx_bf16);  // permission is asked only where XCR0 has the tile state
+  if (!std::getenv("EPONA_CPU_ISA")) {
+    cpu::reset_isa();
+    CHECK(cpu::active_isa() == here.best());
   }
 }
 

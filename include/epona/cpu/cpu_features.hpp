@@ -1,7 +1,7 @@
 // epona/cpu/cpu_features.hpp — which x86 vector extensions this CPU and its OS offer (cpuid +
-// xgetbv), and which GEMM kernel family the library runs: the best available, or a lower one
-// forced with EPONA_CPU_ISA=generic|avx2|avx512|avx512bf16 (tests, comparisons, a faulty CPU),
-// or the opt-in AMX kernels with EPONA_CPU_ISA=amx.
+// xgetbv, and for AMX the kernel's tile permission), and which GEMM kernel family the library
+// runs: the best available (AMX > AVX512-BF16 > AVX-512 > AVX2 > generic), or another forced
+// with EPONA_CPU_ISA=generic|avx2|avx512|avx512bf16|amx (tests, comparisons, a faulty CPU).
 #pragma once
 
 #include <atomic>
@@ -26,9 +26,9 @@ namespace epona::cpu {
 // Avx2: AVX2 + FMA micro-kernels. Avx512: AVX-512 F/BW/DQ/VL micro-kernels (bf16 weights
 // widened to float32 while packing). Avx512Bf16: as Avx512, but bf16 weights multiply with
 // AVX512-BF16 dot products (activations rounded to bf16; fp32 accumulation). Amx: as
-// Avx512Bf16 with the bf16 products on Sapphire Rapids' AMX tiles — opt-in only (never
-// chosen by itself): it could not be run where it was written; its layout is tested through
-// an emulation of the instructions, the instructions themselves only on a CPU that has them.
+// Avx512Bf16 with the bf16 products on Sapphire Rapids' AMX tiles (float32 weights run the
+// AVX-512 kernels under it). Each family needs every extension of the ones below it, so
+// "the best" is one name and every lower one is a fallback the same CPU can run.
 enum class Isa : int { Generic = 0, Avx2 = 1, Avx512 = 2, Avx512Bf16 = 3, Amx = 4 };
 
 inline const char* isa_name(Isa isa) {
@@ -47,9 +47,13 @@ struct CpuFeatures {
   bool avx512 = false;       // AVX-512 F, BW, DQ, VL, with the OS saving zmm and mask state
   bool avx512_bf16 = false;  // AVX512_BF16 (vdpbf16ps, vcvtne2ps2bf16)
   bool amd = false;          // "AuthenticAMD": Zen 4/5 run a 512-bit FMA as two 256-bit halves
-  bool amx_bf16 = false;     // AMX tiles + BF16 with the OS supporting tile state (reported, not used)
+  bool amx_bf16 = false;     // AMX tiles + BF16 with the OS supporting tile state (XCR0)
+  bool amx_permitted = false;  // Linux granted this process the tile data (asked only when amx_bf16)
 
-  Isa best() const {  // AMX is never chosen by itself (see Isa)
+  // The highest family this CPU can run: AMX > AVX512-BF16 > AVX-512 > AVX2 > generic. AMX
+  // also needs AVX512-BF16 (its A panels are rounded with vcvtne2ps2bf16) and the permission.
+  Isa best() const {
+    if (avx512 && avx512_bf16 && amx_bf16 && amx_permitted) return Isa::Amx;
     if (avx512 && avx512_bf16) return Isa::Avx512Bf16;
     if (avx512) return Isa::Avx512;
     if (avx2_fma) return Isa::Avx2;
@@ -59,25 +63,19 @@ struct CpuFeatures {
 };
 
 namespace detail {
-// Linux lends the AMX tile state to a process only on request (arch_prctl); asked once, the
-// first time the AMX kernels are wanted.
-inline bool amx_permitted() {
+// Linux lends the AMX tile state to a process only on request (arch_prctl); asked once, while
+// the features are detected, and only on a CPU whose XCR0 has the tile state.
+inline bool request_amx_permission() {
 #if defined(__linux__) && defined(__x86_64__)
-  static const bool ok = [] {
-    constexpr long kReqXcompPerm = 0x1023, kXfeatureXtiledata = 18;
-    return syscall(SYS_arch_prctl, kReqXcompPerm, kXfeatureXtiledata) == 0;
-  }();
-  return ok;
+  constexpr long kReqXcompPerm = 0x1023, kXfeatureXtiledata = 18;
+  return syscall(SYS_arch_prctl, kReqXcompPerm, kXfeatureXtiledata) == 0;
 #else
   return false;
 #endif
 }
 }  // namespace detail
 
-inline bool CpuFeatures::supports(Isa isa) const {
-  if (isa == Isa::Amx) return avx512 && avx512_bf16 && amx_bf16 && detail::amx_permitted();
-  return static_cast<int>(isa) <= static_cast<int>(best());
-}
+inline bool CpuFeatures::supports(Isa isa) const { return static_cast<int>(isa) <= static_cast<int>(best()); }
 
 namespace detail {
 #if defined(__x86_64__) || defined(__i386__)
@@ -118,6 +116,7 @@ inline CpuFeatures detect_cpu_features() {
              bit(l7.b, 31) /*vl*/;
   if (f.avx512 && l7.a >= 1) f.avx512_bf16 = bit(detail::cpuid(7, 1).a, 5);
   f.amx_bf16 = bit(l7.d, 22) && bit(l7.d, 24) && (xcr & 0x60000) == 0x60000;  // XTILECFG, XTILEDATA
+  f.amx_permitted = f.amx_bf16 && detail::request_amx_permission();
 #endif
   return f;
 }
@@ -143,7 +142,7 @@ inline std::atomic<int>& isa_override() {
 inline Isa checked_isa(Isa want, const char* source) {
   const CpuFeatures& f = cpu_features();
   EPONA_CHECK(f.supports(want), source, " asks for the '", isa_name(want), "' kernels, but this CPU offers at most '",
-              isa_name(f.best()), "'", want == Isa::Amx ? " (AMX needs AMX-BF16 and the OS's permission)" : "");
+              isa_name(f.best()), "'", want == Isa::Amx ? " (AMX needs AMX-BF16, AVX512-BF16 and the OS's permission)" : "");
   return want;
 }
 }  // namespace detail

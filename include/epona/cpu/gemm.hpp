@@ -1,7 +1,7 @@
 // epona/cpu/gemm.hpp — Linear layers on the CPU: y = act(x · Wᵀ + b) with PyTorch's weight
 // layout W (out, in). Packed, cache-blocked micro-kernels (gemm_kernels.hpp, chosen at run time
-// by cpu_features.hpp: AVX-512, AVX512-BF16 dot products for bf16 weights, AVX2) with bias and
-// activation applied to each finished tile; Eigen where no kernel fits (the "generic" path).
+// by cpu_features.hpp: AMX tiles or AVX512-BF16 dot products for bf16 weights, AVX-512, AVX2)
+// with bias and activation applied to each finished tile; Eigen where no kernel fits (generic).
 #pragma once
 
 #include <algorithm>
@@ -35,6 +35,16 @@ inline void widen_bf16(const bf16* src, float* dst, std::int64_t n) {
     const std::uint32_t u = static_cast<std::uint32_t>(src[i].bits) << 16;
     std::memcpy(dst + i, &u, sizeof u);
   }
+}
+
+// Per-thread grow-only float buffers for the small per-call copies of linear (the widened bf16
+// bias, the split rows of the dot-product path): no allocation per call once they have grown.
+enum class ScratchSlot { Bias = 0, SplitRows = 1 };
+inline float* scratch_floats(ScratchSlot slot, std::int64_t n) {
+  thread_local std::vector<float> buffers[2];
+  auto& b = buffers[static_cast<int>(slot)];
+  if (static_cast<std::int64_t>(b.size()) < n) b.resize(static_cast<std::size_t>(n));
+  return b.data();
 }
 
 struct Identity {
@@ -132,14 +142,14 @@ inline void dot_rows(const float* x, std::int64_t ldx, const float* xe, const fl
 template <class W>
 void linear_dot_rows(const float* x, std::int64_t ldx, const W* w, const float* b, float* y, std::int64_t ldy,
                      std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi) {
-  std::vector<float> split;  // bf16: x rows as [even elements | odd elements]
+  float* split = nullptr;  // bf16: x rows as [even elements | odd elements]
   const std::int64_t half = K / 2;
   if constexpr (std::is_same_v<W, bf16>) {
-    split.resize(static_cast<std::size_t>(2 * M * half));
+    split = scratch_floats(ScratchSlot::SplitRows, 2 * M * half);
     for (std::int64_t m = 0; m < M; ++m)
       for (std::int64_t c = 0; c < half; ++c) {
-        split[static_cast<std::size_t>(m * half + c)] = x[m * ldx + 2 * c];
-        split[static_cast<std::size_t>((M + m) * half + c)] = x[m * ldx + 2 * c + 1];
+        split[m * half + c] = x[m * ldx + 2 * c];
+        split[(M + m) * half + c] = x[m * ldx + 2 * c + 1];
       }
   }
   constexpr std::int64_t block = 64;
@@ -148,7 +158,7 @@ void linear_dot_rows(const float* x, std::int64_t ldx, const W* w, const float* 
   for (std::int64_t blk = 0; blk < blocks; ++blk) {
     const std::int64_t n0 = blk * block, n1 = std::min(N, n0 + block);
     if constexpr (std::is_same_v<W, float>) dot_rows(x, ldx, w, y, ldy, M, n0, n1, K);
-    else dot_rows(x, ldx, split.data(), split.data() + M * half, half, w, y, ldy, M, n0, n1, K);
+    else dot_rows(x, ldx, split, split + M * half, half, w, y, ldy, M, n0, n1, K);
     apply_epilogue(y + n0, ldy, M, n1 - n0, b ? b + n0 : nullptr, epi, /*parallel=*/false);
   }
 }
@@ -207,8 +217,9 @@ inline gemm::Tile avx512_tile() {
 }
 
 // The micro-kernel family for weights W under `isa` and a product N columns wide; null for
-// the generic (Eigen) path. bf16 weights take the BF16 dot-product kernels where the CPU has
-// them, else are widened to float32 while packing (no rounding of the activations then).
+// the generic (Eigen) path. bf16 weights take the AMX tiles (the default where the CPU and OS
+// offer them), else the BF16 dot-product kernels, else are widened to float32 while packing
+// (no rounding of the activations then); float32 weights take the AVX-512 kernels under both.
 // Products narrower than the wide tile take the tall one (no half-empty tiles).
 template <class W>
 const gemm::KernelFamily* kernel_family(Isa isa, std::int64_t N) {
@@ -317,14 +328,13 @@ void linear(Context& ctx, const float* x, std::int64_t ldx, const W* w, const W*
   EPONA_CHECK(M >= 0 && N >= 0 && K >= 0, "linear: negative extent (M ", M, ", N ", N, ", K ", K, ")");
   EPONA_CHECK(ldx >= K && ldy >= N, "linear: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K, ", N ", N);
   if (M == 0 || N == 0) return;
-  std::vector<float> bias_f;  // bf16 bias, widened once
   const float* b = nullptr;
   if constexpr (std::is_same_v<W, float>) {
     b = bias;
-  } else if (bias) {
-    bias_f.resize(static_cast<std::size_t>(N));
-    detail::widen_bf16(bias, bias_f.data(), N);
-    b = bias_f.data();
+  } else if (bias) {  // bf16 bias, widened once per call into this thread's scratch
+    float* widened = detail::scratch_floats(detail::ScratchSlot::Bias, N);
+    detail::widen_bf16(bias, widened, N);
+    b = widened;
   }
   if (M <= detail::kDotRows) return detail::linear_dot_rows(x, ldx, w, b, y, ldy, M, N, K, epi);
   if (const gemm::KernelFamily* f = detail::kernel_family<W>(active_isa(), N))
