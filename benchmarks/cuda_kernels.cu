@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "epona/cuda/attention_baseline.cuh"
 #include "epona/cuda/ops.cuh"
 
 using namespace epona;
@@ -114,6 +115,27 @@ double bench_linear(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int
   return ms;
 }
 
+// One attention shape timed with every bf16 kernel that can run it, the pre-issue-#5 kernel
+// (baseline) first and last (its two medians show the run-to-run spread).
+void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const bf16* q, const bf16* k,
+                             const bf16* v, bf16* o, const cuda::AttentionShape& a, double flop, double bytes,
+                             int reps) {
+  using cuda::detail::FlashKernel;
+  const auto baseline = [&] {
+    row(label + " [baseline]", median_ms(ctx, reps, [&](int) { cuda::attention_baseline::attention(ctx, q, k, v, o, a); }),
+        flop, bytes);
+  };
+  baseline();
+  const bool fits_short = a.lq <= 16 && a.lk <= 16;
+  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows128Warps8,
+                                   FlashKernel::Rows128Warps4, FlashKernel::Short}) {
+    if (kernel == FlashKernel::Short && !fits_short) continue;
+    const double ms = median_ms(ctx, reps, [&](int) { cuda::detail::attention(ctx, q, k, v, o, a, kernel); });
+    row(label + " [" + cuda::detail::flash_kernel_name(kernel) + "]", ms, flop, bytes);
+  }
+  baseline();
+}
+
 // Self-attention over packed (seqs, L, 3, heads, 128) QKV into (seqs, L, heads, 128).
 template <class T>
 void bench_attention(cuda::Context& ctx, std::int64_t seqs, std::int64_t heads, std::int64_t len, bool causal,
@@ -127,21 +149,51 @@ void bench_attention(cuda::Context& ctx, std::int64_t seqs, std::int64_t heads, 
   a.q_row = a.k_row = a.v_row = 3 * c;
   a.o_seq = len * c, a.o_row = c;
   a.mask = causal ? cuda::Mask::Causal : cuda::Mask::None;
-  const double ms = median_ms(ctx, reps, [&](int) {
-    cuda::attention(ctx, qkv.data(), qkv.data() + c, qkv.data() + 2 * c, out.data(), a);
-  });
   char name[160];
   std::snprintf(name, sizeof name, "attention %s %s %lld x %lld heads x %lld x 128%s", label,
                 std::is_same_v<T, float> ? "f32" : "bf16", static_cast<long long>(seqs),
                 static_cast<long long>(heads), static_cast<long long>(len), causal ? " causal" : "");
   // Full-square FLOP (compute-budget.md convention), also for causal.
-  row(name, ms, 4.0 * seqs * heads * len * len * D, 0);
+  const double flop = 4.0 * seqs * heads * len * len * D;
+  if constexpr (std::is_same_v<T, bf16>) {
+    bench_attention_kernels(ctx, name, qkv.data(), qkv.data() + c, qkv.data() + 2 * c, out.data(), a, flop, 0, reps);
+  } else {
+    const double ms = median_ms(ctx, reps, [&](int) {
+      cuda::attention(ctx, qkv.data(), qkv.data() + c, qkv.data() + 2 * c, out.data(), a);
+    });
+    row(name, ms, flop, 0);
+  }
+}
+
+// The MST's temporal attention as mst.hpp calls it: separate (frames, spatial, C) q, k, v
+// and o, one causal sequence per spatial position over the frames; last_only: the last
+// block's one query (the last frame) over all frames. Bytes: q, k, v read and o written once.
+void bench_temporal(cuda::Context& ctx, bool last_only, int reps) {
+  const std::int64_t frames = 10, spatial = 515, heads = 16, c = heads * 128, plane = frames * spatial * c;
+  auto qkv = random_device<bf16>(ctx, {3, frames, spatial, c}, 78, -2.f, 2.f);
+  Tensor<bf16, Cuda> out({frames, spatial, c});
+  cuda::AttentionShape a;
+  a.seqs = spatial, a.heads = heads, a.lq = a.lk = frames, a.head_dim = 128;
+  a.q_seq = a.k_seq = a.v_seq = a.o_seq = c, a.q_row = a.k_row = a.v_row = a.o_row = spatial * c;
+  a.mask = cuda::Mask::Causal;
+  const bf16* q = qkv.data();
+  if (last_only) {
+    a.lq = 1, a.mask = cuda::Mask::None, a.q_row = a.o_row = 0;
+    q += (frames - 1) * spatial * c;
+  }
+  const double bytes = 2.0 * (2 * plane + 2 * a.lq * spatial * c);
+  char name[160];
+  std::snprintf(name, sizeof name, "attention MST temporal bf16 515 x 16 heads x %lld x 10 x 128%s",
+                static_cast<long long>(a.lq), last_only ? "" : " causal");
+  bench_attention_kernels(ctx, name, q, qkv.data() + plane, qkv.data() + 2 * plane, out.data(), a,
+                          4.0 * spatial * heads * a.lq * frames * 128, bytes, reps);
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
   g_once = argc > 1 && std::string(argv[1]) == "--once";
+  const bool attention_only = argc > 1 && std::string(argv[1]) == "--attention";  // only that section
   if (!cuda::has_gpu()) {
     std::printf("no CUDA device: skipping\n");
     return 0;
@@ -152,35 +204,37 @@ int main(int argc, char** argv) {
     std::printf("device: %s (sm_%d%d, %d SMs, %.1f GiB, L2 %.0f MiB)\n\n", d.name.c_str(), d.major, d.minor,
                 d.multiprocessors, d.global_bytes / 1073741824.0, d.l2_bytes / 1048576.0);
 
-    {  // Ceiling 1: device-to-device copy of 2 GiB, bytes read + written.
-      const std::int64_t n = std::int64_t{1} << 29;
-      auto a = random_device<float>(ctx, {n}, 1);
-      Tensor<float, Cuda> b({n});
-      const double ms = median_ms(ctx, 10, [&](int) { cuda::copy(ctx, b, a); });
-      row("device copy 2 GiB (read + write)", ms, 0, 2.0 * n * 4);
-    }
-    // Ceiling 2: bf16 8192³.
-    {
-      const double ms = bench_linear<bf16>(ctx, 8192, 8192, 8192, false, cuda::Epilogue::None, 20, "ceiling");
-      g_gemm_ceiling = 2.0 * 8192.0 * 8192.0 * 8192.0 / ms / 1e9;
-      std::printf("  -> measured bf16 GEMM ceiling %.1f TFLOP/s\n", g_gemm_ceiling);
-    }
-    bench_linear<float>(ctx, 4096, 4096, 4096, false, cuda::Epilogue::None, 10, "fp32 (no TF32)");
+    if (!attention_only) {  // the ceilings and the model GEMMs
+      {  // Ceiling 1: device-to-device copy of 2 GiB, bytes read + written.
+        const std::int64_t n = std::int64_t{1} << 29;
+        auto a = random_device<float>(ctx, {n}, 1);
+        Tensor<float, Cuda> b({n});
+        const double ms = median_ms(ctx, 10, [&](int) { cuda::copy(ctx, b, a); });
+        row("device copy 2 GiB (read + write)", ms, 0, 2.0 * n * 4);
+      }
+      // Ceiling 2: bf16 8192³.
+      {
+        const double ms = bench_linear<bf16>(ctx, 8192, 8192, 8192, false, cuda::Epilogue::None, 20, "ceiling");
+        g_gemm_ceiling = 2.0 * 8192.0 * 8192.0 * 8192.0 / ms / 1e9;
+        std::printf("  -> measured bf16 GEMM ceiling %.1f TFLOP/s\n", g_gemm_ceiling);
+      }
+      bench_linear<float>(ctx, 4096, 4096, 4096, false, cuda::Epilogue::None, 10, "fp32 (no TF32)");
 
-    std::printf("\nmodel GEMM shapes (bf16, bias fused; the activation each layer uses)\n");
-    struct Shape3 { std::int64_t M, N, K; cuda::Epilogue epi; const char* what; };
-    const Shape3 shapes[] = {
-        {5150, 2048, 2048, cuda::Epilogue::None, "MST q/k/v/proj"},
-        {5150, 8192, 2048, cuda::Epilogue::GeluErf, "MST c_fc"},
-        {5150, 8192, 2048, cuda::Epilogue::None, "MST c_fc (no act)"},
-        {5150, 2048, 8192, cuda::Epilogue::None, "MST c_proj"},
-        {1027, 6144, 2048, cuda::Epilogue::None, "VisDiT qkv"},
-        {1027, 8192, 2048, cuda::Epilogue::GeluTanh, "VisDiT mlp.0"},
-        {1027, 14336, 2048, cuda::Epilogue::None, "VisDiT single linear1"},
-        {530, 3072, 1024, cuda::Epilogue::None, "TrajDiT qkv"},
-        {530, 7168, 1024, cuda::Epilogue::None, "TrajDiT single linear1"},
-    };
-    for (const auto& s : shapes) bench_linear<bf16>(ctx, s.M, s.N, s.K, true, s.epi, 30, s.what);
+      std::printf("\nmodel GEMM shapes (bf16, bias fused; the activation each layer uses)\n");
+      struct Shape3 { std::int64_t M, N, K; cuda::Epilogue epi; const char* what; };
+      const Shape3 shapes[] = {
+          {5150, 2048, 2048, cuda::Epilogue::None, "MST q/k/v/proj"},
+          {5150, 8192, 2048, cuda::Epilogue::GeluErf, "MST c_fc"},
+          {5150, 8192, 2048, cuda::Epilogue::None, "MST c_fc (no act)"},
+          {5150, 2048, 8192, cuda::Epilogue::None, "MST c_proj"},
+          {1027, 6144, 2048, cuda::Epilogue::None, "VisDiT qkv"},
+          {1027, 8192, 2048, cuda::Epilogue::GeluTanh, "VisDiT mlp.0"},
+          {1027, 14336, 2048, cuda::Epilogue::None, "VisDiT single linear1"},
+          {530, 3072, 1024, cuda::Epilogue::None, "TrajDiT qkv"},
+          {530, 7168, 1024, cuda::Epilogue::None, "TrajDiT single linear1"},
+      };
+      for (const auto& s : shapes) bench_linear<bf16>(ctx, s.M, s.N, s.K, true, s.epi, 30, s.what);
+    }
 
     std::printf("\nflash attention (head dim 128, packed QKV)\n");
     bench_attention<bf16>(ctx, 10, 16, 515, false, 30, "MST spatial");
@@ -189,21 +243,9 @@ int main(int argc, char** argv) {
     bench_attention<bf16>(ctx, 1, 16, 4096, false, 10, "long (fill check)");
     bench_attention<bf16>(ctx, 1, 16, 4096, true, 10, "long (fill check)");
     bench_attention<float>(ctx, 10, 16, 515, false, 5, "MST spatial");
-    {  // MST temporal: 515 sequences (spatial positions) of 10 frames, causal, frame-strided rows.
-      const std::int64_t frames = 10, spatial = 515, heads = 16, c = heads * 128;
-      auto qkv = random_device<bf16>(ctx, {frames, spatial, 3 * c}, 78, -2.f, 2.f);
-      Tensor<bf16, Cuda> out({frames, spatial, c});
-      cuda::AttentionShape a;
-      a.seqs = spatial, a.heads = heads, a.lq = a.lk = frames, a.head_dim = 128;
-      a.q_seq = a.k_seq = a.v_seq = 3 * c, a.q_row = a.k_row = a.v_row = spatial * 3 * c;
-      a.o_seq = c, a.o_row = spatial * c;
-      a.mask = cuda::Mask::Causal;
-      const double ms = median_ms(ctx, 30, [&](int) {
-        cuda::attention(ctx, qkv.data(), qkv.data() + c, qkv.data() + 2 * c, out.data(), a);
-      });
-      row("attention MST temporal bf16 515 x 16 heads x 10 x 128 causal", ms, 4.0 * spatial * heads * frames * frames * 128,
-          0);
-    }
+    bench_temporal(ctx, false, 30);
+    bench_temporal(ctx, true, 30);
+    if (attention_only) return 0;
 
     std::printf("\nmemory-bound kernels (bf16 activations; bytes = reads + writes)\n");
     {

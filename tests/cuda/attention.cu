@@ -1,7 +1,10 @@
-// GPU tests for epona/cuda/attention.cuh: flash attention (bf16 tensor-core kernel with head
-// dim 128 specialised and the generic zero-padded path; float32 kernel) against cpu::attention
-// on the same (bf16-rounded) inputs: dense, causal, cross (lq != lk), additive masks with a
-// fully masked row, packed QKV, the MST's frame-strided temporal layout and its spatial one,
+// GPU tests for epona/cuda/attention.cuh: flash attention (bf16 tensor-core kernels with head
+// dim 128 specialised and the generic zero-padded path, each block tiling and the short
+// warp-per-head kernel, and the automatic choice; float32 kernel) against cpu::attention on
+// the same (bf16-rounded) inputs: dense, causal, cross (lq != lk), additive masks with a
+// fully masked row, packed QKV, the MST's frame-strided temporal layout (packed and as the
+// MST calls it, its one-query last block too) and its spatial one, the four model shapes
+// (VisDiT 16 x 1027, MST spatial 10 x 16 x 515, TrajDiT 8 x 530, temporal 515 x 16 x 10),
 // head dims 4/24/32/64/128, unaligned strides. Outputs are poisoned first; elements outside
 // the output layout must stay poisoned.
 // Bounds. float32: rel_l2 and max|err| / max|v| <= 1e-5. bf16: P is rounded to bf16 before
@@ -54,8 +57,27 @@ Layout temporal(std::int64_t frames, std::int64_t spatial, std::int64_t heads, s
           spatial * row, c, spatial * c, true, false};
 }
 
+// The MST's temporal attention as mst.hpp calls it: separate (frames, spatial, heads, dim)
+// q, k, v and o; one sequence per spatial position over the frames, causal. last_only: the
+// last block's variant, one query (the last frame) over all frames, unmasked.
+Layout mst_temporal(std::int64_t frames, std::int64_t spatial, std::int64_t heads, std::int64_t dim, bool last_only) {
+  const std::int64_t c = heads * dim, plane = frames * spatial * c;
+  Layout l{spatial, heads, frames, frames, dim, 0, c, spatial * c, plane, c, spatial * c, 2 * plane, c,
+           spatial * c, c, spatial * c, true, false};
+  if (last_only) {
+    l.lq = 1, l.causal = false;
+    l.q_off = (frames - 1) * spatial * c, l.q_row = 0;
+    l.o_row = 0;
+  }
+  return l;
+}
+
+using cuda::detail::FlashKernel;
+constexpr FlashKernel kBlockKernels[] = {FlashKernel::Rows64, FlashKernel::Rows128Warps8, FlashKernel::Rows128Warps4};
+
 template <class T>
-void check_attention(cuda::Context& ctx, const Layout& l, std::uint32_t seed, const std::string& name) {
+void check_attention(cuda::Context& ctx, const Layout& l, std::uint32_t seed, const std::string& name,
+                     FlashKernel kernel = FlashKernel::Auto) {
   cpu::Context cctx;
   const std::int64_t in_elems = std::max({extent(l.q_off, l.q_seq, l.q_row, l.seqs, l.lq, l),
                                           extent(l.k_off, l.k_seq, l.k_row, l.seqs, l.lk, l),
@@ -92,7 +114,8 @@ void check_attention(cuda::Context& ctx, const Layout& l, std::uint32_t seed, co
   ga.v_seq = l.v_seq, ga.v_row = l.v_row, ga.o_seq = l.o_seq, ga.o_row = l.o_row;
   ga.mask = l.causal ? cuda::Mask::Causal : cuda::Mask::None;
   ga.additive_mask = l.additive ? dmask.data() : nullptr;
-  cuda::attention(ctx, din.data() + l.q_off, din.data() + l.k_off, din.data() + l.v_off, dout.data(), ga);
+  cuda::detail::attention(ctx, din.data() + l.q_off, din.data() + l.k_off, din.data() + l.v_off, dout.data(), ga,
+                          kernel);
   const HostF out = download(ctx, dout);
 
   // The CPU writes exactly the output layout's elements: those are compared, the rest must
@@ -104,7 +127,10 @@ void check_attention(cuda::Context& ctx, const Layout& l, std::uint32_t seed, co
   constexpr double max_v = 2.0;  // inputs are uniform in [-2, 2)
   const Bound b = std::is_same_v<T, float> ? Bound{kF32Tol, kF32Tol * max_v} : Bound{1e-2, 2 * kBf16Roundoff * max_v};
   const std::string what = std::string("attention ") + type_name<T>() + " " + name + " d=" + std::to_string(l.dim) +
-                           (l.causal ? " causal" : "") + (l.additive ? " +mask" : "");
+                           (l.causal ? " causal" : "") + (l.additive ? " +mask" : "") +
+                           (std::is_same_v<T, bf16> && kernel != FlashKernel::Auto
+                                ? std::string(" [") + cuda::detail::flash_kernel_name(kernel) + "]"
+                                : std::string());
   if (l.lq > 0 && l.seqs > 0) {
     check_error(d, b, what);
   } else {
@@ -175,6 +201,89 @@ TEST_CASE_TEMPLATE("cuda attention generic head dims and unaligned strides", T, 
   u.k_off = u.q_seq, u.v_off = 2 * u.q_seq;
   u.causal = true;
   check_attention<T>(ctx, u, seed++, "unaligned rows");
+}
+
+// The model's four shapes with every kernel that may run them (large: device_run.sh leaves
+// this case out of the sanitizer runs, which check the same code paths on the smaller cases).
+TEST_CASE("cuda attention bf16 model shapes: every kernel") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  std::uint32_t seed = 300;
+  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows128Warps8,
+                                   FlashKernel::Rows128Warps4}) {
+    check_attention<bf16>(ctx, packed(1, 16, 1027, 128), seed++, "VisDiT joint 16 x 1027", kernel);
+    check_attention<bf16>(ctx, packed(10, 16, 515, 128), seed++, "MST spatial 10 x 16 x 515", kernel);
+    check_attention<bf16>(ctx, packed(1, 8, 530, 128, /*o_pad=*/24), seed++, "TrajDiT joint 8 x 530", kernel);
+  }
+  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Short}) {
+    check_attention<bf16>(ctx, mst_temporal(10, 515, 16, 128, false), seed++, "MST temporal 515 x 16 x 10", kernel);
+    check_attention<bf16>(ctx, mst_temporal(10, 515, 16, 128, true), seed++, "MST temporal, last frame", kernel);
+  }
+}
+
+TEST_CASE("cuda attention bf16: every block tiling on masks and odd lengths") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  std::uint32_t seed = 100;
+  for (const FlashKernel kernel : kBlockKernels) {
+    check_attention<bf16>(ctx, packed(1, 3, 1027, 128), seed++, "VisDiT joint 3 heads x 1027", kernel);
+    check_attention<bf16>(ctx, packed(2, 2, 515, 128, /*o_pad=*/24), seed++, "2 x 2 x 515", kernel);
+    Layout c = packed(2, 3, 300, 128);
+    c.causal = true;
+    check_attention<bf16>(ctx, c, seed++, "packed qkv 300", kernel);
+    check_attention<bf16>(ctx, dense(2, 2, 33, 70, 128), seed++, "cross lq<lk", kernel);
+    check_attention<bf16>(ctx, dense(1, 2, 257, 20, 128), seed++, "cross lq>lk", kernel);
+    Layout cc = dense(1, 2, 150, 190, 128);
+    cc.causal = true;
+    check_attention<bf16>(ctx, cc, seed++, "cross lq<lk", kernel);
+    Layout m = dense(2, 2, 129, 97, 128);
+    m.additive = true;
+    check_attention<bf16>(ctx, m, seed++, "cross", kernel);
+    m.causal = true;
+    check_attention<bf16>(ctx, m, seed++, "cross", kernel);
+    check_attention<bf16>(ctx, dense(3, 2, 1, 65, 128), seed++, "one query", kernel);
+    check_attention<bf16>(ctx, dense(1, 2, 5, 0, 128), seed++, "no keys (zeros)", kernel);
+    check_attention<bf16>(ctx, temporal(10, 37, 2, 128), seed++, "MST temporal (10 frames x 37)", kernel);
+    for (std::int64_t dim : {24, 64}) {
+      Layout p = packed(1, 3, 140, dim, 8);
+      p.causal = true;
+      check_attention<bf16>(ctx, p, seed++, "packed qkv", kernel);
+    }
+  }
+}
+
+TEST_CASE("cuda attention bf16: the short kernel (MST temporal) and its automatic choice") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  std::uint32_t seed = 200;
+  for (const FlashKernel kernel : {FlashKernel::Short, FlashKernel::Auto}) {
+    check_attention<bf16>(ctx, mst_temporal(10, 37, 4, 128, false), seed++, "MST temporal 37 x 4 x 10", kernel);
+    check_attention<bf16>(ctx, mst_temporal(10, 37, 4, 128, true), seed++, "MST temporal, last frame", kernel);
+    check_attention<bf16>(ctx, temporal(10, 37, 3, 128), seed++, "MST temporal packed", kernel);
+    check_attention<bf16>(ctx, temporal(16, 11, 2, 128), seed++, "16 frames", kernel);
+    check_attention<bf16>(ctx, temporal(1, 5, 2, 128), seed++, "1 frame", kernel);
+    check_attention<bf16>(ctx, dense(3, 5, 13, 16, 128), seed++, "cross lq<lk", kernel);
+    check_attention<bf16>(ctx, dense(3, 5, 16, 7, 128), seed++, "cross lq>lk", kernel);
+    Layout m = dense(2, 3, 11, 14, 128);
+    m.additive = true;
+    check_attention<bf16>(ctx, m, seed++, "cross", kernel);
+    m.causal = true;
+    check_attention<bf16>(ctx, m, seed++, "cross", kernel);
+    check_attention<bf16>(ctx, dense(1, 2, 5, 0, 128), seed++, "no keys (zeros)", kernel);
+    for (std::int64_t dim : {4, 24, 64, 100}) {
+      check_attention<bf16>(ctx, temporal(10, 9, 2, dim), seed++, "MST temporal", kernel);
+      check_attention<bf16>(ctx, mst_temporal(10, 7, 2, dim, true), seed++, "MST temporal, last frame", kernel);
+    }
+  }
+  // Past 16 keys (or queries) the short kernel is refused, and Auto takes a block kernel.
+  Dev<bf16> buf({64 * 128});
+  cuda::AttentionShape a;
+  a.lq = 4, a.lk = 17, a.head_dim = 128, a.q_row = a.k_row = a.v_row = a.o_row = 128;
+  CHECK_THROWS_WITH_AS(cuda::detail::attention(ctx, buf.data(), buf.data(), buf.data(), buf.data(), a,
+                                               FlashKernel::Short),
+                       doctest::Contains("short kernel"), epona::Error);
+  check_attention<bf16>(ctx, dense(2, 2, 17, 17, 128), seed++, "17 frames");
+  check_attention<bf16>(ctx, dense(2, 2, 3, 40, 128), seed++, "3 queries x 40 keys");
 }
 
 TEST_CASE("cuda attention rejects unsupported shapes with epona::Error") {

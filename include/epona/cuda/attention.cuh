@@ -2,7 +2,8 @@
 // online softmax over key tiles, no score matrix in memory) over strided, token-major data,
 // as the CPU's attention(): packed QKV, the MST's frame-strided temporal attention, causal
 // and additive masks. bf16 runs on tensor cores (mma.sync m16n8k16, float32 accumulation and
-// softmax); float32 runs a float32 SIMT kernel so it matches the CPU to float32 rounding.
+// softmax; a warp-per-head kernel for sequences of <= 16, as the MST's 10 frames); float32
+// runs a float32 SIMT kernel so it matches the CPU to float32 rounding.
 #pragma once
 
 #include <cmath>
@@ -50,15 +51,17 @@ __device__ __forceinline__ int key_tiles(int q0, int rows, int lq, int lk, bool 
 }
 
 // ---------------------------------------------------------------------------------------
-// bf16 tensor-core kernel. A block of 4 warps owns 64 query rows (16 per warp) of one
-// (sequence, head); K and V tiles of 64 keys stream through shared memory (V(t) loads while
-// S = Q K(t)ᵀ is computed, K(t+1) while O += P V(t) is), rows padded by 16 bytes so that
-// ldmatrix is free of bank conflicts. kExactDim: head_dim == 128 with 16-byte aligned rows
-// (cp.async loads); otherwise any head_dim <= 128, zero-padded, with guarded loads.
+// bf16 tensor-core kernels (mma.sync m16n8k16, float32 accumulators, softmax in base 2).
+// A warp owns kM x 16 query rows; K and V tiles of 64 keys stream through shared memory in
+// two buffers (tile t+1 loads while tile t is computed: one barrier per tile), rows padded by
+// 16 bytes so that ldmatrix is free of bank conflicts. Two m-tiles per warp share every K and
+// V fragment read from shared memory, halving that traffic per tensor-core operation.
+// kExactDim: head_dim == 128 with 16-byte aligned rows (cp.async loads); otherwise any
+// head_dim <= 128, zero-padded, with guarded loads.
 namespace fa {
-constexpr int kRows = 64, kKeys = 64, kWarps = 4, kThreads = kWarps * 32;
 constexpr int kStride = kMaxHeadDim + 8;  // shared-memory row stride, in bf16 elements
-constexpr int kSmemBytes = (kRows + 2 * kKeys) * kStride * 2;
+constexpr int kDimTiles = kMaxHeadDim / 8;
+constexpr float kLog2e = 1.4426950408889634f;
 
 __device__ __forceinline__ unsigned smem_addr(const void* p) {
   return static_cast<unsigned>(__cvta_generic_to_shared(p));
@@ -92,14 +95,15 @@ __device__ __forceinline__ unsigned pack_bf16(float lo, float hi) {
   return *reinterpret_cast<const unsigned*>(&v);
 }
 
-// Rows [row0, row0 + 64) of one head (row i at src + i * stride) into shared memory; rows
-// past `valid` and channels past head_dim become zeros.
-template <bool kExactDim>
+// Rows [row0, row0 + kTileRows) of one head (row i at src + i * stride) into shared memory,
+// spread over `threads` threads of which this is `thread`; rows past `valid` and channels
+// past head_dim become zeros (a zero V row times P = 0 stays 0; garbage could be NaN).
+template <bool kExactDim, int kTileRows>
 __device__ __forceinline__ void load_tile(bf16* dst, const bf16* src, std::int64_t stride, int row0, int valid,
-                                          int head_dim) {
+                                          int head_dim, int thread, int threads) {
   if constexpr (kExactDim) {
     constexpr int kChunks = kMaxHeadDim / 8;  // 16-byte chunks per row
-    for (int c = threadIdx.x; c < kRows * kChunks; c += kThreads) {
+    for (int c = thread; c < kTileRows * kChunks; c += threads) {
       const int r = c / kChunks, col = (c % kChunks) * 8;
       bf16* d = dst + r * kStride + col;
       if (row0 + r < valid)
@@ -108,7 +112,7 @@ __device__ __forceinline__ void load_tile(bf16* dst, const bf16* src, std::int64
         *reinterpret_cast<uint4*>(d) = make_uint4(0, 0, 0, 0);
     }
   } else {
-    for (int e = threadIdx.x; e < kRows * kMaxHeadDim; e += kThreads) {
+    for (int e = thread; e < kTileRows * kMaxHeadDim; e += threads) {
       const int r = e / kMaxHeadDim, col = e % kMaxHeadDim;
       bf16 val{};
       if (row0 + r < valid && col < head_dim) val = src[(row0 + r) * stride + col];
@@ -117,35 +121,41 @@ __device__ __forceinline__ void load_tile(bf16* dst, const bf16* src, std::int64
   }
 }
 
-constexpr int kDimTiles = kMaxHeadDim / 8, kKeyTiles = kKeys / 8;
-
-// S = Q K(t)ᵀ for one warp's 16 query rows: 16 x 64 in 8 accumulator tiles.
-template <bool kExactDim>
-__device__ __forceinline__ void warp_scores(float (&sc)[kKeyTiles][4], const bf16* sQ, const bf16* sK, int warp,
-                                            int lane, int D) {
+// S = Q K(t)ᵀ for one warp's kM x 16 query rows (sQ: its first row) and kKeys keys.
+template <bool kExactDim, int kM, int kKeys>
+__device__ __forceinline__ void warp_scores(float (&sc)[kM][kKeys / 8][4], const bf16* sQ, const bf16* sK, int lane,
+                                            int D) {
 #pragma unroll
   for (int kk = 0; kk < kMaxHeadDim / 16; ++kk) {
     if (!kExactDim && kk * 16 >= D) break;
-    unsigned a[4];
-    ldmatrix_x4(a, sQ + (warp * 16 + (lane & 15)) * kStride + kk * 16 + (lane >> 4) * 8);
+    unsigned a[kM][4];
+#pragma unroll
+    for (int mt = 0; mt < kM; ++mt)
+      ldmatrix_x4(a[mt], sQ + (mt * 16 + (lane & 15)) * kStride + kk * 16 + (lane >> 4) * 8);
 #pragma unroll
     for (int n2 = 0; n2 < kKeys / 16; ++n2) {
       unsigned b[4];
       ldmatrix_x4(b, sK + (n2 * 16 + (lane & 7) + ((lane >> 4) << 3)) * kStride + kk * 16 + ((lane >> 3) & 1) * 8);
-      mma_bf16(sc[2 * n2], a, b[0], b[1]);
-      mma_bf16(sc[2 * n2 + 1], a, b[2], b[3]);
+#pragma unroll
+      for (int mt = 0; mt < kM; ++mt) {
+        mma_bf16(sc[mt][2 * n2], a[mt], b[0], b[1]);
+        mma_bf16(sc[mt][2 * n2 + 1], a[mt], b[2], b[3]);
+      }
     }
   }
 }
 
-// Scales (base 2) and masks the scores of key tile k0 in place, then folds them into the
-// running max m and sum l of this thread's two rows, leaving P = exp2(S - m) in sc and the
-// output accumulators rescaled to the new max. kMasked: the tile has keys past lk, past the
-// causal diagonal of some row, or an additive mask (most tiles have none: no per-score tests).
-template <bool kMasked>
+// Folds the raw scores of key tile k0 (one m-tile) into the running max m and sum l of this
+// thread's two rows (base 2), leaving P = exp2(S·scale - m) in sc and the output
+// accumulators rescaled to the new max. kMasked: the tile has keys past lk, past the causal
+// diagonal of some row, or an additive mask; those scores are scaled and masked one by one.
+// Unmasked tiles (most of them) take the max of the raw scores and fold the scale into the
+// exponent's FMA, which needs scale > 0 (the caller routes any other scale to kMasked).
+template <bool kMasked, int kKeyTiles>
 __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float (&m)[2], float (&l)[2],
                                                float (&o)[kDimTiles][4], const FlashParams<bf16>& p,
                                                const int (&rows)[2], int k0, int tq) {
+  const float scale = kMasked ? 1.0f : p.scale;  // masked scores are scaled in place below
 #pragma unroll
   for (int i = 0; i < 2; ++i) {
     float mx = -INFINITY;
@@ -153,19 +163,19 @@ __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float 
     for (int nt = 0; nt < kKeyTiles; ++nt)
 #pragma unroll
       for (int e = 0; e < 2; ++e) {
-        float x = sc[nt][2 * i + e] * p.scale;
+        float x = sc[nt][2 * i + e];
         if constexpr (kMasked) {
+          x *= p.scale;
           const int col = k0 + nt * 8 + 2 * tq + e;
-          if (p.mask && rows[i] < p.lq && col < p.lk)
-            x += p.mask[std::int64_t{rows[i]} * p.lk + col] * 1.4426950408889634f;
+          if (p.mask && rows[i] < p.lq && col < p.lk) x += p.mask[std::int64_t{rows[i]} * p.lk + col] * kLog2e;
           if (col >= p.lk || (p.causal && col > rows[i])) x = -INFINITY;
+          sc[nt][2 * i + e] = x;
         }
-        sc[nt][2 * i + e] = x;
         mx = fmaxf(mx, x);
       }
     mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 1));  // the row's four threads
     mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 2));
-    const float m_new = fmaxf(m[i], mx);
+    const float m_new = fmaxf(m[i], mx * scale);
     const float base = m_new == -INFINITY ? 0.f : m_new;  // a row masked so far stays all zero
     const float alpha = exp2f(m[i] - base);
     m[i] = m_new;
@@ -174,7 +184,7 @@ __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float 
     for (int nt = 0; nt < kKeyTiles; ++nt)
 #pragma unroll
       for (int e = 0; e < 2; ++e) {
-        const float pr = exp2f(sc[nt][2 * i + e] - base);
+        const float pr = exp2f(fmaf(sc[nt][2 * i + e], scale, -base));
         sc[nt][2 * i + e] = pr;
         sum += pr;
       }
@@ -188,26 +198,34 @@ __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float 
 }
 
 // O += P V(t): the S accumulators of two adjacent key tiles form one A fragment of P.
-template <bool kExactDim>
-__device__ __forceinline__ void warp_pv(float (&o)[kDimTiles][4], const float (&sc)[kKeyTiles][4], const bf16* sV,
-                                        int lane, int D) {
+template <bool kExactDim, int kM, int kKeys>
+__device__ __forceinline__ void warp_pv(float (&o)[kM][kDimTiles][4], const float (&sc)[kM][kKeys / 8][4],
+                                        const bf16* sV, int lane, int D) {
 #pragma unroll
   for (int kk = 0; kk < kKeys / 16; ++kk) {
-    const unsigned a[4] = {pack_bf16(sc[2 * kk][0], sc[2 * kk][1]), pack_bf16(sc[2 * kk][2], sc[2 * kk][3]),
-                           pack_bf16(sc[2 * kk + 1][0], sc[2 * kk + 1][1]),
-                           pack_bf16(sc[2 * kk + 1][2], sc[2 * kk + 1][3])};
+    unsigned a[kM][4];
+#pragma unroll
+    for (int mt = 0; mt < kM; ++mt) {
+      a[mt][0] = pack_bf16(sc[mt][2 * kk][0], sc[mt][2 * kk][1]);
+      a[mt][1] = pack_bf16(sc[mt][2 * kk][2], sc[mt][2 * kk][3]);
+      a[mt][2] = pack_bf16(sc[mt][2 * kk + 1][0], sc[mt][2 * kk + 1][1]);
+      a[mt][3] = pack_bf16(sc[mt][2 * kk + 1][2], sc[mt][2 * kk + 1][3]);
+    }
 #pragma unroll
     for (int n2 = 0; n2 < kMaxHeadDim / 16; ++n2) {
       if (!kExactDim && n2 * 16 >= D) break;
       unsigned b[4];
       ldmatrix_x4_trans(b, sV + (kk * 16 + (lane & 7) + ((lane >> 3) & 1) * 8) * kStride + n2 * 16 + (lane >> 4) * 8);
-      mma_bf16(o[2 * n2], a, b[0], b[1]);
-      mma_bf16(o[2 * n2 + 1], a, b[2], b[3]);
+#pragma unroll
+      for (int mt = 0; mt < kM; ++mt) {
+        mma_bf16(o[mt][2 * n2], a[mt], b[0], b[1]);
+        mma_bf16(o[mt][2 * n2 + 1], a[mt], b[2], b[3]);
+      }
     }
   }
 }
 
-// Normalises and stores rows g and g + 8 of this warp (columns 2 tq, 2 tq + 1 of each tile).
+// Normalises and stores rows g and g + 8 of one m-tile (columns 2 tq, 2 tq + 1 of each tile).
 template <bool kExactDim>
 __device__ __forceinline__ void store_rows(const float (&o)[kDimTiles][4], const float (&l)[2],
                                            const FlashParams<bf16>& p, const int (&rows)[2], std::int64_t s, int h,
@@ -234,58 +252,150 @@ __device__ __forceinline__ void store_rows(const float (&o)[kDimTiles][4], const
   }
 }
 
-template <bool kExactDim>
-__global__ void __launch_bounds__(kThreads) flash_bf16_kernel(const FlashParams<bf16> p) {
+// Whether key tile [k0, k0 + keys) of query rows [row0, row0 + 16) needs per-score masking.
+__device__ __forceinline__ bool tile_masked(const FlashParams<bf16>& p, int row0, int k0, int keys) {
+  return !(p.scale > 0.f) || p.mask || k0 + keys > p.lk || (p.causal && k0 + keys - 1 > row0);
+}
+
+// One key tile for one warp: scores, softmax (per m-tile), O += P V.
+template <bool kExactDim, int kM, int kKeys>
+__device__ __forceinline__ void warp_tile(float (&o)[kM][kDimTiles][4], float (&m)[kM][2], float (&l)[kM][2],
+                                          const FlashParams<bf16>& p, const bf16* sQ, const bf16* sK,
+                                          const bf16* sV, int row0, const int (&rows)[kM][2], int k0, int lane,
+                                          int D) {
+  float sc[kM][kKeys / 8][4] = {};
+  warp_scores<kExactDim, kM, kKeys>(sc, sQ, sK, lane, D);
+#pragma unroll
+  for (int mt = 0; mt < kM; ++mt) {
+    if (tile_masked(p, row0 + mt * 16, k0, kKeys))
+      online_softmax<true>(sc[mt], m[mt], l[mt], o[mt], p, rows[mt], k0, lane % 4);
+    else
+      online_softmax<false>(sc[mt], m[mt], l[mt], o[mt], p, rows[mt], k0, lane % 4);
+  }
+  warp_pv<kExactDim, kM, kKeys>(o, sc, sV, lane, D);
+}
+
+// A block of kWarps warps with kM m-tiles each: rows = 16 kWarps kM query rows of one
+// (sequence, head), key tiles of kKeys. Shared memory: Q, then two (K, V) buffers.
+template <int kWarps, int kM, int kKeys>
+struct Tiling {
+  static constexpr int warps = kWarps, m_tiles = kM, rows = 16 * kWarps * kM, threads = 32 * kWarps;
+  static constexpr int keys = kKeys;
+  static constexpr int smem_bytes = (rows + 4 * keys) * kStride * 2;
+  // 2 blocks of 128 threads still leave each thread 255 registers.
+  static constexpr int min_blocks = kWarps <= 4 ? 2 : 1;
+};
+
+template <class Tile, bool kExactDim>
+__global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
+    flash_bf16_kernel(const FlashParams<bf16> p, int heads, int seqs) {
+  constexpr int kRows = Tile::rows, kKeys = Tile::keys, kM = Tile::m_tiles;
   extern __shared__ __align__(16) unsigned char smem[];
   bf16* sQ = reinterpret_cast<bf16*>(smem);
-  bf16* sK = sQ + kRows * kStride;
-  bf16* sV = sK + kKeys * kStride;
+  bf16* sKV = sQ + kRows * kStride;  // K0, V0, K1, V1
+
+  // Block -> (sequence, head, row block). The row blocks of `full` rows come first, the
+  // short last row block of every (sequence, head) after them, so that the grid's tail is
+  // short work (VisDiT: 16 heads x 1027 rows = 256 full blocks of 64 rows + 16 of 3).
+  const int full = p.lq / kRows;
+  const std::int64_t pairs = std::int64_t{heads} * seqs, b = blockIdx.x;
+  std::int64_t pair;
+  int rb;
+  if (b < full * pairs) {
+    pair = b / full;
+    rb = static_cast<int>(b % full);
+    if (p.causal) rb = full - 1 - rb;  // causal: the longest rows first
+  } else {
+    pair = b - full * pairs;
+    rb = full;
+  }
+  const std::int64_t s = pair / heads;
+  const int h = static_cast<int>(pair % heads);
+  const int q0 = rb * kRows;
 
   const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
-  const int g = lane / 4, tq = lane % 4;  // mma fragment row group and column pair
-  const int q0 = blockIdx.x * kRows, h = blockIdx.y;
-  const std::int64_t s = blockIdx.z;
   const int D = kExactDim ? kMaxHeadDim : p.head_dim;
   const bf16* kg = p.k + s * p.k_seq + std::int64_t{h} * D;
   const bf16* vg = p.v + s * p.v_seq + std::int64_t{h} * D;
+  const auto load_kv = [&](int t) {
+    bf16* sK = sKV + (t & 1) * 2 * kKeys * kStride;
+    load_tile<kExactDim, kKeys>(sK, kg, p.k_row, t * kKeys, p.lk, D, threadIdx.x, Tile::threads);
+    load_tile<kExactDim, kKeys>(sK + kKeys * kStride, vg, p.v_row, t * kKeys, p.lk, D, threadIdx.x, Tile::threads);
+  };
 
-  load_tile<kExactDim>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, q0, p.lq, D);
-  load_tile<kExactDim>(sK, kg, p.k_row, 0, p.lk, D);
+  const int tiles = key_tiles(q0, kRows, p.lq, p.lk, p.causal, kKeys);
+  load_tile<kExactDim, kRows>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, q0, p.lq, D, threadIdx.x,
+                              Tile::threads);
+  if (tiles > 0) load_kv(0);
   cp_async_commit();
 
-  float o[kDimTiles][4] = {};
-  float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
-  const int rows[2] = {q0 + warp * 16 + g, q0 + warp * 16 + g + 8};
-  const int tiles = key_tiles(q0, kRows, p.lq, p.lk, p.causal, kKeys);
-  // A warp whose rows all lie past lq (short sequences: the MST's 10 frames) only loads.
-  const bool warp_active = q0 + warp * 16 < p.lq;
+  float o[kM][kDimTiles][4] = {};
+  float m[kM][2], l[kM][2];
+  int rows[kM][2];
+  const int row0 = q0 + warp * kM * 16;  // this warp's first query row
+#pragma unroll
+  for (int mt = 0; mt < kM; ++mt)
+#pragma unroll
+    for (int i = 0; i < 2; ++i) {
+      m[mt][i] = -INFINITY, l[mt][i] = 0.f;
+      rows[mt][i] = row0 + mt * 16 + lane / 4 + 8 * i;
+    }
+  // A warp whose rows all lie past lq only loads; under a causal mask a warp skips the key
+  // tiles that start past its last row (they would add exactly nothing).
+  const bool warp_active = row0 < p.lq;
+  const int warp_last_row = row0 + kM * 16 - 1;
 
   for (int t = 0; t < tiles; ++t) {
     const int k0 = t * kKeys;
     cp_async_wait_all();
-    __syncthreads();  // K(t) (and Q) landed; every warp is done with V(t-1)
-    load_tile<kExactDim>(sV, vg, p.v_row, k0, p.lk, D);
-    cp_async_commit();
-
-    float sc[kKeyTiles][4] = {};
-    if (warp_active) {
-      warp_scores<kExactDim>(sc, sQ, sK, warp, lane, D);
-      const bool masked = p.mask || k0 + kKeys > p.lk || (p.causal && k0 + kKeys - 1 > q0 + warp * 16);
-      if (masked)
-        online_softmax<true>(sc, m, l, o, p, rows, k0, tq);
-      else
-        online_softmax<false>(sc, m, l, o, p, rows, k0, tq);
+    __syncthreads();  // tile t (and Q) landed; every warp is done with tile t - 1's buffer
+    if (t + 1 < tiles) {
+      load_kv(t + 1);
+      cp_async_commit();
     }
-
-    cp_async_wait_all();
-    __syncthreads();  // V(t) landed; every warp is done with K(t)
-    if (t + 1 < tiles) load_tile<kExactDim>(sK, kg, p.k_row, k0 + kKeys, p.lk, D);
-    cp_async_commit();
-
-    if (warp_active) warp_pv<kExactDim>(o, sc, sV, lane, D);
+    const bf16* sK = sKV + (t & 1) * 2 * kKeys * kStride;
+    if (warp_active && !(p.causal && k0 > warp_last_row))
+      warp_tile<kExactDim, kM, kKeys>(o, m, l, p, sQ + warp * kM * 16 * kStride, sK, sK + kKeys * kStride, row0,
+                                      rows, k0, lane, D);
   }
+  cp_async_wait_all();  // lk == 0: Q's group
+#pragma unroll
+  for (int mt = 0; mt < kM; ++mt) store_rows<kExactDim>(o[mt], l[mt], p, rows[mt], s, h, D, lane % 4);
+}
+
+// Short sequences (lq, lk <= 16: the MST's temporal attention over its 10 frames). One warp
+// per (sequence, head) loads Q, K and V once into 16-row tiles of its own shared memory (no
+// block barrier), computes the 16 x 16 scores and P V with 32 mma, and stores. A block of 4
+// warps takes 4 consecutive (sequence, head) pairs: the heads of one token are adjacent.
+constexpr int kShortWarps = 4, kShortThreads = 32 * kShortWarps, kShortLen = 16;
+constexpr int kShortWarpElems = 3 * kShortLen * kStride;
+constexpr int kShortSmemBytes = kShortWarps * kShortWarpElems * 2;
+
+template <bool kExactDim>
+__global__ void __launch_bounds__(kShortThreads) flash_short_kernel(const FlashParams<bf16> p, int heads,
+                                                                     std::int64_t pairs) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
+  const std::int64_t pair = std::int64_t{blockIdx.x} * kShortWarps + warp;
+  if (pair >= pairs) return;
+  const std::int64_t s = pair / heads;
+  const int h = static_cast<int>(pair % heads);
+  const int D = kExactDim ? kMaxHeadDim : p.head_dim;
+  bf16* sQ = reinterpret_cast<bf16*>(smem) + warp * kShortWarpElems;
+  bf16* sK = sQ + kShortLen * kStride;
+  bf16* sV = sK + kShortLen * kStride;
+  load_tile<kExactDim, kShortLen>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, 0, p.lq, D, lane, 32);
+  load_tile<kExactDim, kShortLen>(sK, p.k + s * p.k_seq + std::int64_t{h} * D, p.k_row, 0, p.lk, D, lane, 32);
+  load_tile<kExactDim, kShortLen>(sV, p.v + s * p.v_seq + std::int64_t{h} * D, p.v_row, 0, p.lk, D, lane, 32);
+  cp_async_commit();
   cp_async_wait_all();
-  store_rows<kExactDim>(o, l, p, rows, s, h, D, tq);
+  __syncwarp();  // the warp's tiles are complete and visible to all its lanes
+
+  float o[1][kDimTiles][4] = {};
+  float m[1][2] = {{-INFINITY, -INFINITY}}, l[1][2] = {{0.f, 0.f}};
+  const int rows[1][2] = {{lane / 4, lane / 4 + 8}};
+  if (p.lk > 0) warp_tile<kExactDim, 1, kShortLen>(o, m, l, p, sQ, sK, sV, 0, rows, 0, lane, D);
+  store_rows<kExactDim>(o[0], l[0], p, rows[0], s, h, D, lane % 4);
 }
 }  // namespace fa
 
@@ -401,14 +511,80 @@ inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std:
   return reinterpret_cast<std::uintptr_t>(p) % 16 == 0 && seq % elems == 0 && row % elems == 0;
 }
 
-}  // namespace detail
+// Which bf16 kernel runs: Auto picks by shape; the others are for tests and benchmarks.
+enum class FlashKernel { Auto, Rows64, Rows128Warps8, Rows128Warps4, Short };
 
+inline const char* flash_kernel_name(FlashKernel k) {
+  switch (k) {
+    case FlashKernel::Auto: return "auto";
+    case FlashKernel::Rows64: return "64 rows (4 warps x 16)";
+    case FlashKernel::Rows128Warps8: return "128 rows (8 warps x 16)";
+    case FlashKernel::Rows128Warps4: return "128 rows (4 warps x 32)";
+    case FlashKernel::Short: return "short (warp per head)";
+  }
+  return "?";
+}
+
+template <class Tile, bool kExactDim>
+void launch_flash(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
+  const std::int64_t row_blocks = (p.lq + Tile::rows - 1) / Tile::rows;
+  allow_smem<fa::flash_bf16_kernel<Tile, kExactDim>>(Tile::smem_bytes);
+  fa::flash_bf16_kernel<Tile, kExactDim><<<static_cast<unsigned>(row_blocks * heads * seqs), Tile::threads,
+                                           Tile::smem_bytes, ctx.stream()>>>(p, static_cast<int>(heads),
+                                                                              static_cast<int>(seqs));
+}
+
+template <class Tile>
+void launch_flash(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads, bool exact) {
+  if (exact)
+    launch_flash<Tile, true>(ctx, p, seqs, heads);
+  else
+    launch_flash<Tile, false>(ctx, p, seqs, heads);
+}
+
+template <bool kExactDim>
+void launch_flash_short(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
+  const std::int64_t pairs = seqs * heads, blocks = (pairs + fa::kShortWarps - 1) / fa::kShortWarps;
+  allow_smem<fa::flash_short_kernel<kExactDim>>(fa::kShortSmemBytes);
+  fa::flash_short_kernel<kExactDim><<<static_cast<unsigned>(blocks), fa::kShortThreads, fa::kShortSmemBytes,
+                                      ctx.stream()>>>(p, static_cast<int>(heads), pairs);
+}
+
+inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
+                           bool exact, FlashKernel kernel) {
+  using Rows64 = fa::Tiling<4, 1, 64>;
+  using Rows128Warps8 = fa::Tiling<8, 1, 64>;
+  using Rows128Warps4 = fa::Tiling<4, 2, 32>;  // 64-key tiles would spill (o and S: 192 registers)
+  const bool short_fits = p.lq <= fa::kShortLen && p.lk <= fa::kShortLen;
+  if (kernel == FlashKernel::Auto) {
+    // Short sequences: a warp per (sequence, head). Otherwise 128-row blocks where they
+    // give every multiprocessor a block, 64-row blocks for small grids (TrajDiT: 8 x 530).
+    const std::int64_t blocks128 = (p.lq + 127) / 128 * heads * seqs;
+    kernel = short_fits ? FlashKernel::Short
+             : blocks128 >= ctx.info().multiprocessors ? FlashKernel::Rows128Warps8
+                                                       : FlashKernel::Rows64;
+  }
+  switch (kernel) {
+    case FlashKernel::Short:
+      EPONA_CHECK(short_fits, "attention: the short kernel takes at most ", fa::kShortLen, " queries and keys");
+      if (exact)
+        launch_flash_short<true>(ctx, p, seqs, heads);
+      else
+        launch_flash_short<false>(ctx, p, seqs, heads);
+      break;
+    case FlashKernel::Rows128Warps8: launch_flash<Rows128Warps8>(ctx, p, seqs, heads, exact); break;
+    case FlashKernel::Rows128Warps4: launch_flash<Rows128Warps4>(ctx, p, seqs, heads, exact); break;
+    default: launch_flash<Rows64>(ctx, p, seqs, heads, exact); break;
+  }
+}
+
+// attention() with the bf16 kernel chosen by the caller (tests, benchmarks).
 template <class T>
-void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const AttentionShape& a) {
+void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const AttentionShape& a, FlashKernel kernel) {
   static_assert(is_device_float<T>, "attention takes float or bf16");
   EPONA_CHECK(a.seqs >= 0 && a.heads >= 0 && a.lq >= 0 && a.lk >= 0, "attention: negative extent");
-  EPONA_CHECK(a.head_dim >= 1 && a.head_dim <= detail::kMaxHeadDim, "attention: head_dim ", a.head_dim,
-              " unsupported (1..", detail::kMaxHeadDim, ")");
+  EPONA_CHECK(a.head_dim >= 1 && a.head_dim <= kMaxHeadDim, "attention: head_dim ", a.head_dim, " unsupported (1..",
+              kMaxHeadDim, ")");
   EPONA_CHECK(a.lq <= INT32_MAX && a.lk <= INT32_MAX, "attention: sequence too long (lq ", a.lq, ", lk ", a.lk, ")");
   EPONA_CHECK(a.heads <= 65535 && a.seqs <= 65535, "attention: ", a.seqs, " sequences x ", a.heads,
               " heads exceed one launch (65535 each)");
@@ -416,31 +592,30 @@ void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const Att
   if (a.seqs == 0 || a.heads == 0 || a.lq == 0) return;
 
   const float scale = a.scale != 0 ? a.scale : 1.0f / std::sqrt(static_cast<float>(a.head_dim));
-  detail::FlashParams<T> p{q,       k,       v,       o,       a.q_seq, a.q_row, a.k_seq, a.k_row, a.v_seq,
-                           a.v_row, a.o_seq, a.o_row, static_cast<int>(a.lq), static_cast<int>(a.lk),
-                           static_cast<int>(a.head_dim), scale, a.mask == Mask::Causal, a.additive_mask};
-  const auto heads = static_cast<unsigned>(a.heads), seqs = static_cast<unsigned>(a.seqs);
+  FlashParams<T> p{q,       k,       v,       o,       a.q_seq, a.q_row, a.k_seq, a.k_row, a.v_seq,
+                   a.v_row, a.o_seq, a.o_row, static_cast<int>(a.lq), static_cast<int>(a.lk),
+                   static_cast<int>(a.head_dim), scale, a.mask == Mask::Causal, a.additive_mask};
   if constexpr (std::is_same_v<T, bf16>) {
-    namespace fa = detail::fa;
-    p.scale = scale * 1.4426950408889634f;  // softmax in base 2: exp(x) = exp2(x log2 e)
-    const dim3 grid(static_cast<unsigned>((a.lq + fa::kRows - 1) / fa::kRows), heads, seqs);
-    const bool exact = a.head_dim == detail::kMaxHeadDim && detail::aligned_rows(q, a.q_seq, a.q_row, 8) &&
-                       detail::aligned_rows(k, a.k_seq, a.k_row, 8) && detail::aligned_rows(v, a.v_seq, a.v_row, 8) &&
-                       detail::aligned_rows(o, a.o_seq, a.o_row, 8);
-    if (exact) {
-      detail::allow_smem<fa::flash_bf16_kernel<true>>(fa::kSmemBytes);
-      fa::flash_bf16_kernel<true><<<grid, fa::kThreads, fa::kSmemBytes, ctx.stream()>>>(p);
-    } else {
-      detail::allow_smem<fa::flash_bf16_kernel<false>>(fa::kSmemBytes);
-      fa::flash_bf16_kernel<false><<<grid, fa::kThreads, fa::kSmemBytes, ctx.stream()>>>(p);
-    }
+    p.scale = scale * fa::kLog2e;  // softmax in base 2: exp(x) = exp2(x log2 e)
+    const bool exact = a.head_dim == kMaxHeadDim && aligned_rows(q, a.q_seq, a.q_row, 8) &&
+                       aligned_rows(k, a.k_seq, a.k_row, 8) && aligned_rows(v, a.v_seq, a.v_row, 8) &&
+                       aligned_rows(o, a.o_seq, a.o_row, 8);
+    attention_bf16(ctx, p, a.seqs, a.heads, exact, kernel);
   } else {
     namespace fa32 = detail::fa32;
-    const dim3 grid(static_cast<unsigned>((a.lq + fa32::kRows - 1) / fa32::kRows), heads, seqs);
-    detail::allow_smem<fa32::flash_f32_kernel>(fa32::kSmemBytes);
+    const dim3 grid(static_cast<unsigned>((a.lq + fa32::kRows - 1) / fa32::kRows), static_cast<unsigned>(a.heads),
+                    static_cast<unsigned>(a.seqs));
+    allow_smem<fa32::flash_f32_kernel>(fa32::kSmemBytes);
     fa32::flash_f32_kernel<<<grid, fa32::kThreads, fa32::kSmemBytes, ctx.stream()>>>(p);
   }
   EPONA_CUDA_CHECK_LAUNCH();
+}
+
+}  // namespace detail
+
+template <class T>
+void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const AttentionShape& a) {
+  detail::attention(ctx, q, k, v, o, a, detail::FlashKernel::Auto);
 }
 
 }  // namespace epona::cuda
