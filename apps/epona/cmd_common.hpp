@@ -88,7 +88,7 @@ inline void write_pose_csv(const std::filesystem::path& path, const io::PoseSequ
     append_shortest(s, p.yaw[i]);
     s += '\n';
   }
-  io::write_file_atomically(path, s);
+  io::write_atomically(path, s);
 }
 
 inline std::string size_text(const io::Image& img) { return std::to_string(img.height) + "x" + std::to_string(img.width); }

@@ -157,7 +157,7 @@ inline int run_info(const ParsedArgs& a, const Console& con) {
   }
   if (a.has("write-config")) {
     const std::string path = *a.get("write-config");
-    io::write_file_atomically(path, io::to_json(combined).dump(1) + "\n");
+    io::write_atomically(path, io::to_json(combined).dump(1) + "\n");
     con.out << "wrote the detected configuration to " << path << " (check the assumed values, then pass it with --config)\n";
   }
   return 0;

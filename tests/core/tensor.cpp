@@ -28,6 +28,11 @@ TEST_CASE("tensor shape, reshape, slice and index") {
   CHECK_THROWS_WITH_AS(t.size(3), doctest::Contains("out of range"), Error);
   CHECK_THROWS_AS(Tensor<float>({-1, 2}), Error);
   CHECK_THROWS_AS(Tensor<float>({INT64_MAX, 4}), Error);
+  // 2^62 elements fit int64, but 2^62 floats are 2^64 bytes (0 in a size_t): refused, not 0 bytes
+  CHECK_THROWS_WITH_AS(Tensor<float>({std::int64_t{1} << 31, std::int64_t{1} << 31}), doctest::Contains("needs more than"), Error);
+  CHECK_THROWS_WITH_AS(Tensor<double>({std::int64_t{1} << 61}), doctest::Contains("needs more than"), Error);
+  // a size that fits but cannot be allocated is epona's out-of-memory error, not std::bad_alloc
+  CHECK_THROWS_WITH_AS(Tensor<float>({std::int64_t{1} << 60}), doctest::Contains("out of host memory"), Error);
 }
 
 TEST_CASE("clone is deep, copies are handles") {

@@ -35,7 +35,10 @@ TEST_CASE("schedule matches the closed form and is a 0 -> 1 increasing grid") {
 }
 
 TEST_CASE("schedule arguments are checked") {
-  CHECK_THROWS_WITH_AS(flow::get_schedule(0, 512), doctest::Contains("at least 1"), Error);
-  CHECK_THROWS_WITH_AS(flow::get_schedule(-5, 512), doctest::Contains("at least 1"), Error);
+  CHECK_THROWS_WITH_AS(flow::get_schedule(0, 512), doctest::Contains("must be in [1, 100000]"), Error);
+  CHECK_THROWS_WITH_AS(flow::get_schedule(-5, 512), doctest::Contains("must be in [1, 100000]"), Error);
+  // 2^40 steps: refused before a 4 TB vector is asked for (std::bad_alloc otherwise)
+  CHECK_THROWS_WITH_AS(flow::get_schedule(std::int64_t{1} << 40, 512), doctest::Contains("must be in [1, 100000]"), Error);
+  CHECK(flow::get_schedule(100000, 512).size() == 100001);
   CHECK_THROWS_AS(flow::get_schedule(10, 0), Error);
 }

@@ -215,6 +215,6 @@ TEST_CASE("npy: write_npy replaces files atomically and reports unwritable paths
   for ([[maybe_unused]] auto& e : fs::directory_iterator(dir)) ++entries;
   CHECK(entries == 1);  // no temporary left behind
   CHECK_THROWS_WITH_AS(io::write_npy(dir / "no" / "such" / "dir.npy", a.values),
-                       doctest::Contains("cannot open for writing"), Error);
+                       doctest::Contains("cannot create the temporary file"), Error);
   fs::remove_all(dir);
 }

@@ -172,10 +172,10 @@ TEST_CASE("bad input is refused before any work, with the problem named") {
   wrong_yaw.rel_yaw = Tensor<float, Cpu>::zeros({1, w.condition_frames, 2});
   CHECK(contains(error_of([&] { (void)m.plan(wrong_yaw, opt); }), "history rel_yaw"));
 
-  for (const std::int64_t steps : {0, -3}) {
-    SampleOptions bad;
+  for (const std::int64_t steps : {std::int64_t{0}, std::int64_t{-3}, std::int64_t{1} << 40}) {
+    SampleOptions bad;  // 2^40 steps would be a 4 TB schedule: refused before anything is allocated
     bad.steps = steps;
-    CHECK(contains(error_of([&] { (void)m.plan(good, bad); }), "sampling steps must be at least 1"));
+    CHECK(contains(error_of([&] { (void)m.plan(good, bad); }), "sampling steps must be in [1, 100000]"));
   }
 
   NextAction nan_action{Tensor<float, Cpu>::zeros({1, 1, 2}), Tensor<float, Cpu>::full({1, 1, 1}, NAN)};
@@ -192,5 +192,7 @@ TEST_CASE("bad input is refused before any work, with the problem named") {
                                           Tensor<float, Cpu>::zeros({2, 1, w.img_tokens(), w.token_dim()}));
   CHECK(contains(error_of([&] { (void)rollout(m, good, ro); }), "noise for 2 step(s) supplied, 3 needed"));
   ro.frames = 0;
-  CHECK(contains(error_of([&] { (void)rollout(m, good, ro); }), "rollout frames must be at least 1"));
+  CHECK(contains(error_of([&] { (void)rollout(m, good, ro); }), "rollout frames must be in [1, 1000000]"));
+  ro.frames = std::int64_t{1} << 40;
+  CHECK(contains(error_of([&] { (void)rollout(m, good, ro); }), "rollout frames must be in [1, 1000000]"));
 }

@@ -125,6 +125,7 @@ TEST_CASE("config files asking for absurd sizes are refused by name before any l
       {"a size past int64", [](json& w) { w["traj_len"] = std::uint64_t{1} << 63; }, "traj_len is out of range"},
       {"zero sampling steps", [](json& w) { w["num_sampling_steps"] = 0; }, "num_sampling_steps must be in [1,"},
       {"negative sampling steps", [](json& w) { w["num_sampling_steps"] = -5; }, "num_sampling_steps must be in [1,"},
+      {"2^40 sampling steps", [](json& w) { w["num_sampling_steps"] = std::int64_t{1} << 40; }, "num_sampling_steps must be in [1, 100000]"},
       {"a fractional frame count", [](json& w) { w["condition_frames"] = 2.5; }, "condition_frames must be an integer"},
       {"more frames than the model has time embeddings", [](json& w) { w["condition_frames"] = 1000000; },
        "condition_frames must be in [1, 50]"},

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <algorithm>
+#include <cstddef>
 #include <cstdint>
 #include <cstring>
 #include <initializer_list>
@@ -53,6 +54,9 @@ class Tensor {
   // Allocates an owning tensor (contents uninitialised).
   explicit Tensor(Shape shape) : shape_(std::move(shape)) {
     const auto n = shape_numel(shape_);
+    // numel fits int64, but numel * sizeof(T) may not fit a size_t (2^62 floats -> 0 bytes)
+    EPONA_CHECK(static_cast<std::uint64_t>(n) <= PTRDIFF_MAX / sizeof(T), "shape ", shape_str(shape_), " needs more than ",
+                PTRDIFF_MAX, " bytes");
     storage_ = BackendMemory<B>::allocate(static_cast<std::size_t>(n) * sizeof(T));
     data_ = static_cast<T*>(storage_.get());
   }

@@ -34,7 +34,7 @@ struct ScheduleShift {
 //   t = 1 - sigma
 // s = 0 gives 1/0 = inf and sigma = 0, hence t_N = 1.
 inline std::vector<float> get_schedule(std::int64_t num_steps, std::int64_t seq_len, const ScheduleShift& shift = {}) {
-  EPONA_CHECK(num_steps >= 1, "sampling steps must be at least 1, got ", num_steps);
+  check_sampling_steps(num_steps);
   EPONA_CHECK(seq_len >= 1, "schedule sequence length must be at least 1, got ", seq_len);
   const float e_mu = static_cast<float>(std::exp(shift.mu(seq_len)));
   const std::int64_t points = num_steps + 1, halfway = points / 2;

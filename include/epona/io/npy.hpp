@@ -10,7 +10,6 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
-#include <random>
 #include <span>
 #include <string>
 #include <string_view>
@@ -19,6 +18,7 @@
 #include <vector>
 
 #include "epona/core/dtype.hpp"
+#include "epona/io/atomic_file.hpp"
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
 
@@ -45,30 +45,6 @@ inline std::vector<std::byte> read_whole_file(const std::filesystem::path& path)
   return bytes;
 }
 
-// Writes `bytes` to a temporary name next to `path`, then renames it over `path`, so a
-// reader never sees a half-written file and an interrupted run leaves the old file intact.
-inline void write_file_atomically(const std::filesystem::path& path, std::string_view bytes) {
-  std::random_device rd;
-  const auto tmp = std::filesystem::path(path.string() + ".tmp" + std::to_string(rd() % 1000000u));
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    EPONA_CHECK(out.good(), tmp.string(), ": cannot open for writing");
-    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-    out.close();
-    if (!out) {
-      std::error_code ec;
-      std::filesystem::remove(tmp, ec);
-      fail(tmp.string(), ": write failed (disk full?)");
-    }
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::error_code ignored;
-    std::filesystem::remove(tmp, ignored);
-    fail(path.string(), ": cannot rename ", tmp.string(), " into place (", ec.message(), ")");
-  }
-}
 
 // ---- the format ---------------------------------------------------------------------
 
@@ -341,7 +317,7 @@ std::string to_npy_bytes(const Tensor<T>& t) {
 
 template <class T>
 void write_npy(const std::filesystem::path& path, const Tensor<T>& t) {
-  write_file_atomically(path, to_npy_bytes(t));
+  write_atomically(path, to_npy_bytes(t));
 }
 
 }  // namespace epona::io

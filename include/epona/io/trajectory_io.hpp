@@ -21,6 +21,7 @@
 
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/io/atomic_file.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/poses.hpp"
 
@@ -103,8 +104,8 @@ inline std::string trajectory_to_json(const Tensor<float>& traj) {
 // Writes (W, 3) or (S, W, 3) as .csv, .json or .npy (by extension), atomically.
 inline void write_trajectory(const std::filesystem::path& path, const Tensor<float>& traj) {
   const std::string ext = traj_detail::lower_ext(path);
-  if (ext == ".csv") return write_file_atomically(path, trajectory_to_csv(traj));
-  if (ext == ".json") return write_file_atomically(path, trajectory_to_json(traj));
+  if (ext == ".csv") return write_atomically(path, trajectory_to_csv(traj));
+  if (ext == ".json") return write_atomically(path, trajectory_to_json(traj));
   if (ext == ".npy") return write_npy(path, traj_detail::as_steps(traj, path.string()));
   fail(path.string(), ": unknown trajectory file type '", ext, "' (expected .csv, .json or .npy)");
 }

@@ -61,7 +61,17 @@ inline constexpr int dcae_downsample = 32;
 // Largest model this library agrees to build (refused with the size it would need).
 inline constexpr double max_parameters = 1e11;
 inline constexpr double max_activation_bytes = 1e12;
+// Most sampling steps / rollout frames accepted (the official runs use 100 steps, 54 frames);
+// a larger count is a typo or an attack, refused before the schedule or any output is allocated.
+inline constexpr std::int64_t max_sampling_steps = 100000;
+inline constexpr std::int64_t max_rollout_frames = 1000000;
 }  // namespace constants
+
+// Throws (naming `what`) unless 1 <= steps <= constants::max_sampling_steps.
+inline void check_sampling_steps(std::int64_t steps, const char* what = "sampling steps") {
+  EPONA_CHECK(steps >= 1 && steps <= constants::max_sampling_steps, what, " must be in [1, ",
+              constants::max_sampling_steps, "], got ", steps);
+}
 
 namespace detail {
 // Collects every problem of a config so that validate() reports them all at once.
@@ -220,7 +230,8 @@ struct WorldModelConfig {
     p.check(std::isfinite(pose_x_bound) && pose_x_bound > 0, "pose_x_bound must be a positive number, got ", pose_x_bound);
     p.check(std::isfinite(pose_y_bound) && pose_y_bound > 0, "pose_y_bound must be a positive number, got ", pose_y_bound);
     p.check(std::isfinite(yaw_bound) && yaw_bound > 0, "yaw_bound must be a positive number, got ", yaw_bound);
-    positive(num_sampling_steps, "num_sampling_steps");
+    p.check(num_sampling_steps >= 1 && num_sampling_steps <= constants::max_sampling_steps,
+            "num_sampling_steps must be in [1, ", constants::max_sampling_steps, "], got ", num_sampling_steps);
     if (image_h > 0 && image_w > 0) {
       p.check(image_h % constants::dcae_downsample == 0 && image_w % constants::dcae_downsample == 0,
               "image_size (", image_h, ", ", image_w, ") must be multiples of ", constants::dcae_downsample);

@@ -74,7 +74,8 @@ inline Tensor<float, Cpu> with_placeholder(const Tensor<float, Cpu>& actions) {
 template <class B, class W>
 RolloutResult rollout(WorldModel<B, W>& wm, History window, const RolloutOptions& opt,
                       const std::type_identity_t<std::function<void(const RolloutFrame<B>&)>>& on_frame = {}) {
-  EPONA_CHECK(opt.frames >= 1, "rollout frames must be at least 1, got ", opt.frames);
+  EPONA_CHECK(opt.frames >= 1 && opt.frames <= constants::max_rollout_frames, "rollout frames must be in [1, ",
+              constants::max_rollout_frames, "], got ", opt.frames);
   const std::int64_t steps = wm.steps_of(opt.sample);
   const std::int64_t Bt = wm.validate(window, nullptr, steps);
   NoiseSource noise = WorldModel<B, W>::noise_for(opt.sample);

@@ -200,7 +200,7 @@ class WorldModel {
 
   std::int64_t steps_of(const SampleOptions& opt) const {
     const std::int64_t steps = opt.steps.value_or(cfg_.num_sampling_steps);
-    EPONA_CHECK(steps >= 1, "sampling steps must be at least 1, got ", steps);
+    check_sampling_steps(steps);
     return steps;
   }
   static NoiseSource noise_for(const SampleOptions& opt) {
@@ -212,7 +212,7 @@ class WorldModel {
   // Checks a window (and action) against the configuration; returns the batch size. Throws
   // (naming the problem) on any wrong shape or non-finite value, before any work.
   std::int64_t validate(const History& h, const NextAction* action, std::int64_t steps) const {
-    EPONA_CHECK(steps >= 1, "sampling steps must be at least 1, got ", steps);
+    check_sampling_steps(steps);
     EPONA_CHECK(!h.latents.empty() && h.latents.dim() == 4, "history latents must be (B, F, L, C), got ",
                 shape_str(h.latents.shape()));
     const std::int64_t Bt = h.latents.size(0), F = cfg_.condition_frames;
