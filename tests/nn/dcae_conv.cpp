@@ -1,9 +1,13 @@
 // Tests for epona/cpu/conv.hpp conv2d and epona/nn/conv2d.hpp against a float64 loop written
 // from the definition (cross-correlation, zero padding k/2): 3x3 / 1x1 / 5x5 kernels, groups,
 // depthwise, widths that are no multiple of any SIMD width, images split over several im2col
-// panels, bf16 weights, fused ReLU/SiLU, binding by name, and refused geometries.
+// panels, bf16 weights, fused ReLU/SiLU, the Winograd F(2x2, 3x3) path of large 3x3 convs and
+// its tile edges, binding by name, and refused geometries.
 // Tolerance: rel_max <= 2e-6 (float32 accumulation of at most ~600 terms against float64).
 #include <doctest/doctest.h>
+
+#include <algorithm>
+#include <cmath>
 
 #include "dcae_reference.hpp"
 #include "epona/cpu/conv.hpp"
@@ -84,6 +88,51 @@ TEST_CASE("conv2d with bf16 weights equals the float conv of the rounded weights
   cpu::conv2d(ctx, x.data(), wb.data(), nullptr, y.data(), Conv2dShape{N, C, H, W, O, k, 1});
   const auto ref = dcae_ref::conv2d(dcae_ref::to_vec(x), N, C, H, W, dcae_ref::to_vec(wr), nullptr, O, k, 1);
   CHECK(dcae_ref::rel_max(y, ref) <= 2e-6);
+}
+
+TEST_CASE("conv2d 3x3 with many channels (Winograd F(2x2, 3x3) unless EPONA_CPU_CONV=direct)") {
+  // >= 64 input and output channels and >= 64 tiles of 2x2 pixels: the Winograd path. Odd
+  // heights/widths (a half-empty last tile row/column), batch > 1, fused activations, threads.
+  // Measured rel_max 3e-7..7e-7 (the direct path: 3e-7..4e-7); the limit stays the direct one's.
+  for (int threads : {1, 3}) {
+    INFO("threads = " << threads);
+    CHECK(conv_error({1, 64, 16, 16, 64, 3, 1}, ConvAct::None, true, threads) <= 2e-6);
+    CHECK(conv_error({2, 96, 17, 23, 80, 3, 1}, ConvAct::Relu, true, threads) <= 2e-6);
+    CHECK(conv_error({1, 256, 12, 21, 72, 3, 1}, ConvAct::Silu, false, threads) <= 2e-6);
+  }
+}
+
+TEST_CASE("Winograd F(2x2, 3x3) itself: tile edges, few channels, bf16 weights") {
+  // Called directly (whatever EPONA_CPU_CONV says), on every size from 1x1 up: every way a 2x2
+  // tile can hang over the map's edge, and channel counts below the kernels' tiles.
+  const cpu::gemm::KernelFamily* f = cpu::detail::kernel_family<float>(cpu::active_isa(), 64);
+  if (!f) {
+    MESSAGE("generic (Eigen) kernels: Winograd does not run on this path");
+    return;
+  }
+  cpu::Context ctx(2);
+  for (const Case& c : {Case{1, 3, 1, 1, 5, 3, 1}, Case{1, 4, 2, 3, 7, 3, 1}, Case{1, 5, 3, 2, 9, 3, 1},
+                        Case{1, 17, 7, 9, 33, 3, 1}, Case{1, 40, 10, 31, 15, 3, 1}}) {
+    INFO("C=" << c.C << " O=" << c.O << " H=" << c.H << " W=" << c.W);
+    const HostTensor x = dcae_ref::random_tensor({1, c.C, c.H, c.W}, 11);
+    const HostTensor wf = dcae_ref::random_tensor({c.O, c.C, 3, 3}, 12);
+    const HostTensor b = dcae_ref::random_tensor({c.O}, 13);
+    Tensor<bf16, Cpu> wb(wf.shape());
+    HostTensor wr(wf.shape());
+    for (i64 i = 0; i < wf.numel(); ++i) wb.data()[i] = bf16(wf.data()[i]), wr.data()[i] = float(wb.data()[i]);
+    const auto bias = dcae_ref::to_vec(b);
+    auto ref = dcae_ref::conv2d(dcae_ref::to_vec(x), 1, c.C, c.H, c.W, dcae_ref::to_vec(wf), &bias, c.O, 3, 1);
+    for (auto& v : ref) v = dcae_ref::relu(v);
+    HostTensor y({1, c.O, c.H, c.W});
+    std::fill_n(y.data(), y.numel(), std::nanf(""));  // every output must be written
+    cpu::winograd::conv3x3(*f, ctx.threads(), x.data(), c.C, c.H, c.W, wf.data(), b.data(), c.O, y.data(),
+                           cpu::conv_detail::Relu{});
+    CHECK(dcae_ref::rel_max(y, ref) <= 2e-6);
+    // bf16 weights: the float Winograd conv of the rounded weights, no activation, no bias
+    const auto ref_b = dcae_ref::conv2d(dcae_ref::to_vec(x), 1, c.C, c.H, c.W, dcae_ref::to_vec(wr), nullptr, c.O, 3, 1);
+    cpu::winograd::conv3x3(*f, 1, x.data(), c.C, c.H, c.W, wb.data(), nullptr, c.O, y.data(), cpu::detail::Identity{});
+    CHECK(dcae_ref::rel_max(y, ref_b) <= 2e-6);
+  }
 }
 
 TEST_CASE("conv2d refuses geometries it cannot compute") {

@@ -1,7 +1,8 @@
 // epona/cpu/conv.hpp — the NCHW float32 kernels of the convolutional autoencoder (DC-AE):
-// 2-D convolution (stride 1, "same" zero padding, groups) as GEMMs — the packed micro-kernels
-// of gemm_kernels.hpp with im2col done while packing (no panel in memory), or Eigen over
-// im2col panels on the generic path — depthwise convolution as direct loops, ReLU/SiLU
+// 2-D convolution (stride 1, "same" zero padding, groups) as GEMMs — Winograd F(2x2, 3x3) for
+// the large 3x3 ones (conv_winograd.hpp), else the packed micro-kernels of gemm_kernels.hpp
+// with im2col done while packing (no panel in memory), or Eigen over im2col panels on the
+// generic path — depthwise convolution as direct loops, ReLU/SiLU
 // epilogues, per-pixel channel norms (RMSNorm2d, eval BatchNorm2d), the GLU gate and
 // LiteMLA's ReLU linear attention.
 #pragma once
@@ -15,6 +16,7 @@
 
 #include "epona/cpu/context.hpp"
 #include "epona/cpu/activation.hpp"
+#include "epona/cpu/conv_winograd.hpp"
 #include "epona/cpu/gemm.hpp"
 
 namespace epona {
@@ -257,6 +259,20 @@ inline void conv_group_packed(const gemm::KernelFamily& f, const float* in, std:
   }
 }
 
+// One image by Winograd F(2x2, 3x3) (conv_winograd.hpp), the activation fused into its output transform.
+template <class W>
+void conv3x3_winograd(const gemm::KernelFamily& f, int threads, const float* in, const W* w, const float* bias,
+                      float* out, const Conv2dShape& s, ConvAct act) {
+  const auto run = [&](auto act_fn) {
+    winograd::conv3x3(f, threads, in, s.in_channels, s.height, s.width, w, bias, s.out_channels, out, act_fn);
+  };
+  switch (act) {
+    case ConvAct::None: return run(detail::Identity{});
+    case ConvAct::Relu: return run(Relu{});
+    case ConvAct::Silu: return run(act::Silu{});
+  }
+}
+
 // Depthwise (one input channel per output channel): direct shifted multiply-adds per plane.
 inline void conv_depthwise(const float* in, std::int64_t planes, std::int64_t channels, std::int64_t H,
                            std::int64_t W, std::int64_t k, const float* w, const float* bias, float* out) {
@@ -287,12 +303,22 @@ inline void conv_depthwise(const float* in, std::int64_t planes, std::int64_t ch
 
 // y = act(conv(x) + bias), x (N, C, H, W), y (N, O, H, W) preallocated (must not alias x).
 // W: float or bf16 weights; activations and accumulation are float32. Threads: ctx.threads().
+// 3x3 convolutions with one group and enough channels run Winograd F(2x2, 3x3)
+// (conv_winograd.hpp; EPONA_CPU_CONV=direct turns it off), other ones the im2col GEMM.
 template <class W>
 void conv2d(Context& ctx, const float* x, const W* weight, const float* bias, float* y, const Conv2dShape& s,
             ConvAct act = ConvAct::None) {
   conv_detail::check_shape(s);
   const std::int64_t cin_g = s.in_channels / s.groups, cout_g = s.out_channels / s.groups;
   const std::int64_t HW = s.height * s.width, k = s.kernel;
+  const gemm::KernelFamily* family = detail::kernel_family<float>(active_isa(), HW);
+  if (family && k == 3 && s.groups == 1 && winograd::enabled() &&
+      winograd::worthwhile(s.in_channels, s.out_channels, s.height, s.width)) {
+    for (std::int64_t n = 0; n < s.batch; ++n)
+      conv_detail::conv3x3_winograd(*family, ctx.threads(), x + n * s.in_channels * HW, weight, bias,
+                                    y + n * s.out_channels * HW, s, act);
+    return;
+  }
   std::vector<float> widened;
   const float* w = conv_detail::weights_as_float(weight, s.out_channels * cin_g * k * k, widened);
   if (cin_g == 1 && cout_g == 1) {
@@ -300,7 +326,6 @@ void conv2d(Context& ctx, const float* x, const W* weight, const float* bias, fl
     apply_conv_act(ctx, y, s.batch * s.out_channels * HW, act);
     return;
   }
-  const gemm::KernelFamily* family = detail::kernel_family<float>(active_isa(), HW);
   for (std::int64_t n = 0; n < s.batch; ++n)
     for (std::int64_t g = 0; g < s.groups; ++g)
       if (family)
