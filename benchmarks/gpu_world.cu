@@ -4,10 +4,14 @@
 // MST over 10 frames; TrajDiT and VisDiT one evaluation (forward: cond_in, modulations and one
 // velocity) and 100-step sample (prepare + the recorded sampling loop); one autoregressive
 // step (MST + TrajDiT 100 + VisDiT 100, self-predicted action, host to host); the bf16 GEMM
-// ceiling through the same cuBLASLt path (8192^3, rotating buffers); device memory in use.
+// ceiling through the same cuBLASLt path (8192^3, rotating buffers); device memory in use;
+// the element-wise passes between the GEMMs at the model's sizes (row `pass_*`: residual add +
+// LayerNorm apart and fused, in-place LayerNorm, the erf GELU, gated residual + modulated norm;
+// EPONA_NORM_LEGACY=1 selects the previous norm kernels for a side-by-side run).
 // CUDA events around each call after warm-up; medians. One JSON object per line (the
 // side-by-side harness reads them), then a readable table.
 // Usage: bench_gpu_world [--repeats N] [--steps S] [--only a,b,...] [--fp32]
+// (--only names: gemm, passes, mst, traj_eval, traj_sample, vis_eval, vis_sample, step)
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -127,6 +131,59 @@ double gemm_ceiling_tflops(cuda::Context& ctx) {
   return 2.0 * n * n * n / (median(runs) * 1e-3) / 1e12;
 }
 
+// A device tensor of standard normal values rounded to T.
+template <class T>
+Tensor<T, Cuda> random_device(cuda::Context& ctx, Shape shape, std::uint64_t seed) {
+  TorchGenerator gen(seed);
+  const auto host = gen.randn(std::move(shape));
+  Tensor<T, Cpu> h(host.shape());
+  for (std::int64_t i = 0; i < h.numel(); ++i) h.data()[i] = T(host.data()[i]);
+  return cuda::to_device(ctx, h);
+}
+
+// The element-wise passes between the GEMMs, at the sizes the model runs them (GB/s counts
+// each operand read once and each result written once).
+void time_passes(cuda::Context& ctx, int repeats) {
+  const std::int64_t rows = 5150, C = 2048, hidden = 4 * C;  // the MST's F·T tokens
+  auto x = random_device<float>(ctx, {rows, C}, 1);
+  auto y = random_device<bf16>(ctx, {rows, C}, 2), u = random_device<bf16>(ctx, {rows, C}, 3);
+  auto h = random_device<bf16>(ctx, {rows, hidden}, 4);
+  auto w = random_device<float>(ctx, {C}, 5), b = random_device<float>(ctx, {C}, 6);
+  const auto pass = [&](const std::string& name, double bytes, const std::function<void()>& fn) {
+    const auto runs = time_ms(ctx, repeats, 3, fn);
+    emit("pass_" + name, runs, 0);
+    std::printf("# pass_%s: %.1f us, %.0f GB/s\n", name.c_str(), 1e3 * median(runs), bytes / (median(runs) * 1e6));
+  };
+  const double f32 = 4.0 * rows * C, b16 = 2.0 * rows * C;
+  pass("mst_add_then_ln", 3 * f32 + 2 * b16, [&] {
+    cuda::add_inplace(ctx, x.data(), y.data(), rows * C);
+    cuda::layer_norm(ctx, x.data(), u.data(), rows, C, w.data(), b.data(), 1e-5f);
+  });
+  pass("mst_add_ln_fused", 2 * f32 + 2 * b16,
+       [&] { cuda::add_layer_norm(ctx, x.data(), y.data(), u.data(), rows, C, w.data(), b.data(), 1e-5f); });
+  pass("mst_ln_bf16_inplace", 2 * b16,
+       [&] { cuda::layer_norm(ctx, u.data(), u.data(), rows, C, w.data(), b.data(), 1e-5f); });
+  pass("mst_gelu_erf", 2.0 * 2 * rows * hidden, [&] { cuda::gelu_erf(ctx, h.data(), rows * hidden); });
+  // The same pass as the GEMM's erf-GELU epilogue runs it (gemm.cuh: for_each over rows).
+  pass("mst_gelu_erf_gemm_pass", 2.0 * 2 * rows * hidden, [&] {
+    cuda::detail::bias_activation(ctx, h.data(), hidden, rows, hidden, static_cast<const bf16*>(nullptr),
+                                  cuda::detail::GeluErfOp{});
+  });
+  // The TrajDiT's condition rows: gated residual, then the modulated norm.
+  const std::int64_t r2 = 515, D = 1024;
+  auto z = random_device<bf16>(ctx, {r2, D}, 7), sub = random_device<bf16>(ctx, {r2, D}, 8);
+  auto mo = random_device<bf16>(ctx, {r2, D}, 9), mv = random_device<bf16>(ctx, {6, D}, 10);
+  const double t16 = 2.0 * r2 * D;
+  pass("traj_gate_then_mod", 5 * t16, [&] {
+    cuda::add_gated(ctx, z.data(), sub.data(), mv.data() + 2 * D, r2, D);
+    cuda::layer_norm_modulate(ctx, z.data(), mo.data(), r2, D, mv.data(), mv.data() + D, 1e-6f);
+  });
+  pass("traj_gate_mod_fused", 4 * t16, [&] {
+    cuda::add_gated_layer_norm_modulate(ctx, z.data(), sub.data(), mv.data() + 2 * D, mo.data(), r2, D, mv.data(),
+                                        mv.data() + D, 1e-6f);
+  });
+}
+
 template <class W>
 int run(const Options& o) {
   WorldModelConfig cfg;  // the shipped configuration
@@ -141,6 +198,7 @@ int run(const Options& o) {
               std::is_same_v<W, float> ? "float32" : "bf16");
   const double ceiling = o.want("gemm") ? gemm_ceiling_tflops(probe) : 0;
   if (ceiling > 0) emit_value("gemm_tflops", ceiling);
+  if (o.want("passes")) time_passes(probe, std::max(o.repeats, 20));
 
   const std::size_t base_bytes = used_device_bytes();
   const auto t0 = std::chrono::steady_clock::now();

@@ -1,5 +1,6 @@
 // GPU tests for the memory-bound kernels: epona/cuda/norm.cuh (LayerNorm, LayerNorm +
-// modulation, per-head RMSNorm), rope.cuh, activation.cuh and elementwise.cuh, in float32,
+// modulation, residual add + LayerNorm, gated residual + modulated LayerNorm, per-head
+// RMSNorm), rope.cuh, activation.cuh and elementwise.cuh, in float32,
 // bf16 and the mixed storage combinations the model uses, against the CPU backend on the same
 // (bf16-rounded) inputs. Outputs are poisoned first; in-place ops on packed buffers must leave
 // every channel outside their heads bit-identical.
@@ -192,13 +193,81 @@ void check_residuals(cuda::Context& ctx, std::int64_t rows, std::int64_t n, std:
   }
 }
 
+// x (TX) += [gate (TG) ⊙] y (TY), then out (TO) = LN(x) affine (TP weight/bias) or modulated
+// (TP shift/scale): the updated x is checked against the CPU's residual update, and out against
+// the CPU's LayerNorm of the x the GPU stored (bf16 x is rounded before it is normalised, by
+// design, as the unfused kernels do). offset > 0 misaligns x (the two-kernel fallback).
+template <class TX, class TY, class TG, class TO, class TP>
+void check_residual_norm(cuda::Context& ctx, std::int64_t rows, std::int64_t n, bool modulate, std::uint32_t seed,
+                         std::int64_t offset = 0) {
+  cpu::Context cctx;
+  HostF x = random_tensor({rows, n}, seed, -2.f, 3.f), y = random_tensor({rows, n}, seed + 1, -2.f, 2.f);
+  HostF g = random_tensor({n}, seed + 2, -1.5f, 1.5f);
+  HostF mul = random_tensor({n}, seed + 3, modulate ? -0.5f : 0.5f, modulate ? 0.5f : 1.5f);
+  HostF add = random_tensor({n}, seed + 4);
+  round_to<TX>(x), round_to<TY>(y), round_to<TG>(g), round_to<TP>(mul), round_to<TP>(add);
+  HostF ref_x = x.clone();
+  if (modulate) cpu::add_gated(cctx, ref_x.data(), y.data(), g.data(), rows, n);
+  else cpu::add_inplace(cctx, ref_x.data(), y.data(), rows * n);
+  auto dx = upload<TX>(ctx, x, offset);
+  auto dy = upload<TY>(ctx, y);
+  auto dg = upload<TG>(ctx, g);
+  auto dmul = upload<TP>(ctx, mul), dadd = upload<TP>(ctx, add);
+  Dev<TO> dout({rows, n});
+  poison(ctx, dout);
+  if (modulate)
+    cuda::add_gated_layer_norm_modulate(ctx, dx.data(), dy.data(), dg.data(), dout.data(), rows, n, dadd.data(),
+                                        dmul.data(), 1e-6f);
+  else
+    cuda::add_layer_norm(ctx, dx.data(), dy.data(), dout.data(), rows, n, dmul.data(), dadd.data(), 1e-5f);
+  const std::string what = std::string(modulate ? "add_gated_layer_norm_modulate " : "add_layer_norm ") +
+                           type_name<TX>() + "+=" + type_name<TY>() + " gate " + type_name<TG>() + " -> " +
+                           type_name<TO>() + " params " + type_name<TP>() + " " + std::to_string(rows) + "x" +
+                           std::to_string(n) + (offset ? " misaligned" : "");
+  const HostF gx = download(ctx, dx);
+  Bound bx = one_rounding<TX>(max_abs(ref_x));
+  if (modulate && std::is_same_v<TG, bf16> && std::is_same_v<TY, bf16>) {  // gate ⊙ y is rounded to bf16 first
+    HostF gy({rows, n});
+    for (std::int64_t i = 0; i < gy.numel(); ++i) gy.data()[i] = g.data()[i % n] * y.data()[i];
+    bx = {bx.rel + kBf16Roundoff * norm2(gy) / norm2(ref_x), bx.abs + kBf16Roundoff * max_abs(gy)};
+  }
+  check_error(measure(gx, ref_x), bx, what + " (residual)");
+  HostF ref({rows, n});
+  if (modulate) cpu::layer_norm_modulate(cctx, gx.data(), ref.data(), rows, n, add.data(), mul.data(), 1e-6f);
+  else cpu::layer_norm(cctx, gx.data(), ref.data(), rows, n, mul.data(), add.data(), 1e-5f);
+  Bound b = one_rounding<TO>(max_abs(ref));
+  if (modulate && std::is_same_v<TP, bf16>)  // 1 + scale is rounded to bf16, as in check_modulate
+    b = {b.rel + kBf16Roundoff * (1 + norm2(add) * std::sqrt(double(rows)) / norm2(ref)),
+         b.abs + kBf16Roundoff * (max_abs(ref) + max_abs(add))};
+  check_error(measure(download(ctx, dout), ref), b, what);
+}
+
 }  // namespace
+
+TEST_CASE("cuda add_layer_norm and add_gated_layer_norm_modulate match the CPU's add then norm") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  std::uint32_t seed = 700;
+  // Widths: the MST's 2048 and the DiTs' 1024 (one row per warp, 8 and 4 packs per lane),
+  // 520 (a partial last pack round), 64 (one pack per lane, most lanes idle), 45 (not packable)
+  // and 8192 (wider than a warp holds): the last two take the two-kernel fallback.
+  for (std::int64_t n : {2048, 1024, 520, 64, 45, 8192}) {
+    check_residual_norm<float, float, float, float, float>(ctx, 9, n, false, seed++);
+    check_residual_norm<float, bf16, float, bf16, float>(ctx, 9, n, false, seed++);  // the MST's mix
+    check_residual_norm<float, float, float, float, float>(ctx, 9, n, true, seed++);
+    check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 9, n, true, seed++);      // the DiTs' mix
+  }
+  check_residual_norm<float, bf16, float, bf16, float>(ctx, 5150, 2048, false, seed++);  // the MST's rows
+  check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 515, 1024, true, seed++);      // the TrajDiT's
+  check_residual_norm<float, bf16, float, bf16, float>(ctx, 7, 2048, false, seed++, 1);  // misaligned x
+  check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 7, 1024, true, seed++, 2);
+}
 
 TEST_CASE("cuda layer_norm matches cpu::layer_norm") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
   std::uint32_t seed = 1;
-  for (std::int64_t n : {2048, 1000, 33})
+  for (std::int64_t n : {2048, 1000, 33, 8192})  // 8192: wider than the warp-per-row kernel holds
     for (int affine = 0; affine < 4; ++affine) {
       check_layer_norm<float, float, float>(ctx, 7, n, affine & 1, affine & 2, seed++);
       check_layer_norm<bf16, bf16, float>(ctx, 7, n, affine & 1, affine & 2, seed++);
@@ -219,7 +288,7 @@ TEST_CASE("cuda layer_norm_modulate matches cpu::layer_norm_modulate") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
   std::uint32_t seed = 200;
-  for (std::int64_t n : {2048, 64, 45}) {
+  for (std::int64_t n : {2048, 1024, 64, 45}) {
     check_modulate<float, float, float>(ctx, 11, n, seed++);
     check_modulate<bf16, bf16, bf16>(ctx, 11, n, seed++);
     check_modulate<float, bf16, bf16>(ctx, 11, n, seed++);
@@ -241,6 +310,7 @@ TEST_CASE_TEMPLATE("cuda activations match the CPU", T, float, bf16) {
   cuda::Context ctx;
   check_activations<T>(ctx, 1001, 400);
   check_activations<T>(ctx, 1 << 20, 410);
+  check_activations<T>(ctx, 8 * 100003, 420);  // an odd number of packs per grid stride
 }
 
 TEST_CASE("cuda residual updates match the CPU (PyTorch promotion for mixed types)") {
@@ -263,4 +333,12 @@ TEST_CASE("cuda pointwise kernels reject bad arguments with epona::Error") {
                        doctest::Contains("row stride"), epona::Error);
   CHECK_THROWS_AS(cuda::layer_norm(ctx, x.data(), x.data(), 2, 0, t.data(), t.data(), 1e-6f), epona::Error);
   CHECK_THROWS_AS(cuda::add_gated(ctx, x.data(), x.data(), t.data(), -1, 8), epona::Error);
+  CHECK_THROWS_WITH_AS(cuda::add_layer_norm(ctx, x.data(), static_cast<const float*>(nullptr), t.data(), 1, 8,
+                                            t.data(), t.data(), 1e-5f),
+                       doctest::Contains("null"), epona::Error);
+  CHECK_THROWS_WITH_AS(cuda::add_gated_layer_norm_modulate(ctx, x.data(), x.data(), static_cast<const float*>(nullptr),
+                                                           t.data(), 1, 8, t.data(), t.data(), 1e-6f),
+                       doctest::Contains("null gate"), epona::Error);
+  CHECK_THROWS_AS(cuda::add_layer_norm(ctx, x.data(), x.data(), t.data(), 1, 0, t.data(), t.data(), 1e-5f),
+                  epona::Error);
 }

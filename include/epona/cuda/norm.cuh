@@ -1,15 +1,20 @@
 // epona/cuda/norm.cuh — normalisations over the last dimension on the GPU: LayerNorm (affine
 // or not), LayerNorm fused with adaLN modulation ((1 + scale) * LN(x) + shift, the DiT blocks:
-// one pass instead of three) and per-head RMSNorm (the DiTs' QK-norm, in place on packed QKV).
-// Statistics in float32 (two-pass mean/variance, biased variance, as torch.layer_norm).
+// one pass instead of three), the residual update fused with the LayerNorm after it (x += [gate ⊙]
+// y, then LN(x): the MST's `x + branch` before ln2 / the next ln1, the DiTs' gated residual before
+// the next modulated norm; one pass over the residual stream instead of two) and per-head RMSNorm
+// (the DiTs' QK-norm, in place on packed QKV). Statistics in float32 (two-pass mean/variance,
+// biased variance, as torch.layer_norm).
 #pragma once
 
 #include <algorithm>
 #include <cstdint>
+#include <cstdlib>
 #include <type_traits>
 
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
+#include "epona/cuda/elementwise.cuh"
 
 namespace epona::cuda {
 
@@ -101,6 +106,123 @@ __global__ void layer_norm_packed_kernel(const TX* x, TY* y, std::int64_t n, con
   }
 }
 
+// One warp per row, the row held in registers (read once, written once, 16-byte accesses):
+// the LayerNorm kernel for rows of n % 8 == 0, n <= 8 * 32 * P, aligned. No block barriers, and
+// every row of the grid in flight at once on the MST's 5150 rows. With Residual, the row is
+// first updated and written back: x = round_TX(x + [round(gate ⊙)] y), exactly what add_inplace /
+// add_gated store; the statistics are then taken over the stored values, as the unfused pair.
+template <class TX, class TY, class TG, class TO, class TP>
+struct RowNormArgs {
+  const TX* x;      // rows of the input (the residual before its update)
+  TX* x_out;        // where the updated residual goes (Residual only; may be x)
+  const TY* y;      // the branch added to x (Residual only)
+  const TG* gate;   // per-column gate of the branch, or null
+  TO* out;          // LN output (may alias x when there is no residual)
+  const TP* mul;    // weight, or scale with Modulate (may be null without Modulate)
+  const TP* add;    // bias, or shift with Modulate
+  std::int64_t rows, n;
+  float eps;
+};
+
+constexpr int kNormWarps = 4;  // rows per block of the warp-per-row kernel
+template <class TX, class TY, class TG, class TO, class TP, int P, bool Modulate, bool Residual>
+__global__ void __launch_bounds__(32 * kNormWarps) row_norm_warp_kernel(RowNormArgs<TX, TY, TG, TO, TP> a) {
+  const std::int64_t row = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
+  if (row >= a.rows) return;
+  const int lane = threadIdx.x & 31, packs = static_cast<int>(a.n / kPack);
+  const std::int64_t base = row * a.n;
+  float v[P][kPack];
+#pragma unroll
+  for (int k = 0; k < P; ++k) {
+    const int p = lane + 32 * k;
+    if (p < packs) load8(a.x + base + p * kPack, v[k]);
+  }
+  if constexpr (Residual) {
+#pragma unroll
+    for (int k = 0; k < P; ++k) {
+      const int p = lane + 32 * k;
+      if (p >= packs) continue;
+      float ys[kPack], gs[kPack];
+      load8(a.y + base + p * kPack, ys);
+      if (a.gate) load8(a.gate + p * kPack, gs);
+#pragma unroll
+      for (int i = 0; i < kPack; ++i)
+        v[k][i] = round_to<TX>(v[k][i] + (a.gate ? round_to<promote_t<TG, TY>>(gs[i] * ys[i]) : ys[i]));
+      store8(a.x_out + base + p * kPack, v[k]);
+    }
+  }
+  float s = 0;
+#pragma unroll
+  for (int k = 0; k < P; ++k)
+    if (lane + 32 * k < packs)
+#pragma unroll
+      for (int i = 0; i < kPack; ++i) s += v[k][i];
+  const float mean = warp_sum(s) / static_cast<float>(a.n);
+  float q = 0;
+#pragma unroll
+  for (int k = 0; k < P; ++k)
+    if (lane + 32 * k < packs)
+#pragma unroll
+      for (int i = 0; i < kPack; ++i) q += (v[k][i] - mean) * (v[k][i] - mean);
+  const float rstd = 1.0f / sqrtf(warp_sum(q) / static_cast<float>(a.n) + a.eps);
+#pragma unroll
+  for (int k = 0; k < P; ++k) {
+    const int p = lane + 32 * k;
+    if (p >= packs) continue;
+    float m[kPack], b[kPack];
+    if (a.mul) load8(a.mul + p * kPack, m);
+    if (a.add) load8(a.add + p * kPack, b);
+#pragma unroll
+    for (int i = 0; i < kPack; ++i) {
+      float o = (v[k][i] - mean) * rstd;
+      if constexpr (Modulate) {
+        o = round_to<TP>(1.0f + m[i]) * o + b[i];
+      } else {
+        if (a.mul) o = o * m[i];
+        if (a.add) o = o + b[i];
+      }
+      v[k][i] = o;
+    }
+    store8(a.out + base + p * kPack, v[k]);
+  }
+}
+
+// Widest row the warp kernel holds in registers (8 packs of 8 per lane).
+constexpr std::int64_t kWarpRowMax = 8 * 32 * kPack;
+
+// The old block-per-row path for every LayerNorm and separate residual kernels, selectable
+// with EPONA_NORM_LEGACY=1 while the two are measured side by side.
+inline bool legacy_norms() {
+  static const bool legacy = [] {
+    const char* e = std::getenv("EPONA_NORM_LEGACY");
+    return e && e[0] == '1';
+  }();
+  return legacy;
+}
+
+template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP>
+void launch_row_norm_warp(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a) {
+  const auto blocks = static_cast<unsigned>((a.rows + kNormWarps - 1) / kNormWarps);
+  row_norm_warp_kernel<TX, TY, TG, TO, TP, P, Modulate, Residual><<<blocks, 32 * kNormWarps, 0, ctx.stream()>>>(a);
+  EPONA_CUDA_CHECK_LAUNCH();
+}
+
+// The warp kernel with the fewest packs per lane that hold a row; false when it does not apply.
+template <bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP>
+bool try_row_norm_warp(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a) {
+  const std::int64_t n = a.n;
+  if (legacy_norms() || n > kWarpRowMax || !packable(a.x, n, n) || !packable(a.x_out, n, n) ||
+      !packable(a.y, n, n) || !packable(a.gate, n, 0) || !packable(a.out, n, n) || !packable(a.mul, n, 0) ||
+      !packable(a.add, n, 0))
+    return false;
+  const std::int64_t per_lane = (n / kPack + 31) / 32;
+  if (per_lane <= 1) launch_row_norm_warp<1, Modulate, Residual>(ctx, a);
+  else if (per_lane <= 2) launch_row_norm_warp<2, Modulate, Residual>(ctx, a);
+  else if (per_lane <= 4) launch_row_norm_warp<4, Modulate, Residual>(ctx, a);
+  else launch_row_norm_warp<8, Modulate, Residual>(ctx, a);
+  return true;
+}
+
 // One warp per (token, head).
 template <class T, class TP>
 __global__ void rms_norm_heads_kernel(T* x, std::int64_t rows, std::int64_t row_stride, int heads, int head_dim,
@@ -128,6 +250,8 @@ void launch_layer_norm(Context& ctx, const TX* x, TY* y, std::int64_t rows, std:
   EPONA_CHECK(rows >= 0 && n > 0, what, ": bad extent (rows ", rows, ", width ", n, ")");
   EPONA_CHECK(rows <= 0x7fffffff, what, ": ", rows, " rows exceed one launch");
   if (rows == 0) return;
+  const RowNormArgs<TX, TX, TX, TY, TP> args{x, nullptr, nullptr, nullptr, y, mul, add, rows, n, eps};
+  if (try_row_norm_warp<Modulate, false>(ctx, args)) return;
   const std::int64_t packs = n / kPack;
   if (packable(x, n, n) && packable(y, n, n) && packable(mul, n, 0) && packable(add, n, 0) &&
       packs <= 256 * kRowPacks) {
@@ -139,6 +263,24 @@ void launch_layer_norm(Context& ctx, const TX* x, TY* y, std::int64_t rows, std:
         <<<static_cast<unsigned>(rows), norm_threads(n), 0, ctx.stream()>>>(x, y, n, mul, add, eps);
   }
   EPONA_CUDA_CHECK_LAUNCH();
+}
+
+// x += [gate ⊙] y, then out = LN(x) (affine or modulated): one pass where the warp kernel
+// applies, else the residual kernel and the LayerNorm one after the other.
+template <bool Modulate, class TX, class TY, class TG, class TO, class TP>
+void launch_residual_norm(Context& ctx, TX* x, const TY* y, const TG* gate, TO* out, std::int64_t rows,
+                          std::int64_t n, const TP* mul, const TP* add, float eps, const char* what) {
+  static_assert(is_device_float<TX> && is_device_float<TY> && is_device_float<TG> && is_device_float<TO> &&
+                    is_device_float<TP>,
+                "norms take float or bf16");
+  EPONA_CHECK(x != nullptr && y != nullptr && out != nullptr, what, ": null residual, branch or output");
+  EPONA_CHECK(rows >= 0 && n > 0, what, ": bad extent (rows ", rows, ", width ", n, ")");
+  EPONA_CHECK(rows <= 0x7fffffff, what, ": ", rows, " rows exceed one launch");
+  if (rows == 0) return;
+  const RowNormArgs<TX, TY, TG, TO, TP> args{x, x, y, gate, out, mul, add, rows, n, eps};
+  if (try_row_norm_warp<Modulate, true>(ctx, args)) return;
+  add_rows(ctx, x, y, gate, rows, n, what);
+  launch_layer_norm<Modulate>(ctx, static_cast<const TX*>(x), out, rows, n, mul, add, eps, what);
 }
 
 }  // namespace detail
@@ -157,6 +299,26 @@ void layer_norm_modulate(Context& ctx, const TX* x, TY* y, std::int64_t rows, st
                          const TP* scale, float eps) {
   EPONA_CHECK(shift != nullptr && scale != nullptr, "layer_norm_modulate: null shift or scale");
   detail::launch_layer_norm<true>(ctx, x, y, rows, n, scale, shift, eps, "layer_norm_modulate");
+}
+
+// x[r, :] += y[r, :], then out[r, :] = LN(x[r, :]) * weight + bias (weight/bias may be null):
+// the MST's float32 residual update followed by the next LayerNorm into the GEMM type.
+// out must not overlap x or y.
+template <class TX, class TY, class TO, class TP = float>
+void add_layer_norm(Context& ctx, TX* x, const TY* y, TO* out, std::int64_t rows, std::int64_t n, const TP* weight,
+                    const std::type_identity_t<TP>* bias, float eps) {
+  detail::launch_residual_norm<false>(ctx, x, y, static_cast<const TX*>(nullptr), out, rows, n, weight, bias, eps,
+                                      "add_layer_norm");
+}
+
+// x[r, :] += gate[:] ⊙ y[r, :] (as add_gated), then out = (1 + scale) * LN(x) + shift (as
+// layer_norm_modulate): a DiT sublayer's gated residual and the next sublayer's modulated norm.
+template <class TX, class TY, class TG, class TO, class TP>
+void add_gated_layer_norm_modulate(Context& ctx, TX* x, const TY* y, const TG* gate, TO* out, std::int64_t rows,
+                                   std::int64_t n, const TP* shift, const TP* scale, float eps) {
+  EPONA_CHECK(gate != nullptr && shift != nullptr && scale != nullptr,
+              "add_gated_layer_norm_modulate: null gate, shift or scale");
+  detail::launch_residual_norm<true>(ctx, x, y, gate, out, rows, n, scale, shift, eps, "add_gated_layer_norm_modulate");
 }
 
 // In place, per token and head: x_h = x_h * rsqrt(mean(x_h^2) + eps) * scale, where token r's

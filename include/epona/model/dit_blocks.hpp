@@ -120,28 +120,37 @@ struct DoubleStream {
 
   // q/k/v of rows [first, first+rows) into the joint qkv buffer, QK-normed and rotated with
   // the same rows of the joint RoPE table; mv = this stream's modulation (shift, scale, gate) x 2.
+  // `normed`: s.modulated already holds these rows' modulated norm (the previous block's last
+  // residual add wrote it).
   void project(Context& ctx, Scratch& s, const A* mv, std::int64_t first, std::int64_t rows, const DitWidths& w,
-               const nn::RopeTable<B>& rope) const {
+               const nn::RopeTable<B>& rope, bool normed) const {
     const std::int64_t D = w.hidden;
-    detail::modulate_rows(ctx, s.z, s.modulated, first, rows, mv + 0 * D, mv + 1 * D, w.ln_eps);
+    if (!normed) detail::modulate_rows(ctx, s.z, s.modulated, first, rows, mv + 0 * D, mv + 1 * D, w.ln_eps);
     auto out = s.qkv.slice(first, first + rows);
     qkv(ctx, s.modulated.slice(first, first + rows), out);
     norm.queries_rope(ctx, out.data(), rows, 3 * D, w.heads, rope, first);
     norm.keys_rope(ctx, out.data() + D, rows, 3 * D, w.heads, rope, first);
   }
 
-  // Gated attention projection and gated MLP on the stream's rows.
-  void finish(Context& ctx, Scratch& s, const A* mv, std::int64_t first, std::int64_t rows,
-              const DitWidths& w) const {
+  // Gated attention projection and gated MLP on the stream's rows, each gated residual add
+  // fused with the modulated norm after it: the MLP's, and with `next` = (shift, scale) of the
+  // next block's first norm on these rows, that one too (into s.modulated).
+  void finish(Context& ctx, Scratch& s, const A* mv, std::int64_t first, std::int64_t rows, const DitWidths& w,
+              const A* next) const {
     const std::int64_t D = w.hidden;
     auto z = s.z.slice(first, first + rows);
     auto sub = s.sub.slice(first, first + rows);
+    auto modulated = s.modulated.slice(first, first + rows);
     proj(ctx, s.attn.slice(first, first + rows), sub);
-    add_gated(ctx, z.data(), sub.data(), mv + 2 * D, rows, D);
-    detail::modulate_rows(ctx, s.z, s.modulated, first, rows, mv + 3 * D, mv + 4 * D, w.ln_eps);
+    add_gated_layer_norm_modulate(ctx, z.data(), sub.data(), mv + 2 * D, modulated.data(), rows, D, mv + 3 * D,
+                                  mv + 4 * D, w.ln_eps);
     auto hidden = s.mlp.slice(first, first + rows);
-    mlp(ctx, s.modulated.slice(first, first + rows), hidden, sub);
-    add_gated(ctx, z.data(), sub.data(), mv + 5 * D, rows, D);
+    mlp(ctx, modulated, hidden, sub);
+    if (next)
+      add_gated_layer_norm_modulate(ctx, z.data(), sub.data(), mv + 5 * D, modulated.data(), rows, D, next, next + D,
+                                    w.ln_eps);
+    else
+      add_gated(ctx, z.data(), sub.data(), mv + 5 * D, rows, D);
   }
 
   double flops(std::int64_t rows) const { return qkv.flops(rows) + proj.flops(rows) + mlp.flops(rows); }
@@ -170,20 +179,23 @@ struct DoubleStreamBlock {
   }
 
   // The two streams touch disjoint rows until the joint attention: the condition stream's
-  // work goes to the side queue, overlapping the target stream's.
+  // work goes to the side queue, overlapping the target stream's. `normed`: s.modulated holds
+  // both streams' first modulated norm already; next_img / next_cond: (shift, scale) of the
+  // next block's first norm for each stream's rows (null: none).
   void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
-                  const nn::RopeTable<B>& rope, const A* mods) const {
+                  const nn::RopeTable<B>& rope, const A* mods, bool normed = false, const A* next_img = nullptr,
+                  const A* next_cond = nullptr) const {
     const std::int64_t D = widths.hidden;
     const A *img_mod = mods, *cond_mod = mods + 6 * D;
     Context& side = queue.side(ctx);
     queue.fork(ctx);
-    cond.project(side, s, cond_mod, 0, rows.cond, widths, rope);
-    img.project(ctx, s, img_mod, rows.cond, rows.target, widths, rope);
+    cond.project(side, s, cond_mod, 0, rows.cond, widths, rope, normed);
+    img.project(ctx, s, img_mod, rows.cond, rows.target, widths, rope, normed);
     queue.join(ctx);
     detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D);
     queue.fork(ctx);
-    cond.finish(side, s, cond_mod, 0, rows.cond, widths);
-    img.finish(ctx, s, img_mod, rows.cond, rows.target, widths);
+    cond.finish(side, s, cond_mod, 0, rows.cond, widths, next_cond);
+    img.finish(ctx, s, img_mod, rows.cond, rows.target, widths, next_img);
     queue.join(ctx);
   }
 
@@ -230,10 +242,13 @@ struct SingleStreamBlock {
     modulation.rows(ctx, silu_vecs, n, table, ld);
   }
 
+  // `normed`: s.modulated holds the modulated norm of every row already; `next`: (shift, scale)
+  // of the next block's norm over the updated rows, fused into the gated residual add.
   void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
-                  const nn::RopeTable<B>& rope, const A* mv, std::int64_t first_out = 0) const {
+                  const nn::RopeTable<B>& rope, const A* mv, std::int64_t first_out = 0, bool normed = false,
+                  const A* next = nullptr) const {
     const std::int64_t D = widths.hidden, Dm = widths.mlp_hidden, n = rows.total(), m = n - first_out;
-    detail::modulate_rows(ctx, s.z, s.modulated, 0, n, mv, mv + D, widths.ln_eps);
+    if (!normed) detail::modulate_rows(ctx, s.z, s.modulated, 0, n, mv, mv + D, widths.ln_eps);
     A* qkv = s.qkv.data();
     const A* a_out = s.modulated.data() + first_out * D;
     // cat rows 0..m = [attention | GELU(mlp)] of the updated rows: the MLP GEMM writes its
@@ -249,7 +264,11 @@ struct SingleStreamBlock {
     queue.join(ctx);
     detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D);
     linear2.strided(ctx, s.cat.data(), D + Dm, m, s.sub.data(), D);
-    add_gated(ctx, s.z.data() + first_out * D, s.sub.data(), mv + 2 * D, m, D);
+    if (next)
+      add_gated_layer_norm_modulate(ctx, s.z.data() + first_out * D, s.sub.data(), mv + 2 * D,
+                                    s.modulated.data() + first_out * D, m, D, next, next + D, widths.ln_eps);
+    else
+      add_gated(ctx, s.z.data() + first_out * D, s.sub.data(), mv + 2 * D, m, D);
   }
 
   nn::Flops flops(const JointRows& rows, std::int64_t first_out = 0) const {
@@ -283,8 +302,11 @@ struct LastLayer {
     adaLN_modulation.rows(ctx, silu_vecs, n, table, ld);
   }
 
-  void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const A* mv, Tensor<A, B>& out) const {
-    detail::modulate_rows(ctx, s.z, s.modulated, rows.cond, rows.target, mv, mv + widths.hidden, widths.ln_eps);
+  // `normed`: the previous block's last residual add wrote the target rows' modulated norm.
+  void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const A* mv, Tensor<A, B>& out,
+                  bool normed = false) const {
+    if (!normed)
+      detail::modulate_rows(ctx, s.z, s.modulated, rows.cond, rows.target, mv, mv + widths.hidden, widths.ln_eps);
     linear(ctx, s.modulated.slice(rows.cond, rows.total()), out);
   }
 

@@ -212,23 +212,30 @@ class FluxDiT {
     check_shape(x, {c.batch, c.rows.target, cfg_.in_channels}, "DiT input x");
     check_shape(out, {c.batch, c.rows.target, cfg_.out_channels}, "DiT velocity output");
     EPONA_CHECK(time >= 0 && time < m.times, "DiT: timestep index ", time, " outside the ", m.times, " prepared");
-    const std::int64_t n = c.rows.total();
+    const std::int64_t n = c.rows.total(), D = cfg_.hidden_size;
     for (std::int64_t b = 0; b < c.batch; ++b) {
       ArenaScope<B> scope(arena);
       auto [s, x_in] = plan_velocity(arena, c.rows);
       embed_inputs(ctx, s, c, b, x[b], x_in);
       const nn::RopeTable<B> rope{c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
+      // Each block's last residual add also writes the next block's first modulated norm
+      // (`next`: its (shift, scale), the first entries of its table columns), so every block
+      // after the first finds its input normed.
       const A* mods = m.row(b, time);
-      for (const auto& block : double_blocks_) {
-        block(ctx, side_, s, c.rows, rope, mods);
-        mods += block.modulation_width();
+      for (std::size_t j = 0; j < double_blocks_.size(); ++j) {
+        const A* next = mods + double_blocks_[j].modulation_width();
+        const bool next_double = j + 1 < double_blocks_.size();  // per-stream (shift, scale)
+        double_blocks_[j](ctx, side_, s, c.rows, rope, mods, j > 0, next, next + (next_double ? 6 * D : 0));
+        mods = next;
       }
       for (std::size_t j = 0; j < single_blocks_.size(); ++j) {
-        single_blocks_[j](ctx, side_, s, c.rows, rope, mods, first_updated_row(j, c.rows));
-        mods += single_blocks_[j].modulation_width();
+        const A* next = mods + single_blocks_[j].modulation_width();
+        single_blocks_[j](ctx, side_, s, c.rows, rope, mods, first_updated_row(j, c.rows),
+                          j > 0 || !double_blocks_.empty(), next);
+        mods = next;
       }
       auto o = out[b];
-      final_layer_(ctx, s, c.rows, mods, o);
+      final_layer_(ctx, s, c.rows, mods, o, !double_blocks_.empty() || !single_blocks_.empty());
     }
   }
 

@@ -135,15 +135,19 @@ struct MstLayer {
   // x (n, C) += attn(ln1 x); x += mlp(ln2 x) on rows [first, first + count) of x, the queries
   // (keys and values come from all n rows; the pruned last block updates a subset).
   // `before_attention(q, k)` may rotate q (count rows) and k (n rows); `attend(q, k, v, o)`
-  // arranges the tokens into sequences.
+  // arranges the tokens into sequences. Each residual add runs with the LayerNorm after it:
+  // with `normed`, s.u already holds ln1(x) (written by the previous layer's last add); with
+  // `next` (the following layer, whose x is exactly the rows updated here), the last add also
+  // writes next->ln1 of those rows into s.u.
   template <class Rotate, class Attend>
   void operator()(Context& ctx, Tensor<float, B>& x, Scratch& s, std::int64_t first, std::int64_t count,
-                  Rotate&& before_attention, Attend&& attend) const {
+                  Rotate&& before_attention, Attend&& attend, bool normed = false,
+                  const MstLayer* next = nullptr) const {
     const std::int64_t n = x.size(0);
     auto rows = x.slice(first, first + count);
     auto u = s.u.slice(0, n), k = s.k.slice(0, n), v = s.v.slice(0, n);
     auto q = s.q.slice(0, count), o = s.u.slice(0, count), hidden = s.hidden.slice(0, count);
-    ln1(ctx, x, u);
+    if (!normed) ln1(ctx, x, u);
     key(ctx, u, k);
     value(ctx, u, v);
     query(ctx, u.slice(first, first + count), q);
@@ -152,10 +156,10 @@ struct MstLayer {
     before_attention(q, k);
     attend(q, k, v, o);  // the attention output reuses u
     proj(ctx, o, q);         // ... and the projection reuses q
-    add_inplace(ctx, rows.data(), q.data(), rows.numel());  // float32 residual += projection
-    ln2(ctx, rows, o);
+    ln2.add_and_normalize(ctx, rows, q, o);  // float32 residual += projection; o = ln2(x)
     mlp(ctx, o, hidden, q);
-    add_inplace(ctx, rows.data(), q.data(), rows.numel());
+    if (next) next->ln1.add_and_normalize(ctx, rows, q, o);
+    else add_inplace(ctx, rows.data(), q.data(), rows.numel());
   }
 
   nn::Flops flops(std::int64_t n, std::int64_t count) const {
@@ -251,8 +255,10 @@ class SpatialTemporalTransformer {
       for (std::size_t i = 0; i < blocks_.size(); ++i) {
         // Only the last frame of the last block is consumed; an observer sees every frame.
         const bool prune = i + 1 == blocks_.size() && !observe;
-        if (prune) run_last_block(ctx, blocks_[i], s);
-        else run_block(ctx, blocks_[i], s);
+        // Every layer's last residual add writes the next layer's ln1 (none after the last).
+        const MstLayer<B, W>* next = i + 1 < blocks_.size() ? &blocks_[i + 1].causal_time_block : nullptr;
+        if (prune) run_last_block(ctx, blocks_[i], s, i > 0);
+        else run_block(ctx, blocks_[i], s, i > 0, next);
         if (observe) observe(b, "block" + std::to_string(i) + "_out", s.x);
       }
       auto last = s.x[F - 1];
@@ -385,34 +391,40 @@ class SpatialTemporalTransformer {
     }
   }
 
-  void run_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s) const {
+  // `normed`: s.layer.u holds the time layer's ln1(x) already; `next`: the layer after the block.
+  void run_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s, bool normed,
+                 const MstLayer<B, W>* next) const {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
     const std::int64_t H = cfg_.n_head, d = cfg_.head_dim();
     auto x = s.x.reshape({F * T, C});
     // (a) time: each of the T token positions is a causal sequence over the F frames; no RoPE.
     const nn::PackedAttention time{T, F, H, d, C, T * C, C, T * C, true};
-    block.causal_time_block(ctx, x, s.layer, 0, F * T, no_rotation, attention_with(ctx, time));
+    block.causal_time_block(ctx, x, s.layer, 0, F * T, no_rotation, attention_with(ctx, time), normed,
+                            &block.space_block);
     // (b) space: each frame is one unmasked sequence of T tokens; RoPE on the image tokens only.
-    run_space(ctx, block.space_block, x, s.layer, F);
+    run_space(ctx, block.space_block, x, s.layer, F, next);
   }
 
   // The last block for the last frame only: its time attention still reads keys and values
   // of every frame (the last frame attends to all of them, so no mask is needed).
-  void run_last_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s) const {
+  void run_last_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s, bool normed) const {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
     const std::int64_t H = cfg_.n_head, d = cfg_.head_dim();
     auto x = s.x.reshape({F * T, C});
     nn::PackedAttention time{T, F, H, d, C, T * C, C, 0, false};
     time.q_len = 1;
     time.q_seq_stride = C;
-    block.causal_time_block(ctx, x, s.layer, (F - 1) * T, T, no_rotation, attention_with(ctx, time));
+    // The time layer updates the last frame's rows: the space layer's whole input.
+    block.causal_time_block(ctx, x, s.layer, (F - 1) * T, T, no_rotation, attention_with(ctx, time), normed,
+                            &block.space_block);
     auto last = s.x[F - 1];
-    run_space(ctx, block.space_block, last, s.layer, 1);
+    run_space(ctx, block.space_block, last, s.layer, 1, nullptr);
   }
 
   // Space attention over `frames` consecutive frames of x (frames·T, C).
+  // Its ln1 is in s.u already (the time layer's last residual add wrote it).
   void run_space(Context& ctx, const MstLayer<B, W>& layer, Tensor<float, B>& x, typename MstLayer<B, W>::Scratch& s,
-                 std::int64_t frames) const {
+                 std::int64_t frames, const MstLayer<B, W>* next) const {
     const std::int64_t T = cfg_.tokens_per_frame(), C = cfg_.n_embd, H = cfg_.n_head, d = cfg_.head_dim();
     const nn::PackedAttention space{frames, T, H, d, T * C, C, T * C, C, false};
     // One pass over all frames' tokens: the table leaves the action tokens unrotated
@@ -420,7 +432,7 @@ class SpatialTemporalTransformer {
     const auto rotate_images = [&](auto& q, auto& k) {
       nn::apply_rope_qk(ctx, q.data(), k.data(), frames * T, C, H, rope_);
     };
-    layer(ctx, x, s, 0, frames * T, rotate_images, attention_with(ctx, space));
+    layer(ctx, x, s, 0, frames * T, rotate_images, attention_with(ctx, space), true, next);
   }
 
   // compute_axial_cis for the image tokens of every frame of the window, identity rows

@@ -10,6 +10,7 @@
 
 #include "epona/cpu/context.hpp"
 #include "epona/cpu/norm.hpp"
+#include "epona/cpu/residual_norm.hpp"
 #include "epona/cpu/rope.hpp"
 
 namespace epona::cpu {

@@ -41,6 +41,17 @@ struct LayerNorm {
     layer_norm(ctx, x.data(), y.data(), x.numel() / width, width, affine ? weight.data() : nullptr,
                affine ? bias.data() : nullptr, eps);
   }
+
+  // x += y, then out = LN(x): a residual update and this norm in one pass on the GPU (the MST's
+  // float32 residual stream, its bf16 branch and the bf16 GEMM input). out must not overlap x, y.
+  template <class TX, class TY, class TO>
+  void add_and_normalize(Context& ctx, Tensor<TX, B>& x, const Tensor<TY, B>& y, Tensor<TO, B>& out) const {
+    EPONA_CHECK(x.dim() >= 1 && x.size(-1) == width && y.numel() == x.numel() && out.numel() == x.numel(),
+                "LayerNorm(", width, ") after a residual add: residual ", shape_str(x.shape()), ", branch ",
+                shape_str(y.shape()), ", output ", shape_str(out.shape()));
+    add_layer_norm(ctx, x.data(), y.data(), out.data(), x.numel() / width, width, affine ? weight.data() : nullptr,
+                   affine ? bias.data() : nullptr, eps);
+  }
 };
 
 }  // namespace epona::nn
