@@ -9,7 +9,8 @@
 //   bench_cpu_bench_mid [--threads 2,all] [--weights f32,bf16] [--calls mst,traj_eval,vis_eval,dcae_decode,gemm2048]
 //                       [--repeats 7] [--warmup 2] [--dcae-size 128x256]
 // --calls gemm_shapes (not in the default set): the model's GEMM shapes and the DC-AE's largest
-// convolution alone. EPONA_CPU_ISA / EPONA_CPU_TILE select kernels (cpu_features.hpp, gemm.hpp).
+// convolution alone. EPONA_CPU_ISA / EPONA_CPU_TILE select kernels (cpu_features.hpp, gemm.hpp);
+// EPONA_CPU_CONV=direct runs 3x3 convolutions as im2col GEMMs instead of Winograd (conv.hpp).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>

@@ -15,7 +15,8 @@
 # Extras (unless --no-extras): the other AVX-512 tile (EPONA_CPU_TILE) on gemm2048 + MST,
 #   bf16 weights widened to float32 (EPONA_CPU_ISA=avx512) on MST + VisDiT, and, where the
 #   default is AMX, the AVX512-BF16 dot-product kernels (EPONA_CPU_ISA=avx512bf16) on the bf16
-#   calls: what the kernel choices are worth on this CPU.
+#   calls, and the DC-AE decode with im2col convolutions instead of Winograd
+#   (EPONA_CPU_CONV=direct): what the kernel choices are worth on this CPU.
 # The PyTorch run hides the GPUs (CUDA_VISIBLE_DEVICES=) so that nothing of it can run there.
 # Raw JSON lines and the table are kept in --out (default: out/cpu_side_by_side).
 set -euo pipefail
@@ -117,6 +118,8 @@ for t in "${thread_list[@]}"; do
       EPONA_CPU_ISA=avx512 "$bench_bin" --threads "$t" --repeats "$repeats" --warmup "$warmup" --weights bf16 \
         --calls mst,vis_eval | grep -v '"machine"' | sed 's/"name": "/"name": "widened:/' >> "$out/epona_extra_$t.jsonl" || true
     fi
+    EPONA_CPU_CONV=direct "$bench_bin" --threads "$t" --repeats "$repeats" --warmup "$warmup" --weights f32 \
+      --calls dcae_decode | grep -v '"machine"' | sed 's/"name": "/"name": "im2col:/' >> "$out/epona_extra_$t.jsonl" || true
     if grep -q '"active_isa": "amx"' "$out/epona_$t.jsonl"; then  # AMX by default: the dot products beside it
       EPONA_CPU_ISA=avx512bf16 "$bench_bin" --threads "$t" --repeats "$repeats" --warmup "$warmup" --weights bf16 \
         --calls mst,traj_eval,vis_eval 2>> "$out/epona_$t.log" | grep -v '"machine"' \
