@@ -26,7 +26,7 @@ double max_table_error(const nn::RopeTable<Cpu>& t, const std::vector<world_ref:
 }  // namespace
 
 TEST_CASE("MST axial table: x = t % h, y = t // h, theta 1000") {
-  for (const auto [d, h, w] : {std::tuple<i64, i64, i64>{128, 16, 32}, {64, 2, 4}, {8, 3, 5}}) {
+  for (const auto& [d, h, w] : {std::tuple<i64, i64, i64>{128, 16, 32}, {64, 2, 4}, {8, 3, 5}}) {
     const auto t = nn::axial_rope_table(d, h, w, 1000.0f);
     REQUIRE(t.rows() == h * w);
     REQUIRE(t.pairs() == d / 2);
