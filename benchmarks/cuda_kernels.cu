@@ -127,8 +127,9 @@ void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const
   };
   baseline();
   const bool fits_short = a.lq <= 16 && a.lk <= 16;
-  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows128Warps8,
-                                   FlashKernel::Rows128Warps4, FlashKernel::Short}) {
+  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows64Keys32,
+                                   FlashKernel::Rows128, FlashKernel::Rows128Split2, FlashKernel::Rows64Split4,
+                                   FlashKernel::Short}) {
     if (kernel == FlashKernel::Short && !fits_short) continue;
     const double ms = median_ms(ctx, reps, [&](int) { cuda::detail::attention(ctx, q, k, v, o, a, kernel); });
     row(label + " [" + cuda::detail::flash_kernel_name(kernel) + "]", ms, flop, bytes);

@@ -90,20 +90,27 @@ __device__ __forceinline__ void mma_bf16(float (&d)[4], const unsigned (&a)[4], 
       : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
       : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b0), "r"(b1));
 }
+// 2^x by the special-function unit alone (exp2f adds a denormal-range fix-up around it;
+// results below 2^-126 flush to zero, far under what bf16 P or the float32 sums resolve).
+__device__ __forceinline__ float exp2_fast(float x) {
+  float y;
+  asm("ex2.approx.ftz.f32 %0, %1;\n" : "=f"(y) : "f"(x));
+  return y;
+}
 __device__ __forceinline__ unsigned pack_bf16(float lo, float hi) {
   const __nv_bfloat162 v = __floats2bfloat162_rn(lo, hi);
   return *reinterpret_cast<const unsigned*>(&v);
 }
 
-// Rows [row0, row0 + kTileRows) of one head (row i at src + i * stride) into shared memory,
+// Rows [row0, row0 + count) of one head (row i at src + i * stride) into shared memory,
 // spread over `threads` threads of which this is `thread`; rows past `valid` and channels
 // past head_dim become zeros (a zero V row times P = 0 stays 0; garbage could be NaN).
-template <bool kExactDim, int kTileRows>
-__device__ __forceinline__ void load_tile(bf16* dst, const bf16* src, std::int64_t stride, int row0, int valid,
-                                          int head_dim, int thread, int threads) {
+template <bool kExactDim>
+__device__ __forceinline__ void load_tile(bf16* dst, const bf16* src, std::int64_t stride, int row0, int count,
+                                          int valid, int head_dim, int thread, int threads) {
   if constexpr (kExactDim) {
     constexpr int kChunks = kMaxHeadDim / 8;  // 16-byte chunks per row
-    for (int c = thread; c < kTileRows * kChunks; c += threads) {
+    for (int c = thread; c < count * kChunks; c += threads) {
       const int r = c / kChunks, col = (c % kChunks) * 8;
       bf16* d = dst + r * kStride + col;
       if (row0 + r < valid)
@@ -112,13 +119,18 @@ __device__ __forceinline__ void load_tile(bf16* dst, const bf16* src, std::int64
         *reinterpret_cast<uint4*>(d) = make_uint4(0, 0, 0, 0);
     }
   } else {
-    for (int e = thread; e < kTileRows * kMaxHeadDim; e += threads) {
+    for (int e = thread; e < count * kMaxHeadDim; e += threads) {
       const int r = e / kMaxHeadDim, col = e % kMaxHeadDim;
       bf16 val{};
       if (row0 + r < valid && col < head_dim) val = src[(row0 + r) * stride + col];
       dst[r * kStride + col] = val;
     }
   }
+}
+
+// Barrier `id` (1..15; 0 is __syncthreads) over `threads` threads: one warp group's own.
+__device__ __forceinline__ void group_barrier(int id, int threads) {
+  asm volatile("bar.sync %0, %1;\n" ::"r"(id), "r"(threads) : "memory");
 }
 
 // S = Q K(t)ᵀ for one warp's kM x 16 query rows (sQ: its first row) and kKeys keys.
@@ -177,14 +189,14 @@ __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float 
     mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 2));
     const float m_new = fmaxf(m[i], mx * scale);
     const float base = m_new == -INFINITY ? 0.f : m_new;  // a row masked so far stays all zero
-    const float alpha = exp2f(m[i] - base);
+    const float alpha = exp2_fast(m[i] - base);
     m[i] = m_new;
     float sum = 0;
 #pragma unroll
     for (int nt = 0; nt < kKeyTiles; ++nt)
 #pragma unroll
       for (int e = 0; e < 2; ++e) {
-        const float pr = exp2f(fmaf(sc[nt][2 * i + e], scale, -base));
+        const float pr = exp2_fast(fmaf(sc[nt][2 * i + e], scale, -base));
         sc[nt][2 * i + e] = pr;
         sum += pr;
       }
@@ -275,28 +287,85 @@ __device__ __forceinline__ void warp_tile(float (&o)[kM][kDimTiles][4], float (&
   warp_pv<kExactDim, kM, kKeys>(o, sc, sV, lane, D);
 }
 
-// A block of kWarps warps with kM m-tiles each: rows = 16 kWarps kM query rows of one
-// (sequence, head), key tiles of kKeys. Shared memory: Q, then two (K, V) buffers.
-template <int kWarps, int kM, int kKeys>
+// A block: kGroups groups of kWarps warps with kM m-tiles each, over rows = 16 kWarps kM
+// query rows of one (sequence, head); key tiles of kKeys. Group g takes key tiles g,
+// g + kGroups, ...; the groups' partial results (o, m, l) merge through shared memory at
+// the end. Splitting the keys puts more warps on the same rows: a 1027-row VisDiT head
+// leaves only ~125 rows per multiprocessor. Shared memory: Q, then two stages of a (K, V)
+// tile per group (reused for the merge). kMinBlocks: blocks per multiprocessor the register
+// allocation must allow.
+template <int kWarps, int kM, int kKeys, int kGroups, int kMinBlocks>
 struct Tiling {
-  static constexpr int warps = kWarps, m_tiles = kM, rows = 16 * kWarps * kM, threads = 32 * kWarps;
-  static constexpr int keys = kKeys;
-  static constexpr int smem_bytes = (rows + 4 * keys) * kStride * 2;
-  // 2 blocks of 128 threads still leave each thread 255 registers.
-  static constexpr int min_blocks = kWarps <= 4 ? 2 : 1;
+  static constexpr int warps = kWarps, m_tiles = kM, keys = kKeys, groups = kGroups;
+  static constexpr int rows = 16 * kWarps * kM, threads = 32 * kWarps * kGroups;
+  static constexpr int kv_elems = 2 * kKeys * kStride;  // one K and one V tile
+  // Per thread: o, then m and l of each m-tile.
+  static constexpr int merge_values = kM * (kDimTiles * 4 + 4);
+  static constexpr int merge_bytes = (kGroups - 1) * kWarps * 32 * merge_values * 4;
+  static constexpr int kv_bytes = 2 * kGroups * kv_elems * 2;
+  static constexpr int smem_bytes = rows * kStride * 2 + (kv_bytes > merge_bytes ? kv_bytes : merge_bytes);
+  static constexpr int min_blocks = kMinBlocks;
 };
+
+// Group g > 0 leaves its partial results in slot g - 1 of `red`; group 0 folds them into its
+// own (each thread's partners hold the same rows and columns), as online softmax would.
+template <class Tile>
+__device__ __forceinline__ void merge_groups(float (&o)[Tile::m_tiles][kDimTiles][4], float (&m)[Tile::m_tiles][2],
+                                             float (&l)[Tile::m_tiles][2], float* red, int group, int warp_in_group,
+                                             int lane) {
+  constexpr int kM = Tile::m_tiles, kValues = Tile::merge_values, kSlot = Tile::warps * 32 * kValues;
+  // Value v of this thread at (warp_in_group * kValues + v) * 32 + lane: lanes hit consecutive words.
+  const auto at = [&](float* slot, int v) -> float& { return slot[(warp_in_group * kValues + v) * 32 + lane]; };
+  __syncthreads();  // every group is done with the K and V tiles
+  if (group > 0) {
+    float* slot = red + (group - 1) * kSlot;
+#pragma unroll
+    for (int mt = 0; mt < kM; ++mt) {
+#pragma unroll
+      for (int nt = 0; nt < kDimTiles; ++nt)
+#pragma unroll
+        for (int c = 0; c < 4; ++c) at(slot, (mt * kDimTiles + nt) * 4 + c) = o[mt][nt][c];
+#pragma unroll
+      for (int i = 0; i < 2; ++i) {
+        at(slot, kM * kDimTiles * 4 + mt * 4 + i) = m[mt][i];
+        at(slot, kM * kDimTiles * 4 + mt * 4 + 2 + i) = l[mt][i];
+      }
+    }
+  }
+  __syncthreads();
+  if (group > 0) return;
+  for (int g = 1; g < Tile::groups; ++g) {
+    float* slot = red + (g - 1) * kSlot;
+#pragma unroll
+    for (int mt = 0; mt < kM; ++mt)
+#pragma unroll
+      for (int i = 0; i < 2; ++i) {
+        const float m_other = at(slot, kM * kDimTiles * 4 + mt * 4 + i);
+        const float m_new = fmaxf(m[mt][i], m_other);
+        const float base = m_new == -INFINITY ? 0.f : m_new;
+        const float mine = exp2_fast(m[mt][i] - base), other = exp2_fast(m_other - base);
+        m[mt][i] = m_new;
+        l[mt][i] = l[mt][i] * mine + at(slot, kM * kDimTiles * 4 + mt * 4 + 2 + i) * other;
+#pragma unroll
+        for (int nt = 0; nt < kDimTiles; ++nt)
+#pragma unroll
+          for (int e = 0; e < 2; ++e)
+            o[mt][nt][2 * i + e] = o[mt][nt][2 * i + e] * mine + at(slot, (mt * kDimTiles + nt) * 4 + 2 * i + e) * other;
+      }
+  }
+}
 
 template <class Tile, bool kExactDim>
 __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
     flash_bf16_kernel(const FlashParams<bf16> p, int heads, int seqs) {
-  constexpr int kRows = Tile::rows, kKeys = Tile::keys, kM = Tile::m_tiles;
+  constexpr int kRows = Tile::rows, kKeys = Tile::keys, kM = Tile::m_tiles, kGroups = Tile::groups;
   extern __shared__ __align__(16) unsigned char smem[];
   bf16* sQ = reinterpret_cast<bf16*>(smem);
-  bf16* sKV = sQ + kRows * kStride;  // K0, V0, K1, V1
+  bf16* sKV = sQ + kRows * kStride;  // [stage][group] (K, V)
 
   // Block -> (sequence, head, row block). The row blocks of `full` rows come first, the
   // short last row block of every (sequence, head) after them, so that the grid's tail is
-  // short work (VisDiT: 16 heads x 1027 rows = 256 full blocks of 64 rows + 16 of 3).
+  // short work (VisDiT: 16 heads x 1027 rows = 128 full blocks of 128 rows + 16 of 3).
   const int full = p.lq / kRows;
   const std::int64_t pairs = std::int64_t{heads} * seqs, b = blockIdx.x;
   std::int64_t pair;
@@ -314,25 +383,36 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
   const int q0 = rb * kRows;
 
   const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
+  const int group = warp / Tile::warps, warp_in_group = warp % Tile::warps;
   const int D = kExactDim ? kMaxHeadDim : p.head_dim;
   const bf16* kg = p.k + s * p.k_seq + std::int64_t{h} * D;
   const bf16* vg = p.v + s * p.v_seq + std::int64_t{h} * D;
-  const auto load_kv = [&](int t) {
-    bf16* sK = sKV + (t & 1) * 2 * kKeys * kStride;
-    load_tile<kExactDim, kKeys>(sK, kg, p.k_row, t * kKeys, p.lk, D, threadIdx.x, Tile::threads);
-    load_tile<kExactDim, kKeys>(sK + kKeys * kStride, vg, p.v_row, t * kKeys, p.lk, D, threadIdx.x, Tile::threads);
+  const int tiles = key_tiles(q0, kRows, p.lq, p.lk, p.causal, kKeys);
+  const int steps = (tiles + kGroups - 1) / kGroups;  // step i: tile i kGroups + g for group g
+  const auto kv_tile = [&](int step, int g) { return sKV + ((step & 1) * kGroups + g) * Tile::kv_elems; };
+  // Each group loads its own tiles with its own threads and waits on its own barrier, so
+  // the groups run as independently as separate blocks would.
+  constexpr int kGroupThreads = 32 * Tile::warps;
+  const int group_thread = threadIdx.x - group * kGroupThreads;
+  const auto load_own_tile = [&](int step) {
+    const int t = step * kGroups + group;
+    if (t >= tiles) return;
+    bf16* sK = kv_tile(step, group);
+    load_tile<kExactDim>(sK, kg, p.k_row, t * kKeys, kKeys, p.lk, D, group_thread, kGroupThreads);
+    load_tile<kExactDim>(sK + kKeys * kStride, vg, p.v_row, t * kKeys, kKeys, p.lk, D, group_thread, kGroupThreads);
   };
 
-  const int tiles = key_tiles(q0, kRows, p.lq, p.lk, p.causal, kKeys);
-  load_tile<kExactDim, kRows>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, q0, p.lq, D, threadIdx.x,
-                              Tile::threads);
-  if (tiles > 0) load_kv(0);
+  load_tile<kExactDim>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, q0, kRows, p.lq, D, threadIdx.x,
+                       Tile::threads);
+  load_own_tile(0);
   cp_async_commit();
+  cp_async_wait_all();
+  __syncthreads();  // Q (shared by the groups) and every group's first tile landed
 
   float o[kM][kDimTiles][4] = {};
   float m[kM][2], l[kM][2];
   int rows[kM][2];
-  const int row0 = q0 + warp * kM * 16;  // this warp's first query row
+  const int row0 = q0 + warp_in_group * kM * 16;  // this warp's first query row
 #pragma unroll
   for (int mt = 0; mt < kM; ++mt)
 #pragma unroll
@@ -345,31 +425,44 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
   const bool warp_active = row0 < p.lq;
   const int warp_last_row = row0 + kM * 16 - 1;
 
-  for (int t = 0; t < tiles; ++t) {
-    const int k0 = t * kKeys;
-    cp_async_wait_all();
-    __syncthreads();  // tile t (and Q) landed; every warp is done with tile t - 1's buffer
-    if (t + 1 < tiles) {
-      load_kv(t + 1);
+  for (int i = 0; i < steps; ++i) {
+    if (i > 0) {
+      cp_async_wait_all();
+      // The group's tile i landed; its warps are done with tile i - 1's stage.
+      if constexpr (kGroups == 1)
+        __syncthreads();
+      else
+        group_barrier(1 + group, kGroupThreads);
+    }
+    if (i + 1 < steps) {
+      load_own_tile(i + 1);
       cp_async_commit();
     }
-    const bf16* sK = sKV + (t & 1) * 2 * kKeys * kStride;
-    if (warp_active && !(p.causal && k0 > warp_last_row))
-      warp_tile<kExactDim, kM, kKeys>(o, m, l, p, sQ + warp * kM * 16 * kStride, sK, sK + kKeys * kStride, row0,
-                                      rows, k0, lane, D);
+    const int t = i * kGroups + group, k0 = t * kKeys;
+    if (t < tiles && warp_active && !(p.causal && k0 > warp_last_row)) {
+      const bf16* sK = kv_tile(i, group);
+      warp_tile<kExactDim, kM, kKeys>(o, m, l, p, sQ + warp_in_group * kM * 16 * kStride, sK, sK + kKeys * kStride,
+                                      row0, rows, k0, lane, D);
+    }
   }
-  cp_async_wait_all();  // lk == 0: Q's group
+  if constexpr (kGroups > 1) {
+    merge_groups<Tile>(o, m, l, reinterpret_cast<float*>(sKV), group, warp_in_group, lane);
+    if (group > 0) return;
+  }
 #pragma unroll
   for (int mt = 0; mt < kM; ++mt) store_rows<kExactDim>(o[mt], l[mt], p, rows[mt], s, h, D, lane % 4);
 }
 
 // Short sequences (lq, lk <= 16: the MST's temporal attention over its 10 frames). One warp
-// per (sequence, head) loads Q, K and V once into 16-row tiles of its own shared memory (no
-// block barrier), computes the 16 x 16 scores and P V with 32 mma, and stores. A block of 4
-// warps takes 4 consecutive (sequence, head) pairs: the heads of one token are adjacent.
+// per (sequence, head) loads Q, K and V once into its own shared memory (no block barrier),
+// computes the 16 x 16 scores and P V with 32 mma, and stores. A block of 4 warps takes 4
+// consecutive (sequence, head) pairs: the heads of one token are adjacent. The 16-row
+// operand tiles overlap, so that a warp needs lq + lk + 16 rows rather than 48 (more warps
+// fit a multiprocessor): Q's rows past lq are K's rows (they make score rows that are never
+// stored), K's rows past lk are V's (their scores are replaced by -inf), and V's rows past
+// lk are zeros (P = 0 there; 0 times garbage could be NaN).
 constexpr int kShortWarps = 4, kShortThreads = 32 * kShortWarps, kShortLen = 16;
-constexpr int kShortWarpElems = 3 * kShortLen * kStride;
-constexpr int kShortSmemBytes = kShortWarps * kShortWarpElems * 2;
+inline int short_smem_bytes(int lq, int lk) { return kShortWarps * (lq + lk + kShortLen) * kStride * 2; }
 
 template <bool kExactDim>
 __global__ void __launch_bounds__(kShortThreads) flash_short_kernel(const FlashParams<bf16> p, int heads,
@@ -381,12 +474,12 @@ __global__ void __launch_bounds__(kShortThreads) flash_short_kernel(const FlashP
   const std::int64_t s = pair / heads;
   const int h = static_cast<int>(pair % heads);
   const int D = kExactDim ? kMaxHeadDim : p.head_dim;
-  bf16* sQ = reinterpret_cast<bf16*>(smem) + warp * kShortWarpElems;
-  bf16* sK = sQ + kShortLen * kStride;
-  bf16* sV = sK + kShortLen * kStride;
-  load_tile<kExactDim, kShortLen>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, 0, p.lq, D, lane, 32);
-  load_tile<kExactDim, kShortLen>(sK, p.k + s * p.k_seq + std::int64_t{h} * D, p.k_row, 0, p.lk, D, lane, 32);
-  load_tile<kExactDim, kShortLen>(sV, p.v + s * p.v_seq + std::int64_t{h} * D, p.v_row, 0, p.lk, D, lane, 32);
+  bf16* sQ = reinterpret_cast<bf16*>(smem) + warp * (p.lq + p.lk + kShortLen) * kStride;
+  bf16* sK = sQ + p.lq * kStride;
+  bf16* sV = sK + p.lk * kStride;
+  load_tile<kExactDim>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, 0, p.lq, p.lq, D, lane, 32);
+  load_tile<kExactDim>(sK, p.k + s * p.k_seq + std::int64_t{h} * D, p.k_row, 0, p.lk, p.lk, D, lane, 32);
+  load_tile<kExactDim>(sV, p.v + s * p.v_seq + std::int64_t{h} * D, p.v_row, 0, kShortLen, p.lk, D, lane, 32);
   cp_async_commit();
   cp_async_wait_all();
   __syncwarp();  // the warp's tiles are complete and visible to all its lanes
@@ -512,14 +605,16 @@ inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std:
 }
 
 // Which bf16 kernel runs: Auto picks by shape; the others are for tests and benchmarks.
-enum class FlashKernel { Auto, Rows64, Rows128Warps8, Rows128Warps4, Short };
+enum class FlashKernel { Auto, Rows64, Rows64Keys32, Rows128, Rows128Split2, Rows64Split4, Short };
 
 inline const char* flash_kernel_name(FlashKernel k) {
   switch (k) {
     case FlashKernel::Auto: return "auto";
     case FlashKernel::Rows64: return "64 rows (4 warps x 16)";
-    case FlashKernel::Rows128Warps8: return "128 rows (8 warps x 16)";
-    case FlashKernel::Rows128Warps4: return "128 rows (4 warps x 32)";
+    case FlashKernel::Rows64Keys32: return "64 rows (4 warps x 16), 32-key tiles";
+    case FlashKernel::Rows128: return "128 rows (4 warps x 32)";
+    case FlashKernel::Rows128Split2: return "128 rows, keys split 2 (8 warps x 32)";
+    case FlashKernel::Rows64Split4: return "64 rows, keys split 4 (8 warps x 32)";
     case FlashKernel::Short: return "short (warp per head)";
   }
   return "?";
@@ -545,24 +640,34 @@ void launch_flash(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, s
 template <bool kExactDim>
 void launch_flash_short(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
   const std::int64_t pairs = seqs * heads, blocks = (pairs + fa::kShortWarps - 1) / fa::kShortWarps;
-  allow_smem<fa::flash_short_kernel<kExactDim>>(fa::kShortSmemBytes);
-  fa::flash_short_kernel<kExactDim><<<static_cast<unsigned>(blocks), fa::kShortThreads, fa::kShortSmemBytes,
-                                      ctx.stream()>>>(p, static_cast<int>(heads), pairs);
+  allow_smem<fa::flash_short_kernel<kExactDim>>(fa::short_smem_bytes(fa::kShortLen, fa::kShortLen));
+  fa::flash_short_kernel<kExactDim><<<static_cast<unsigned>(blocks), fa::kShortThreads,
+                                      fa::short_smem_bytes(p.lq, p.lk), ctx.stream()>>>(p, static_cast<int>(heads),
+                                                                                         pairs);
 }
 
 inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
                            bool exact, FlashKernel kernel) {
-  using Rows64 = fa::Tiling<4, 1, 64>;
-  using Rows128Warps8 = fa::Tiling<8, 1, 64>;
-  using Rows128Warps4 = fa::Tiling<4, 2, 32>;  // 64-key tiles would spill (o and S: 192 registers)
+  // (2 blocks of 128 threads, or 1 of 256, leave each thread 255 registers.)
+  using Rows64 = fa::Tiling<4, 1, 64, 1, 2>;
+  using Rows64Keys32 = fa::Tiling<4, 1, 32, 1, 4>;  // 128 registers: 16 warps per multiprocessor
+  // Two m-tiles per warp: 32-key tiles (64 would spill: o and S take 192 registers).
+  using Rows128 = fa::Tiling<4, 2, 32, 1, 2>;
+  using Rows128Split2 = fa::Tiling<4, 2, 32, 2, 1>;
+  using Rows64Split4 = fa::Tiling<2, 2, 32, 4, 1>;
   const bool short_fits = p.lq <= fa::kShortLen && p.lk <= fa::kShortLen;
   if (kernel == FlashKernel::Auto) {
-    // Short sequences: a warp per (sequence, head). Otherwise 128-row blocks where they
-    // give every multiprocessor a block, 64-row blocks for small grids (TrajDiT: 8 x 530).
-    const std::int64_t blocks128 = (p.lq + 127) / 128 * heads * seqs;
-    kernel = short_fits ? FlashKernel::Short
-             : blocks128 >= ctx.info().multiprocessors ? FlashKernel::Rows128Warps8
-                                                       : FlashKernel::Rows64;
+    // By measurement on an H200 (medians, one run, all kernels side by side): sequences of
+    // <= 16: a warp per (sequence, head) (MST temporal 87.6 -> 30.0 us); grids that leave
+    // multiprocessors without a 64-row block: the keys split over 4 warp groups (TrajDiT
+    // 8 x 530: 24.3 -> 20.6 us); long sequences: 128-row blocks, two m-tiles per warp
+    // (1 x 16 x 4096: 220 -> 270 TFLOP/s); the rest, 64-row blocks at 16 warps per
+    // multiprocessor (VisDiT 16 x 1027: 68.2 -> 61.1 us, MST spatial 160 x 515: 138 -> 119 us).
+    const std::int64_t blocks64 = (p.lq + 63) / 64 * heads * seqs;
+    kernel = short_fits                                  ? FlashKernel::Short
+             : blocks64 < ctx.info().multiprocessors ? FlashKernel::Rows64Split4
+             : p.lq >= 2048                              ? FlashKernel::Rows128
+                                                         : FlashKernel::Rows64Keys32;
   }
   switch (kernel) {
     case FlashKernel::Short:
@@ -572,8 +677,10 @@ inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_
       else
         launch_flash_short<false>(ctx, p, seqs, heads);
       break;
-    case FlashKernel::Rows128Warps8: launch_flash<Rows128Warps8>(ctx, p, seqs, heads, exact); break;
-    case FlashKernel::Rows128Warps4: launch_flash<Rows128Warps4>(ctx, p, seqs, heads, exact); break;
+    case FlashKernel::Rows64Keys32: launch_flash<Rows64Keys32>(ctx, p, seqs, heads, exact); break;
+    case FlashKernel::Rows128: launch_flash<Rows128>(ctx, p, seqs, heads, exact); break;
+    case FlashKernel::Rows128Split2: launch_flash<Rows128Split2>(ctx, p, seqs, heads, exact); break;
+    case FlashKernel::Rows64Split4: launch_flash<Rows64Split4>(ctx, p, seqs, heads, exact); break;
     default: launch_flash<Rows64>(ctx, p, seqs, heads, exact); break;
   }
 }
