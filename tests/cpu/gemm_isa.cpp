@@ -106,7 +106,7 @@ TEST_CASE("the default is the highest family the CPU and OS offer: AMX > AVX512-
   // This CPU: AMX is the default exactly when the tile unit, AVX512-BF16 and the permission are there.
   const cpu::CpuFeatures& here = cpu::cpu_features();
   MESSAGE("amx_bf16 ", here.amx_bf16, ", permitted ", here.amx_permitted, " -> default '",
-          cpu::isa_name(cpu::isa_from_setting(nullptr)), "'");
+          std::string(cpu::isa_name(cpu::isa_from_setting(nullptr))), "'");
   CHECK((here.best() == Isa::Amx) == (here.avx512 && here.avx512_bf16 && here.amx_bf16 && here.amx_permitted));
   CHECK(here.amx_permitted <= here.amx_bf16);  // permission is asked only where XCR0 has the tile state
   if (!std::getenv("EPONA_CPU_ISA")) {
