@@ -11,7 +11,6 @@
 #include <string>
 #include <vector>
 
-#include "epona/cuda/attention_baseline.cuh"
 #include "epona/cuda/ops.cuh"
 
 using namespace epona;
@@ -115,26 +114,19 @@ double bench_linear(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int
   return ms;
 }
 
-// One attention shape timed with every bf16 kernel that can run it, the pre-issue-#5 kernel
-// (baseline) first and last (its two medians show the run-to-run spread).
+// One attention shape timed with the automatic choice (first and last: its two medians show
+// the run-to-run spread) and every bf16 kernel that can run it.
 void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const bf16* q, const bf16* k,
                              const bf16* v, bf16* o, const cuda::AttentionShape& a, double flop, double bytes,
                              int reps) {
   using cuda::detail::FlashKernel;
-  const auto baseline = [&] {
-    row(label + " [baseline]", median_ms(ctx, reps, [&](int) { cuda::attention_baseline::attention(ctx, q, k, v, o, a); }),
-        flop, bytes);
-  };
-  baseline();
   const bool fits_short = a.lq <= 16 && a.lk <= 16;
-  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows64Keys32,
-                                   FlashKernel::Rows128, FlashKernel::Rows128Split2, FlashKernel::Rows64Split4,
-                                   FlashKernel::Short}) {
+  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows128,
+                                   FlashKernel::Rows64Split4, FlashKernel::Short, FlashKernel::Auto}) {
     if (kernel == FlashKernel::Short && !fits_short) continue;
     const double ms = median_ms(ctx, reps, [&](int) { cuda::detail::attention(ctx, q, k, v, o, a, kernel); });
     row(label + " [" + cuda::detail::flash_kernel_name(kernel) + "]", ms, flop, bytes);
   }
-  baseline();
 }
 
 // Self-attention over packed (seqs, L, 3, heads, 128) QKV into (seqs, L, heads, 128).

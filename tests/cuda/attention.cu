@@ -73,8 +73,8 @@ Layout mst_temporal(std::int64_t frames, std::int64_t spatial, std::int64_t head
 }
 
 using cuda::detail::FlashKernel;
-constexpr FlashKernel kBlockKernels[] = {FlashKernel::Rows64, FlashKernel::Rows64Keys32, FlashKernel::Rows128,
-                                         FlashKernel::Rows128Split2, FlashKernel::Rows64Split4};
+constexpr FlashKernel kBlockKernels[] = {FlashKernel::Rows64, FlashKernel::Rows128,
+                                         FlashKernel::Rows64Split4};
 
 template <class T>
 void check_attention(cuda::Context& ctx, const Layout& l, std::uint32_t seed, const std::string& name,
@@ -210,8 +210,8 @@ TEST_CASE("cuda attention bf16 model shapes: every kernel") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
   std::uint32_t seed = 300;
-  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows64Keys32,
-                                   FlashKernel::Rows128, FlashKernel::Rows128Split2, FlashKernel::Rows64Split4}) {
+  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64,
+                                   FlashKernel::Rows128, FlashKernel::Rows64Split4}) {
     check_attention<bf16>(ctx, packed(1, 16, 1027, 128), seed++, "VisDiT joint 16 x 1027", kernel);
     check_attention<bf16>(ctx, packed(10, 16, 515, 128), seed++, "MST spatial 10 x 16 x 515", kernel);
     check_attention<bf16>(ctx, packed(1, 8, 530, 128, /*o_pad=*/24), seed++, "TrajDiT joint 8 x 530", kernel);

@@ -52,7 +52,7 @@ __device__ __forceinline__ int key_tiles(int q0, int rows, int lq, int lk, bool 
 
 // ---------------------------------------------------------------------------------------
 // bf16 tensor-core kernels (mma.sync m16n8k16, float32 accumulators, softmax in base 2).
-// A warp owns kM x 16 query rows; K and V tiles of 64 keys stream through shared memory in
+// A warp owns kM x 16 query rows; K and V tiles of 32 keys stream through shared memory in
 // two buffers (tile t+1 loads while tile t is computed: one barrier per tile), rows padded by
 // 16 bytes so that ldmatrix is free of bank conflicts. Two m-tiles per warp share every K and
 // V fragment read from shared memory, halving that traffic per tensor-core operation.
@@ -290,8 +290,10 @@ __device__ __forceinline__ void warp_tile(float (&o)[kM][kDimTiles][4], float (&
 // A block: kGroups groups of kWarps warps with kM m-tiles each, over rows = 16 kWarps kM
 // query rows of one (sequence, head); key tiles of kKeys. Group g takes key tiles g,
 // g + kGroups, ...; the groups' partial results (o, m, l) merge through shared memory at
-// the end. Splitting the keys puts more warps on the same rows: a 1027-row VisDiT head
-// leaves only ~125 rows per multiprocessor. Shared memory: Q, then two stages of a (K, V)
+// the end. Splitting the keys puts more warps on the same rows where the grid is too small
+// to fill the multiprocessors (TrajDiT: 8 heads x 530 rows). Each group waits on its own
+// named barrier, so the groups run as independently as separate blocks (one block-wide
+// barrier per tile measured far slower). Shared memory: Q, then two stages of a (K, V)
 // tile per group (reused for the merge). kMinBlocks: blocks per multiprocessor the register
 // allocation must allow.
 template <int kWarps, int kM, int kKeys, int kGroups, int kMinBlocks>
@@ -365,7 +367,7 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
 
   // Block -> (sequence, head, row block). The row blocks of `full` rows come first, the
   // short last row block of every (sequence, head) after them, so that the grid's tail is
-  // short work (VisDiT: 16 heads x 1027 rows = 128 full blocks of 128 rows + 16 of 3).
+  // short work (VisDiT: 16 heads x 1027 rows = 256 full blocks of 64 rows + 16 of 3).
   const int full = p.lq / kRows;
   const std::int64_t pairs = std::int64_t{heads} * seqs, b = blockIdx.x;
   std::int64_t pair;
@@ -605,15 +607,13 @@ inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std:
 }
 
 // Which bf16 kernel runs: Auto picks by shape; the others are for tests and benchmarks.
-enum class FlashKernel { Auto, Rows64, Rows64Keys32, Rows128, Rows128Split2, Rows64Split4, Short };
+enum class FlashKernel { Auto, Rows64, Rows128, Rows64Split4, Short };
 
 inline const char* flash_kernel_name(FlashKernel k) {
   switch (k) {
     case FlashKernel::Auto: return "auto";
     case FlashKernel::Rows64: return "64 rows (4 warps x 16)";
-    case FlashKernel::Rows64Keys32: return "64 rows (4 warps x 16), 32-key tiles";
     case FlashKernel::Rows128: return "128 rows (4 warps x 32)";
-    case FlashKernel::Rows128Split2: return "128 rows, keys split 2 (8 warps x 32)";
     case FlashKernel::Rows64Split4: return "64 rows, keys split 4 (8 warps x 32)";
     case FlashKernel::Short: return "short (warp per head)";
   }
@@ -648,12 +648,10 @@ void launch_flash_short(Context& ctx, const FlashParams<bf16>& p, std::int64_t s
 
 inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
                            bool exact, FlashKernel kernel) {
-  // (2 blocks of 128 threads, or 1 of 256, leave each thread 255 registers.)
-  using Rows64 = fa::Tiling<4, 1, 64, 1, 2>;
-  using Rows64Keys32 = fa::Tiling<4, 1, 32, 1, 4>;  // 128 registers: 16 warps per multiprocessor
-  // Two m-tiles per warp: 32-key tiles (64 would spill: o and S take 192 registers).
-  using Rows128 = fa::Tiling<4, 2, 32, 1, 2>;
-  using Rows128Split2 = fa::Tiling<4, 2, 32, 2, 1>;
+  // 32-key tiles throughout: 64-key tiles cost registers (S), so fewer warps per multiprocessor
+  // (measured slower), and with two m-tiles per warp they spill (o and S take 192 registers).
+  using Rows64 = fa::Tiling<4, 1, 32, 1, 4>;  // 128 registers: 16 warps per multiprocessor
+  using Rows128 = fa::Tiling<4, 2, 32, 1, 2>;  // 2 blocks of 128 threads leave 255 registers
   using Rows64Split4 = fa::Tiling<2, 2, 32, 4, 1>;
   const bool short_fits = p.lq <= fa::kShortLen && p.lk <= fa::kShortLen;
   if (kernel == FlashKernel::Auto) {
@@ -667,7 +665,7 @@ inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_
     kernel = short_fits                                  ? FlashKernel::Short
              : blocks64 < ctx.info().multiprocessors ? FlashKernel::Rows64Split4
              : p.lq >= 2048                              ? FlashKernel::Rows128
-                                                         : FlashKernel::Rows64Keys32;
+                                                         : FlashKernel::Rows64;
   }
   switch (kernel) {
     case FlashKernel::Short:
@@ -677,9 +675,7 @@ inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_
       else
         launch_flash_short<false>(ctx, p, seqs, heads);
       break;
-    case FlashKernel::Rows64Keys32: launch_flash<Rows64Keys32>(ctx, p, seqs, heads, exact); break;
     case FlashKernel::Rows128: launch_flash<Rows128>(ctx, p, seqs, heads, exact); break;
-    case FlashKernel::Rows128Split2: launch_flash<Rows128Split2>(ctx, p, seqs, heads, exact); break;
     case FlashKernel::Rows64Split4: launch_flash<Rows64Split4>(ctx, p, seqs, heads, exact); break;
     default: launch_flash<Rows64>(ctx, p, seqs, heads, exact); break;
   }
