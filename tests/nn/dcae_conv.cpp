@@ -77,17 +77,22 @@ TEST_CASE("conv2d fused activations, no bias") {
 }
 
 TEST_CASE("conv2d with bf16 weights equals the float conv of the rounded weights") {
+  // 3x3, 1x1 (LiteMLA / GLUMBConv projections: bf16 widened while packing), grouped, depthwise.
   cpu::Context ctx;
-  const i64 N = 1, C = 6, H = 5, W = 9, O = 4, k = 3;
-  const HostTensor x = dcae_ref::random_tensor({N, C, H, W}, 4);
-  const HostTensor wf = dcae_ref::random_tensor({O, C, k, k}, 5);
-  Tensor<bf16, Cpu> wb(wf.shape());
-  HostTensor wr(wf.shape());
-  for (i64 i = 0; i < wf.numel(); ++i) wb.data()[i] = bf16(wf.data()[i]), wr.data()[i] = float(wb.data()[i]);
-  HostTensor y({N, O, H, W});
-  cpu::conv2d(ctx, x.data(), wb.data(), nullptr, y.data(), Conv2dShape{N, C, H, W, O, k, 1});
-  const auto ref = dcae_ref::conv2d(dcae_ref::to_vec(x), N, C, H, W, dcae_ref::to_vec(wr), nullptr, O, k, 1);
-  CHECK(dcae_ref::rel_max(y, ref) <= 2e-6);
+  for (const Case& c : {Case{1, 6, 5, 9, 4, 3, 1}, Case{2, 24, 3, 7, 40, 1, 1}, Case{1, 8, 5, 6, 12, 3, 2},
+                        Case{1, 6, 4, 5, 6, 3, 6}}) {
+    INFO("C=" << c.C << " O=" << c.O << " k=" << c.k << " groups=" << c.groups);
+    const HostTensor x = dcae_ref::random_tensor({c.N, c.C, c.H, c.W}, 4);
+    const HostTensor wf = dcae_ref::random_tensor({c.O, c.C / c.groups, c.k, c.k}, 5);
+    Tensor<bf16, Cpu> wb(wf.shape());
+    HostTensor wr(wf.shape());
+    for (i64 i = 0; i < wf.numel(); ++i) wb.data()[i] = bf16(wf.data()[i]), wr.data()[i] = float(wb.data()[i]);
+    HostTensor y({c.N, c.O, c.H, c.W});
+    cpu::conv2d(ctx, x.data(), wb.data(), nullptr, y.data(), Conv2dShape{c.N, c.C, c.H, c.W, c.O, c.k, c.groups});
+    const auto ref =
+        dcae_ref::conv2d(dcae_ref::to_vec(x), c.N, c.C, c.H, c.W, dcae_ref::to_vec(wr), nullptr, c.O, c.k, c.groups);
+    CHECK(dcae_ref::rel_max(y, ref) <= 2e-6);
+  }
 }
 
 TEST_CASE("conv2d 3x3 with many channels (Winograd F(2x2, 3x3) unless EPONA_CPU_CONV=direct)") {

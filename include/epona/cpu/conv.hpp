@@ -242,12 +242,31 @@ struct Relu {
   simd::Batch operator()(const simd::Batch& v) const { return xsimd::max(v, simd::Batch(0.f)); }
 };
 
+// Packs rows of the weights (cout × K, float32 or bf16 widened while packing: no float copy of
+// bf16 weights) as A panels of a float32 kernel family.
+template <class Wt>
+struct PackConvWeights {
+  const gemm::KernelFamily& f;
+  const Wt* w;
+  std::int64_t K;
+  void operator()(std::int64_t m0, std::int64_t rows, std::int64_t s0, std::int64_t steps, gemm::Word* dst) const {
+#if defined(EPONA_GEMM_X86)
+    if (f.avx512_packing) {
+      if constexpr (std::is_same_v<Wt, float>) return gemm::pack_f32_avx512(w + m0 * K, K, rows, f.mr, s0, steps, dst);
+      else return gemm::pack_bf16_widened_avx512(w + m0 * K, K, rows, f.mr, s0, steps, dst);
+    }
+#endif
+    gemm::pack_transposed(w + m0 * K, K, rows, f.mr, s0, steps, dst, gemm::FloatStep{});
+  }
+};
+
 // One group of one image through the packed micro-kernels: out[cout × HW] = W[cout × K] · im2col.
-inline void conv_group_packed(const gemm::KernelFamily& f, const float* in, std::int64_t cin, std::int64_t H,
-                              std::int64_t W, std::int64_t k, const float* w, const float* bias, std::int64_t cout,
-                              float* out, ConvAct act, int threads) {
+template <class Wt>
+void conv_group_packed(const gemm::KernelFamily& f, const float* in, std::int64_t cin, std::int64_t H,
+                       std::int64_t W, std::int64_t k, const Wt* w, const float* bias, std::int64_t cout,
+                       float* out, ConvAct act, int threads) {
   const std::int64_t K = cin * k * k, HW = H * W;
-  const detail::PackActivations pack_w{f, w, K, K};  // the weights are the left operand's rows
+  const PackConvWeights<Wt> pack_w{f, w, K};  // the weights are the left operand's rows
   const PackIm2col pack_in{in, H, W, k, f.nr};
   const auto run = [&](auto act_fn) {
     gemm::run_gemm(f, cout, HW, K, threads, pack_w, pack_in, out, HW, ConvTileEpilogue<decltype(act_fn)>{out, HW, bias, act_fn});
@@ -319,21 +338,25 @@ void conv2d(Context& ctx, const float* x, const W* weight, const float* bias, fl
                                     y + n * s.out_channels * HW, s, act);
     return;
   }
+  const bool depthwise = cin_g == 1 && cout_g == 1;
+  if (family && !depthwise) {  // bf16 weights are widened while packing
+    for (std::int64_t n = 0; n < s.batch; ++n)
+      for (std::int64_t g = 0; g < s.groups; ++g)
+        conv_detail::conv_group_packed(*family, x + (n * s.in_channels + g * cin_g) * HW, cin_g, s.height, s.width, k,
+                                       weight + g * cout_g * cin_g * k * k, bias ? bias + g * cout_g : nullptr, cout_g,
+                                       y + (n * s.out_channels + g * cout_g) * HW, act, ctx.threads());
+    return;
+  }
   std::vector<float> widened;
   const float* w = conv_detail::weights_as_float(weight, s.out_channels * cin_g * k * k, widened);
-  if (cin_g == 1 && cout_g == 1) {
+  if (depthwise) {
     conv_detail::conv_depthwise(x, s.batch * s.in_channels, s.in_channels, s.height, s.width, k, w, bias, y);
     apply_conv_act(ctx, y, s.batch * s.out_channels * HW, act);
     return;
   }
   for (std::int64_t n = 0; n < s.batch; ++n)
     for (std::int64_t g = 0; g < s.groups; ++g)
-      if (family)
-        conv_detail::conv_group_packed(*family, x + (n * s.in_channels + g * cin_g) * HW, cin_g, s.height, s.width, k,
-                                       w + g * cout_g * cin_g * k * k, bias ? bias + g * cout_g : nullptr, cout_g,
-                                       y + (n * s.out_channels + g * cout_g) * HW, act, ctx.threads());
-      else
-        conv_detail::conv_group(x + (n * s.in_channels + g * cin_g) * HW, cin_g, s.height, s.width, k,
+      conv_detail::conv_group(x + (n * s.in_channels + g * cin_g) * HW, cin_g, s.height, s.width, k,
                               w + g * cout_g * cin_g * k * k, bias ? bias + g * cout_g : nullptr, cout_g,
                               y + (n * s.out_channels + g * cout_g) * HW, act, ctx.threads());
 }
