@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Builds the CPU benchmark (bench_cpu_bench_mid) and the GEMM kernel tests as static programs
+# Builds the CPU benchmark (bench_cpu_bench_mid), the GEMM kernel tests and the convolution
+# test (Winograd and im2col against float64) as static programs
 # for two portable targets — x86-64-v4 (AVX-512 F/BW/DQ/VL: element-wise kernels and
 # attention 16 lanes wide) and x86-64-v3 (AVX2) — so they run on another machine's CPU
 # (cpu_side_by_side.sh picks one there). The GEMM micro-kernels beyond the target (AVX-512,
@@ -42,8 +43,8 @@ for target in x86-64-v4 x86-64-v3; do
   dir="$out/$target"
   build "$target" "$dir/bench_cpu_bench_mid" "$here/cpu_bench_mid.cpp" &
   pids+=($!)
-  for t in gemm_isa gemm_kernels gemm_bf16; do
-    build "$target" "$dir/test_cpu_$t" "$repo/tests/main.cpp" "$repo/tests/cpu/$t.cpp" &
+  for t in cpu/gemm_isa cpu/gemm_kernels cpu/gemm_bf16 nn/dcae_conv; do
+    build "$target" "$dir/test_${t/\//_}" "$repo/tests/main.cpp" "$repo/tests/$t.cpp" &
     pids+=($!)
     # two compilers at a time: the build machine is small
     if [[ ${#pids[@]} -ge 2 ]]; then wait "${pids[0]}"; pids=("${pids[@]:1}"); fi

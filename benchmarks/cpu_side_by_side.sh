@@ -9,7 +9,7 @@
 # --bench: bench_cpu_bench_mid, or a folder holding x86-64-v4/ and x86-64-v3/ builds of it
 #   (benchmarks/build_cpu_portable.sh); the v4 build is used when the CPU has AVX-512 F/BW/DQ/VL.
 #   Default: build-perf/portable.
-# --tests: a folder with portable test programs (test_cpu_gemm_*) to run on this CPU first.
+# --tests: a folder with portable test programs (test_cpu_gemm_*, test_nn_dcae_conv) to run on this CPU first.
 # The main columns run the default dispatch: for bf16 weights the AMX tiles where the CPU (and
 #   the OS) offer them, else the AVX512-BF16 dot products, else widening.
 # Extras (unless --no-extras): the other AVX-512 tile (EPONA_CPU_TILE) on gemm2048 + MST,
@@ -83,7 +83,7 @@ log "epona: $bench_bin ($build)"
 if [[ -n "$tests" ]]; then
   testdir="$tests"
   [[ -d "$tests/$build" ]] && testdir="$tests/$build"
-  for t in "$testdir"/test_cpu_gemm_*; do
+  for t in "$testdir"/test_cpu_gemm_* "$testdir"/test_nn_dcae_conv; do
     [[ -x "$t" ]] || continue
     if "$t" > "$out/$(basename "$t").log" 2>&1; then log "test $(basename "$t"): passed"
     else log "test $(basename "$t"): FAILED (see $out/$(basename "$t").log)"; tail -20 "$out/$(basename "$t").log"; fi
