@@ -4,7 +4,10 @@
 // the largest single convolutions. Median of CUDA-event timings after warm-up; peak memory =
 // weights + the scratch pool's high-water mark + inputs/outputs. One JSON object per line:
 //   {"name": "dcae_decode", "dtype": "bf16", "engine": "auto", "ms": ..., "tflops": ..., ...}
-// Options: --reps N (timed repetitions, default 20; float32 uses N/4), --hw H,W, --quick.
+// Options: --reps N (timed repetitions, default 20; float32 uses N/4), --hw H,W, --quick (the
+// default-engine passes only), --stages (with --quick: also the bf16 decode broken into pieces).
+// EPONA_CUDA_CONV_FUSE=0 runs the unfused path (no BatchNorm folding, bias/ReLU/residual passes
+// after each cuDNN conv) for side-by-side timing.
 #include <cuda_runtime.h>
 
 #include <algorithm>
@@ -27,7 +30,7 @@ namespace {
 struct Options {
   int reps = 20;
   std::int64_t height = 512, width = 1024;
-  bool quick = false;
+  bool quick = false, stages = false;
 };
 
 Options parse(int argc, char** argv) {
@@ -43,8 +46,10 @@ Options parse(int argc, char** argv) {
       o.height = h, o.width = w;
     } else if (a == "--quick") {
       o.quick = true;
+    } else if (a == "--stages") {
+      o.stages = true;
     } else {
-      fail("unknown option '", a, "' (--reps N, --hw H,W, --quick)");
+      fail("unknown option '", a, "' (--reps N, --hw H,W, --quick, --stages)");
     }
   }
   return o;
@@ -150,15 +155,17 @@ void bench_model(cuda::Context& ctx, const Options& o, const char* dtype) {
     const double dec_ms = median_ms(ctx, 3, reps, decode);
     const auto counts = cuda::conv_counts();
     const double dec_peak = peak_of(decode, io);
-    char extra[200];
+    char extra[260];
     std::snprintf(extra, sizeof extra,
-                  ", \"graph\": %s, \"convs_eager_first_3\": {\"cudnn\": %lld, \"gemm\": %lld, \"depthwise\": %lld}",
-                  v.graphs ? "true" : "false", (long long)counts.cudnn, (long long)counts.gemm,
-                  (long long)counts.depthwise);
+                  ", \"graph\": %s, \"fusion\": %s, \"convs_eager_first_3\": {\"cudnn\": %lld, \"fused\": %lld, "
+                  "\"gemm\": %lld, \"depthwise\": %lld}",
+                  v.graphs ? "true" : "false", cuda::conv_fusion() ? "true" : "false", (long long)counts.cudnn,
+                  (long long)counts.fused, (long long)counts.gemm, (long long)counts.depthwise);
     line("dcae_decode", dtype, eng, dec_ms, flops.decode_total() * 1e-9, dec_peak, reps, extra);
     const double enc_ms = median_ms(ctx, 3, reps, encode);
     const double enc_peak = peak_of(encode, io);
-    std::snprintf(extra, sizeof extra, ", \"graph\": %s", v.graphs ? "true" : "false");
+    std::snprintf(extra, sizeof extra, ", \"graph\": %s, \"fusion\": %s", v.graphs ? "true" : "false",
+                  cuda::conv_fusion() ? "true" : "false");
     line("dcae_encode", dtype, eng, enc_ms, flops.encode * 1e-9, enc_peak, reps, extra);
   }
   model.use_graphs = true;
@@ -313,13 +320,14 @@ int main(int argc, char** argv) {
     std::printf("# %s, %d SMs; DC-AE f32c32 at %lldx%lld; cuDNN: %s\n", ctx.info().name.c_str(),
                 ctx.info().multiprocessors, (long long)o.height, (long long)o.width,
                 cudnn.empty() ? "available" : cudnn.c_str());
+    std::printf("# fused conv epilogues + BatchNorm folding: %s\n", cuda::conv_fusion() ? "on" : "off (EPONA_CUDA_CONV_FUSE=0)");
     bench_model<bf16>(ctx, o, "bf16");
-    if (!o.quick) {
-      bench_decoder_stages<bf16>(ctx, o, "bf16");
-      bench_convs<bf16>(ctx, o, "bf16");
-    }
+    if (!o.quick || o.stages) bench_decoder_stages<bf16>(ctx, o, "bf16");
+    if (!o.quick) bench_convs<bf16>(ctx, o, "bf16");
     bench_model<float>(ctx, o, "f32");
     if (!o.quick) bench_elementwise<bf16>(ctx, o, "bf16");
+    const std::string refused = cuda::conv_fusion_report();
+    std::printf("# cuDNN fused form refused: %s\n", refused.empty() ? "nowhere" : refused.c_str());
     return 0;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "bench_gpu_dcae: %s\n", e.what());

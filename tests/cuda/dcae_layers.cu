@@ -99,6 +99,13 @@ void all_layers() {
              [](auto b) { return nn::GLUMBConv<decltype(b), T>(32, Norm2dKind::Rms, ConvAct::Silu); }, added);
   compare<T>("ResBlock (BatchNorm, ReLU)", {1, 32, 16, 24},
              [](auto b) { return nn::ResBlock<decltype(b), T>(32, Norm2dKind::Batch, ConvAct::Relu); }, in_place);
+  {  // the BatchNorm folded into conv2 (default) and, for comparison, the unfused conv -> norm_2d_add
+    UseFusion unfused(false);
+    compare<T>("ResBlock (BatchNorm, ReLU), unfused", {1, 32, 16, 24},
+               [](auto b) { return nn::ResBlock<decltype(b), T>(32, Norm2dKind::Batch, ConvAct::Relu); }, in_place);
+  }
+  compare<T>("ResBlock (BatchNorm, ReLU), 64 ch, 2 images", {2, 64, 12, 20},
+             [](auto b) { return nn::ResBlock<decltype(b), T>(64, Norm2dKind::Batch, ConvAct::Relu); }, in_place);
   compare<T>("ResBlock (RMSNorm, SiLU)", {2, 16, 9, 11},
              [](auto b) { return nn::ResBlock<decltype(b), T>(16, Norm2dKind::Rms, ConvAct::Silu); }, in_place);
   compare<T>("EfficientViTBlock", {1, 64, 6, 10},

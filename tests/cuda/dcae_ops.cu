@@ -4,6 +4,8 @@
 // GPU output is poisoned (NaN) first. float32: rel_l2 and max error <= 1e-5 (of max|ref|).
 // bf16 (inputs and weights rounded to bf16 for both sides): bounds per rounding the kernel makes,
 // u = 2^-8 each, stated at each check.
+#include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <vector>
 
@@ -123,6 +125,121 @@ TEST_CASE("cuda conv2d: cuDNN runs the model's aligned geometries when it is ava
   check_conv<bf16>({1, 256, 16, 32, 1024, 3, 1}, ConvAct::None, true);
   CHECK(cuda::conv_counts().cudnn == 3);
   CHECK(cuda::conv_counts().gemm == 0);
+  std::printf("  fused epilogues: %lld of 3 (refused: %s)\n", (long long)cuda::conv_counts().fused,
+              cuda::conv_fusion_report().empty() ? "nowhere" : cuda::conv_fusion_report().c_str());
+}
+
+// residual += conv(x) + bias (conv2d_residual) vs the CPU conv plus the residual in float. bf16:
+// the fused form rounds once, the unfused one rounds conv, conv + bias and the sum: max <= 3.5·u·M
+// with M the largest of |conv + bias|, |residual| and |result|; rel_l2 <= 3u.
+template <class T>
+void check_conv_residual(const ConvCase& c, bool with_bias) {
+  cuda::Context& ctx = gpu();
+  HostF x = random_tensor({c.N, c.C, c.H, c.W}, next_seed());
+  HostF w = random_tensor({c.O, c.C / c.groups, c.k, c.k}, next_seed(), -0.5f, 0.5f);
+  HostF b = random_tensor({c.O}, next_seed());
+  HostF r = random_tensor({c.N, c.O, c.H, c.W}, next_seed(), -4.f, 4.f);
+  round_to<T>(x), round_to<T>(w), round_to<T>(b), round_to<T>(r);
+  const Conv2dShape s{c.N, c.C, c.H, c.W, c.O, c.k, c.groups};
+  HostF pre({c.N, c.O, c.H, c.W});
+  cpu::conv2d(host(), x.data(), w.data(), with_bias ? b.data() : nullptr, pre.data(), s, ConvAct::None);
+  HostF ref = pre.clone();
+  for (i64 i = 0; i < ref.numel(); ++i) ref.data()[i] += r.data()[i];
+
+  const Dev<T> dx = upload_map<T>(ctx, x);
+  const Dev<T> dw = upload<T>(ctx, nn::conv_weight_layout<Cuda>(w));
+  const Dev<T> db = upload<T>(ctx, b);
+  Dev<T> dr = upload_map<T>(ctx, r);
+  cuda::conv2d_residual(ctx, dx.data(), dw.data(), with_bias ? db.data() : nullptr, dr.data(), s);
+  const HostF out = download_map(ctx, dr);
+
+  const double M = std::max({max_abs(pre), max_abs(ref), max_abs(r)});
+  const Bound bound = std::is_same_v<T, float> ? Bound{kF32Tol, kF32Tol * M}
+                                               : Bound{3 * kBf16Roundoff, 3.5 * kBf16Roundoff * M + kF32Tol * M};
+  char what[160];
+  std::snprintf(what, sizeof what, "conv2d_residual %s %s%s N%lld C%lld %lldx%lld O%lld k%lld g%lld%s", type_name<T>(),
+                engine_name(cuda::conv_engine()), cuda::conv_fusion() ? "" : " unfused", (long long)c.N,
+                (long long)c.C, (long long)c.H, (long long)c.W, (long long)c.O, (long long)c.k, (long long)c.groups,
+                with_bias ? " +bias" : "");
+  check_error(measure(out, ref), bound, what);
+}
+
+TEST_CASE("cuda conv2d_residual (residual += conv + bias) vs the CPU: engines, fused and unfused") {
+  EPONA_REQUIRE_GPU();
+  const bool cudnn = cuda::cudnn_unavailable(gpu()).empty();
+  std::vector<cuda::ConvEngine> engines{cuda::ConvEngine::Gemm, cuda::ConvEngine::Auto};
+  if (cudnn) engines.push_back(cuda::ConvEngine::Cudnn);
+  const std::vector<ConvCase> cases = {
+      {2, 16, 9, 13, 16, 3, 1},   // batch 2, aligned
+      {1, 64, 24, 40, 64, 3, 1},  // a ResBlock conv
+      {1, 256, 16, 32, 256, 3, 1},  // stage-1 width
+      {1, 5, 6, 11, 7, 3, 1},     // odd widths (unpacked tail)
+      {1, 48, 5, 7, 48, 3, 48},   // depthwise: conv then the add pass
+  };
+  for (const bool fused : {true, false}) {
+    UseFusion fusion(fused);
+    for (const auto engine : engines) {
+      UseEngine use(engine);
+      cuda::reset_conv_counts();
+      for (const ConvCase& c : cases) {
+        if (engine == cuda::ConvEngine::Cudnn && c.C % 8 != 0) continue;  // cuDNN's NHWC wants packs of 8
+        check_conv_residual<float>(c, true);
+        check_conv_residual<bf16>(c, true);
+      }
+      check_conv_residual<bf16>(cases[1], false);
+      const auto n = cuda::conv_counts();
+      std::printf("  engine %s fusion %d: cudnn %lld (fused %lld), gemm %lld, depthwise %lld\n", engine_name(engine),
+                  int(fused), (long long)n.cudnn, (long long)n.fused, (long long)n.gemm, (long long)n.depthwise);
+      if (!fused || engine == cuda::ConvEngine::Gemm) CHECK(n.fused == 0);
+    }
+  }
+  const std::string refused = cuda::conv_fusion_report();
+  std::printf("cuDNN fused form refused: %s\n", refused.empty() ? "nowhere" : refused.c_str());
+}
+
+// fold_batch_norm vs a float64 fold on the host: w·s and beta - mean·s with s = gamma/sqrt(var+eps),
+// each rounded once to T (float32: within 1e-6 relative; bf16: within 2^-8 of each value).
+template <class T>
+void check_fold(i64 O, i64 per_out) {
+  cuda::Context& ctx = gpu();
+  HostF w = random_tensor({O, per_out}, next_seed());
+  HostF gamma = random_tensor({O}, next_seed(), 0.5f, 1.5f), beta = random_tensor({O}, next_seed());
+  HostF mean = random_tensor({O}, next_seed()), var = random_tensor({O}, next_seed(), 0.01f, 3.f);
+  round_to<T>(w);
+  const float eps = 1e-5f;
+  HostF ref_w({O, per_out}), ref_b({O});
+  for (i64 o = 0; o < O; ++o) {
+    const double sc = double(gamma.data()[o]) / std::sqrt(double(var.data()[o]) + double(eps));
+    for (i64 j = 0; j < per_out; ++j) ref_w.data()[o * per_out + j] = float(double(w.data()[o * per_out + j]) * sc);
+    ref_b.data()[o] = float(double(beta.data()[o]) - double(mean.data()[o]) * sc);
+  }
+  const Dev<T> dw = upload<T>(ctx, w);
+  const Dev<float> dg = upload<float>(ctx, gamma), dbeta = upload<float>(ctx, beta), dm = upload<float>(ctx, mean),
+                   dv = upload<float>(ctx, var);
+  Dev<T> fw, fb;
+  REQUIRE(fold_batch_norm(dw, dg, dbeta, dm, dv, eps, fw, fb));
+  REQUIRE(fw.shape() == dw.shape());
+  REQUIRE(fb.numel() == O);
+  const HostF out_w = download(ctx, fw), out_b = download(ctx, fb);
+  const double tol = std::is_same_v<T, float> ? 1e-6 : kBf16Roundoff;
+  for (const auto& [out, ref] : {std::pair{&out_w, &ref_w}, std::pair{&out_b, &ref_b}}) {
+    double worst = 0;
+    for (i64 i = 0; i < ref->numel(); ++i)
+      worst = std::max(worst, std::abs(double(out->data()[i]) - ref->data()[i]) / std::max(1e-30, double(std::abs(ref->data()[i]))));
+    std::printf("  fold_batch_norm %s O%lld x %lld: worst relative error %.2e (bound %.1e)\n", type_name<T>(),
+                (long long)O, (long long)per_out, worst, tol);
+    CHECK(worst <= tol);
+  }
+}
+
+TEST_CASE("fold_batch_norm: BatchNorm folded into conv weights and bias; off with the fusion") {
+  EPONA_REQUIRE_GPU();
+  check_fold<float>(37, 9 * 13);
+  check_fold<bf16>(64, 9 * 64);
+  UseFusion off(false);
+  Dev<float> w({4, 9}), g({4}), b({4}), m({4}), v({4}), fw, fb;
+  CHECK_FALSE(fold_batch_norm(w, g, b, m, v, 1e-5f, fw, fb));
+  CHECK(fw.empty());
 }
 
 TEST_CASE("cuda conv2d: GEMM engine over several im2col panels") {

@@ -68,6 +68,15 @@ struct UseEngine {
   UseEngine& operator=(const UseEngine&) = delete;
 };
 
+// Turns the fused conv epilogues (and BatchNorm folding at bind time) on or off while alive.
+struct UseFusion {
+  bool before;
+  explicit UseFusion(bool on) : before(cuda::conv_fusion()) { cuda::set_conv_fusion(on); }
+  ~UseFusion() { cuda::set_conv_fusion(before); }
+  UseFusion(const UseFusion&) = delete;
+  UseFusion& operator=(const UseFusion&) = delete;
+};
+
 inline const char* engine_name(cuda::ConvEngine e) {
   return e == cuda::ConvEngine::Gemm ? "gemm" : e == cuda::ConvEngine::Cudnn ? "cudnn" : "auto";
 }

@@ -1,7 +1,9 @@
 // epona/cuda/conv.cuh — the DC-AE's convolutions on the GPU over channels-last (NHWC) maps, as
 // the CPU's cpu/conv.hpp: conv2d (cuDNN implicit GEMM, or our GEMM engine: im2col panel +
-// cuBLASLt; depthwise as a direct kernel), bias + ReLU/SiLU epilogues, and the GLU gate.
-// float32 never uses TF32; bf16 stores bf16 and accumulates in float32.
+// cuBLASLt; depthwise as a direct kernel), bias + ReLU/SiLU epilogues, a residual-adding conv
+// (conv2d_residual), and the GLU gate. With cuDNN, bias, ReLU and the residual add ride on the
+// convolution's epilogue (its fused form). float32 never uses TF32; bf16 stores bf16 and
+// accumulates in float32.
 #pragma once
 
 #include <algorithm>
@@ -43,9 +45,22 @@ inline std::atomic<ConvEngine>& engine_setting() {
   return e;
 }
 
+// EPONA_CUDA_CONV_FUSE=0 turns off the fused epilogues (and the BatchNorm folding that feeds
+// them): the unfused path stays runnable for side-by-side timing and checks.
+inline bool fusion_from_env() {
+  const char* e = std::getenv("EPONA_CUDA_CONV_FUSE");
+  if (!e || !*e || std::strcmp(e, "1") == 0) return true;
+  if (std::strcmp(e, "0") == 0) return false;
+  fail("EPONA_CUDA_CONV_FUSE must be 0 or 1, got '", e, "'");
+}
+inline std::atomic<bool>& fusion_setting() {
+  static std::atomic<bool> on{fusion_from_env()};
+  return on;
+}
+
 // Convolutions run per engine since the start (or the last reset): reports and tests.
 struct EngineCounts {
-  std::atomic<std::int64_t> cudnn{0}, gemm{0}, depthwise{0};
+  std::atomic<std::int64_t> cudnn{0}, gemm{0}, depthwise{0}, fused{0};  // fused: cuDNN calls with the epilogue inside
 };
 inline EngineCounts& counts() {
   static EngineCounts c;
@@ -206,6 +221,31 @@ struct GatedEach {
   }
 };
 
+// residual = round(residual + round(y + bias)) over pixels x channels (the unfused tail of
+// conv2d_residual: y is the conv's rounded output, the biased value is rounded as a biased
+// conv's output would be).
+template <class T>
+struct BiasResidualEach {
+  const T* y;
+  const T* bias;  // may be null
+  T* residual;
+  std::int64_t channels;
+  __device__ void pack(std::int64_t r, std::int64_t c) const {
+    float a[detail::kPack], b[detail::kPack];
+    detail::load8(y + r * channels + c, a);
+    detail::load8(residual + r * channels + c, b);
+#pragma unroll
+    for (int i = 0; i < detail::kPack; ++i)
+      b[i] += bias ? detail::round_to<T>(a[i] + detail::to_f32(bias[c + i])) : a[i];
+    detail::store8(residual + r * channels + c, b);
+  }
+  __device__ void one(std::int64_t r, std::int64_t c) const {
+    const float v = detail::to_f32(y[r * channels + c]);
+    const float t = bias ? detail::round_to<T>(v + detail::to_f32(bias[c])) : v;
+    residual[r * channels + c] = detail::from_f32<T>(detail::to_f32(residual[r * channels + c]) + t);
+  }
+};
+
 // ---- GEMM engine: panel[r, (ky·k + kx)·cg + c] = x[pixel p0 + r shifted by (ky, kx), channel c0 + c]
 // (zero outside the image), then y[p, o] = panel · w[o]ᵀ through cuBLASLt.
 template <class T>
@@ -289,23 +329,30 @@ inline std::string cudnn_unavailable(Context& ctx) { return cudnn::Engine::get()
 // What a recorded graph of convolutions depends on beyond its buffers and sizes: the engine
 // setting and the GEMM engine's panel budget (model code keys its graphs with it).
 inline std::uint64_t graph_variant(const Context&) {
-  return static_cast<std::uint64_t>(conv_engine()) |
+  return static_cast<std::uint64_t>(conv_engine()) | (conv_detail::fusion_setting().load() ? 16u : 0u) |
          (static_cast<std::uint64_t>(conv_detail::panel_bytes_setting().load()) << 8);
 }
+// Fused conv epilogues (cuDNN's conv + bias + residual + ReLU in one call) and the BatchNorm
+// folding into conv weights that uses them: on unless EPONA_CUDA_CONV_FUSE=0 (process-wide).
+// Folding happens when weights are bound or randomised, so set this before loading a model.
+inline void set_conv_fusion(bool on) { conv_detail::fusion_setting().store(on); }
+inline bool conv_fusion() { return conv_detail::fusion_setting().load(); }
+// Geometries where cuDNN refused the fused form so far, with its reasons ("" when none).
+inline std::string conv_fusion_report() { return cudnn::Engine::get().fused_report(); }
 // Destroys the cuDNN handles and plans (they are made again on the next convolution): frees
 // cuDNN's memory before a program's CUDA teardown.
 inline void release_cudnn() { cudnn::Engine::get().release(); }
 
 struct ConvCounts {
-  std::int64_t cudnn = 0, gemm = 0, depthwise = 0;
+  std::int64_t cudnn = 0, gemm = 0, depthwise = 0, fused = 0;  // fused: of the cuDNN ones
 };
 inline ConvCounts conv_counts() {
   auto& c = conv_detail::counts();
-  return {c.cudnn.load(), c.gemm.load(), c.depthwise.load()};
+  return {c.cudnn.load(), c.gemm.load(), c.depthwise.load(), c.fused.load()};
 }
 inline void reset_conv_counts() {
   auto& c = conv_detail::counts();
-  c.cudnn = 0, c.gemm = 0, c.depthwise = 0;
+  c.cudnn = 0, c.gemm = 0, c.depthwise = 0, c.fused = 0;
 }
 
 // x += y-style activation in place: ReLU, SiLU or nothing.
@@ -316,37 +363,83 @@ void apply_conv_act(Context& ctx, T* x, std::int64_t n, ConvAct act) {
   conv_detail::with_act(act, [&](auto op) { detail::map(ctx, x, x, n, op); });
 }
 
+namespace conv_detail {
+// Whether the dense conv of shape s runs on cuDNN under the current engine setting (Auto: bf16
+// k x k only); an explicit Cudnn request that cuDNN cannot serve is an error.
+template <class T>
+bool wants_cudnn(const Conv2dShape& s) {
+  const ConvEngine engine = conv_engine();
+  return engine == ConvEngine::Cudnn || (engine == ConvEngine::Auto && s.kernel > 1 && !std::is_same_v<T, float>);
+}
+template <class T>
+void require_cudnn(Context& ctx, const Conv2dShape& s) {
+  EPONA_CHECK(conv_engine() != ConvEngine::Cudnn, "conv2d: the cuDNN engine was requested but cannot run ",
+              s.in_channels, "->", s.out_channels, " k=", s.kernel, " at ", s.height, "x", s.width, ": ",
+              cudnn::Engine::get().plan_problem<T>(ctx, s));
+}
+inline void check_conv_args(const void* x, const void* weight, const void* y, const Conv2dShape& s) {
+  cpu::conv_detail::check_shape(s);
+  EPONA_CHECK(x && weight && y, "conv2d: null input, weight or output");
+  EPONA_CHECK(s.height * s.width <= 0x7fffffff, "conv2d: ", s.height, "x", s.width, " exceeds one image's index range");
+}
+}  // namespace conv_detail
+
 // y = act(conv(x) + bias): x (N, H, W, C) channels-last, weight [O, k, k, C/groups] (the
 // channels-last layout of nn::conv_weight_layout), bias [O] or null, y (N, H, W, O), not
-// aliasing x. Stride 1, zero padding k/2. Asynchronous on ctx's stream.
+// aliasing x. Stride 1, zero padding k/2. Asynchronous on ctx's stream. On cuDNN, bias and ReLU
+// run inside the convolution (one rounding of conv + bias, as the unfused path's round(round(conv)
+// + bias) up to the inner rounding); SiLU stays a separate pass.
 template <class T>
 void conv2d(Context& ctx, const T* x, const T* weight, const T* bias, T* y, const Conv2dShape& s,
             ConvAct act = ConvAct::None) {
   static_assert(is_device_float<T>, "conv2d takes float or bf16");
-  cpu::conv_detail::check_shape(s);
-  EPONA_CHECK(x && weight && y, "conv2d: null input, weight or output");
+  conv_detail::check_conv_args(x, weight, y, s);
   if (s.batch == 0) return;
-  EPONA_CHECK(s.height * s.width <= 0x7fffffff, "conv2d: ", s.height, "x", s.width, " exceeds one image's index range");
   auto& counts = conv_detail::counts();
   if (s.in_channels == s.groups && s.out_channels == s.groups) {
     conv_detail::depthwise(ctx, x, weight, bias, y, s, act);
     ++counts.depthwise;
     return;
   }
-  const ConvEngine engine = conv_engine();
-  const bool auto_cudnn = engine == ConvEngine::Auto && s.kernel > 1 && !std::is_same_v<T, float>;
-  if (engine == ConvEngine::Cudnn || auto_cudnn) {
-    if (cudnn::Engine::get().forward(ctx, x, weight, y, s)) {
+  if (conv_detail::wants_cudnn<T>(s)) {
+    auto& engine = cudnn::Engine::get();
+    if (conv_fusion() && bias && act != ConvAct::Silu &&
+        engine.forward_fused(ctx, x, weight, bias, static_cast<const T*>(nullptr), y, s, act == ConvAct::Relu)) {
+      ++counts.cudnn, ++counts.fused;
+      return;
+    }
+    if (engine.forward(ctx, x, weight, y, s)) {
       conv_detail::bias_act(ctx, y, s.batch * s.height * s.width, s.out_channels, bias, act);
       ++counts.cudnn;
       return;
     }
-    EPONA_CHECK(engine != ConvEngine::Cudnn, "conv2d: the cuDNN engine was requested but cannot run ", s.in_channels,
-                "->", s.out_channels, " k=", s.kernel, " at ", s.height, "x", s.width, ": ",
-                cudnn::Engine::get().plan_problem<T>(ctx, s));
+    conv_detail::require_cudnn<T>(ctx, s);
   }
   conv_detail::gemm_conv(ctx, x, weight, bias, y, s, act);
   ++counts.gemm;
+}
+
+// residual += conv(x) + bias (no activation): the post-norm residual branch of a ResBlock whose
+// eval-mode BatchNorm is folded into the conv (nn::fold_batch_norm). On cuDNN one fused call
+// (the residual is the epilogue's z input, written in place, rounded once); otherwise the conv
+// into scratch, then residual = round(residual + round(conv + bias)) in one pass.
+template <class T>
+void conv2d_residual(Context& ctx, const T* x, const T* weight, const T* bias, T* residual, const Conv2dShape& s) {
+  static_assert(is_device_float<T>, "conv2d_residual takes float or bf16");
+  conv_detail::check_conv_args(x, weight, residual, s);
+  if (s.batch == 0) return;
+  const bool dense = !(s.in_channels == s.groups && s.out_channels == s.groups);
+  if (dense && conv_fusion() && conv_detail::wants_cudnn<T>(s) &&
+      cudnn::Engine::get().forward_fused(ctx, x, weight, bias, residual, residual, s, false)) {
+    auto& counts = conv_detail::counts();
+    ++counts.cudnn, ++counts.fused;
+    return;
+  }
+  const std::int64_t pixels = s.batch * s.height * s.width, O = s.out_channels;
+  Tensor<T, Cuda> y = scratch_tensor<T>(ctx, {pixels, O});
+  conv2d(ctx, x, weight, static_cast<const T*>(nullptr), y.data(), s);
+  const bool packed = O % detail::kPack == 0 && detail::aligned16(y.data()) && detail::aligned16(residual);
+  detail::for_each(ctx.stream(), pixels, O, packed, conv_detail::BiasResidualEach<T>{y.data(), bias, residual, O});
 }
 
 // out[r·out_stride + i] = value[r·in_stride + i] · act(gate[r·in_stride + i]) for i < width

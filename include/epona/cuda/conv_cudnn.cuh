@@ -1,7 +1,8 @@
 // epona/cuda/conv_cudnn.cuh — the cuDNN engine of the GPU convolutions: channels-last (NHWC)
 // forward convolutions through cuDNN 9's convolution API, loaded at run time (dlopen), so
 // nothing links against cuDNN and a machine without it falls back to the GEMM engine. float32
-// uses FMA math only (never TF32); bf16 uses tensor cores with float32 accumulation.
+// uses FMA math only (never TF32); bf16 uses tensor cores with float32 accumulation. Fuses
+// bias, ReLU and a residual input into the convolution's epilogue where cuDNN accepts it.
 #pragma once
 
 #if __has_include(<cudnn.h>)
@@ -42,15 +43,25 @@ namespace epona::cuda::cudnn {
   X(cudnnSetConvolution2dDescriptor) X(cudnnSetConvolutionMathType) X(cudnnSetConvolutionGroupCount)      \
   X(cudnnGetConvolutionForwardAlgorithmMaxCount) X(cudnnGetConvolutionForwardAlgorithm_v7)               \
   X(cudnnGetConvolutionForwardWorkspaceSize) X(cudnnConvolutionForward)
+// The fused conv + bias (+ residual) + activation entry points: optional (without them every
+// convolution runs unfused).
+#define EPONA_CUDNN_FUSED_FUNCTIONS(X)                                                                  \
+  X(cudnnConvolutionBiasActivationForward) X(cudnnCreateActivationDescriptor)                           \
+  X(cudnnSetActivationDescriptor) X(cudnnDestroyActivationDescriptor)
 
 struct Api {
 #define EPONA_CUDNN_POINTER(name) decltype(&::name) name = nullptr;
   EPONA_CUDNN_FUNCTIONS(EPONA_CUDNN_POINTER)
+  EPONA_CUDNN_FUSED_FUNCTIONS(EPONA_CUDNN_POINTER)
 #undef EPONA_CUDNN_POINTER
   std::size_t version = 0;
   std::string unavailable;  // why cuDNN cannot be used here (empty when it can)
 
   bool ok() const { return unavailable.empty(); }
+  bool has_fused() const {
+    return cudnnConvolutionBiasActivationForward && cudnnCreateActivationDescriptor && cudnnSetActivationDescriptor &&
+           cudnnDestroyActivationDescriptor;
+  }
 
   // Loaded once per process: EPONA_CUDNN_LIBRARY names the file, else libcudnn.so.9 from the
   // loader's search path (LD_LIBRARY_PATH, the cache). The library is never unloaded.
@@ -80,6 +91,9 @@ struct Api {
   if (!a.name && a.unavailable.empty()) a.unavailable = "cuDNN lacks " #name;
     EPONA_CUDNN_FUNCTIONS(EPONA_CUDNN_RESOLVE)
 #undef EPONA_CUDNN_RESOLVE
+#define EPONA_CUDNN_RESOLVE_OPTIONAL(name) a.name = reinterpret_cast<decltype(&::name)>(dlsym(lib, #name));
+    EPONA_CUDNN_FUSED_FUNCTIONS(EPONA_CUDNN_RESOLVE_OPTIONAL)
+#undef EPONA_CUDNN_RESOLVE_OPTIONAL
     if (!a.ok()) return a;
     a.version = a.cudnnGetVersion();
     if (a.version < 90000 || a.version >= 100000)
@@ -104,11 +118,25 @@ struct Plan {
   std::size_t workspace = 0;
   std::string unusable;  // empty when the plan can run
 
+  // The fused form (cudnnConvolutionBiasActivationForward): bias descriptors in the map type and
+  // in float32 (which one cuDNN accepts is found on the first call), ReLU / identity activations
+  // (identity needs the precomputed-index implicit GEMM). State per activation: 0 untried,
+  // 1 bias in the map type, 2 bias in float32, -1 refused (fused_unusable says why).
+  cudnnTensorDescriptor_t bias_same = nullptr, bias_f32 = nullptr;
+  cudnnActivationDescriptor_t relu = nullptr, identity = nullptr;
+  std::size_t identity_workspace = 0;
+  int fused_state[2] = {0, 0};  // [0] identity, [1] ReLU
+  std::string fused_unusable[2];
+
   Plan() = default;
   Plan(const Plan&) = delete;
   Plan& operator=(const Plan&) = delete;
   ~Plan() {  // destructors must not throw: statuses at teardown are not reported
     const Api& api = Api::get();
+    if (relu) api.cudnnDestroyActivationDescriptor(relu);
+    if (identity) api.cudnnDestroyActivationDescriptor(identity);
+    if (bias_same) api.cudnnDestroyTensorDescriptor(bias_same);
+    if (bias_f32) api.cudnnDestroyTensorDescriptor(bias_f32);
     if (conv) api.cudnnDestroyConvolutionDescriptor(conv);
     if (w) api.cudnnDestroyFilterDescriptor(w);
     if (y) api.cudnnDestroyTensorDescriptor(y);
@@ -124,6 +152,12 @@ inline bool exact_algorithm(cudnnConvolutionFwdAlgo_t a) {
 }
 
 inline constexpr std::size_t kMaxWorkspace = std::size_t{1} << 30;
+
+template <class T>
+__global__ void widen_kernel(const T* in, float* out, std::int64_t n) {
+  const std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x;
+  if (i < n) out[i] = static_cast<float>(in[i]);
+}
 
 // The process-wide engine state: one cuDNN handle per device and the plans made so far.
 class Engine {
@@ -171,6 +205,76 @@ class Engine {
     return true;
   }
 
+  // y = act(conv(x) + bias + z) in one cuDNN call (act: ReLU or none; z may be null, or alias y
+  // for an in-place residual add: each output element reads its own z before it is written).
+  // False when cuDNN, the geometry or the fused form is unavailable for it: the caller then
+  // runs conv + separate passes. cuDNN's answer is found on the first call per geometry and
+  // activation (bias in the map type, else float32) and remembered; later failures throw.
+  template <class T>
+  bool forward_fused(Context& ctx, const T* x, const T* w, const T* bias, const T* z, T* y, const Conv2dShape& s,
+                     bool relu) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    const Api& api = Api::get();
+    const cudnnHandle_t handle = handle_or_reason(ctx).first;
+    if (!handle || !api.has_fused() || !bias) return false;
+    Plan& plan = plan_for<T>(ctx, handle, s);
+    if (!plan.unusable.empty()) return false;
+    const int a = relu ? 1 : 0;
+    if (plan.fused_state[a] < 0) return false;
+    if (plan.fused_state[a] == 0 && !prepare_fused<T>(handle, plan, s, a)) return false;
+    EPONA_CUDNN_CHECK(api.cudnnSetStream(handle, ctx.stream()));
+    // identity needs the precomputed-index implicit GEMM; ReLU runs the plan's algorithm
+    const cudnnConvolutionFwdAlgo_t algo = relu ? plan.algo : CUDNN_CONVOLUTION_FWD_ALGO_IMPLICIT_PRECOMP_GEMM;
+    const std::size_t ws_bytes = relu ? plan.workspace : plan.identity_workspace;
+    Tensor<unsigned char, Cuda> workspace;
+    if (ws_bytes) workspace = scratch_tensor<unsigned char>(ctx, {static_cast<std::int64_t>(ws_bytes)});
+    Tensor<float, Cuda> bias_f32;
+    const auto call = [&](int form) {
+      const void* b = bias;
+      if (form == 2 && !std::is_same_v<T, float>) {
+        bias_f32 = scratch_tensor<float>(ctx, {s.out_channels});
+        widen(ctx, bias, bias_f32.data(), s.out_channels);
+        b = bias_f32.data();
+      }
+      const float alpha1 = 1.0f, alpha2 = z ? 1.0f : 0.0f;
+      return api.cudnnConvolutionBiasActivationForward(
+          handle, &alpha1, plan.x, x, plan.w, w, plan.conv, algo, workspace.data(), ws_bytes, &alpha2, plan.y,
+          z ? static_cast<const void*>(z) : static_cast<const void*>(y), form == 2 ? plan.bias_f32 : plan.bias_same, b,
+          relu ? plan.relu : plan.identity, plan.y, y);
+    };
+    if (plan.fused_state[a] > 0) {
+      EPONA_CUDNN_CHECK(call(plan.fused_state[a]));
+      return true;
+    }
+    std::string why;
+    for (const int form : {1, 2}) {
+      if (form == 2 && std::is_same_v<T, float>) break;
+      const cudnnStatus_t status = call(form);
+      if (status == CUDNN_STATUS_SUCCESS) {
+        plan.fused_state[a] = form;
+        return true;
+      }
+      why += std::string(why.empty() ? "" : "; ") + (form == 1 ? "bias in the map type: " : "float32 bias: ") +
+             api.cudnnGetErrorString(status);
+    }
+    plan.fused_state[a] = -1;
+    plan.fused_unusable[a] = "cudnnConvolutionBiasActivationForward refused (" + why + ")";
+    return false;
+  }
+
+  // How the fused form fared per geometry so far: "" where every tried geometry fused, else
+  // the reasons (tests and benchmarks print it).
+  std::string fused_report() {
+    std::lock_guard<std::mutex> lock(mutex_);
+    std::string r;
+    for (const auto& [key, plan] : plans_)
+      for (int a = 0; a < 2; ++a)
+        if (plan && plan->fused_state[a] < 0)
+          r += std::string(r.empty() ? "" : " | ") + std::to_string(key[3]) + "->" + std::to_string(key[6]) + " k" +
+               std::to_string(key[7]) + (a ? " relu: " : " identity: ") + plan->fused_unusable[a];
+    return r;
+  }
+
   // Why a geometry has no cuDNN plan (empty when it has one); for reports.
   template <class T>
   std::string plan_problem(Context& ctx, const Conv2dShape& s) {
@@ -201,7 +305,7 @@ class Engine {
   }
 
   template <class T>
-  const Plan& plan_for(Context& ctx, cudnnHandle_t handle, const Conv2dShape& s) {
+  Plan& plan_for(Context& ctx, cudnnHandle_t handle, const Conv2dShape& s) {
     const std::array<std::int64_t, 9> key{ctx.info().device, std::is_same_v<T, float> ? 0 : 1, s.batch,
                                           s.in_channels, s.height, s.width, s.out_channels, s.kernel, s.groups};
     auto& plan = plans_[key];
@@ -257,6 +361,52 @@ class Engine {
     return p;
   }
 
+  // Descriptors of the fused form for activation a (0 identity, 1 ReLU); false (remembered)
+  // when one cannot be made.
+  template <class T>
+  static bool prepare_fused(cudnnHandle_t handle, Plan& p, const Conv2dShape& s, int a) {
+    const Api& api = Api::get();
+    const auto refuse = [&](const std::string& why) {
+      p.fused_state[a] = -1;
+      p.fused_unusable[a] = why;
+      return false;
+    };
+    const int O = static_cast<int>(s.out_channels);
+    const cudnnDataType_t type = std::is_same_v<T, float> ? CUDNN_DATA_FLOAT : CUDNN_DATA_BFLOAT16;
+    if (!p.bias_same) {
+      if (api.cudnnCreateTensorDescriptor(&p.bias_same) != CUDNN_STATUS_SUCCESS ||
+          api.cudnnSetTensor4dDescriptor(p.bias_same, CUDNN_TENSOR_NHWC, type, 1, O, 1, 1) != CUDNN_STATUS_SUCCESS ||
+          api.cudnnCreateTensorDescriptor(&p.bias_f32) != CUDNN_STATUS_SUCCESS ||
+          api.cudnnSetTensor4dDescriptor(p.bias_f32, CUDNN_TENSOR_NHWC, CUDNN_DATA_FLOAT, 1, O, 1, 1) !=
+              CUDNN_STATUS_SUCCESS)
+        return refuse("bias descriptor");
+    }
+    cudnnActivationDescriptor_t& act = a ? p.relu : p.identity;
+    if (!act) {
+      if (api.cudnnCreateActivationDescriptor(&act) != CUDNN_STATUS_SUCCESS ||
+          api.cudnnSetActivationDescriptor(act, a ? CUDNN_ACTIVATION_RELU : CUDNN_ACTIVATION_IDENTITY,
+                                           CUDNN_PROPAGATE_NAN, 0.0) != CUDNN_STATUS_SUCCESS)
+        return refuse("activation descriptor");
+    }
+    if (a == 0) {
+      std::size_t bytes = 0;
+      if (api.cudnnGetConvolutionForwardWorkspaceSize(handle, p.x, p.w, p.conv, p.y,
+                                                      CUDNN_CONVOLUTION_FWD_ALGO_IMPLICIT_PRECOMP_GEMM,
+                                                      &bytes) != CUDNN_STATUS_SUCCESS ||
+          bytes > kMaxWorkspace)
+        return refuse("no precomputed-index implicit GEMM for the identity epilogue");
+      p.identity_workspace = bytes;
+    }
+    return true;
+  }
+
+  // bias (T) -> float32 for the fused form's float32 bias.
+  template <class T>
+  static void widen(Context& ctx, const T* in, float* out, std::int64_t n) {
+    widen_kernel<<<static_cast<unsigned>((n + 255) / 256), 256, 0, ctx.stream()>>>(in, out, n);
+    EPONA_CUDA_CHECK(cudaGetLastError());
+  }
+
   std::mutex mutex_;
   std::map<int, cudnnHandle_t> handles_;
   std::map<int, std::string> reasons_;
@@ -279,6 +429,11 @@ class Engine {
   bool forward(Context&, const T*, const T*, T*, const Conv2dShape&) {
     return false;
   }
+  template <class T>
+  bool forward_fused(Context&, const T*, const T*, const T*, const T*, T*, const Conv2dShape&, bool) {
+    return false;
+  }
+  std::string fused_report() { return ""; }
   template <class T>
   std::string plan_problem(Context&, const Conv2dShape&) {
     return "built without cuDNN headers";

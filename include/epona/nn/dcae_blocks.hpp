@@ -21,11 +21,15 @@ namespace epona::nn {
 
 // ResBlock: out = x + norm(conv2(act(conv1(x) + b1))); conv2 has no bias, no act after the add.
 // Names (under the op prefix): `main.conv1.conv.{weight,bias}`, `main.conv2.conv.weight`, `main.conv2.norm.*`.
+// Channels-last backends fold an eval-mode BatchNorm into conv2 when the parameters are bound or
+// randomised (`conv2_bn`, the backend's fold_batch_norm), so conv2 -> BN -> + x is one
+// residual-adding conv (conv2d_residual); the official parameters stay as bound.
 template <class B, class T>
 struct ResBlock : Bindable<ResBlock<B, T>> {
   Conv2d<B, T> conv1, conv2;
   Norm2d<B, T> norm;
   ConvAct act = ConvAct::Silu;
+  Conv2d<B, T> conv2_bn;  // conv2 with the BatchNorm folded in; empty where not folded
 
   ResBlock() = default;
   ResBlock(std::int64_t c, Norm2dKind n, ConvAct a)
@@ -36,6 +40,8 @@ struct ResBlock : Bindable<ResBlock<B, T>> {
     conv1.visit_params(prefix + "main.conv1.conv.", v);
     conv2.visit_params(prefix + "main.conv2.conv.", v);
     norm.visit_params(prefix + "main.conv2.norm.", v);
+    if constexpr (channels_last_maps<B> && requires(Tensor<T, B>& w) { v.conv_weight(prefix, w, Shape{}); })
+      fold_norm();  // the visitor set new values
   }
 
   using Map = Tensor<activation_t<B, T>, B>;
@@ -43,8 +49,30 @@ struct ResBlock : Bindable<ResBlock<B, T>> {
   // x (a map of C channels), updated in place.
   template <class Ctx>
   void forward_inplace(Ctx& ctx, Map& x) const {
+    if constexpr (channels_last_maps<B>) {
+      if (!conv2_bn.weight.empty()) {
+        const Map h = conv1.forward(ctx, x, act);
+        const MapDims d = conv2_bn.output_dims(h);
+        check_shape(x, h.shape(), "ResBlock input");
+        conv2d_residual(ctx, h.data(), conv2_bn.weight.data(), conv2_bn.bias.data(), x.data(),
+                        Conv2dShape{d.batch, conv2.in_channels, d.height, d.width, conv2.out_channels, conv2.kernel, 1});
+        return;
+      }
+    }
     Map branch = conv2.forward(ctx, conv1.forward(ctx, x, act));
     norm.add_to(ctx, branch, x);
+  }
+
+ private:
+  void fold_norm() {
+    conv2_bn = Conv2d<B, T>();
+    if (norm.kind != Norm2dKind::Batch || conv2.groups != 1 || conv2.has_bias || conv2.weight.empty() ||
+        norm.weight.empty() || norm.bias.empty() || norm.running_mean.empty() || norm.running_var.empty())
+      return;
+    Conv2d<B, T> folded(conv2.in_channels, conv2.out_channels, conv2.kernel, 1, true);
+    if (fold_batch_norm(conv2.weight, norm.weight, norm.bias, norm.running_mean, norm.running_var, norm.eps,
+                        folded.weight, folded.bias))
+      conv2_bn = std::move(folded);
   }
 };
 
