@@ -33,6 +33,10 @@ if [ "$WHAT" != tests ]; then
   timeout 200 "$BIN/bench_gpu_dcae" ${BENCH_ARGS:-} >"$OUT/bench.log" 2>&1
   summary "bench rc=$?"
   cat "$OUT/bench.log"
+  # the unfused path (no BatchNorm folding, no fused conv epilogues) beside it, same call
+  EPONA_CUDA_CONV_FUSE=0 timeout 100 "$BIN/bench_gpu_dcae" --quick --stages >"$OUT/bench_unfused.log" 2>&1
+  summary "bench unfused rc=$?"
+  cat "$OUT/bench_unfused.log"
 fi
 
 if [ "$WHAT" != bench ]; then
