@@ -6,8 +6,7 @@
 // step (MST + TrajDiT 100 + VisDiT 100, self-predicted action, host to host); the bf16 GEMM
 // ceiling through the same cuBLASLt path (8192^3, rotating buffers); device memory in use;
 // the element-wise passes between the GEMMs at the model's sizes (row `pass_*`: residual add +
-// LayerNorm apart and fused, in-place LayerNorm, the erf GELU, gated residual + modulated norm;
-// EPONA_NORM_LEGACY=1 selects the previous norm kernels for a side-by-side run).
+// LayerNorm apart and fused, in-place LayerNorm, the erf GELU, gated residual + modulated norm).
 // CUDA events around each call after warm-up; medians. One JSON object per line (the
 // side-by-side harness reads them), then a readable table.
 // Usage: bench_gpu_world [--repeats N] [--steps S] [--only a,b,...] [--fp32]

@@ -248,15 +248,17 @@ TEST_CASE("cuda add_layer_norm and add_gated_layer_norm_modulate match the CPU's
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
   std::uint32_t seed = 700;
-  // Widths: the MST's 2048 and the DiTs' 1024 (one row per warp, 8 and 4 packs per lane),
-  // 520 (a partial last pack round), 64 (one pack per lane, most lanes idle), 45 (not packable)
-  // and 8192 (wider than a warp holds): the last two take the two-kernel fallback.
-  for (std::int64_t n : {2048, 1024, 520, 64, 45, 8192}) {
-    check_residual_norm<float, float, float, float, float>(ctx, 9, n, false, seed++);
-    check_residual_norm<float, bf16, float, bf16, float>(ctx, 9, n, false, seed++);  // the MST's mix
-    check_residual_norm<float, float, float, float, float>(ctx, 9, n, true, seed++);
-    check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 9, n, true, seed++);      // the DiTs' mix
-  }
+  // Widths: the MST's 2048 and the DiTs' 1024 (8 and 4 packs per lane of a warp), 520 (a
+  // partial last pack round), 64 (one pack per lane, most lanes idle), 45 (not packable: the
+  // two-kernel fallback). 9 rows take the block-per-row kernel, 1500 the warp-per-row one (at
+  // least 8 rows per SM); 8192 is wider than a warp holds (block per row at any count).
+  for (std::int64_t rows : {9, 1500})
+    for (std::int64_t n : {2048, 1024, 520, 64, 45, 8192}) {
+      check_residual_norm<float, float, float, float, float>(ctx, rows, n, false, seed++);
+      check_residual_norm<float, bf16, float, bf16, float>(ctx, rows, n, false, seed++);  // the MST's mix
+      check_residual_norm<float, float, float, float, float>(ctx, rows, n, true, seed++);
+      check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, rows, n, true, seed++);      // the DiTs' mix
+    }
   check_residual_norm<float, bf16, float, bf16, float>(ctx, 5150, 2048, false, seed++);  // the MST's rows
   check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 515, 1024, true, seed++);      // the TrajDiT's
   check_residual_norm<float, bf16, float, bf16, float>(ctx, 7, 2048, false, seed++, 1);  // misaligned x
@@ -273,7 +275,12 @@ TEST_CASE("cuda layer_norm matches cpu::layer_norm") {
       check_layer_norm<bf16, bf16, float>(ctx, 7, n, affine & 1, affine & 2, seed++);
       check_layer_norm<float, bf16, float>(ctx, 7, n, affine & 1, affine & 2, seed++);
     }
-  check_layer_norm<float, float, float>(ctx, 5150, 2048, false, false, seed++);  // the MST's rows
+  check_layer_norm<float, float, float>(ctx, 5150, 2048, false, false, seed++);  // the MST's rows (warp per row)
+  for (std::int64_t n : {2048, 1000, 64}) {
+    check_layer_norm<bf16, bf16, float>(ctx, 1500, n, true, true, seed++);
+    check_layer_norm<float, bf16, float>(ctx, 1500, n, true, true, seed++);
+    check_modulate<bf16, bf16, bf16>(ctx, 1500, n, seed++);
+  }
   // In place (x and y alias), as the CPU allows.
   cpu::Context cctx;
   HostF x = random_tensor({9, 300}, 99, -1.f, 3.f);
@@ -310,7 +317,7 @@ TEST_CASE_TEMPLATE("cuda activations match the CPU", T, float, bf16) {
   cuda::Context ctx;
   check_activations<T>(ctx, 1001, 400);
   check_activations<T>(ctx, 1 << 20, 410);
-  check_activations<T>(ctx, 8 * 100003, 420);  // an odd number of packs per grid stride
+  check_activations<T>(ctx, 8 * 100003, 420);  // packs not a multiple of the block
 }
 
 TEST_CASE("cuda residual updates match the CPU (PyTorch promotion for mixed types)") {

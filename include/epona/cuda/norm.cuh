@@ -9,7 +9,6 @@
 
 #include <algorithm>
 #include <cstdint>
-#include <cstdlib>
 #include <type_traits>
 
 #include "epona/cuda/context.hpp"
@@ -56,91 +55,40 @@ __global__ void layer_norm_kernel(const TX* x, TY* y, std::int64_t n, const TP* 
   }
 }
 
-// The same with the row held in registers (read once, written once, 16-byte accesses): for
-// n % 8 == 0, n <= 8 * kRowPacks * 256, aligned rows. Up to kRowPacks packs per thread.
-constexpr int kRowPacks = 4;
-template <class TX, class TY, class TP, bool Modulate>
-__global__ void layer_norm_packed_kernel(const TX* x, TY* y, std::int64_t n, const TP* mul, const TP* add, float eps) {
-  __shared__ float scratch[32];
-  const TX* xr = x + blockIdx.x * n;
-  TY* yr = y + blockIdx.x * n;
-  const int packs = static_cast<int>(n / kPack);
-  float v[kRowPacks][kPack];
-  float s = 0;
-#pragma unroll
-  for (int k = 0; k < kRowPacks; ++k) {
-    const int p = threadIdx.x + k * blockDim.x;
-    if (p >= packs) continue;
-    load8(xr + p * kPack, v[k]);
-#pragma unroll
-    for (int i = 0; i < kPack; ++i) s += v[k][i];
-  }
-  const float mean = block_sum(s, scratch) / static_cast<float>(n);
-  float q = 0;
-#pragma unroll
-  for (int k = 0; k < kRowPacks; ++k) {
-    if (threadIdx.x + k * blockDim.x >= packs) continue;
-#pragma unroll
-    for (int i = 0; i < kPack; ++i) q += (v[k][i] - mean) * (v[k][i] - mean);
-  }
-  const float rstd = 1.0f / sqrtf(block_sum(q, scratch) / static_cast<float>(n) + eps);
-#pragma unroll
-  for (int k = 0; k < kRowPacks; ++k) {
-    const int p = threadIdx.x + k * blockDim.x;
-    if (p >= packs) continue;
-    float m[kPack], a[kPack];
-    if (mul) load8(mul + p * kPack, m);
-    if (add) load8(add + p * kPack, a);
-#pragma unroll
-    for (int i = 0; i < kPack; ++i) {
-      float o = (v[k][i] - mean) * rstd;
-      if constexpr (Modulate) {
-        o = round_to<TP>(1.0f + m[i]) * o + a[i];
-      } else {
-        if (mul) o = o * m[i];
-        if (add) o = o + a[i];
-      }
-      v[k][i] = o;
-    }
-    store8(yr + p * kPack, v[k]);
-  }
-}
-
-// One warp per row, the row held in registers (read once, written once, 16-byte accesses):
-// the LayerNorm kernel for rows of n % 8 == 0, n <= 8 * 32 * P, aligned. No block barriers, and
-// every row of the grid in flight at once on the MST's 5150 rows. With Residual, the row is
+// The row held in registers (read once, written once, 16-byte accesses), for n % 8 == 0 and
+// aligned rows: pack k of a row's worker is pack first + k·step. With Residual, the row is
 // first updated and written back: x = round_TX(x + [round(gate ⊙)] y), exactly what add_inplace /
 // add_gated store; the statistics are then taken over the stored values, as the unfused pair.
 template <class TX, class TY, class TG, class TO, class TP>
 struct RowNormArgs {
-  const TX* x;      // rows of the input (the residual before its update)
-  TX* x_out;        // where the updated residual goes (Residual only; may be x)
-  const TY* y;      // the branch added to x (Residual only)
-  const TG* gate;   // per-column gate of the branch, or null
-  TO* out;          // LN output (may alias x when there is no residual)
-  const TP* mul;    // weight, or scale with Modulate (may be null without Modulate)
-  const TP* add;    // bias, or shift with Modulate
+  const TX* x;     // rows of the input (the residual before its update)
+  TX* x_out;       // where the updated residual goes (Residual only; may be x)
+  const TY* y;     // the branch added to x (Residual only)
+  const TG* gate;  // per-column gate of the branch, or null
+  TO* out;         // LN output (may alias x when there is no residual)
+  const TP* mul;   // weight, or scale with Modulate (may be null without Modulate)
+  const TP* add;   // bias, or shift with Modulate
   std::int64_t rows, n;
   float eps;
 };
 
-constexpr int kNormWarps = 4;  // rows per block of the warp-per-row kernel
-template <class TX, class TY, class TG, class TO, class TP, int P, bool Modulate, bool Residual>
-__global__ void __launch_bounds__(32 * kNormWarps) row_norm_warp_kernel(RowNormArgs<TX, TY, TG, TO, TP> a) {
-  const std::int64_t row = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
-  if (row >= a.rows) return;
-  const int lane = threadIdx.x & 31, packs = static_cast<int>(a.n / kPack);
+// One row by one worker (a warp or a block) of up to P packs per thread; `sum` reduces over the
+// worker. Affine LayerNorm when weight/bias are given; with Modulate, shift/scale take their
+// place as (1 + scale) * LN(x) + shift, 1 + scale rounded to the parameters' storage type as
+// PyTorch does for `1 + scale_tensor`.
+template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP, class Sum>
+__device__ __forceinline__ void norm_row(const RowNormArgs<TX, TY, TG, TO, TP>& a, std::int64_t row, int first,
+                                         int step, Sum sum) {
+  const int packs = static_cast<int>(a.n / kPack);
   const std::int64_t base = row * a.n;
   float v[P][kPack];
 #pragma unroll
-  for (int k = 0; k < P; ++k) {
-    const int p = lane + 32 * k;
-    if (p < packs) load8(a.x + base + p * kPack, v[k]);
-  }
+  for (int k = 0; k < P; ++k)
+    if (first + k * step < packs) load8(a.x + base + (first + k * step) * kPack, v[k]);
   if constexpr (Residual) {
 #pragma unroll
     for (int k = 0; k < P; ++k) {
-      const int p = lane + 32 * k;
+      const int p = first + k * step;
       if (p >= packs) continue;
       float ys[kPack], gs[kPack];
       load8(a.y + base + p * kPack, ys);
@@ -154,20 +102,20 @@ __global__ void __launch_bounds__(32 * kNormWarps) row_norm_warp_kernel(RowNormA
   float s = 0;
 #pragma unroll
   for (int k = 0; k < P; ++k)
-    if (lane + 32 * k < packs)
+    if (first + k * step < packs)
 #pragma unroll
       for (int i = 0; i < kPack; ++i) s += v[k][i];
-  const float mean = warp_sum(s) / static_cast<float>(a.n);
+  const float mean = sum(s) / static_cast<float>(a.n);
   float q = 0;
 #pragma unroll
   for (int k = 0; k < P; ++k)
-    if (lane + 32 * k < packs)
+    if (first + k * step < packs)
 #pragma unroll
       for (int i = 0; i < kPack; ++i) q += (v[k][i] - mean) * (v[k][i] - mean);
-  const float rstd = 1.0f / sqrtf(warp_sum(q) / static_cast<float>(a.n) + a.eps);
+  const float rstd = 1.0f / sqrtf(sum(q) / static_cast<float>(a.n) + a.eps);
 #pragma unroll
   for (int k = 0; k < P; ++k) {
-    const int p = lane + 32 * k;
+    const int p = first + k * step;
     if (p >= packs) continue;
     float m[kPack], b[kPack];
     if (a.mul) load8(a.mul + p * kPack, m);
@@ -187,39 +135,59 @@ __global__ void __launch_bounds__(32 * kNormWarps) row_norm_warp_kernel(RowNormA
   }
 }
 
-// Widest row the warp kernel holds in registers (8 packs of 8 per lane).
-constexpr std::int64_t kWarpRowMax = 8 * 32 * kPack;
-
-// The old block-per-row path for every LayerNorm and separate residual kernels, selectable
-// with EPONA_NORM_LEGACY=1 while the two are measured side by side.
-inline bool legacy_norms() {
-  static const bool legacy = [] {
-    const char* e = std::getenv("EPONA_NORM_LEGACY");
-    return e && e[0] == '1';
-  }();
-  return legacy;
+// One block per row, up to kRowPacks packs per thread (n <= 8 * kRowPacks * 256): many threads
+// per row, for few rows (the DiTs' 15 to 1027), where a warp per row leaves the GPU idle.
+constexpr int kRowPacks = 4;
+template <class TX, class TY, class TG, class TO, class TP, bool Modulate, bool Residual>
+__global__ void row_norm_block_kernel(RowNormArgs<TX, TY, TG, TO, TP> a) {
+  __shared__ float scratch[32];
+  norm_row<kRowPacks, Modulate, Residual>(a, blockIdx.x, threadIdx.x, blockDim.x,
+                                          [&](float v) { return block_sum(v, scratch); });
 }
+
+// One warp per row (n <= 8 * 32 * P), kNormWarps rows per block: no block barriers, for many
+// rows (the MST's 5150), where every row of the grid is in flight at once.
+constexpr int kNormWarps = 4;
+template <class TX, class TY, class TG, class TO, class TP, int P, bool Modulate, bool Residual>
+__global__ void __launch_bounds__(32 * kNormWarps) row_norm_warp_kernel(RowNormArgs<TX, TY, TG, TO, TP> a) {
+  const std::int64_t row = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
+  if (row >= a.rows) return;
+  norm_row<P, Modulate, Residual>(a, row, threadIdx.x & 31, 32, [](float v) { return warp_sum(v); });
+}
+
+// Widest row the warp kernel holds (8 packs of 8 per lane), and the fewest rows for which it
+// beats a block per row (measured on the H200: 515 rows of 1024 ran 40 % slower by warp).
+constexpr std::int64_t kWarpRowMax = 8 * 32 * kPack;
+inline std::int64_t warp_rows_min(const Context& ctx) { return 8 * std::int64_t{ctx.info().multiprocessors}; }
 
 template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP>
 void launch_row_norm_warp(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a) {
   const auto blocks = static_cast<unsigned>((a.rows + kNormWarps - 1) / kNormWarps);
   row_norm_warp_kernel<TX, TY, TG, TO, TP, P, Modulate, Residual><<<blocks, 32 * kNormWarps, 0, ctx.stream()>>>(a);
-  EPONA_CUDA_CHECK_LAUNCH();
 }
 
-// The warp kernel with the fewest packs per lane that hold a row; false when it does not apply.
+// The register-resident kernels (warp or block per row) when the rows are packable and fit;
+// false when neither applies (the caller then takes the general path).
 template <bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP>
-bool try_row_norm_warp(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a) {
-  const std::int64_t n = a.n;
-  if (legacy_norms() || n > kWarpRowMax || !packable(a.x, n, n) || !packable(a.x_out, n, n) ||
-      !packable(a.y, n, n) || !packable(a.gate, n, 0) || !packable(a.out, n, n) || !packable(a.mul, n, 0) ||
-      !packable(a.add, n, 0))
+bool try_row_norm_packed(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a) {
+  const std::int64_t n = a.n, packs = n / kPack;
+  if (!packable(a.x, n, n) || !packable(a.x_out, n, n) || !packable(a.y, n, n) || !packable(a.gate, n, 0) ||
+      !packable(a.out, n, n) || !packable(a.mul, n, 0) || !packable(a.add, n, 0))
     return false;
-  const std::int64_t per_lane = (n / kPack + 31) / 32;
-  if (per_lane <= 1) launch_row_norm_warp<1, Modulate, Residual>(ctx, a);
-  else if (per_lane <= 2) launch_row_norm_warp<2, Modulate, Residual>(ctx, a);
-  else if (per_lane <= 4) launch_row_norm_warp<4, Modulate, Residual>(ctx, a);
-  else launch_row_norm_warp<8, Modulate, Residual>(ctx, a);
+  if (n <= kWarpRowMax && a.rows >= warp_rows_min(ctx)) {
+    const std::int64_t per_lane = (packs + 31) / 32;
+    if (per_lane <= 1) launch_row_norm_warp<1, Modulate, Residual>(ctx, a);
+    else if (per_lane <= 2) launch_row_norm_warp<2, Modulate, Residual>(ctx, a);
+    else if (per_lane <= 4) launch_row_norm_warp<4, Modulate, Residual>(ctx, a);
+    else launch_row_norm_warp<8, Modulate, Residual>(ctx, a);
+  } else if (packs <= 256 * kRowPacks) {
+    const int threads = static_cast<int>(std::min<std::int64_t>(256, (packs + 31) / 32 * 32));
+    row_norm_block_kernel<TX, TY, TG, TO, TP, Modulate, Residual>
+        <<<static_cast<unsigned>(a.rows), threads, 0, ctx.stream()>>>(a);
+  } else {
+    return false;
+  }
+  EPONA_CUDA_CHECK_LAUNCH();
   return true;
 }
 
@@ -251,22 +219,14 @@ void launch_layer_norm(Context& ctx, const TX* x, TY* y, std::int64_t rows, std:
   EPONA_CHECK(rows <= 0x7fffffff, what, ": ", rows, " rows exceed one launch");
   if (rows == 0) return;
   const RowNormArgs<TX, TX, TX, TY, TP> args{x, nullptr, nullptr, nullptr, y, mul, add, rows, n, eps};
-  if (try_row_norm_warp<Modulate, false>(ctx, args)) return;
-  const std::int64_t packs = n / kPack;
-  if (packable(x, n, n) && packable(y, n, n) && packable(mul, n, 0) && packable(add, n, 0) &&
-      packs <= 256 * kRowPacks) {
-    const int threads = static_cast<int>(std::min<std::int64_t>(256, (packs + 31) / 32 * 32));
-    layer_norm_packed_kernel<TX, TY, TP, Modulate>
-        <<<static_cast<unsigned>(rows), threads, 0, ctx.stream()>>>(x, y, n, mul, add, eps);
-  } else {
-    layer_norm_kernel<TX, TY, TP, Modulate>
-        <<<static_cast<unsigned>(rows), norm_threads(n), 0, ctx.stream()>>>(x, y, n, mul, add, eps);
-  }
+  if (try_row_norm_packed<Modulate, false>(ctx, args)) return;
+  layer_norm_kernel<TX, TY, TP, Modulate>
+      <<<static_cast<unsigned>(rows), norm_threads(n), 0, ctx.stream()>>>(x, y, n, mul, add, eps);
   EPONA_CUDA_CHECK_LAUNCH();
 }
 
-// x += [gate ⊙] y, then out = LN(x) (affine or modulated): one pass where the warp kernel
-// applies, else the residual kernel and the LayerNorm one after the other.
+// x += [gate ⊙] y, then out = LN(x) (affine or modulated): one pass where a register-resident
+// kernel applies, else the residual kernel and the LayerNorm one after the other.
 template <bool Modulate, class TX, class TY, class TG, class TO, class TP>
 void launch_residual_norm(Context& ctx, TX* x, const TY* y, const TG* gate, TO* out, std::int64_t rows,
                           std::int64_t n, const TP* mul, const TP* add, float eps, const char* what) {
@@ -278,7 +238,7 @@ void launch_residual_norm(Context& ctx, TX* x, const TY* y, const TG* gate, TO* 
   EPONA_CHECK(rows <= 0x7fffffff, what, ": ", rows, " rows exceed one launch");
   if (rows == 0) return;
   const RowNormArgs<TX, TY, TG, TO, TP> args{x, x, y, gate, out, mul, add, rows, n, eps};
-  if (try_row_norm_warp<Modulate, true>(ctx, args)) return;
+  if (try_row_norm_packed<Modulate, true>(ctx, args)) return;
   add_rows(ctx, x, y, gate, rows, n, what);
   launch_layer_norm<Modulate>(ctx, static_cast<const TX*>(x), out, rows, n, mul, add, eps, what);
 }
