@@ -28,7 +28,7 @@ for h in Eigen/Core xsimd/xsimd.hpp nlohmann/json.hpp doctest/doctest.h; do
   mapfile -t found < <(extra_include "$h")
   includes+=("${found[@]}")
 done
-flags=(-std=c++20 -O3 -DNDEBUG -fopenmp -static -Wall -Wextra -Wno-unused-parameter -Wno-psabi)
+flags=(-std=c++20 -O3 -DNDEBUG -fopenmp -static -Wall -Wextra -Wno-unused-parameter -Wno-psabi -Wno-maybe-uninitialized)  # GCC 12 false positives in avx512fintrin.h
 
 build() {  # target, output, sources...
   local target=$1 output=$2
