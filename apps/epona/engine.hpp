@@ -4,6 +4,7 @@
 // CUDA compiler. ModelEngine<B, W> holds a WorldModel<B, W> and a Dcae<B, W>.
 #pragma once
 
+#include <functional>
 #include <memory>
 #include <optional>
 #include <type_traits>
@@ -40,6 +41,10 @@ template <class B, class W>
 class ModelEngine final : public Engine {
  public:
   explicit ModelEngine(const ComputeOptions& c) : compute_(c), ctx_(make_context(c)) {}
+
+  // `fn` runs when the engine is destroyed, after the models and their context (the CUDA
+  // engine releases the process-wide cuDNN handles there).
+  void after_destruction(std::function<void()> fn) { after_destruction_.fn = std::move(fn); }
 
   void load_dcae(const ModelFiles& f, const Console& con) override { dcae_.emplace(app::load_dcae<B, W>(f, con)); }
   void load_world(const ModelFiles& f, const Console& con) override {
@@ -88,6 +93,13 @@ class ModelEngine final : public Engine {
     return *world_;
   }
 
+  struct AtDestruction {
+    std::function<void()> fn;
+    ~AtDestruction() {
+      if (fn) fn();
+    }
+  };
+  AtDestruction after_destruction_;  // first member: destroyed after all the others
   ComputeOptions compute_;
   BackendContext<B> ctx_;  // the DC-AE's (the world model owns its own)
   std::optional<Dcae<B, W>> dcae_;

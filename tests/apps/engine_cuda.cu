@@ -9,6 +9,7 @@
 #include <cstdlib>
 #include <string>
 
+#include "../../apps/epona/cuda_engine.cuh"
 #include "../../apps/epona/engine.hpp"
 #include "../../apps/epona/frames.hpp"
 #include "../cuda/cuda_test_util.cuh"
@@ -58,13 +59,8 @@ std::unique_ptr<app::Engine> loaded(const std::string& backend, bool bf16_weight
   app::ComputeOptions c;
   c.backend = backend;
   c.bf16_weights = bf16_weights;
-  std::unique_ptr<app::Engine> e;  // what apps/epona/cuda_engine.cu's make_cuda_engine builds
-  if (backend == "cuda" && bf16_weights)
-    e = std::make_unique<app::ModelEngine<Cuda, bf16>>(c);
-  else if (backend == "cuda")
-    e = std::make_unique<app::ModelEngine<Cuda, float>>(c);
-  else
-    e = app::make_engine(c);
+  // the CUDA engine exactly as apps/epona/cuda_engine.cu's make_cuda_engine builds it
+  std::unique_ptr<app::Engine> e = backend == "cuda" ? app::build_cuda_engine(c) : app::make_engine(c);
   e->load_dcae(f, quiet);
   e->load_world(f, quiet);
   return e;
