@@ -288,7 +288,7 @@ class SpatialTemporalTransformer {
   // FLOPs of one evaluate (batch 1): `executed` counts what runs (the last block computes the
   // last frame only); otherwise the official count of compute-budget.md §3.1.
   nn::Flops evaluate_flops(bool executed = true) const {
-    const double F = double(cfg_.condition_frames), T = double(cfg_.tokens_per_frame()), C = double(cfg_.n_embd);
+    const double F = double(cfg_.condition_frames), C = double(cfg_.n_embd);
     const double L = double(cfg_.img_tokens()), E = double(cfg_.fourier_dim), P = double(cfg_.projector_hidden);
     const std::int64_t n = cfg_.condition_frames * cfg_.tokens_per_frame(), t = cfg_.tokens_per_frame();
     nn::Flops f{2 * F * L * (double(cfg_.token_dim) * double(cfg_.img_hidden()) + double(cfg_.img_hidden()) * C) +
