@@ -1,11 +1,23 @@
 #!/usr/bin/env bash
 # The test command: installs dependencies, configures, builds and runs every test via ctest.
 # GPU tests are compiled when nvcc is present and skip with a message when no GPU is present.
+#   scripts/test.sh [--sanitize] [extra CMake arguments]
+# --sanitize: the same build and suite with AddressSanitizer + UBSan + LeakSanitizer in every C++
+# program (-O1, build dir build-sanitize); CI runs this (.ci/run). The CUDA kernels themselves are
+# checked with compute-sanitizer on a GPU (tests/cuda/sanitize_all.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
 build=${EPONA_BUILD_DIR:-build}
+extra=()
+if [[ ${1:-} == --sanitize ]]; then
+  shift
+  source scripts/sanitizer-env.sh
+  build=${EPONA_BUILD_DIR:-build-sanitize}
+  extra=("${sanitize_cmake_args[@]}")
+fi
 jobs=${EPONA_JOBS:-$(nproc)}
-cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DEPONA_TESTS=ON -DEPONA_BENCHMARKS=ON -DEPONA_EXAMPLES=ON "$@"
+cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DEPONA_TESTS=ON -DEPONA_BENCHMARKS=ON -DEPONA_EXAMPLES=ON \
+  "${extra[@]}" "$@"
 cmake --build "$build" -j "$jobs"
 ctest --test-dir "$build" --output-on-failure -j "$jobs"
