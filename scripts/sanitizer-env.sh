@@ -5,5 +5,5 @@
 export ASAN_OPTIONS=${ASAN_OPTIONS:-detect_leaks=1:halt_on_error=1:abort_on_error=1:strict_string_checks=1:detect_stack_use_after_return=1:allocator_may_return_null=1}
 export UBSAN_OPTIONS=${UBSAN_OPTIONS:-print_stacktrace=1:halt_on_error=1}
 # -O1: the optimisation level the sanitizers are made for (full reports, about half the compile
-# time of -O3).
-sanitize_cmake_args=(-DEPONA_SANITIZE=ON "-DCMAKE_CXX_FLAGS_RELEASE=-O1 -DNDEBUG")
+# time of -O3); the CUDA programs' host code likewise (their device code stays optimised).
+sanitize_cmake_args=(-DEPONA_SANITIZE=ON "-DCMAKE_CXX_FLAGS_RELEASE=-O1 -DNDEBUG" "-DCMAKE_CUDA_FLAGS_RELEASE=-O1 -DNDEBUG")
