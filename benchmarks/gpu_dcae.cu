@@ -22,6 +22,7 @@
 #include "epona/cuda/backend.cuh"
 #include "epona/cuda/dcae_ops.cuh"
 #include "epona/model/dcae.hpp"
+#include "gpu_event_timer.cuh"
 
 using namespace epona;
 
@@ -65,23 +66,7 @@ Tensor<float, Cuda> random_device(cuda::Context& ctx, Shape shape, std::uint32_t
 
 // Median milliseconds of `reps` runs of f (CUDA events on ctx's stream), after `warmup` runs.
 double median_ms(cuda::Context& ctx, int warmup, int reps, const std::function<void()>& f) {
-  for (int i = 0; i < warmup; ++i) f();
-  ctx.synchronize();
-  cudaEvent_t start, stop;
-  EPONA_CUDA_CHECK(cudaEventCreate(&start));
-  EPONA_CUDA_CHECK(cudaEventCreate(&stop));
-  std::vector<double> ms;
-  for (int i = 0; i < reps; ++i) {
-    EPONA_CUDA_CHECK(cudaEventRecord(start, ctx.stream()));
-    f();
-    EPONA_CUDA_CHECK(cudaEventRecord(stop, ctx.stream()));
-    EPONA_CUDA_CHECK(cudaEventSynchronize(stop));
-    float t = 0;
-    EPONA_CUDA_CHECK(cudaEventElapsedTime(&t, start, stop));
-    ms.push_back(t);
-  }
-  EPONA_CUDA_CHECK(cudaEventDestroy(start));
-  EPONA_CUDA_CHECK(cudaEventDestroy(stop));
+  std::vector<double> ms = bench::event_times_ms(ctx, reps, warmup, f);
   std::sort(ms.begin(), ms.end());
   return ms[ms.size() / 2];
 }

@@ -28,6 +28,7 @@
 #include "epona/model/pose_tokenizer.hpp"
 #include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
+#include "gpu_event_timer.cuh"
 
 using namespace epona;
 
@@ -66,28 +67,7 @@ double median(std::vector<double> v) {
   return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
 }
 
-// Milliseconds of `fn` (which enqueues on ctx's stream, possibly synchronising) between two
-// events, `repeats` times after `warmup` calls.
-std::vector<double> time_ms(cuda::Context& ctx, int repeats, int warmup, const std::function<void()>& fn) {
-  for (int i = 0; i < warmup; ++i) fn();
-  ctx.synchronize();
-  cudaEvent_t a, b;
-  EPONA_CUDA_CHECK(cudaEventCreate(&a));
-  EPONA_CUDA_CHECK(cudaEventCreate(&b));
-  std::vector<double> runs;
-  for (int i = 0; i < repeats; ++i) {
-    EPONA_CUDA_CHECK(cudaEventRecord(a, ctx.stream()));
-    fn();
-    EPONA_CUDA_CHECK(cudaEventRecord(b, ctx.stream()));
-    EPONA_CUDA_CHECK(cudaEventSynchronize(b));
-    float ms = 0;
-    EPONA_CUDA_CHECK(cudaEventElapsedTime(&ms, a, b));
-    runs.push_back(ms);
-  }
-  cudaEventDestroy(a);
-  cudaEventDestroy(b);
-  return runs;
-}
+using bench::event_times_ms;
 
 void emit(const std::string& name, const std::vector<double>& runs, double tflop) {
   std::printf("{\"name\": \"%s\", \"ms\": %.4f, \"tflop\": %.6f, \"runs\": [", name.c_str(), median(runs), tflop);
@@ -123,7 +103,7 @@ double gemm_ceiling_tflops(cuda::Context& ctx) {
   }
   const Tensor<bf16, Cuda> none;
   int k = 0;
-  const auto runs = time_ms(ctx, 10, 3, [&] {
+  const auto runs = event_times_ms(ctx, 10, 3, [&] {
     cuda::linear(ctx, x[k % sets], w[k % sets], none, y[k % sets]);
     ++k;
   });
@@ -149,7 +129,7 @@ void time_passes(cuda::Context& ctx, int repeats) {
   auto h = random_device<bf16>(ctx, {rows, hidden}, 4);
   auto w = random_device<float>(ctx, {C}, 5), b = random_device<float>(ctx, {C}, 6);
   const auto pass = [&](const std::string& name, double bytes, const std::function<void()>& fn) {
-    const auto runs = time_ms(ctx, repeats, 3, fn);
+    const auto runs = event_times_ms(ctx, repeats, 3, fn);
     emit("pass_" + name, runs, 0);
     std::printf("# pass_%s: %.1f us, %.0f GB/s\n", name.c_str(), 1e3 * median(runs), bytes / (median(runs) * 1e6));
   };
@@ -241,7 +221,7 @@ int run(const Options& o) {
     mst.evaluate(ctx, arena, latents, pose_idx, yaw_idx, stt, pose_emb);
   };
   mst_once();
-  if (o.want("mst")) emit("mst", time_ms(ctx, R, 3, mst_once), mst_tflop);
+  if (o.want("mst")) emit("mst", event_times_ms(ctx, R, 3, mst_once), mst_tflop);
 
   const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
   for (const bool is_vis : {false, true}) {
@@ -256,7 +236,7 @@ int run(const Options& o) {
     t.data()[0] = 0.3f;
     const double eval_tflop = dit.forward_flops(rows, false).total() / 1e12;
     if (o.want(name + "_eval"))
-      emit(name + "_eval", time_ms(ctx, std::max(R, 20), 3, [&] {
+      emit(name + "_eval", event_times_ms(ctx, std::max(R, 20), 3, [&] {
              arena.reset();
              dit.forward(ctx, arena, x, target_ids, stt, ids.cond, t, pose_emb, v);
            }),
@@ -273,7 +253,7 @@ int run(const Options& o) {
     std::printf("# %s sampler graph: %d capture(s), last %.1f ms (host, capture + instantiate)\n", name.c_str(),
                 dit.sampler_graph().captures(), dit.sampler_graph().last_capture_ms());
     if (o.want(name + "_sample"))
-      emit(name + "_sample", time_ms(ctx, std::max(3, R / 2), 1, sample_once), eval_tflop * double(o.steps));
+      emit(name + "_sample", event_times_ms(ctx, std::max(3, R / 2), 1, sample_once), eval_tflop * double(o.steps));
   }
   arena = Arena<Cuda>();  // the step uses the model's own arena
 
@@ -282,7 +262,7 @@ int run(const Options& o) {
     opt.seed = 7;
     const double step_tflop = mst_tflop + double(o.steps) * (traj.forward_flops(traj_rows, false).total() +
                                                              vis.forward_flops(img_rows, false).total()) / 1e12;
-    emit("step", time_ms(ctx, std::max(3, R / 2), 1, [&] { (void)wm.predict_next(h, std::nullopt, opt); }), step_tflop);
+    emit("step", event_times_ms(ctx, std::max(3, R / 2), 1, [&] { (void)wm.predict_next(h, std::nullopt, opt); }), step_tflop);
   }
   emit_value("device_memory_gib", double(used_device_bytes() - base_bytes) / 1073741824.0);
   return 0;
