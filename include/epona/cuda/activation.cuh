@@ -1,9 +1,15 @@
 // epona/cuda/activation.cuh — element-wise activations on the GPU, in place: exact GELU
 // (erf; the MST's MLP and nn.GELU()), tanh GELU (the DiTs' MLPs) and SiLU, computed in
 // float32 on float32 or bf16 storage. The same functors are the GEMM's own epilogues.
+// Large bf16 -> bf16 maps read a 65536-entry table of the function instead (a bf16 input has
+// only 2^16 values): the same bits as computing it, at memory speed instead of erff's cost.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
+#include <cstdlib>
+#include <string_view>
+#include <type_traits>
 
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
@@ -12,16 +18,20 @@ namespace epona::cuda {
 
 namespace detail {
 
+// Each op names its bf16 lookup table (a key of the context's constant tables).
 struct GeluErfOp {
+  static constexpr const char* table = "gelu_erf_bf16";
   __device__ float operator()(float v) const { return 0.5f * v * (1.0f + erff(v * 0.70710678118654752f)); }
 };
 struct GeluTanhOp {
+  static constexpr const char* table = "gelu_tanh_bf16";
   __device__ float operator()(float v) const {
     constexpr float k = 0.7978845608028654f;  // sqrt(2/pi)
     return 0.5f * v * (1.0f + tanhf(k * (v + 0.044715f * v * v * v)));
   }
 };
 struct SiluOp {
+  static constexpr const char* table = "silu_bf16";
   __device__ float operator()(float v) const { return v / (1.0f + expf(-v)); }
 };
 
@@ -41,6 +51,72 @@ struct MapEach {
   __device__ void one(std::int64_t, std::int64_t c) const { y[c] = from_f32<TY>(op(to_f32(x[c]))); }
 };
 
+// ---- bf16 lookup tables -----------------------------------------------------------------
+inline constexpr int kBf16Values = 1 << 16;
+inline constexpr int kTableBytes = kBf16Values * 2;  // 128 KiB: one block's shared memory
+inline constexpr int kTableThreads = 1024;
+inline constexpr int kTableUnroll = 4;                   // 16-byte packs in flight per thread
+inline constexpr std::int64_t kTableMinElements = std::int64_t{1} << 22;  // below: the table copy costs more
+
+// table[b] = op(the bf16 with bits b), rounded to bf16 exactly as MapEach stores it.
+template <class Op>
+__global__ void build_bf16_table_kernel(std::uint16_t* table, Op op) {
+  const int b = blockIdx.x * blockDim.x + threadIdx.x;
+  if (b >= kBf16Values) return;
+  bf16 v;
+  v.bits = static_cast<std::uint16_t>(b);
+  table[b] = from_f32<bf16>(op(to_f32(v))).bits;
+}
+
+// Two bf16 in one word, each replaced by its table entry.
+__device__ __forceinline__ unsigned look_up_pair(const std::uint16_t* lut, unsigned w) {
+  return lut[w & 0xffffu] | (static_cast<unsigned>(lut[w >> 16]) << 16);
+}
+
+// y = table[x] over `packs` 16-byte packs of bf16: the table is copied into shared memory
+// once per block (one block per multiprocessor), then a grid-stride walk keeps kTableUnroll
+// loads in flight per thread. x and y may be the same buffer.
+__global__ void __launch_bounds__(kTableThreads, 1)
+    table_map_kernel(const uint4* __restrict__ table, const uint4* x, uint4* y, std::int64_t packs) {
+  extern __shared__ uint4 lut_packs[];
+  for (int i = threadIdx.x; i < kTableBytes / 16; i += blockDim.x) lut_packs[i] = table[i];
+  __syncthreads();
+  const auto* lut = reinterpret_cast<const std::uint16_t*>(lut_packs);
+  const std::int64_t stride = std::int64_t{gridDim.x} * blockDim.x;
+  for (std::int64_t base = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; base < packs;
+       base += stride * kTableUnroll) {
+    uint4 v[kTableUnroll];
+#pragma unroll
+    for (int u = 0; u < kTableUnroll; ++u)
+      if (base + u * stride < packs) v[u] = x[base + u * stride];
+#pragma unroll
+    for (int u = 0; u < kTableUnroll; ++u)
+      if (base + u * stride < packs)
+        y[base + u * stride] = make_uint4(look_up_pair(lut, v[u].x), look_up_pair(lut, v[u].y),
+                                          look_up_pair(lut, v[u].z), look_up_pair(lut, v[u].w));
+  }
+}
+
+// The context's table of `op` (named Op::table), built on first use; null while the stream is
+// being captured and the table does not exist yet (a graph must not depend on a one-time fill).
+template <class Op>
+const std::uint16_t* bf16_table(Context& ctx, Op op) {
+  const char* name = Op::table;
+  cudaStreamCaptureStatus capturing = cudaStreamCaptureStatusNone;
+  EPONA_CUDA_CHECK(cudaStreamIsCapturing(ctx.stream(), &capturing));
+  bool created = false;
+  if (capturing != cudaStreamCaptureStatusNone) {
+    // Only look: creating would allocate and fill inside the graph.
+    if (!ctx.has_constant_table(name)) return nullptr;
+  }
+  auto* table = static_cast<std::uint16_t*>(ctx.constant_table(name, kTableBytes, &created));
+  if (created) {
+    build_bf16_table_kernel<<<kBf16Values / 256, 256, 0, ctx.stream()>>>(table, op);
+    EPONA_CUDA_CHECK_LAUNCH();
+  }
+  return table;
+}
+
 // y[i] = op(x[i]); x and y may be the same buffer.
 template <class TX, class TY, class Op>
 void map(Context& ctx, const TX* x, TY* y, std::int64_t n, Op op) {
@@ -49,11 +125,50 @@ void map(Context& ctx, const TX* x, TY* y, std::int64_t n, Op op) {
   for_each(ctx.stream(), 1, n, packable(x, n, n) && packable(y, n, n), MapEach<TX, TY, Op>{x, y, op});
 }
 
+// map() for bf16 -> bf16, through op's table where that pays (large, packable, a
+// table available); bit-identical to map() either way.
+// EPONA_CUDA_TABLES=0 turns the tables off (to time the direct path in the same binary).
+inline bool tables_enabled() {
+  static const bool on = [] {
+    const char* v = std::getenv("EPONA_CUDA_TABLES");
+    return !(v && std::string_view(v) == "0");
+  }();
+  return on;
+}
+
+template <class Op>
+void map_bf16(Context& ctx, const bf16* x, bf16* y, std::int64_t n, Op op) {
+  const bool large = tables_enabled() && n >= kTableMinElements && packable(x, n, n) && packable(y, n, n);
+  const std::uint16_t* table = large ? bf16_table(ctx, op) : nullptr;
+  if (!table) return map(ctx, x, y, n, op);
+  allow_dynamic_smem<table_map_kernel>(kTableBytes);
+  const std::int64_t packs = n / kPack;
+  const auto blocks = std::min<std::int64_t>(ctx.info().multiprocessors, (packs + kTableThreads - 1) / kTableThreads);
+  table_map_kernel<<<static_cast<unsigned>(blocks), kTableThreads, kTableBytes, ctx.stream()>>>(
+      reinterpret_cast<const uint4*>(table), reinterpret_cast<const uint4*>(x), reinterpret_cast<uint4*>(y), packs);
+  EPONA_CUDA_CHECK_LAUNCH();
+}
+
+// In place, by the table for bf16.
+template <class T, class Op>
+void map_in_place(Context& ctx, T* x, std::int64_t n, Op op) {
+  if constexpr (std::is_same_v<T, bf16>)
+    map_bf16(ctx, x, x, n, op);
+  else
+    map(ctx, x, x, n, op);
+}
+
 }  // namespace detail
 
-template <class T> void gelu_erf(Context& ctx, T* x, std::int64_t n) { detail::map(ctx, x, x, n, detail::GeluErfOp{}); }
-template <class T> void gelu_tanh(Context& ctx, T* x, std::int64_t n) { detail::map(ctx, x, x, n, detail::GeluTanhOp{}); }
-template <class T> void silu(Context& ctx, T* x, std::int64_t n) { detail::map(ctx, x, x, n, detail::SiluOp{}); }
+template <class T> void gelu_erf(Context& ctx, T* x, std::int64_t n) {
+  detail::map_in_place(ctx, x, n, detail::GeluErfOp{});
+}
+template <class T> void gelu_tanh(Context& ctx, T* x, std::int64_t n) {
+  detail::map_in_place(ctx, x, n, detail::GeluTanhOp{});
+}
+template <class T> void silu(Context& ctx, T* x, std::int64_t n) {
+  detail::map_in_place(ctx, x, n, detail::SiluOp{});
+}
 
 // y = silu(x) into a separate buffer (modulation inputs keep the original vector).
 template <class TX, class TY>

@@ -124,6 +124,24 @@ class Context {
 
   std::map<detail::LtPlanKey, std::unique_ptr<detail::LtPlan>>& gemm_plans() { return gemm_plans_; }
 
+  // A device buffer of `bytes` kept for the context's lifetime under `name` (constant tables
+  // that kernels build on first use, such as the bf16 GELU lookup table). `*created` tells the
+  // caller whether it must fill it. The same name must always ask for the same size.
+  bool has_constant_table(const std::string& name) const { return tables_.count(name) != 0; }
+  void* constant_table(const std::string& name, std::size_t bytes, bool* created) {
+    auto& slot = tables_[name];
+    *created = !slot.buffer;
+    if (*created) {
+      void* p = nullptr;
+      EPONA_CUDA_CHECK(cudaMalloc(&p, bytes));
+      slot.buffer.reset(p);
+      slot.bytes = bytes;
+    }
+    EPONA_CHECK(slot.bytes == bytes, "cuda::Context: constant table '", name, "' asked for ", bytes,
+                " bytes, has ", slot.bytes);
+    return slot.buffer.get();
+  }
+
  private:
   struct StreamDeleter {
     void operator()(cudaStream_t s) const { cudaStreamDestroy(s); }
@@ -140,6 +158,11 @@ class Context {
   std::unique_ptr<cublasLtContext, LtDeleter> lt_;
   std::unique_ptr<void, DeviceFree> workspace_;
   std::size_t workspace_bytes_ = 0;
+  struct Table {
+    std::unique_ptr<void, DeviceFree> buffer;
+    std::size_t bytes = 0;
+  };
+  std::map<std::string, Table> tables_;
   // Declared last so plans are destroyed before the handle they were made with.
   std::map<detail::LtPlanKey, std::unique_ptr<detail::LtPlan>> gemm_plans_;
 };

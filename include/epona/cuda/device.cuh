@@ -138,5 +138,15 @@ void for_each(cudaStream_t stream, std::int64_t rows, std::int64_t n, bool packe
   EPONA_CUDA_CHECK_LAUNCH();
 }
 
+// Lets `Kernel` use `bytes` (> 48 KiB) of dynamic shared memory; set once per kernel.
+template <auto Kernel>
+void allow_dynamic_smem(int bytes) {
+  static const bool done = [bytes] {
+    EPONA_CUDA_CHECK(cudaFuncSetAttribute(Kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, bytes));
+    return true;
+  }();
+  (void)done;
+}
+
 }  // namespace detail
 }  // namespace epona::cuda

@@ -120,6 +120,15 @@ void bias_activation(Context& ctx, T* y, std::int64_t ldy, std::int64_t rows, st
   for_each(ctx.stream(), rows, n, packed, BiasActivationEach<T, Op>{y, ldy, bias, op});
 }
 
+// The activation pass after cuBLASLt: contiguous bf16 with no bias left goes through the
+// activation's lookup table (activation.cuh: same bits, memory speed), the rest one pass here.
+template <class T, class Op>
+void activation_epilogue(Context& ctx, T* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const T* bias, Op op) {
+  if constexpr (std::is_same_v<T, bf16>)
+    if (!bias && ldy == n) return map_bf16(ctx, y, y, rows * n, op);
+  bias_activation(ctx, y, ldy, rows, n, bias, op);
+}
+
 }  // namespace detail
 
 // Pointer form with row strides (x rows ldx apart, y rows ldy apart, so y can be a column
@@ -158,10 +167,10 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
       if (rest_bias) detail::bias_activation(ctx, y, ldy, M, N, rest_bias, detail::Identity{});
       break;
     case Epilogue::GeluTanh:
-      if (!plan->fuses_gelu()) detail::bias_activation(ctx, y, ldy, M, N, rest_bias, detail::GeluTanhOp{});
+      if (!plan->fuses_gelu()) detail::activation_epilogue(ctx, y, ldy, M, N, rest_bias, detail::GeluTanhOp{});
       break;
-    case Epilogue::GeluErf: detail::bias_activation(ctx, y, ldy, M, N, rest_bias, detail::GeluErfOp{}); break;
-    case Epilogue::Silu: detail::bias_activation(ctx, y, ldy, M, N, rest_bias, detail::SiluOp{}); break;
+    case Epilogue::GeluErf: detail::activation_epilogue(ctx, y, ldy, M, N, rest_bias, detail::GeluErfOp{}); break;
+    case Epilogue::Silu: detail::activation_epilogue(ctx, y, ldy, M, N, rest_bias, detail::SiluOp{}); break;
   }
 }
 
