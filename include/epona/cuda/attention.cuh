@@ -1,9 +1,10 @@
 // epona/cuda/attention.cuh — fused scaled-dot-product attention on the GPU (flash attention:
 // online softmax over key tiles, no score matrix in memory) over strided, token-major data,
 // as the CPU's attention(): packed QKV, the MST's frame-strided temporal attention, causal
-// and additive masks. bf16 runs on tensor cores (mma.sync m16n8k16, float32 accumulation and
-// softmax; a warp-per-head kernel for sequences of <= 16, as the MST's 10 frames); float32
-// runs a float32 SIMT kernel so it matches the CPU to float32 rounding.
+// and additive masks. bf16 runs on tensor cores (float32 accumulation and softmax): wgmma on
+// Hopper in sm_90a builds (attention_wgmma.cuh; head dim 128, no additive mask), mma.sync
+// m16n8k16 otherwise, and a warp-per-head kernel for sequences of <= 16, as the MST's 10
+// frames; float32 runs a float32 SIMT kernel so it matches the CPU to float32 rounding.
 #pragma once
 
 #include <cmath>
@@ -357,18 +358,16 @@ __device__ __forceinline__ void merge_groups(float (&o)[Tile::m_tiles][kDimTiles
   }
 }
 
-template <class Tile, bool kExactDim>
-__global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
-    flash_bf16_kernel(const FlashParams<bf16> p, int heads, int seqs) {
-  constexpr int kRows = Tile::rows, kKeys = Tile::keys, kM = Tile::m_tiles, kGroups = Tile::groups;
-  extern __shared__ __align__(16) unsigned char smem[];
-  bf16* sQ = reinterpret_cast<bf16*>(smem);
-  bf16* sKV = sQ + kRows * kStride;  // [stage][group] (K, V)
-
-  // Block -> (sequence, head, row block). The row blocks of `full` rows come first, the
-  // short last row block of every (sequence, head) after them, so that the grid's tail is
-  // short work (VisDiT: 16 heads x 1027 rows = 256 full blocks of 64 rows + 16 of 3).
-  const int full = p.lq / kRows;
+// Block -> (sequence, head, first query row) for blocks of `rows` query rows. The row blocks
+// of `rows` rows come first, the short last row block of every (sequence, head) after them,
+// so that the grid's tail is short work (VisDiT: 16 heads x 1027 rows = 256 full blocks of 64
+// rows + 16 of 3).
+struct BlockCoords {
+  std::int64_t s;
+  int h, q0;
+};
+__device__ __forceinline__ BlockCoords block_coords(const FlashParams<bf16>& p, int heads, int seqs, int rows) {
+  const int full = p.lq / rows;
   const std::int64_t pairs = std::int64_t{heads} * seqs, b = blockIdx.x;
   std::int64_t pair;
   int rb;
@@ -380,9 +379,20 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
     pair = b - full * pairs;
     rb = full;
   }
-  const std::int64_t s = pair / heads;
-  const int h = static_cast<int>(pair % heads);
-  const int q0 = rb * kRows;
+  return {pair / heads, static_cast<int>(pair % heads), rb * rows};
+}
+
+template <class Tile, bool kExactDim>
+__global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
+    flash_bf16_kernel(const FlashParams<bf16> p, int heads, int seqs) {
+  constexpr int kRows = Tile::rows, kKeys = Tile::keys, kM = Tile::m_tiles, kGroups = Tile::groups;
+  extern __shared__ __align__(16) unsigned char smem[];
+  bf16* sQ = reinterpret_cast<bf16*>(smem);
+  bf16* sKV = sQ + kRows * kStride;  // [stage][group] (K, V)
+
+  const BlockCoords block = block_coords(p, heads, seqs, kRows);
+  const std::int64_t s = block.s;
+  const int h = block.h, q0 = block.q0;
 
   const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
   const int group = warp / Tile::warps, warp_in_group = warp % Tile::warps;
@@ -607,7 +617,8 @@ inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std:
 }
 
 // Which bf16 kernel runs: Auto picks by shape; the others are for tests and benchmarks.
-enum class FlashKernel { Auto, Rows64, Rows128, Rows64Split4, Short };
+// Wgmma64 / Wgmma128: the Hopper kernel (attention_wgmma.cuh) with one / two warpgroups.
+enum class FlashKernel { Auto, Rows64, Rows128, Rows64Split4, Short, Wgmma64, Wgmma128 };
 
 inline const char* flash_kernel_name(FlashKernel k) {
   switch (k) {
@@ -616,6 +627,8 @@ inline const char* flash_kernel_name(FlashKernel k) {
     case FlashKernel::Rows128: return "128 rows (4 warps x 32)";
     case FlashKernel::Rows64Split4: return "64 rows, keys split 4 (8 warps x 32)";
     case FlashKernel::Short: return "short (warp per head)";
+    case FlashKernel::Wgmma64: return "wgmma 64 rows (1 warpgroup, 64-key tiles)";
+    case FlashKernel::Wgmma128: return "wgmma 128 rows (2 warpgroups, 128-key tiles)";
   }
   return "?";
 }
@@ -646,6 +659,36 @@ void launch_flash_short(Context& ctx, const FlashParams<bf16>& p, std::int64_t s
                                                                                          pairs);
 }
 
+// The Hopper kernel (attention_wgmma.cuh, included at the end): whether this build and device
+// have it, and its launch. It takes head dim 128 with 16-byte aligned rows and no additive mask.
+inline bool flash_wgmma_available(const Context& ctx);
+inline void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
+                               FlashKernel kernel);
+
+inline bool short_kernel_fits(const FlashParams<bf16>& p) {
+  return p.lq <= fa::kShortLen && p.lk <= fa::kShortLen;
+}
+inline bool wgmma_kernel_fits(const Context& ctx, const FlashParams<bf16>& p, bool exact) {
+  return exact && !p.mask && flash_wgmma_available(ctx);
+}
+
+// The kernel Auto runs for these parameters.
+inline FlashKernel auto_flash_kernel(const Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs,
+                                     std::int64_t heads, bool exact) {
+  // By measurement on an H200 (medians, one run, all kernels side by side): sequences of
+  // <= 16: a warp per (sequence, head) (MST temporal 87.6 -> 30.0 us); grids that leave
+  // multiprocessors without a 64-row block: the keys split over 4 warp groups (TrajDiT
+  // 8 x 530: 24.3 -> 20.6 us); long sequences: 128-row blocks, two m-tiles per warp
+  // (1 x 16 x 4096: 220 -> 270 TFLOP/s); the rest, 64-row blocks at 16 warps per
+  // multiprocessor (VisDiT 16 x 1027: 68.2 -> 61.1 us, MST spatial 160 x 515: 138 -> 119 us).
+  if (short_kernel_fits(p)) return FlashKernel::Short;
+  if (wgmma_kernel_fits(ctx, p, exact)) return FlashKernel::Wgmma64;
+  const std::int64_t blocks64 = (p.lq + 63) / 64 * heads * seqs;
+  return blocks64 < ctx.info().multiprocessors ? FlashKernel::Rows64Split4
+         : p.lq >= 2048                        ? FlashKernel::Rows128
+                                               : FlashKernel::Rows64;
+}
+
 inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
                            bool exact, FlashKernel kernel) {
   // 32-key tiles throughout: 64-key tiles cost registers (S), so fewer warps per multiprocessor
@@ -653,21 +696,16 @@ inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_
   using Rows64 = fa::Tiling<4, 1, 32, 1, 4>;  // 128 registers: 16 warps per multiprocessor
   using Rows128 = fa::Tiling<4, 2, 32, 1, 2>;  // 2 blocks of 128 threads leave 255 registers
   using Rows64Split4 = fa::Tiling<2, 2, 32, 4, 1>;
-  const bool short_fits = p.lq <= fa::kShortLen && p.lk <= fa::kShortLen;
-  if (kernel == FlashKernel::Auto) {
-    // By measurement on an H200 (medians, one run, all kernels side by side): sequences of
-    // <= 16: a warp per (sequence, head) (MST temporal 87.6 -> 30.0 us); grids that leave
-    // multiprocessors without a 64-row block: the keys split over 4 warp groups (TrajDiT
-    // 8 x 530: 24.3 -> 20.6 us); long sequences: 128-row blocks, two m-tiles per warp
-    // (1 x 16 x 4096: 220 -> 270 TFLOP/s); the rest, 64-row blocks at 16 warps per
-    // multiprocessor (VisDiT 16 x 1027: 68.2 -> 61.1 us, MST spatial 160 x 515: 138 -> 119 us).
-    const std::int64_t blocks64 = (p.lq + 63) / 64 * heads * seqs;
-    kernel = short_fits                                  ? FlashKernel::Short
-             : blocks64 < ctx.info().multiprocessors ? FlashKernel::Rows64Split4
-             : p.lq >= 2048                              ? FlashKernel::Rows128
-                                                         : FlashKernel::Rows64;
-  }
+  const bool short_fits = short_kernel_fits(p);
+  if (kernel == FlashKernel::Auto) kernel = auto_flash_kernel(ctx, p, seqs, heads, exact);
   switch (kernel) {
+    case FlashKernel::Wgmma64:
+    case FlashKernel::Wgmma128:
+      EPONA_CHECK(wgmma_kernel_fits(ctx, p, exact),
+                  "attention: the wgmma kernel needs an sm_90a build on a 9.0 GPU, head dim 128, 16-byte aligned "
+                  "rows and no additive mask");
+      launch_flash_wgmma(ctx, p, seqs, heads, kernel);
+      break;
     case FlashKernel::Short:
       EPONA_CHECK(short_fits, "attention: the short kernel takes at most ", fa::kShortLen, " queries and keys");
       if (exact)
@@ -679,6 +717,29 @@ inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_
     case FlashKernel::Rows64Split4: launch_flash<Rows64Split4>(ctx, p, seqs, heads, exact); break;
     default: launch_flash<Rows64>(ctx, p, seqs, heads, exact); break;
   }
+}
+
+template <class T>
+FlashParams<T> flash_params(const T* q, const T* k, const T* v, T* o, const AttentionShape& a) {
+  const float scale = a.scale != 0 ? a.scale : 1.0f / std::sqrt(static_cast<float>(a.head_dim));
+  FlashParams<T> p{q,       k,       v,       o,       a.q_seq, a.q_row, a.k_seq, a.k_row, a.v_seq,
+                   a.v_row, a.o_seq, a.o_row, static_cast<int>(a.lq), static_cast<int>(a.lk),
+                   static_cast<int>(a.head_dim), scale, a.mask == Mask::Causal, a.additive_mask};
+  if constexpr (std::is_same_v<T, bf16>) p.scale = scale * fa::kLog2e;  // softmax in base 2: exp(x) = exp2(x log2 e)
+  return p;
+}
+
+// Head dim 128 with every row 16-byte aligned: the specialised bf16 paths (cp.async, wgmma).
+inline bool exact_head_dim(const FlashParams<bf16>& p) {
+  return p.head_dim == kMaxHeadDim && aligned_rows(p.q, p.q_seq, p.q_row, 8) && aligned_rows(p.k, p.k_seq, p.k_row, 8) &&
+         aligned_rows(p.v, p.v_seq, p.v_row, 8) && aligned_rows(p.o, p.o_seq, p.o_row, 8);
+}
+
+// The bf16 kernel attention() runs for these arguments (tests: which kernel Auto picks).
+inline FlashKernel auto_flash_kernel(const Context& ctx, const bf16* q, const bf16* k, const bf16* v, bf16* o,
+                                     const AttentionShape& a) {
+  const FlashParams<bf16> p = flash_params(q, k, v, o, a);
+  return auto_flash_kernel(ctx, p, a.seqs, a.heads, exact_head_dim(p));
 }
 
 // attention() with the bf16 kernel chosen by the caller (tests, benchmarks).
@@ -694,16 +755,9 @@ void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const Att
   EPONA_CHECK(q && k && v && o, "attention: null tensor");
   if (a.seqs == 0 || a.heads == 0 || a.lq == 0) return;
 
-  const float scale = a.scale != 0 ? a.scale : 1.0f / std::sqrt(static_cast<float>(a.head_dim));
-  FlashParams<T> p{q,       k,       v,       o,       a.q_seq, a.q_row, a.k_seq, a.k_row, a.v_seq,
-                   a.v_row, a.o_seq, a.o_row, static_cast<int>(a.lq), static_cast<int>(a.lk),
-                   static_cast<int>(a.head_dim), scale, a.mask == Mask::Causal, a.additive_mask};
+  FlashParams<T> p = flash_params(q, k, v, o, a);
   if constexpr (std::is_same_v<T, bf16>) {
-    p.scale = scale * fa::kLog2e;  // softmax in base 2: exp(x) = exp2(x log2 e)
-    const bool exact = a.head_dim == kMaxHeadDim && aligned_rows(q, a.q_seq, a.q_row, 8) &&
-                       aligned_rows(k, a.k_seq, a.k_row, 8) && aligned_rows(v, a.v_seq, a.v_row, 8) &&
-                       aligned_rows(o, a.o_seq, a.o_row, 8);
-    attention_bf16(ctx, p, a.seqs, a.heads, exact, kernel);
+    attention_bf16(ctx, p, a.seqs, a.heads, exact_head_dim(p), kernel);
   } else {
     namespace fa32 = detail::fa32;
     const dim3 grid(static_cast<unsigned>((a.lq + fa32::kRows - 1) / fa32::kRows), static_cast<unsigned>(a.heads),
@@ -722,3 +776,5 @@ void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const Att
 }
 
 }  // namespace epona::cuda
+
+#include "epona/cuda/attention_wgmma.cuh"  // the Hopper kernel declared above

@@ -1,0 +1,298 @@
+// epona/cuda/attention_wgmma.cuh — the Hopper (sm_90a) flash-attention kernel for bf16 with
+// head dim 128: warpgroup MMA (wgmma), S = Q Kᵀ with both operands in shared memory and O += P V
+// with P in registers; online softmax, masking and the output store shared with attention.cuh's
+// mma.sync kernels (same float32 accumulation, base-2 softmax and bf16 P). Included at the end
+// of attention.cuh, which declares its entry points; other targets compile an empty body.
+#pragma once
+
+#include <cstdint>
+
+#include "epona/cuda/attention.cuh"
+
+namespace epona::cuda::detail {
+
+namespace fa {
+
+// ---------------------------------------------------------------------------------------
+// Hopper primitives. Shared-memory tiles of 128 bf16 channels per row are stored as two
+// column halves of 64 channels (128 bytes a row), 8-row atoms of 1024 bytes, 16-byte chunk c
+// of row r at position c ^ (r % 8) in its row: the canonical 128-byte swizzle that the
+// wgmma matrix descriptors name (both for K-major operands, Q and K, and for the N-major V).
+// Tiles start at 1024-byte boundaries, so the swizzle phase is the address's own.
+constexpr int kRowBytes = 128;        // one row of a column half
+constexpr int kAtomBytes = 8 * kRowBytes;
+
+__device__ __forceinline__ unsigned swizzled_offset(int row, int chunk, int rows) {
+  return (chunk >> 3) * rows * kRowBytes + row * kRowBytes + (((chunk & 7) ^ (row & 7)) << 4);
+}
+
+// 16 bytes global -> shared; bytes = 0 writes zeros (rows past the sequence end).
+__device__ __forceinline__ void cp_async_16_or_zero(unsigned dst, const void* src, int bytes) {
+  asm volatile("cp.async.cg.shared.global [%0], [%1], 16, %2;\n" ::"r"(dst), "l"(src), "r"(bytes));
+}
+
+// Rows [row0, row0 + kRows) of one head (row i at src + i * stride, 128 channels) into the
+// swizzled tile at dst, spread over kThreads threads; rows past `valid` become zeros (a zero
+// V row times P = 0 stays 0; garbage could be NaN). Consecutive threads take consecutive
+// chunks of a row: coalesced reads, and the swizzle spreads the writes over all banks.
+template <int kRows, int kThreads>
+__device__ __forceinline__ void load_swizzled(unsigned dst, const bf16* src, std::int64_t stride, int row0, int valid,
+                                              int thread) {
+  constexpr int kChunks = kMaxHeadDim / 8;
+  static_assert(kRows * kChunks % kThreads == 0);
+#pragma unroll
+  for (int i = 0; i < kRows * kChunks / kThreads; ++i) {
+    const int c = thread + i * kThreads, r = c / kChunks, chunk = c % kChunks;
+    const bool inside = row0 + r < valid;
+    const bf16* g = src + (inside ? (row0 + r) * stride : std::int64_t{0}) + chunk * 8;
+    cp_async_16_or_zero(dst + swizzled_offset(r, chunk, kRows), g, inside ? 16 : 0);
+  }
+}
+
+// wgmma shared-memory matrix descriptor with the 128-byte swizzle. K-major operands (Q, K):
+// `lead` unused, `stride` = 1024 (from one 8-row atom to the next). N-major V: `lead` = the
+// distance between the two 64-channel halves, `stride` = 1024 (from one 8-key atom to the next).
+__device__ __forceinline__ std::uint64_t smem_desc(unsigned addr, unsigned lead, unsigned stride) {
+  return std::uint64_t{(addr & 0x3FFFFu) >> 4} | std::uint64_t{lead >> 4} << 16 | std::uint64_t{stride >> 4} << 32 |
+         std::uint64_t{1} << 62;
+}
+
+__device__ __forceinline__ void wgmma_fence() { asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory"); }
+__device__ __forceinline__ void wgmma_commit() { asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory"); }
+__device__ __forceinline__ void wgmma_wait_all() { asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory"); }
+// Makes the shared memory this thread's cp.async wrote visible to the tensor cores' (async) proxy.
+__device__ __forceinline__ void fence_proxy_async() { asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory"); }
+
+// Pins accumulator registers at this point of the program: the compiler sees the wgmma asm
+// write them when it is issued, so without this it could read them before wgmma_wait_all.
+template <int N>
+__device__ __forceinline__ void pin(float (&d)[N][4]) {
+#pragma unroll
+  for (int i = 0; i < N; ++i)
+#pragma unroll
+    for (int j = 0; j < 4; ++j) asm volatile("" : "+f"(d[i][j])::"memory");
+}
+
+// d (64 x N float32 in the accumulator layout: per warp 16 rows, d[i] = the n8 block i as
+// mma.sync's C fragment) (+)= A (64 x 16, shared, descriptor a) B (16 x N, shared, descriptor b).
+// accumulate = 0: d = A B.
+__device__ __forceinline__ void wgmma_ss(float (&d)[8][4], std::uint64_t a, std::uint64_t b, int accumulate) {
+  asm volatile(
+      "{\n.reg .pred p;\nsetp.ne.b32 p, %34, 0;\n"
+      "wgmma.mma_async.sync.aligned.m64n64k16.f32.bf16.bf16 {%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15, %16, %17, %18, %19, %20, %21, %22, %23, %24, %25, %26, %27, %28, %29, %30, %31}, %32, %33, p, 1, 1, 0, 0;\n}\n"
+      :
+      "+f"(d[0][0]), "+f"(d[0][1]), "+f"(d[0][2]), "+f"(d[0][3]),
+      "+f"(d[1][0]), "+f"(d[1][1]), "+f"(d[1][2]), "+f"(d[1][3]),
+      "+f"(d[2][0]), "+f"(d[2][1]), "+f"(d[2][2]), "+f"(d[2][3]),
+      "+f"(d[3][0]), "+f"(d[3][1]), "+f"(d[3][2]), "+f"(d[3][3]),
+      "+f"(d[4][0]), "+f"(d[4][1]), "+f"(d[4][2]), "+f"(d[4][3]),
+      "+f"(d[5][0]), "+f"(d[5][1]), "+f"(d[5][2]), "+f"(d[5][3]),
+      "+f"(d[6][0]), "+f"(d[6][1]), "+f"(d[6][2]), "+f"(d[6][3]),
+      "+f"(d[7][0]), "+f"(d[7][1]), "+f"(d[7][2]), "+f"(d[7][3])
+      : "l"(a), "l"(b), "r"(accumulate));
+}
+
+__device__ __forceinline__ void wgmma_ss(float (&d)[16][4], std::uint64_t a, std::uint64_t b, int accumulate) {
+  asm volatile(
+      "{\n.reg .pred p;\nsetp.ne.b32 p, %66, 0;\n"
+      "wgmma.mma_async.sync.aligned.m64n128k16.f32.bf16.bf16 {%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15, %16, %17, %18, %19, %20, %21, %22, %23, %24, %25, %26, %27, %28, %29, %30, %31, %32, %33, %34, %35, %36, %37, %38, %39, %40, %41, %42, %43, %44, %45, %46, %47, %48, %49, %50, %51, %52, %53, %54, %55, %56, %57, %58, %59, %60, %61, %62, %63}, %64, %65, p, 1, 1, 0, 0;\n}\n"
+      :
+      "+f"(d[0][0]), "+f"(d[0][1]), "+f"(d[0][2]), "+f"(d[0][3]),
+      "+f"(d[1][0]), "+f"(d[1][1]), "+f"(d[1][2]), "+f"(d[1][3]),
+      "+f"(d[2][0]), "+f"(d[2][1]), "+f"(d[2][2]), "+f"(d[2][3]),
+      "+f"(d[3][0]), "+f"(d[3][1]), "+f"(d[3][2]), "+f"(d[3][3]),
+      "+f"(d[4][0]), "+f"(d[4][1]), "+f"(d[4][2]), "+f"(d[4][3]),
+      "+f"(d[5][0]), "+f"(d[5][1]), "+f"(d[5][2]), "+f"(d[5][3]),
+      "+f"(d[6][0]), "+f"(d[6][1]), "+f"(d[6][2]), "+f"(d[6][3]),
+      "+f"(d[7][0]), "+f"(d[7][1]), "+f"(d[7][2]), "+f"(d[7][3]),
+      "+f"(d[8][0]), "+f"(d[8][1]), "+f"(d[8][2]), "+f"(d[8][3]),
+      "+f"(d[9][0]), "+f"(d[9][1]), "+f"(d[9][2]), "+f"(d[9][3]),
+      "+f"(d[10][0]), "+f"(d[10][1]), "+f"(d[10][2]), "+f"(d[10][3]),
+      "+f"(d[11][0]), "+f"(d[11][1]), "+f"(d[11][2]), "+f"(d[11][3]),
+      "+f"(d[12][0]), "+f"(d[12][1]), "+f"(d[12][2]), "+f"(d[12][3]),
+      "+f"(d[13][0]), "+f"(d[13][1]), "+f"(d[13][2]), "+f"(d[13][3]),
+      "+f"(d[14][0]), "+f"(d[14][1]), "+f"(d[14][2]), "+f"(d[14][3]),
+      "+f"(d[15][0]), "+f"(d[15][1]), "+f"(d[15][2]), "+f"(d[15][3])
+      : "l"(a), "l"(b), "r"(accumulate));
+}
+
+// d (64 x 128) += A (64 x 16 bf16 in registers, mma.sync's A fragment per warp) B (16 x 128,
+// shared, N-major: the transpose bit).
+__device__ __forceinline__ void wgmma_rs(float (&d)[16][4], const unsigned (&a)[4], std::uint64_t b) {
+  asm volatile(
+      "{\n.reg .pred p;\nsetp.ne.b32 p, %69, 0;\n"
+      "wgmma.mma_async.sync.aligned.m64n128k16.f32.bf16.bf16 {%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15, %16, %17, %18, %19, %20, %21, %22, %23, %24, %25, %26, %27, %28, %29, %30, %31, %32, %33, %34, %35, %36, %37, %38, %39, %40, %41, %42, %43, %44, %45, %46, %47, %48, %49, %50, %51, %52, %53, %54, %55, %56, %57, %58, %59, %60, %61, %62, %63}, {%64, %65, %66, %67}, %68, p, 1, 1, 1;\n}\n"
+      :
+      "+f"(d[0][0]), "+f"(d[0][1]), "+f"(d[0][2]), "+f"(d[0][3]),
+      "+f"(d[1][0]), "+f"(d[1][1]), "+f"(d[1][2]), "+f"(d[1][3]),
+      "+f"(d[2][0]), "+f"(d[2][1]), "+f"(d[2][2]), "+f"(d[2][3]),
+      "+f"(d[3][0]), "+f"(d[3][1]), "+f"(d[3][2]), "+f"(d[3][3]),
+      "+f"(d[4][0]), "+f"(d[4][1]), "+f"(d[4][2]), "+f"(d[4][3]),
+      "+f"(d[5][0]), "+f"(d[5][1]), "+f"(d[5][2]), "+f"(d[5][3]),
+      "+f"(d[6][0]), "+f"(d[6][1]), "+f"(d[6][2]), "+f"(d[6][3]),
+      "+f"(d[7][0]), "+f"(d[7][1]), "+f"(d[7][2]), "+f"(d[7][3]),
+      "+f"(d[8][0]), "+f"(d[8][1]), "+f"(d[8][2]), "+f"(d[8][3]),
+      "+f"(d[9][0]), "+f"(d[9][1]), "+f"(d[9][2]), "+f"(d[9][3]),
+      "+f"(d[10][0]), "+f"(d[10][1]), "+f"(d[10][2]), "+f"(d[10][3]),
+      "+f"(d[11][0]), "+f"(d[11][1]), "+f"(d[11][2]), "+f"(d[11][3]),
+      "+f"(d[12][0]), "+f"(d[12][1]), "+f"(d[12][2]), "+f"(d[12][3]),
+      "+f"(d[13][0]), "+f"(d[13][1]), "+f"(d[13][2]), "+f"(d[13][3]),
+      "+f"(d[14][0]), "+f"(d[14][1]), "+f"(d[14][2]), "+f"(d[14][3]),
+      "+f"(d[15][0]), "+f"(d[15][1]), "+f"(d[15][2]), "+f"(d[15][3])
+      : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "l"(b), "r"(1));
+}
+
+// A block: kGroups consumer warpgroups, each owning 64 query rows of one (sequence, head),
+// sharing key tiles of kKeys keys (K and V) that stream through two shared-memory stages.
+// kMinBlocks: blocks per multiprocessor the registers and shared memory must allow.
+template <int kGroups, int kKeys, int kMinBlocks>
+struct WgmmaTiling {
+  static constexpr int groups = kGroups, keys = kKeys, rows = 64 * kGroups, threads = 128 * kGroups;
+  static constexpr int min_blocks = kMinBlocks;
+  static constexpr int q_bytes = 64 * kMaxHeadDim * 2;       // one group's Q tile
+  static constexpr int kv_bytes = 2 * kKeys * kMaxHeadDim * 2;  // K and V tiles of one stage
+  static constexpr int smem_bytes = kGroups * q_bytes + 2 * kv_bytes + kAtomBytes;  // + alignment slack
+  static_assert(kKeys % 16 == 0 && kKeys <= 256);
+};
+
+// S = Q Kᵀ for the warpgroup's 64 rows and kKeys keys: 8 steps of 16 channels; a step moves
+// 32 bytes along the swizzled rows (the hardware applies the swizzle to the full address).
+template <int kKeys>
+__device__ __forceinline__ void wg_scores(float (&sc)[kKeys / 8][4], unsigned sQ, unsigned sK) {
+  wgmma_fence();
+#pragma unroll
+  for (int kk = 0; kk < kMaxHeadDim / 16; ++kk) {
+    const unsigned step = (kk % 4) * 32;  // within the 128-byte row of the half kk / 4
+    wgmma_ss(sc, smem_desc(sQ + (kk / 4) * 64 * kRowBytes + step, 16, kAtomBytes),
+             smem_desc(sK + (kk / 4) * kKeys * kRowBytes + step, 16, kAtomBytes), kk > 0);
+  }
+  wgmma_commit();
+  wgmma_wait_all();
+  pin(sc);
+}
+
+// O += P V: P (the softmax's output in sc) rounded to bf16 in registers, 16 keys per step;
+// V's step of 16 keys is two 8-key atoms (2048 bytes) further.
+template <int kKeys>
+__device__ __forceinline__ void wg_accumulate_pv(float (&o)[kDimTiles][4], const float (&sc)[kKeys / 8][4],
+                                                 unsigned sV) {
+  unsigned a[kKeys / 16][4];
+#pragma unroll
+  for (int kk = 0; kk < kKeys / 16; ++kk) {
+    a[kk][0] = pack_bf16(sc[2 * kk][0], sc[2 * kk][1]);
+    a[kk][1] = pack_bf16(sc[2 * kk][2], sc[2 * kk][3]);
+    a[kk][2] = pack_bf16(sc[2 * kk + 1][0], sc[2 * kk + 1][1]);
+    a[kk][3] = pack_bf16(sc[2 * kk + 1][2], sc[2 * kk + 1][3]);
+  }
+  wgmma_fence();
+#pragma unroll
+  for (int kk = 0; kk < kKeys / 16; ++kk)
+    wgmma_rs(o, a[kk], smem_desc(sV + kk * 2 * kAtomBytes, kKeys * kRowBytes, kAtomBytes));
+  wgmma_commit();
+  wgmma_wait_all();
+  pin(o);
+}
+
+// One block: Q of every group and the first key tile load together; then per key tile one
+// barrier (tile t landed and every group is done with tile t - 1's stage, which tile t + 1
+// then loads into while tile t is computed). A group whose rows all lie past lq, or (causal)
+// before the tile's first key, skips the tile's math but not its loads and barriers.
+template <class Tile>
+__global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
+    flash_wgmma_kernel(const FlashParams<bf16> p, int heads, int seqs) {
+#if defined(__CUDA_ARCH_FEAT_SM90_ALL)
+  constexpr int kKeys = Tile::keys, kThreads = Tile::threads;
+  extern __shared__ __align__(16) unsigned char smem[];
+  const unsigned sQ = (smem_addr(smem) + kAtomBytes - 1) & ~unsigned{kAtomBytes - 1};
+  const unsigned sKV = sQ + Tile::groups * Tile::q_bytes;
+  const auto stage = [&](int t) { return sKV + (t & 1) * Tile::kv_bytes; };  // K, then V at + kv_bytes / 2
+
+  const BlockCoords b = block_coords(p, heads, seqs, Tile::rows);
+  const int group = threadIdx.x / 128, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32;
+  const std::int64_t head_offset = std::int64_t{b.h} * kMaxHeadDim;
+  const bf16* qg = p.q + b.s * p.q_seq + head_offset;
+  const bf16* kg = p.k + b.s * p.k_seq + head_offset;
+  const bf16* vg = p.v + b.s * p.v_seq + head_offset;
+  const int tiles = key_tiles(b.q0, Tile::rows, p.lq, p.lk, p.causal, kKeys);
+  const auto load_keys = [&](int t) {
+    load_swizzled<kKeys, kThreads>(stage(t), kg, p.k_row, t * kKeys, p.lk, threadIdx.x);
+    load_swizzled<kKeys, kThreads>(stage(t) + Tile::kv_bytes / 2, vg, p.v_row, t * kKeys, p.lk, threadIdx.x);
+  };
+#pragma unroll
+  for (int g = 0; g < Tile::groups; ++g)
+    load_swizzled<64, kThreads>(sQ + g * Tile::q_bytes, qg, p.q_row, b.q0 + 64 * g, p.lq, threadIdx.x);
+  if (tiles > 0) load_keys(0);
+  cp_async_commit();
+
+  const int group_row0 = b.q0 + 64 * group, warp_row0 = group_row0 + 16 * warp;
+  const int rows[2] = {warp_row0 + lane / 4, warp_row0 + lane / 4 + 8};
+  const bool group_active = group_row0 < p.lq;
+  float o[kDimTiles][4] = {};
+  float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
+  for (int t = 0; t < tiles; ++t) {
+    cp_async_wait_all();
+    fence_proxy_async();
+    __syncthreads();
+    if (t + 1 < tiles) {
+      load_keys(t + 1);
+      cp_async_commit();
+    }
+    const int k0 = t * kKeys;
+    if (!group_active || (p.causal && k0 > group_row0 + 63)) continue;
+    float sc[kKeys / 8][4];
+    wg_scores<kKeys>(sc, sQ + group * Tile::q_bytes, stage(t));
+    if (tile_masked(p, warp_row0, k0, kKeys))
+      online_softmax<true>(sc, m, l, o, p, rows, k0, lane % 4);
+    else
+      online_softmax<false>(sc, m, l, o, p, rows, k0, lane % 4);
+    wg_accumulate_pv<kKeys>(o, sc, stage(t) + Tile::kv_bytes / 2);
+  }
+  store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
+#endif
+}
+
+// Present only in sm_90a code: its static shared memory tells the host that this build has
+// the wgmma kernel (the same binary may run on a GPU whose code was built without it).
+constexpr int kWgmmaMarkerWords = 12;
+__global__ void wgmma_marker_kernel(int* flag) {
+#if defined(__CUDA_ARCH_FEAT_SM90_ALL)
+  __shared__ int present[kWgmmaMarkerWords];
+  present[threadIdx.x % kWgmmaMarkerWords] = 1;
+  __syncthreads();
+  if (flag) *flag = present[0];
+#endif
+}
+}  // namespace fa
+
+inline bool flash_wgmma_available(const Context& ctx) {
+  if (ctx.info().major != 9 || ctx.info().minor != 0) return false;  // sm_90a code runs on 9.0 only
+  static const bool built = [] {
+    cudaFuncAttributes a{};
+    if (cudaFuncGetAttributes(&a, fa::wgmma_marker_kernel) != cudaSuccess) {
+      (void)cudaGetLastError();
+      return false;
+    }
+    return a.sharedSizeBytes == fa::kWgmmaMarkerWords * sizeof(int);
+  }();
+  return built;
+}
+
+template <class Tile>
+void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
+  const std::int64_t blocks = (p.lq + Tile::rows - 1) / Tile::rows * heads * seqs;
+  allow_smem<fa::flash_wgmma_kernel<Tile>>(Tile::smem_bytes);
+  fa::flash_wgmma_kernel<Tile><<<static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream()>>>(
+      p, static_cast<int>(heads), static_cast<int>(seqs));
+}
+
+inline void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
+                               FlashKernel kernel) {
+  // Wgmma64: one warpgroup of 64 rows, 64-key tiles, 81 KiB: two blocks per multiprocessor.
+  // Wgmma128: two warpgroups of 64 rows sharing 128-key tiles, 161 KiB: one block.
+  if (kernel == FlashKernel::Wgmma128)
+    launch_flash_wgmma<fa::WgmmaTiling<2, 128, 1>>(ctx, p, seqs, heads);
+  else
+    launch_flash_wgmma<fa::WgmmaTiling<1, 64, 2>>(ctx, p, seqs, heads);
+}
+
+}  // namespace epona::cuda::detail
