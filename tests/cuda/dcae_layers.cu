@@ -19,14 +19,6 @@ using i64 = std::int64_t;
 
 namespace {
 
-cuda::Context& gpu() {
-  static cuda::Context ctx;
-  return ctx;
-}
-cpu::Context& host() {
-  static cpu::Context ctx;
-  return ctx;
-}
 std::uint32_t next_seed() {
   static std::uint32_t s = 5000;
   return ++s;

@@ -51,14 +51,6 @@ const Golden& golden() {
   static const Golden g;
   return g;
 }
-cuda::Context& gpu() {
-  static cuda::Context ctx;
-  return ctx;
-}
-cpu::Context& host() {
-  static cpu::Context ctx;
-  return ctx;
-}
 
 double rel_max(const HostF& ours, const HostF& ref) {
   double diff = 0, scale = 0;

@@ -1,16 +1,28 @@
 // Shared helpers of the DC-AE GPU tests (tests/cuda/dcae_*.cu): NCHW <-> channels-last on the
 // host, the error bounds of bf16 paths, and a switch that poisons every buffer the model code
-// allocates on the GPU (so an element nobody writes shows as NaN even in reused pool memory).
+// allocates on the GPU (so an element nobody writes shows as NaN even in reused pool memory),
+// and the programs' GPU and CPU contexts.
 #pragma once
 
 #include <cstdint>
 #include <string>
 
 #include "cuda_test_util.cuh"
+#include "epona/cpu/context.hpp"
 #include "epona/cuda/dcae_ops.cuh"
 #include "epona/nn/feature_map.hpp"
 
 namespace epona::test {
+
+// The process-wide contexts of a test program: one GPU context, one CPU context (references).
+inline cuda::Context& gpu() {
+  static cuda::Context ctx;
+  return ctx;
+}
+inline cpu::Context& host() {
+  static cpu::Context ctx;
+  return ctx;
+}
 
 // (N, C, H, W) host values -> (N, H, W, C), and back.
 inline HostF to_nhwc(const HostF& x) {
