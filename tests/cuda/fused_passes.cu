@@ -1,8 +1,10 @@
-// GPU tests for the bf16 lookup-table path of epona/cuda/activation.cuh (GELU erf, GELU tanh,
-// SiLU): the table path must give the same bits as computing the function (every one of the
-// 2^16 bf16 inputs, NaN and infinities included), match a float64 reference within one bf16
-// rounding, write every element (poisoned output), handle a ragged tail of packs, and fall
-// back without creating a table while a stream is being captured into a graph.
+// GPU tests for the passes that replace others bit for bit:
+// * the bf16 lookup-table path of epona/cuda/activation.cuh (GELU erf, GELU tanh, SiLU): the
+//   same bits as computing the function (every one of the 2^16 bf16 inputs, NaN and infinities
+//   included), a float64 reference within one bf16 rounding, every element written (poisoned
+//   output), a ragged tail of packs, no table created while a stream is captured into a graph;
+// * the MST's fused QK LayerNorm + RoPE (cuda/qk_layer_norm_rope.cuh): the same bits as
+//   layer_norm then apply_rope on q and k, and a float64 reference within the bf16 bounds.
 #include "cuda_test_util.cuh"
 
 #include <cstring>
@@ -141,4 +143,89 @@ TEST_CASE("linear's erf-GELU and SiLU epilogues take the table on large bf16 out
   };
   check(cuda::Epilogue::GeluErf, cuda::detail::GeluErfOp{});
   check(cuda::Epilogue::Silu, cuda::detail::SiluOp{});
+}
+
+namespace {
+
+// Float64 LayerNorm (affine) of each row, then the interleaved rotation with table row r.
+HostF reference_norm_rope(const HostF& x, const HostF& w, const HostF& b, float eps, std::int64_t head_dim,
+                          const HostF* cos, const HostF* sin, bool round_between) {
+  const std::int64_t rows = x.size(0), n = x.size(1);
+  HostF y({rows, n});
+  for (std::int64_t r = 0; r < rows; ++r) {
+    double mean = 0, var = 0;
+    for (std::int64_t c = 0; c < n; ++c) mean += x.at(r, c);
+    mean /= n;
+    for (std::int64_t c = 0; c < n; ++c) var += (x.at(r, c) - mean) * (x.at(r, c) - mean);
+    const double rstd = 1 / std::sqrt(var / n + eps);
+    for (std::int64_t c = 0; c < n; ++c) {
+      const double v = (x.at(r, c) - mean) * rstd * w.data()[c] + b.data()[c];
+      y.at(r, c) = round_between ? float(bf16(float(v))) : float(v);
+    }
+    if (!cos) continue;
+    for (std::int64_t c = 0; c < n; c += 2) {
+      const std::int64_t j = (c % head_dim) / 2;
+      const double cs = cos->at(r, j), sn = sin->at(r, j), a = y.at(r, c), bb = y.at(r, c + 1);
+      y.at(r, c) = float(cs * a - sn * bb);
+      y.at(r, c + 1) = float(sn * a + cs * bb);
+    }
+  }
+  return y;
+}
+
+template <class T>
+void check_qk_norm_rope(cuda::Context& ctx, std::int64_t rows_q, std::int64_t rows_k, bool rotate) {
+  const std::int64_t n = 2048, heads = 16, head_dim = n / heads, rows = std::max(rows_q, rows_k);
+  HostF q = random_tensor({rows_q, n}, 21, -3.f, 5.f), k = random_tensor({rows_k, n}, 22, -2.f, 2.f);
+  round_to<T>(q), round_to<T>(k);
+  const HostF qw = random_tensor({n}, 23, 0.5f, 1.5f), qb = random_tensor({n}, 24), kw = random_tensor({n}, 25, 0.5f, 1.5f),
+              kb = random_tensor({n}, 26);
+  HostF cos({rows, head_dim / 2}), sin({rows, head_dim / 2});
+  const HostF angle = random_tensor({rows, head_dim / 2}, 27, -3.2f, 3.2f);
+  for (std::int64_t i = 0; i < angle.numel(); ++i) cos.data()[i] = std::cos(angle.data()[i]), sin.data()[i] = std::sin(angle.data()[i]);
+  const auto dqw = upload<float>(ctx, qw), dqb = upload<float>(ctx, qb), dkw = upload<float>(ctx, kw), dkb = upload<float>(ctx, kb);
+  const auto dcos = upload<float>(ctx, cos), dsin = upload<float>(ctx, sin);
+  const float* c = rotate ? dcos.data() : nullptr;
+  const float* s = rotate ? dsin.data() : nullptr;
+  auto fq = upload<T>(ctx, q), fk = upload<T>(ctx, k), uq = upload<T>(ctx, q), uk = upload<T>(ctx, k);
+  const bool fused = cuda::layer_norm_rope_qk(ctx, fq.data(), rows_q, fk.data(), rows_k, n, dqw.data(), dqb.data(),
+                                              1e-5f, dkw.data(), dkb.data(), 1e-6f, head_dim, c, s);
+  const std::string what = std::string(type_name<T>()) + " q " + std::to_string(rows_q) + " k " +
+                           std::to_string(rows_k) + (rotate ? " rope" : "");
+  const bool expect_fused = rows_q >= 8 * ctx.info().multiprocessors && rows_k >= 8 * ctx.info().multiprocessors;
+  CHECK_MESSAGE(fused == expect_fused, what);
+  if (!fused) {  // declined: nothing may have been written
+    CHECK(download(ctx, fq).data()[0] == q.data()[0]);
+    return;
+  }
+  cuda::layer_norm(ctx, uq.data(), uq.data(), rows_q, n, dqw.data(), dqb.data(), 1e-5f);
+  cuda::layer_norm(ctx, uk.data(), uk.data(), rows_k, n, dkw.data(), dkb.data(), 1e-6f);
+  if (rotate) {
+    cuda::apply_rope(ctx, uq.data(), rows_q, n, heads, head_dim, dcos.data(), dsin.data());
+    cuda::apply_rope(ctx, uk.data(), rows_k, n, heads, head_dim, dcos.data(), dsin.data());
+  }
+  const HostF gq = download(ctx, fq), gk = download(ctx, fk);
+  CHECK_MESSAGE(std::memcmp(gq.data(), download(ctx, uq).data(), gq.numel() * sizeof(float)) == 0, what, ": q differs from the unfused ops");
+  CHECK_MESSAGE(std::memcmp(gk.data(), download(ctx, uk).data(), gk.numel() * sizeof(float)) == 0, what, ": k differs from the unfused ops");
+  const bool b16 = std::is_same_v<T, bf16>;
+  const HostF rq = reference_norm_rope(q, qw, qb, 1e-5f, head_dim, rotate ? &cos : nullptr, &sin, b16);
+  const HostF rk = reference_norm_rope(k, kw, kb, 1e-6f, head_dim, rotate ? &cos : nullptr, &sin, b16);
+  // bf16: the norm's output and the rotation's are each rounded (two roundings of 2^-8 relative
+  // to the row's largest value); float32: 1e-5.
+  const double rel = b16 ? 2 * kBf16Roundoff : kF32Tol;
+  check_error(measure(gq, rq), {rel, rel * max_abs(rq)}, "qk_layer_norm_rope q " + what);
+  check_error(measure(gk, rk), {rel, rel * max_abs(rk)}, "qk_layer_norm_rope k " + what);
+}
+
+}  // namespace
+
+TEST_CASE("fused MST QK LayerNorm + RoPE: the unfused ops' bits, float64 within bounds") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  for (bool rotate : {true, false}) {
+    check_qk_norm_rope<bf16>(ctx, 5150, 5150, rotate);  // the MST's ten frames
+    check_qk_norm_rope<float>(ctx, 2060, 2060, rotate);
+  }
+  check_qk_norm_rope<bf16>(ctx, 1300, 5150, false);  // the time layer: fewer queries than keys
+  check_qk_norm_rope<bf16>(ctx, 515, 5150, false);   // the pruned block: declined (block-per-row norm)
 }

@@ -10,4 +10,5 @@
 #include "epona/cuda/gemm.cuh"
 #include "epona/cuda/memory.hpp"
 #include "epona/cuda/norm.cuh"
+#include "epona/cuda/qk_layer_norm_rope.cuh"
 #include "epona/cuda/rope.cuh"

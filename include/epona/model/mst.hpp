@@ -134,14 +134,15 @@ struct MstLayer {
 
   // x (n, C) += attn(ln1 x); x += mlp(ln2 x) on rows [first, first + count) of x, the queries
   // (keys and values come from all n rows; the pruned last block updates a subset).
-  // `before_attention(q, k)` may rotate q (count rows) and k (n rows); `attend(q, k, v, o)`
-  // arranges the tokens into sequences. Each residual add runs with the LayerNorm after it:
+  // `rope` (or null) rotates q and k after their norms, table row r for row r (the space layers,
+  // where q and k cover the same rows); `attend(q, k, v, o)` arranges the tokens into sequences.
+  // Each residual add runs with the LayerNorm after it:
   // with `normed`, s.u already holds ln1(x) (written by the previous layer's last add); with
   // `next` (the following layer, whose x is exactly the rows updated here), the last add also
   // writes next->ln1 of those rows into s.u.
-  template <class Rotate, class Attend>
+  template <class Attend>
   void operator()(Context& ctx, Tensor<float, B>& x, Scratch& s, std::int64_t first, std::int64_t count,
-                  Rotate&& before_attention, Attend&& attend, bool normed = false,
+                  const nn::RopeTable<B>* rope, std::int64_t heads, Attend&& attend, bool normed = false,
                   const MstLayer* next = nullptr) const {
     const std::int64_t n = x.size(0);
     auto rows = x.slice(first, first + count);
@@ -151,15 +152,34 @@ struct MstLayer {
     key(ctx, u, k);
     value(ctx, u, v);
     query(ctx, u.slice(first, first + count), q);
-    q_norm(ctx, q, q);
-    k_norm(ctx, k, k);
-    before_attention(q, k);
+    normalize_qk(ctx, q, k, rope, heads);
     attend(q, k, v, o);  // the attention output reuses u
     proj(ctx, o, q);         // ... and the projection reuses q
     ln2.add_and_normalize(ctx, rows, q, o);  // float32 residual += projection; o = ln2(x)
     mlp(ctx, o, hidden, q);
     if (next) next->ln1.add_and_normalize(ctx, rows, q, o);
     else add_inplace(ctx, rows.data(), q.data(), rows.numel());
+  }
+
+  // q = q_norm(q), k = k_norm(k), then the rotation: one launch on the GPU where its fused
+  // kernel applies (layer_norm_rope_qk, bit-identical), the ops in turn otherwise.
+  void normalize_qk(Context& ctx, Tensor<A, B>& q, Tensor<A, B>& k, const nn::RopeTable<B>* rope,
+                    std::int64_t heads) const {
+    const std::int64_t C = q.size(-1), head_dim = C / heads;
+    EPONA_CHECK(!rope || (q.size(0) == k.size(0) && rope->rows() >= q.size(0) && 2 * rope->pairs() == head_dim),
+                "MST RoPE: table (", rope ? rope->rows() : 0, " rows, ", rope ? rope->pairs() : 0,
+                " pairs) for q/k of ", q.size(0), "/", k.size(0), " rows and head_dim ", head_dim);
+    if constexpr (!std::is_same_v<B, Cpu>) {
+      const float* cos = rope ? rope->cos.data() : nullptr;
+      const float* sin = rope ? rope->sin.data() : nullptr;
+      if (layer_norm_rope_qk(ctx, q.data(), q.size(0), k.data(), k.size(0), C, q_norm.weight.data(),
+                             q_norm.bias.data(), q_norm.eps, k_norm.weight.data(), k_norm.bias.data(), k_norm.eps,
+                             head_dim, cos, sin))
+        return;
+    }
+    q_norm(ctx, q, q);
+    k_norm(ctx, k, k);
+    if (rope) nn::apply_rope_qk(ctx, q.data(), k.data(), q.size(0), C, heads, *rope);
   }
 
   nn::Flops flops(std::int64_t n, std::int64_t count) const {
@@ -399,7 +419,7 @@ class SpatialTemporalTransformer {
     auto x = s.x.reshape({F * T, C});
     // (a) time: each of the T token positions is a causal sequence over the F frames; no RoPE.
     const nn::PackedAttention time{T, F, H, d, C, T * C, C, T * C, true};
-    block.causal_time_block(ctx, x, s.layer, 0, F * T, no_rotation, attention_with(ctx, time), normed,
+    block.causal_time_block(ctx, x, s.layer, 0, F * T, nullptr, H, attention_with(ctx, time), normed,
                             &block.space_block);
     // (b) space: each frame is one unmasked sequence of T tokens; RoPE on the image tokens only.
     run_space(ctx, block.space_block, x, s.layer, F, next);
@@ -415,7 +435,7 @@ class SpatialTemporalTransformer {
     time.q_len = 1;
     time.q_seq_stride = C;
     // The time layer updates the last frame's rows: the space layer's whole input.
-    block.causal_time_block(ctx, x, s.layer, (F - 1) * T, T, no_rotation, attention_with(ctx, time), normed,
+    block.causal_time_block(ctx, x, s.layer, (F - 1) * T, T, nullptr, H, attention_with(ctx, time), normed,
                             &block.space_block);
     auto last = s.x[F - 1];
     run_space(ctx, block.space_block, last, s.layer, 1, nullptr);
@@ -429,10 +449,7 @@ class SpatialTemporalTransformer {
     const nn::PackedAttention space{frames, T, H, d, T * C, C, T * C, C, false};
     // One pass over all frames' tokens: the table leaves the action tokens unrotated
     // (cos 1, sin 0 rotate exactly to themselves).
-    const auto rotate_images = [&](auto& q, auto& k) {
-      nn::apply_rope_qk(ctx, q.data(), k.data(), frames * T, C, H, rope_);
-    };
-    layer(ctx, x, s, 0, frames * T, rotate_images, attention_with(ctx, space), true, next);
+    layer(ctx, x, s, 0, frames * T, &rope_, H, attention_with(ctx, space), true, next);
   }
 
   // compute_axial_cis for the image tokens of every frame of the window, identity rows
@@ -449,7 +466,6 @@ class SpatialTemporalTransformer {
     return t;
   }
 
-  static constexpr auto no_rotation = [](auto&, auto&) {};
   static auto attention_with(Context& ctx, const nn::PackedAttention& p) {
     return [&ctx, p](const auto& q, const auto& k, const auto& v, auto& o) {
       nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), p);

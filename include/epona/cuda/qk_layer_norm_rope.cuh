@@ -1,0 +1,107 @@
+// epona/cuda/qk_layer_norm_rope.cuh — the MST attention's QK-norm (nn.LayerNorm over all
+// channels of q and of k, in place) and, in the space layers, the 2-D RoPE of q and k, in one
+// launch and one pass over each row instead of four launches and three passes. Bit-identical
+// to layer_norm + apply_rope: the same row kernel (norm.cuh) then the same rotation.
+#pragma once
+
+#include <cstdint>
+
+#include "epona/cuda/context.hpp"
+#include "epona/cuda/device.cuh"
+#include "epona/cuda/norm.cuh"
+
+namespace epona::cuda {
+
+namespace detail {
+
+template <class T>
+struct QkNormRopeArgs {
+  T *q, *k;                    // (rows_q, n) and (rows_k, n), normalised and rotated in place
+  std::int64_t rows_q, rows_k, n;
+  const float *q_weight, *q_bias, *k_weight, *k_bias;
+  float q_eps, k_eps;
+  int head_dim;                // heads side by side along n
+  const float *cos, *sin;      // (rows, head_dim / 2) for row r of q and of k; null: no rotation
+};
+
+// Interleaved pairs (2j, 2j+1) of 8 channels starting at channel c0 of a row, rotated by the
+// table row (cos, sin): float32 arithmetic on the stored values, as rope_kernel.
+__device__ __forceinline__ void rotate_pack(float (&v)[kPack], int c0, int head_dim, const float* cos,
+                                            const float* sin) {
+#pragma unroll
+  for (int i = 0; i < kPack; i += 2) {
+    const int j = ((c0 + i) % head_dim) / 2;
+    const float c = cos[j], s = sin[j], a = v[i], b = v[i + 1];
+    v[i] = c * a - s * b;
+    v[i + 1] = s * a + c * b;
+  }
+}
+
+// One warp per row of q, then of k (warps past rows_q take k's rows). The norm is norm_row as
+// the warp-per-row LayerNorm runs it; each lane then rotates the packs it has just stored.
+template <class T, int P>
+__global__ void __launch_bounds__(32 * kNormWarps) qk_layer_norm_rope_kernel(QkNormRopeArgs<T> a) {
+  const std::int64_t w = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
+  if (w >= a.rows_q + a.rows_k) return;
+  const bool is_q = w < a.rows_q;
+  const std::int64_t row = is_q ? w : w - a.rows_q;
+  T* x = is_q ? a.q : a.k;
+  const RowNormArgs<T, T, T, T, float> norm{x,          nullptr, nullptr, nullptr,
+                                            x,          is_q ? a.q_weight : a.k_weight,
+                                            is_q ? a.q_bias : a.k_bias, is_q ? a.rows_q : a.rows_k,
+                                            a.n,        is_q ? a.q_eps : a.k_eps};
+  const int lane = threadIdx.x & 31;
+  norm_row<P, false, false>(norm, row, lane, 32, [](float v) { return warp_sum(v); });
+  if (!a.cos) return;
+  const int pairs = a.head_dim / 2, packs = static_cast<int>(a.n / kPack);
+  const float* cos = a.cos + row * pairs;
+  const float* sin = a.sin + row * pairs;
+#pragma unroll
+  for (int k = 0; k < P; ++k) {
+    const int p = lane + 32 * k;
+    if (p >= packs) continue;
+    T* at = x + row * a.n + p * kPack;  // written by this lane just above
+    float v[kPack];
+    load8(at, v);
+    rotate_pack(v, p * kPack, a.head_dim, cos, sin);
+    store8(at, v);
+  }
+}
+
+}  // namespace detail
+
+// q (rows_q, n) = LN_q(q), k (rows_k, n) = LN_k(k) in place (affine, float32 parameters), then,
+// with cos/sin, both rotated as apply_rope with table row r for row r. One launch when the rows
+// fit the warp-per-row LayerNorm that layer_norm itself would pick for each of q and k (so the
+// result is bit-identical to the unfused ops); returns false, doing nothing, otherwise.
+template <class T>
+bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int64_t rows_k, std::int64_t n,
+                        const float* q_weight, const float* q_bias, float q_eps, const float* k_weight,
+                        const float* k_bias, float k_eps, std::int64_t head_dim, const float* cos, const float* sin) {
+  static_assert(is_device_float<T>, "layer_norm_rope_qk takes float or bf16");
+  EPONA_CHECK(rows_q >= 0 && rows_k >= 0 && n > 0 && head_dim > 0 && head_dim % 2 == 0 && n % head_dim == 0,
+              "layer_norm_rope_qk: bad extent (rows ", rows_q, " and ", rows_k, ", width ", n, ", head_dim ",
+              head_dim, ")");
+  EPONA_CHECK((cos == nullptr) == (sin == nullptr), "layer_norm_rope_qk: cos and sin must both be given or not");
+  const std::int64_t warp_min = detail::warp_rows_min(ctx);
+  const bool fits = n <= detail::kWarpRowMax && rows_q >= warp_min && rows_k >= warp_min &&
+                    detail::packable(q, n, n) && detail::packable(k, n, n) && detail::packable(q_weight, n, 0) &&
+                    detail::packable(q_bias, n, 0) && detail::packable(k_weight, n, 0) &&
+                    detail::packable(k_bias, n, 0);
+  if (!fits) return false;
+  const detail::QkNormRopeArgs<T> a{q,      k,     rows_q, rows_k,  n,   q_weight, q_bias, k_weight, k_bias,
+                                    q_eps,  k_eps, static_cast<int>(head_dim), cos, sin};
+  const auto blocks = static_cast<unsigned>((rows_q + rows_k + detail::kNormWarps - 1) / detail::kNormWarps);
+  const std::int64_t per_lane = (n / detail::kPack + 31) / 32;  // the choice try_row_norm_packed makes
+  const auto launch = [&](auto kernel) {
+    kernel<<<blocks, 32 * detail::kNormWarps, 0, ctx.stream()>>>(a);
+    EPONA_CUDA_CHECK_LAUNCH();
+  };
+  if (per_lane <= 1) launch(detail::qk_layer_norm_rope_kernel<T, 1>);
+  else if (per_lane <= 2) launch(detail::qk_layer_norm_rope_kernel<T, 2>);
+  else if (per_lane <= 4) launch(detail::qk_layer_norm_rope_kernel<T, 4>);
+  else launch(detail::qk_layer_norm_rope_kernel<T, 8>);
+  return true;
+}
+
+}  // namespace epona::cuda
