@@ -121,38 +121,47 @@ void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const
                              int reps) {
   using cuda::detail::FlashKernel;
   const bool fits_short = a.lq <= 16 && a.lk <= 16;
+  const auto params = cuda::detail::flash_params(q, k, v, o, a);
+  const bool fits_wgmma = cuda::detail::wgmma_kernel_fits(ctx, params, cuda::detail::exact_head_dim(params));
+  std::printf("%s: Auto runs [%s]\n", label.c_str(),
+              cuda::detail::flash_kernel_name(cuda::detail::auto_flash_kernel(ctx, q, k, v, o, a)));
   for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows128,
-                                   FlashKernel::Rows64Split4, FlashKernel::Short, FlashKernel::Auto}) {
+                                   FlashKernel::Rows64Split4, FlashKernel::Short, FlashKernel::Wgmma64,
+                                   FlashKernel::Wgmma128, FlashKernel::Auto}) {
     if (kernel == FlashKernel::Short && !fits_short) continue;
+    if ((kernel == FlashKernel::Wgmma64 || kernel == FlashKernel::Wgmma128) && !fits_wgmma) continue;
     const double ms = median_ms(ctx, reps, [&](int) { cuda::detail::attention(ctx, q, k, v, o, a, kernel); });
     row(label + " [" + cuda::detail::flash_kernel_name(kernel) + "]", ms, flop, bytes);
   }
 }
 
-// Self-attention over packed (seqs, L, 3, heads, 128) QKV into (seqs, L, heads, 128).
+// Self-attention over packed (seqs, L, 3, heads, 128) QKV into (seqs, L - q_first, heads,
+// 128); q_first > 0: only the last L - q_first rows are queried (the DiTs' last single block).
 template <class T>
 void bench_attention(cuda::Context& ctx, std::int64_t seqs, std::int64_t heads, std::int64_t len, bool causal,
-                     int reps, const char* label) {
-  const std::int64_t D = 128, c = heads * D;
+                     int reps, const char* label, std::int64_t q_first = 0) {
+  const std::int64_t D = 128, c = heads * D, lq = len - q_first;
   auto qkv = random_device<T>(ctx, {seqs, len, 3 * c}, 77, -2.f, 2.f);
-  Tensor<T, Cuda> out({seqs, len, c});
+  Tensor<T, Cuda> out({seqs, lq, c});
   cuda::AttentionShape a;
-  a.seqs = seqs, a.heads = heads, a.lq = a.lk = len, a.head_dim = D;
+  a.seqs = seqs, a.heads = heads, a.lq = lq, a.lk = len, a.head_dim = D;
   a.q_seq = a.k_seq = a.v_seq = len * 3 * c;
   a.q_row = a.k_row = a.v_row = 3 * c;
-  a.o_seq = len * c, a.o_row = c;
+  a.o_seq = lq * c, a.o_row = c;
   a.mask = causal ? cuda::Mask::Causal : cuda::Mask::None;
   char name[160];
-  std::snprintf(name, sizeof name, "attention %s %s %lld x %lld heads x %lld x 128%s", label,
+  std::snprintf(name, sizeof name, "attention %s %s %lld x %lld heads x %lld x %lld x 128%s", label,
                 std::is_same_v<T, float> ? "f32" : "bf16", static_cast<long long>(seqs),
-                static_cast<long long>(heads), static_cast<long long>(len), causal ? " causal" : "");
+                static_cast<long long>(heads), static_cast<long long>(lq), static_cast<long long>(len),
+                causal ? " causal" : "");
   // Full-square FLOP (compute-budget.md convention), also for causal.
-  const double flop = 4.0 * seqs * heads * len * len * D;
+  const double flop = 4.0 * seqs * heads * lq * len * D;
+  const T* q = qkv.data() + q_first * 3 * c;
   if constexpr (std::is_same_v<T, bf16>) {
-    bench_attention_kernels(ctx, name, qkv.data(), qkv.data() + c, qkv.data() + 2 * c, out.data(), a, flop, 0, reps);
+    bench_attention_kernels(ctx, name, q, qkv.data() + c, qkv.data() + 2 * c, out.data(), a, flop, 0, reps);
   } else {
     const double ms = median_ms(ctx, reps, [&](int) {
-      cuda::attention(ctx, qkv.data(), qkv.data() + c, qkv.data() + 2 * c, out.data(), a);
+      cuda::attention(ctx, q, qkv.data() + c, qkv.data() + 2 * c, out.data(), a);
     });
     row(name, ms, flop, 0);
   }
@@ -231,8 +240,11 @@ int main(int argc, char** argv) {
 
     std::printf("\nflash attention (head dim 128, packed QKV)\n");
     bench_attention<bf16>(ctx, 10, 16, 515, false, 30, "MST spatial");
+    bench_attention<bf16>(ctx, 1, 16, 515, false, 30, "MST spatial, last block");
     bench_attention<bf16>(ctx, 1, 16, 1027, false, 30, "VisDiT joint");
+    bench_attention<bf16>(ctx, 1, 16, 1027, false, 30, "VisDiT last single", 515);
     bench_attention<bf16>(ctx, 1, 8, 530, false, 30, "TrajDiT joint");
+    bench_attention<bf16>(ctx, 1, 8, 530, false, 30, "TrajDiT last single", 515);
     bench_attention<bf16>(ctx, 1, 16, 4096, false, 10, "long (fill check)");
     bench_attention<bf16>(ctx, 1, 16, 4096, true, 10, "long (fill check)");
     bench_attention<float>(ctx, 10, 16, 515, false, 5, "MST spatial");

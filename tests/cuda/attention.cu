@@ -7,6 +7,10 @@
 // (VisDiT 16 x 1027, MST spatial 10 x 16 x 515, TrajDiT 8 x 530, temporal 515 x 16 x 10),
 // head dims 4/24/32/64/128, unaligned strides. Outputs are poisoned first; elements outside
 // the output layout must stay poisoned.
+// The Hopper wgmma kernel (both tilings, where the build and GPU have it) on lengths 1, 15,
+// 63, 64, 65, 515, 530, 1027, full and causal, cross, packed, padded and frame-strided rows,
+// the model's shapes, and Auto's choice (wgmma where it applies, the mma.sync kernels
+// elsewhere; forcing them still runs them), with the bf16 bounds below.
 // Bounds. float32: rel_l2 and max|err| / max|v| <= 1e-5. bf16: P is rounded to bf16 before
 // P·V (|δp| <= 2^-8 p, so |err| <= 2^-8 max|v|) and the output once more (2^-8 |o| <= 2^-8
 // max|v|): max|err| <= 2^-7 max|v|; rel_l2 <= 1e-2 (rounding errors average out; measured
@@ -69,6 +73,16 @@ Layout mst_temporal(std::int64_t frames, std::int64_t spatial, std::int64_t head
     l.q_off = (frames - 1) * spatial * c, l.q_row = 0;
     l.o_row = 0;
   }
+  return l;
+}
+
+// Packed QKV whose queries are the last len - q_first rows (the DiTs' last single block:
+// every row gives keys and values, only the target rows are queried).
+Layout packed_tail(std::int64_t seqs, std::int64_t heads, std::int64_t len, std::int64_t q_first, std::int64_t dim) {
+  Layout l = packed(seqs, heads, len, dim);
+  l.lq = len - q_first;
+  l.q_off = q_first * l.q_row;
+  l.o_seq = l.lq * l.o_row;
   return l;
 }
 
@@ -299,4 +313,96 @@ TEST_CASE("cuda attention rejects unsupported shapes with epona::Error") {
   CHECK_THROWS_AS(cuda::attention(ctx, buf.data(), buf.data(), buf.data(), buf.data(), a), epona::Error);
   a.heads = 1, a.lq = -1;
   CHECK_THROWS_AS(cuda::attention(ctx, buf.data(), buf.data(), buf.data(), buf.data(), a), epona::Error);
+}
+
+// The Hopper kernel exists only in sm_90a builds running on a 9.0 GPU; elsewhere these pass
+// with a message.
+#define EPONA_REQUIRE_WGMMA(ctx)                                                      \
+  do {                                                                                \
+    if (!cuda::detail::flash_wgmma_available(ctx)) {                                  \
+      MESSAGE("no wgmma kernel in this build or on this GPU (needs sm_90a): skipping"); \
+      return;                                                                         \
+    }                                                                                 \
+  } while (0)
+
+constexpr FlashKernel kWgmmaKernels[] = {FlashKernel::Wgmma64, FlashKernel::Wgmma128};
+
+TEST_CASE("cuda attention bf16: the wgmma kernel on awkward lengths, masks and layouts") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  EPONA_REQUIRE_WGMMA(ctx);
+  std::uint32_t seed = 400;
+  for (const FlashKernel kernel : kWgmmaKernels) {
+    for (const std::int64_t len : {1, 15, 63, 64, 65, 515, 530, 1027}) {
+      const std::string name = "packed qkv " + std::to_string(len);
+      check_attention<bf16>(ctx, packed(2, 3, len, 128, /*o_pad=*/len % 2 ? 8 : 0), seed++, name, kernel);
+      Layout c = packed(2, 2, len, 128);
+      c.causal = true;
+      check_attention<bf16>(ctx, c, seed++, name, kernel);
+    }
+    struct Cross { std::int64_t lq, lk; };
+    for (const Cross x : {Cross{15, 530}, Cross{512, 1027}, Cross{1, 65}, Cross{65, 1}, Cross{130, 20},
+                          Cross{33, 70}, Cross{200, 129}}) {
+      const std::string name = "cross " + std::to_string(x.lq) + " x " + std::to_string(x.lk);
+      check_attention<bf16>(ctx, dense(2, 2, x.lq, x.lk, 128), seed++, name, kernel);
+      Layout c = dense(1, 3, x.lq, x.lk, 128);
+      c.causal = true;
+      check_attention<bf16>(ctx, c, seed++, name, kernel);
+    }
+    check_attention<bf16>(ctx, packed_tail(1, 4, 530, 515, 128), seed++, "last single block 15 of 530", kernel);
+    check_attention<bf16>(ctx, temporal(10, 37, 2, 128), seed++, "MST temporal (10 frames x 37)", kernel);
+    check_attention<bf16>(ctx, mst_temporal(10, 37, 2, 128, true), seed++, "MST temporal, last frame", kernel);
+    check_attention<bf16>(ctx, dense(1, 2, 5, 0, 128), seed++, "no keys (zeros)", kernel);
+  }
+}
+
+// Large: like the model-shape case above, left out of the sanitizer runs.
+TEST_CASE("cuda attention bf16 model shapes: the wgmma kernel") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  EPONA_REQUIRE_WGMMA(ctx);
+  std::uint32_t seed = 500;
+  for (const FlashKernel kernel : kWgmmaKernels) {
+    check_attention<bf16>(ctx, packed(1, 16, 1027, 128), seed++, "VisDiT joint 16 x 1027", kernel);
+    check_attention<bf16>(ctx, packed_tail(1, 16, 1027, 515, 128), seed++, "VisDiT last single 512 of 1027", kernel);
+    check_attention<bf16>(ctx, packed(10, 16, 515, 128), seed++, "MST spatial 10 x 16 x 515", kernel);
+    check_attention<bf16>(ctx, packed(1, 8, 530, 128, /*o_pad=*/24), seed++, "TrajDiT joint 8 x 530", kernel);
+    check_attention<bf16>(ctx, packed_tail(1, 8, 530, 515, 128), seed++, "TrajDiT last single 15 of 530", kernel);
+  }
+}
+
+TEST_CASE("cuda attention bf16: Auto takes the wgmma kernel where it applies, the others elsewhere") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  const bool wgmma = cuda::detail::flash_wgmma_available(ctx);
+  MESSAGE("wgmma kernel available: " << (wgmma ? "yes" : "no"));
+  Dev<bf16> buf({4 * 1027 * 3 * 128 + 64});
+  bf16* d = buf.data();
+  cuda::AttentionShape a;
+  a.heads = 1, a.lq = a.lk = 530, a.head_dim = 128;
+  a.q_row = a.k_row = a.v_row = 3 * 128, a.o_row = 128;
+  a.q_seq = a.k_seq = a.v_seq = 530 * 3 * 128, a.o_seq = 530 * 128;
+  const auto pick = [&](const bf16* q) { return cuda::detail::auto_flash_kernel(ctx, q, d + 128, d + 256, d, a); };
+  const bool wgmma_picked = pick(d) == FlashKernel::Wgmma64 || pick(d) == FlashKernel::Wgmma128;
+  CHECK(wgmma_picked == wgmma);
+  CHECK(pick(d + 1) != FlashKernel::Wgmma64);  // rows not 16-byte aligned: the generic path
+  CHECK(pick(d + 1) != FlashKernel::Wgmma128);
+  a.lq = a.lk = 10;
+  CHECK(pick(d) == FlashKernel::Short);
+  a.lq = a.lk = 530;
+  a.head_dim = 64;
+  CHECK(pick(d) == FlashKernel::Rows64Split4);  // 9 row blocks of 64 < the multiprocessors
+  a.head_dim = 128;
+  Dev<float> mask({530 * 530});
+  a.additive_mask = mask.data();
+  CHECK(pick(d) != FlashKernel::Wgmma64);
+  if (wgmma) {
+    CHECK_THROWS_WITH_AS(cuda::detail::attention(ctx, d, d + 128, d + 256, d, a, FlashKernel::Wgmma64),
+                         doctest::Contains("wgmma"), epona::Error);
+  }
+  // With the wgmma kernel picked by Auto, the mma.sync kernels still run when forced (their
+  // own cases above run the same layouts with every kernel named).
+  std::uint32_t seed = 600;
+  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows64Split4})
+    check_attention<bf16>(ctx, packed(2, 2, 530, 128), seed++, "packed qkv 530", kernel);
 }
