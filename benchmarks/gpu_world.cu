@@ -250,8 +250,12 @@ int run(const Options& o) {
       dit.sample(ctx, arena, c, grid, state);
     };
     sample_once();  // records the sampling graph
-    std::printf("# %s sampler graph: %d capture(s), last %.1f ms (host, capture + instantiate)\n", name.c_str(),
-                dit.sampler_graph().captures(), dit.sampler_graph().last_capture_ms());
+    const auto& counts = dit.sampler_graph().node_counts();
+    std::printf("# %s sampler graph: %d capture(s), last %.1f ms (host, capture + instantiate); %zu nodes: %zu kernels "
+                "(%.2f per step), %zu copies/sets\n",
+                name.c_str(), dit.sampler_graph().captures(), dit.sampler_graph().last_capture_ms(), counts.nodes,
+                counts.kernels, double(counts.kernels) / double(o.steps), counts.copies);
+    emit_value(name + "_graph_kernels_per_step", double(counts.kernels) / double(o.steps));
     if (o.want(name + "_sample"))
       emit(name + "_sample", event_times_ms(ctx, std::max(3, R / 2), 1, sample_once), eval_tflop * double(o.steps));
   }

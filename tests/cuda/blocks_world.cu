@@ -115,7 +115,7 @@ void bind(Block& block, const std::string& prefix) {
 
 }  // namespace
 
-TEST_CASE("world-model kernels: copy, strided copy, conversion, Euler update (float32 and bf16 velocity)") {
+TEST_CASE("world-model kernels: copy, strided copy, conversion, Euler update (float32 and bf16 velocity, fused with the conversion)") {
   EPONA_REQUIRE_GPU();
   auto& ctx = gpu();
   const auto src = test::random_tensor({37, 53}, 1);
@@ -164,6 +164,17 @@ TEST_CASE("world-model kernels: copy, strided copy, conversion, Euler update (fl
     }
     CHECK(wrong_f == 0);
     CHECK(wrong_b == 0);
+    // Fused with the conversion of the new state (the bf16 samplers): the same x, and the
+    // rounded state into a poisoned bf16 buffer, bit-exact (n = 1001: element path).
+    auto dxc = upload<float>(x);
+    auto xc = Tensor<bf16, Cuda>({n});
+    cuda::fill_bytes(ctx, xc, 0xFF);
+    cuda::axpy_convert(ctx, dxc.data(), vb.data(), a, xc.data(), n);
+    const auto got_c = download(dxc), got_xc = download(xc);
+    int wrong_c = 0;
+    for (std::int64_t i = 0; i < n; ++i)
+      wrong_c += got_c.data()[i] != got_b.data()[i] || got_xc.data()[i] != float(bf16(got_b.data()[i]));
+    CHECK(wrong_c == 0);
   }
 }
 

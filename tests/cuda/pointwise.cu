@@ -1,6 +1,6 @@
 // GPU tests for the memory-bound kernels: epona/cuda/norm.cuh (LayerNorm, LayerNorm +
 // modulation, residual add + LayerNorm, gated residual + modulated LayerNorm, per-head
-// RMSNorm), rope.cuh, activation.cuh and elementwise.cuh, in float32,
+// RMSNorm), rope.cuh, qk_norm_rope.cuh, activation.cuh and elementwise.cuh, in float32,
 // bf16 and the mixed storage combinations the model uses, against the CPU backend on the same
 // (bf16-rounded) inputs. Outputs are poisoned first; in-place ops on packed buffers must leave
 // every channel outside their heads bit-identical.
@@ -9,8 +9,11 @@
 // PyTorch: 1 + scale in bf16 (modulate), (x · rrms) before · scale (QK-norm), and
 // gate ⊙ y in bf16 before the residual add.
 #include "cuda_test_util.cuh"
+#include "epona/cuda/qk_norm_rope.cuh"
 
+#include <array>
 #include <cstring>
+#include <vector>
 
 using namespace epona;
 using namespace epona::test;
@@ -112,6 +115,75 @@ void check_rms_and_rope(cuda::Context& ctx, std::int64_t rows, std::int64_t head
       [&](float* p) { cpu::apply_rope(cctx, p, rows, stride, heads, head_dim, cos.data(), sin.data()); });
 }
 
+// qk_norm_rope over row ranges of a packed [q | k | v | pad] buffer, each range with its own
+// scales (queries of rows [q_first, end), keys of rows [first, end)): against the CPU's
+// rms_norm_heads then apply_rope on the same rows (3 roundings in bf16: x·rrms, ·scale, the
+// rotation), bit-identical to cuda::rms_norm_rope_heads per range and kind (what the model ran
+// before), and every other channel untouched.
+struct QkSegment {
+  std::int64_t first, q_first, end;
+  const float* q_scale = nullptr;
+  const float* k_scale = nullptr;
+};
+
+template <class T>
+void check_qk_norm_rope(cuda::Context& ctx, std::vector<QkSegment> segs, std::int64_t heads, std::int64_t head_dim,
+                        std::uint32_t seed) {
+  cpu::Context cctx;
+  const std::int64_t rows = segs.back().end, width = heads * head_dim, stride = 3 * width + 6, pairs = head_dim / 2;
+  HostF x = random_tensor({rows, stride}, seed, -2.f, 2.f);
+  round_to<T>(x);
+  HostF angle = random_tensor({rows, pairs}, seed + 1, -20.f, 20.f), cos({rows, pairs}), sin({rows, pairs});
+  for (std::int64_t i = 0; i < angle.numel(); ++i) cos.data()[i] = std::cos(angle.data()[i]), sin.data()[i] = std::sin(angle.data()[i]);
+  auto dcos = upload<float>(ctx, cos), dsin = upload<float>(ctx, sin);
+  std::vector<HostF> scales;
+  std::vector<Dev<float>> dscales;
+  for (std::size_t i = 0; i < 2 * segs.size(); ++i) {
+    scales.push_back(random_tensor({head_dim}, seed + 10 + std::uint32_t(i), 0.5f, 1.5f));
+    dscales.push_back(upload<float>(ctx, scales.back()));
+  }
+  HostF ref = x.clone();
+  std::vector<char> touched(static_cast<std::size_t>(x.numel()), 0);
+  auto dref = upload<T>(ctx, x);
+  for (std::size_t i = 0; i < segs.size(); ++i) {
+    auto& g = segs[i];
+    g.q_scale = dscales[2 * i].data(), g.k_scale = dscales[2 * i + 1].data();
+    for (int kind = 0; kind < 2; ++kind) {
+      const std::int64_t from = kind == 0 ? g.q_first : g.first, n = g.end - from, off = from * stride + kind * width;
+      const HostF& sc = scales[2 * i + kind];
+      cpu::rms_norm_heads(cctx, ref.data() + off, n, stride, heads, head_dim, sc.data(), 1e-6f);
+      cpu::apply_rope(cctx, ref.data() + off, n, stride, heads, head_dim, cos.data() + from * pairs,
+                      sin.data() + from * pairs);
+      cuda::rms_norm_rope_heads(ctx, dref.data() + off, n, stride, heads, head_dim, dscales[2 * i + kind].data(),
+                                1e-6f, dcos.data() + from * pairs, dsin.data() + from * pairs);
+      for (std::int64_t r = from; r < g.end; ++r)
+        for (std::int64_t c = 0; c < width; ++c) touched[r * stride + kind * width + c] = 1;
+    }
+  }
+  auto dx = upload<T>(ctx, x);
+  const std::string what = std::string("qk_norm_rope ") + type_name<T>() + " " + std::to_string(segs.size()) +
+                           " segment(s), rows " + std::to_string(rows) + " heads " + std::to_string(heads) + " x " +
+                           std::to_string(head_dim);
+  if (segs.size() == 1)
+    cuda::qk_norm_rope(ctx, dx.data(), stride, width, heads, head_dim, 1e-6f, dcos.data(), dsin.data(),
+                       std::array<QkSegment, 1>{segs[0]});
+  else
+    cuda::qk_norm_rope(ctx, dx.data(), stride, width, heads, head_dim, 1e-6f, dcos.data(), dsin.data(),
+                       std::array<QkSegment, 2>{segs[0], segs[1]});
+  const HostF out = download(ctx, dx), per_range = download(ctx, dref);
+  Bound b = one_rounding<T>(max_abs(ref));
+  b.rel *= 3, b.abs *= 3;
+  check_error(measure(out.data(), ref.data(), out.numel(), [&](std::int64_t i) { return touched[i] != 0; }), b, what);
+  std::int64_t differ = 0, changed = 0;
+  for (std::int64_t i = 0; i < out.numel(); ++i) {
+    differ += std::memcmp(&out.data()[i], &per_range.data()[i], sizeof(float)) != 0;
+    changed += !touched[i] && std::memcmp(&out.data()[i], &x.data()[i], sizeof(float)) != 0;
+  }
+  MESSAGE(what, ": ", differ, " values differ from rms_norm_rope_heads per range, ", changed, " untouched changed");
+  CHECK(differ == 0);
+  CHECK(changed == 0);
+}
+
 // An in-place op over the first n of n + 1 elements: the guard element past n must survive.
 template <class T, class GpuOp, class CpuOp>
 void check_map_inplace(cuda::Context& ctx, std::int64_t n, std::uint32_t seed, const std::string& name, GpuOp gpu,
@@ -199,7 +271,7 @@ void check_residuals(cuda::Context& ctx, std::int64_t rows, std::int64_t n, std:
 // design, as the unfused kernels do). offset > 0 misaligns x (the two-kernel fallback).
 template <class TX, class TY, class TG, class TO, class TP>
 void check_residual_norm(cuda::Context& ctx, std::int64_t rows, std::int64_t n, bool modulate, std::uint32_t seed,
-                         std::int64_t offset = 0) {
+                         std::int64_t offset = 0, bool separate = false) {
   cpu::Context cctx;
   HostF x = random_tensor({rows, n}, seed, -2.f, 3.f), y = random_tensor({rows, n}, seed + 1, -2.f, 2.f);
   HostF g = random_tensor({n}, seed + 2, -1.5f, 1.5f);
@@ -209,13 +281,19 @@ void check_residual_norm(cuda::Context& ctx, std::int64_t rows, std::int64_t n, 
   HostF ref_x = x.clone();
   if (modulate) cpu::add_gated(cctx, ref_x.data(), y.data(), g.data(), rows, n);
   else cpu::add_inplace(cctx, ref_x.data(), y.data(), rows * n);
-  auto dx = upload<TX>(ctx, x, offset);
+  // separate: the residual is read from src (misaligned by offset) and written to a poisoned x.
+  auto src = upload<TX>(ctx, x, separate ? offset : 0);
+  auto dx = separate ? Dev<TX>({rows, n}) : upload<TX>(ctx, x, offset);
+  if (separate) poison(ctx, dx);
   auto dy = upload<TY>(ctx, y);
   auto dg = upload<TG>(ctx, g);
   auto dmul = upload<TP>(ctx, mul), dadd = upload<TP>(ctx, add);
   Dev<TO> dout({rows, n});
   poison(ctx, dout);
-  if (modulate)
+  if (modulate && separate)
+    cuda::add_gated_layer_norm_modulate(ctx, static_cast<const TX*>(src.data()), dx.data(), dy.data(), dg.data(),
+                                        dout.data(), rows, n, dadd.data(), dmul.data(), 1e-6f);
+  else if (modulate)
     cuda::add_gated_layer_norm_modulate(ctx, dx.data(), dy.data(), dg.data(), dout.data(), rows, n, dadd.data(),
                                         dmul.data(), 1e-6f);
   else
@@ -223,8 +301,9 @@ void check_residual_norm(cuda::Context& ctx, std::int64_t rows, std::int64_t n, 
   const std::string what = std::string(modulate ? "add_gated_layer_norm_modulate " : "add_layer_norm ") +
                            type_name<TX>() + "+=" + type_name<TY>() + " gate " + type_name<TG>() + " -> " +
                            type_name<TO>() + " params " + type_name<TP>() + " " + std::to_string(rows) + "x" +
-                           std::to_string(n) + (offset ? " misaligned" : "");
+                           std::to_string(n) + (offset ? " misaligned" : "") + (separate ? " from a separate input" : "");
   const HostF gx = download(ctx, dx);
+  if (separate) CHECK(measure(download(ctx, src), x).max_abs == 0);  // the input stays as it was
   Bound bx = one_rounding<TX>(max_abs(ref_x));
   if (modulate && std::is_same_v<TG, bf16> && std::is_same_v<TY, bf16>) {  // gate ⊙ y is rounded to bf16 first
     HostF gy({rows, n});
@@ -263,6 +342,12 @@ TEST_CASE("cuda add_layer_norm and add_gated_layer_norm_modulate match the CPU's
   check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 515, 1024, true, seed++);      // the TrajDiT's
   check_residual_norm<float, bf16, float, bf16, float>(ctx, 7, 2048, false, seed++, 1);  // misaligned x
   check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 7, 1024, true, seed++, 2);
+  // Residual read from one buffer, updated into another (a DiT's first block on cond_in's rows):
+  // both kernels, and the fallback (misaligned input: copy, then the in-place pair).
+  check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 515, 1024, true, seed++, 0, true);
+  check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 1500, 2048, true, seed++, 0, true);
+  check_residual_norm<float, float, float, float, float>(ctx, 9, 1024, true, seed++, 0, true);
+  check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 7, 1024, true, seed++, 2, true);
 }
 
 TEST_CASE("cuda layer_norm matches cpu::layer_norm") {
@@ -312,6 +397,18 @@ TEST_CASE_TEMPLATE("cuda rms_norm_heads and apply_rope on packed QKV", T, float,
   check_rms_and_rope<T>(ctx, 515, 16, 128, 330);
 }
 
+TEST_CASE_TEMPLATE("cuda qk_norm_rope: queries and keys of several row ranges in one launch", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  // A TrajDiT double block (condition rows, trajectory rows: two scales each), its pruned
+  // single block (keys of all rows, queries of the last 15), a VisDiT double block, and a
+  // generic head dim (fewer pairs than lanes) with an empty query range.
+  check_qk_norm_rope<T>(ctx, {{0, 0, 515}, {515, 515, 530}}, 8, 128, 900);
+  check_qk_norm_rope<T>(ctx, {{0, 515, 530}}, 8, 128, 910);
+  check_qk_norm_rope<T>(ctx, {{0, 0, 515}, {515, 515, 1027}}, 16, 128, 920);
+  check_qk_norm_rope<T>(ctx, {{0, 0, 7}, {7, 19, 19}}, 3, 24, 930);
+}
+
 TEST_CASE_TEMPLATE("cuda activations match the CPU", T, float, bf16) {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
@@ -339,6 +436,14 @@ TEST_CASE("cuda pointwise kernels reject bad arguments with epona::Error") {
   CHECK_THROWS_WITH_AS(cuda::rms_norm_heads(ctx, x.data(), 2, 10, 2, 8, t.data(), 1e-6f),
                        doctest::Contains("row stride"), epona::Error);
   CHECK_THROWS_AS(cuda::layer_norm(ctx, x.data(), x.data(), 2, 0, t.data(), t.data(), 1e-6f), epona::Error);
+  const QkSegment bad{4, 2, 6, t.data(), t.data()};  // queries start before the range
+  CHECK_THROWS_WITH_AS(cuda::qk_norm_rope(ctx, x.data(), 8, 4, 1, 4, 1e-6f, t.data(), t.data(),
+                                          std::array<QkSegment, 1>{bad}),
+                       doctest::Contains("segment"), epona::Error);
+  const QkSegment ok{0, 0, 2, t.data(), t.data()};
+  CHECK_THROWS_WITH_AS(cuda::qk_norm_rope(ctx, x.data(), 8, 6, 1, 4, 1e-6f, t.data(), t.data(),
+                                          std::array<QkSegment, 1>{ok}),
+                       doctest::Contains("key offset"), epona::Error);
   CHECK_THROWS_AS(cuda::add_gated(ctx, x.data(), x.data(), t.data(), -1, 8), epona::Error);
   CHECK_THROWS_WITH_AS(cuda::add_layer_norm(ctx, x.data(), static_cast<const float*>(nullptr), t.data(), 1, 8,
                                             t.data(), t.data(), 1e-5f),

@@ -2,7 +2,8 @@
 // loop (100 steps of a few hundred small launches) is captured once from the context's stream
 // and then relaunched as one graph while it is fed the same buffers: the key names those
 // buffers and sizes, and a different key records the loop again. EPONA_CUDA_GRAPHS=0 turns
-// capture off (the work then runs directly on the stream, e.g. for debugging).
+// capture off (the work then runs directly on the stream, e.g. for debugging). The recorded
+// graph's nodes are counted (kernels per sampling step, for the benchmark).
 #pragma once
 
 #include <cuda_runtime.h>
@@ -38,7 +39,7 @@ class GraphCache {
   }
   GraphCache(GraphCache&& o) noexcept
       : exec_(std::exchange(o.exec_, nullptr)), key_(std::move(o.key_)), captures_(o.captures_),
-        capture_ms_(o.capture_ms_) {}
+        capture_ms_(o.capture_ms_), counts_(o.counts_) {}
   GraphCache& operator=(GraphCache&& o) noexcept {
     if (this != &o) {
       reset();
@@ -46,6 +47,7 @@ class GraphCache {
       key_ = std::move(o.key_);
       captures_ = o.captures_;
       capture_ms_ = o.capture_ms_;
+      counts_ = o.counts_;
     }
     return *this;
   }
@@ -64,7 +66,13 @@ class GraphCache {
     EPONA_CUDA_CHECK(cudaGraphLaunch(exec_, ctx.stream()));
   }
 
+  // What the last recorded graph holds: all nodes, kernels (cuBLASLt's included), memory
+  // copies and sets (the rest are event/empty nodes of the fork/join pattern).
+  struct NodeCounts {
+    std::size_t nodes = 0, kernels = 0, copies = 0;
+  };
   int captures() const { return captures_; }          // how often a graph was recorded
+  const NodeCounts& node_counts() const { return counts_; }
   double last_capture_ms() const { return capture_ms_; }  // host time of the last capture + instantiation
   void reset() {
     if (exec_) cudaGraphExecDestroy(exec_);
@@ -89,6 +97,7 @@ class GraphCache {
       throw;
     }
     EPONA_CUDA_CHECK(cudaStreamEndCapture(ctx.stream(), &graph));
+    count_nodes(graph);
     const cudaError_t status = cudaGraphInstantiate(&exec_, graph, 0);
     cudaGraphDestroy(graph);
     if (status != cudaSuccess) exec_ = nullptr;
@@ -98,10 +107,25 @@ class GraphCache {
     capture_ms_ = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   }
 
+  void count_nodes(cudaGraph_t graph) {
+    std::size_t n = 0;
+    EPONA_CUDA_CHECK(cudaGraphGetNodes(graph, nullptr, &n));
+    std::vector<cudaGraphNode_t> nodes(n);
+    if (n) EPONA_CUDA_CHECK(cudaGraphGetNodes(graph, nodes.data(), &n));
+    counts_ = {n, 0, 0};
+    for (auto node : nodes) {
+      cudaGraphNodeType type{};
+      EPONA_CUDA_CHECK(cudaGraphNodeGetType(node, &type));
+      counts_.kernels += type == cudaGraphNodeTypeKernel;
+      counts_.copies += type == cudaGraphNodeTypeMemcpy || type == cudaGraphNodeTypeMemset;
+    }
+  }
+
   cudaGraphExec_t exec_ = nullptr;
   std::vector<std::uint64_t> key_;
   int captures_ = 0;
   double capture_ms_ = 0;
+  NodeCounts counts_;
 };
 
 }  // namespace epona::cuda

@@ -225,20 +225,26 @@ void launch_layer_norm(Context& ctx, const TX* x, TY* y, std::int64_t rows, std:
   EPONA_CUDA_CHECK_LAUNCH();
 }
 
-// x += [gate ⊙] y, then out = LN(x) (affine or modulated): one pass where a register-resident
-// kernel applies, else the residual kernel and the LayerNorm one after the other.
+// x_out = x + [gate ⊙] y, then out = LN(x_out) (affine or modulated): one pass where a
+// register-resident kernel applies, else a copy (x_out != x), the residual kernel and the
+// LayerNorm one after the other. x_out is x or a buffer that does not overlap it.
 template <bool Modulate, class TX, class TY, class TG, class TO, class TP>
-void launch_residual_norm(Context& ctx, TX* x, const TY* y, const TG* gate, TO* out, std::int64_t rows,
-                          std::int64_t n, const TP* mul, const TP* add, float eps, const char* what) {
+void launch_residual_norm(Context& ctx, const TX* x_in, TX* x, const TY* y, const TG* gate, TO* out,
+                          std::int64_t rows, std::int64_t n, const TP* mul, const TP* add, float eps,
+                          const char* what) {
   static_assert(is_device_float<TX> && is_device_float<TY> && is_device_float<TG> && is_device_float<TO> &&
                     is_device_float<TP>,
                 "norms take float or bf16");
-  EPONA_CHECK(x != nullptr && y != nullptr && out != nullptr, what, ": null residual, branch or output");
+  EPONA_CHECK(x_in != nullptr && x != nullptr && y != nullptr && out != nullptr, what,
+              ": null residual, branch or output");
   EPONA_CHECK(rows >= 0 && n > 0, what, ": bad extent (rows ", rows, ", width ", n, ")");
   EPONA_CHECK(rows <= 0x7fffffff, what, ": ", rows, " rows exceed one launch");
   if (rows == 0) return;
-  const RowNormArgs<TX, TY, TG, TO, TP> args{x, x, y, gate, out, mul, add, rows, n, eps};
+  const RowNormArgs<TX, TY, TG, TO, TP> args{x_in, x, y, gate, out, mul, add, rows, n, eps};
   if (try_row_norm_packed<Modulate, true>(ctx, args)) return;
+  if (x_in != x)
+    EPONA_CUDA_CHECK(cudaMemcpyAsync(x, x_in, static_cast<std::size_t>(rows * n) * sizeof(TX),
+                                     cudaMemcpyDeviceToDevice, ctx.stream()));
   add_rows(ctx, x, y, gate, rows, n, what);
   launch_layer_norm<Modulate>(ctx, static_cast<const TX*>(x), out, rows, n, mul, add, eps, what);
 }
@@ -267,18 +273,28 @@ void layer_norm_modulate(Context& ctx, const TX* x, TY* y, std::int64_t rows, st
 template <class TX, class TY, class TO, class TP = float>
 void add_layer_norm(Context& ctx, TX* x, const TY* y, TO* out, std::int64_t rows, std::int64_t n, const TP* weight,
                     const std::type_identity_t<TP>* bias, float eps) {
-  detail::launch_residual_norm<false>(ctx, x, y, static_cast<const TX*>(nullptr), out, rows, n, weight, bias, eps,
-                                      "add_layer_norm");
+  detail::launch_residual_norm<false>(ctx, static_cast<const TX*>(x), x, y, static_cast<const TX*>(nullptr), out, rows,
+                                      n, weight, bias, eps, "add_layer_norm");
 }
 
-// x[r, :] += gate[:] ⊙ y[r, :] (as add_gated), then out = (1 + scale) * LN(x) + shift (as
-// layer_norm_modulate): a DiT sublayer's gated residual and the next sublayer's modulated norm.
+// x_out[r, :] = x[r, :] + gate[:] ⊙ y[r, :] (as add_gated), then out = (1 + scale) * LN(x_out) +
+// shift (as layer_norm_modulate): a DiT sublayer's gated residual and the next sublayer's
+// modulated norm. x_out is x, or a buffer that does not overlap it (a DiT's first block reads
+// its step-invariant condition rows where cond_in left them instead of a per-step copy).
+template <class TX, class TY, class TG, class TO, class TP>
+void add_gated_layer_norm_modulate(Context& ctx, const TX* x, TX* x_out, const TY* y, const TG* gate, TO* out,
+                                   std::int64_t rows, std::int64_t n, const TP* shift, const TP* scale, float eps) {
+  EPONA_CHECK(gate != nullptr && shift != nullptr && scale != nullptr,
+              "add_gated_layer_norm_modulate: null gate, shift or scale");
+  detail::launch_residual_norm<true>(ctx, x, x_out, y, gate, out, rows, n, scale, shift, eps,
+                                     "add_gated_layer_norm_modulate");
+}
+
+// The same in place: x[r, :] += gate[:] ⊙ y[r, :], then out = (1 + scale) * LN(x) + shift.
 template <class TX, class TY, class TG, class TO, class TP>
 void add_gated_layer_norm_modulate(Context& ctx, TX* x, const TY* y, const TG* gate, TO* out, std::int64_t rows,
                                    std::int64_t n, const TP* shift, const TP* scale, float eps) {
-  EPONA_CHECK(gate != nullptr && shift != nullptr && scale != nullptr,
-              "add_gated_layer_norm_modulate: null gate, shift or scale");
-  detail::launch_residual_norm<true>(ctx, x, y, gate, out, rows, n, scale, shift, eps, "add_gated_layer_norm_modulate");
+  add_gated_layer_norm_modulate(ctx, static_cast<const TX*>(x), x, y, gate, out, rows, n, shift, scale, eps);
 }
 
 // In place, per token and head: x_h = x_h * rsqrt(mean(x_h^2) + eps) * scale, where token r's

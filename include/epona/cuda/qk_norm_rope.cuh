@@ -3,8 +3,11 @@
 // and apply_rope in sequence, with the same roundings — (x·rrms) rounded to the storage type,
 // times the float32 scale, rounded (the official QKNorm), then the float32 rotation of the
 // rounded pair, rounded again (`.type_as(x)`) — but one read and one write instead of two each.
+// qk_norm_rope does the queries and keys of several row ranges, each with its own norm scales
+// (a double block's two streams; a pruned single block's few queries), in one launch.
 #pragma once
 
+#include <array>
 #include <cstdint>
 
 #include "epona/cuda/context.hpp"
@@ -14,22 +17,18 @@ namespace epona::cuda {
 
 namespace detail {
 
+// One head of head_dim channels at p, normed with `scale` and rotated by the row's cos/sin
+// (head_dim/2 entries each), by the 32 lanes of a warp.
 template <class T>
-__global__ void rms_norm_rope_kernel(T* x, std::int64_t rows, std::int64_t row_stride, int heads, int head_dim,
-                                     const float* scale, float eps, const float* cos, const float* sin) {
-  const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
-  if (item >= rows * heads) return;
-  const int lane = threadIdx.x & 31, pairs = head_dim / 2;
-  const std::int64_t r = item / heads;
-  T* p = x + r * row_stride + (item % heads) * head_dim;
+__device__ __forceinline__ void norm_rope_head(T* p, int lane, int head_dim, const float* scale, float eps,
+                                               const float* cr, const float* sr) {
+  const int pairs = head_dim / 2;
   float ss = 0;
   for (int j = lane; j < pairs; j += 32) {
     const float a = to_f32(p[2 * j]), b = to_f32(p[2 * j + 1]);
     ss += a * a + b * b;
   }
   const float rr = 1.0f / sqrtf(warp_sum(ss) / static_cast<float>(head_dim) + eps);
-  const float* cr = cos + r * pairs;
-  const float* sr = sin + r * pairs;
   for (int j = lane; j < pairs; j += 32) {
     const float a = round_to<T>(round_to<T>(to_f32(p[2 * j]) * rr) * scale[2 * j]);
     const float b = round_to<T>(round_to<T>(to_f32(p[2 * j + 1]) * rr) * scale[2 * j + 1]);
@@ -37,6 +36,61 @@ __global__ void rms_norm_rope_kernel(T* x, std::int64_t rows, std::int64_t row_s
     p[2 * j] = from_f32<T>(c * a - s * b);
     p[2 * j + 1] = from_f32<T>(s * a + c * b);
   }
+}
+
+template <class T>
+__global__ void rms_norm_rope_kernel(T* x, std::int64_t rows, std::int64_t row_stride, int heads, int head_dim,
+                                     const float* scale, float eps, const float* cos, const float* sin) {
+  const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
+  if (item >= rows * heads) return;
+  const std::int64_t r = item / heads;
+  const int pairs = head_dim / 2;
+  norm_rope_head(x + r * row_stride + (item % heads) * head_dim, threadIdx.x & 31, head_dim, scale, eps, cos + r * pairs,
+                 sin + r * pairs);
+}
+
+// The row ranges of one qk_norm_rope launch: range i covers `rows[i]` rows from `first[i]` of
+// the q (part 2i) or k (part 2i+1) block, normed with scale[i]; items before part p: start[p].
+constexpr int kQkParts = 8;  // up to 4 segments x {queries, keys}
+template <class T>
+struct QkRopeParts {
+  T* qkv;
+  std::int64_t row_stride, k_offset;
+  int heads, head_dim, parts;
+  float eps;
+  const float* cos;
+  const float* sin;
+  std::int64_t first[kQkParts], start[kQkParts + 1];
+  const float* scale[kQkParts];
+};
+
+template <class T>
+__global__ void qk_norm_rope_kernel(QkRopeParts<T> a) {
+  const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
+  if (item >= a.start[a.parts]) return;
+  int p = 0;
+  while (item >= a.start[p + 1]) ++p;
+  const std::int64_t local = item - a.start[p], r = a.first[p] + local / a.heads;
+  const int pairs = a.head_dim / 2;
+  T* head = a.qkv + r * a.row_stride + (p & 1) * a.k_offset + (local % a.heads) * a.head_dim;
+  norm_rope_head(head, threadIdx.x & 31, a.head_dim, a.scale[p], a.eps, a.cos + r * pairs, a.sin + r * pairs);
+}
+
+inline void check_norm_rope_extent(std::int64_t rows, std::int64_t row_stride, std::int64_t heads,
+                                   std::int64_t head_dim, const char* what) {
+  EPONA_CHECK(rows >= 0 && heads > 0 && head_dim > 0 && head_dim % 2 == 0 && head_dim <= 0x7fffffff &&
+                  heads <= 0x7fffffff,
+              what, ": bad extent (rows ", rows, ", heads ", heads, ", head_dim ", head_dim, ")");
+  EPONA_CHECK(row_stride >= heads * head_dim, what, ": row stride ", row_stride, " is narrower than ", heads,
+              " heads of ", head_dim);
+}
+
+constexpr int kNormRopeThreads = 256, kNormRopeWarps = kNormRopeThreads / 32;
+
+inline unsigned norm_rope_blocks(std::int64_t items, const char* what) {
+  const std::int64_t blocks = (items + kNormRopeWarps - 1) / kNormRopeWarps;
+  EPONA_CHECK(blocks <= 0x7fffffff, what, ": ", items, " heads exceed one launch");
+  return static_cast<unsigned>(blocks);
 }
 
 }  // namespace detail
@@ -47,18 +101,49 @@ template <class T>
 void rms_norm_rope_heads(Context& ctx, T* x, std::int64_t rows, std::int64_t row_stride, std::int64_t heads,
                          std::int64_t head_dim, const float* scale, float eps, const float* cos, const float* sin) {
   static_assert(is_device_float<T>, "rms_norm_rope_heads takes float or bf16");
-  EPONA_CHECK(rows >= 0 && heads > 0 && head_dim > 0 && head_dim % 2 == 0 && head_dim <= 0x7fffffff &&
-                  heads <= 0x7fffffff,
-              "rms_norm_rope_heads: bad extent (rows ", rows, ", heads ", heads, ", head_dim ", head_dim, ")");
-  EPONA_CHECK(row_stride >= heads * head_dim, "rms_norm_rope_heads: row stride ", row_stride, " is narrower than ",
-              heads, " heads of ", head_dim);
+  detail::check_norm_rope_extent(rows, row_stride, heads, head_dim, "rms_norm_rope_heads");
   EPONA_CHECK(scale != nullptr && cos != nullptr && sin != nullptr, "rms_norm_rope_heads: null scale or table");
   if (rows == 0) return;
-  constexpr int threads = 256, warps = threads / 32;
-  const std::int64_t blocks = (rows * heads + warps - 1) / warps;
-  EPONA_CHECK(blocks <= 0x7fffffff, "rms_norm_rope_heads: ", rows * heads, " heads exceed one launch");
-  detail::rms_norm_rope_kernel<<<static_cast<unsigned>(blocks), threads, 0, ctx.stream()>>>(
+  detail::rms_norm_rope_kernel<<<detail::norm_rope_blocks(rows * heads, "rms_norm_rope_heads"),
+                                 detail::kNormRopeThreads, 0, ctx.stream()>>>(
       x, rows, row_stride, static_cast<int>(heads), static_cast<int>(head_dim), scale, eps, cos, sin);
+  EPONA_CUDA_CHECK_LAUNCH();
+}
+
+// Queries and keys of several row ranges of one packed buffer in one launch: token r's query
+// heads start at qkv + r·row_stride, its key heads k_offset further. Each segment (any type
+// with members first, q_first, end, q_scale, k_scale) norms the keys of rows [first, end) with
+// k_scale and the queries of rows [q_first, end) with q_scale (q_first >= first: a pruned
+// block's queries); cos/sin rows are indexed by r. Each head gives exactly what
+// rms_norm_rope_heads gives it.
+template <class T, class Segment, std::size_t S>
+void qk_norm_rope(Context& ctx, T* qkv, std::int64_t row_stride, std::int64_t k_offset, std::int64_t heads,
+                  std::int64_t head_dim, float eps, const float* cos, const float* sin,
+                  const std::array<Segment, S>& segments) {
+  static_assert(is_device_float<T>, "qk_norm_rope takes float or bf16");
+  static_assert(2 * S <= detail::kQkParts, "qk_norm_rope: at most 4 segments");
+  detail::check_norm_rope_extent(0, row_stride, heads, head_dim, "qk_norm_rope");
+  EPONA_CHECK(k_offset >= heads * head_dim && k_offset + heads * head_dim <= row_stride, "qk_norm_rope: key offset ",
+              k_offset, " does not fit ", heads, " heads of ", head_dim, " in rows of ", row_stride);
+  EPONA_CHECK(qkv != nullptr && cos != nullptr && sin != nullptr, "qk_norm_rope: null buffer or table");
+  detail::QkRopeParts<T> a{qkv, row_stride, k_offset, static_cast<int>(heads), static_cast<int>(head_dim), 0, eps,
+                           cos, sin, {}, {}, {}};
+  a.start[0] = 0;
+  for (const auto& s : segments) {
+    EPONA_CHECK(0 <= s.first && s.first <= s.q_first && s.q_first <= s.end, "qk_norm_rope: segment rows [", s.first,
+                ", ", s.end, ") with queries from ", s.q_first);
+    EPONA_CHECK(s.q_scale != nullptr && s.k_scale != nullptr, "qk_norm_rope: null norm scale");
+    const std::int64_t from[2] = {s.q_first, s.first};
+    const float* scale[2] = {s.q_scale, s.k_scale};
+    for (int kind = 0; kind < 2; ++kind, ++a.parts) {  // parts alternate q, k
+      a.first[a.parts] = from[kind];
+      a.scale[a.parts] = scale[kind];
+      a.start[a.parts + 1] = a.start[a.parts] + (s.end - from[kind]) * heads;
+    }
+  }
+  if (a.start[a.parts] == 0) return;
+  detail::qk_norm_rope_kernel<<<detail::norm_rope_blocks(a.start[a.parts], "qk_norm_rope"), detail::kNormRopeThreads,
+                                0, ctx.stream()>>>(a);
   EPONA_CUDA_CHECK_LAUNCH();
 }
 

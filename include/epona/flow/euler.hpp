@@ -3,7 +3,8 @@
 // double from the two fp32 grid values and rounded to fp32 where it multiplies v. Written
 // once against any velocity callable; the state (float32) and velocity buffers are the
 // caller's. The velocity may be stored in bf16 (the GPU's bf16 DiTs): the product a·v is then
-// rounded to bf16 before it is added, as PyTorch's `x + dt * v` under autocast.
+// rounded to bf16 before it is added, as PyTorch's `x + dt * v` under autocast; a velocity
+// that reads a bf16 state gets it from the update pass itself (sample_cast).
 #pragma once
 
 #include <cstdint>
@@ -41,6 +42,24 @@ struct RectifiedFlowEuler {
     for (std::int64_t i = 0; i < steps(); ++i) {
       velocity(i, grid[i], static_cast<const Tensor<float, B>&>(x), v);
       axpy(ctx, x.data(), v.data(), step_size(i), x.numel());
+    }
+  }
+
+  // The same for a velocity that reads its input in another type C (the GPU's bf16 DiTs, whose
+  // first GEMM takes the float32 state rounded to bf16): the state is also kept rounded in xc,
+  // converted once before the first step and then by each step's update in the same pass
+  // (axpy_convert), so no step converts it apart. velocity(i, t_i, xc, v).
+  template <class C, class V, class Velocity>
+  void sample_cast(Context& ctx, Tensor<float, B>& x, Tensor<C, B>& xc, Tensor<V, B>& v, Velocity&& velocity) const {
+    EPONA_CHECK(x.numel() == v.numel() && x.numel() == xc.numel(), "Euler: state ", shape_str(x.shape()),
+                ", its cast ", shape_str(xc.shape()), " and velocity ", shape_str(v.shape()), " differ in size");
+    convert(ctx, x.data(), xc.data(), x.numel());
+    for (std::int64_t i = 0; i < steps(); ++i) {
+      velocity(i, grid[i], static_cast<const Tensor<C, B>&>(xc), v);
+      if (i + 1 < steps())
+        axpy_convert(ctx, x.data(), v.data(), step_size(i), xc.data(), x.numel());
+      else
+        axpy(ctx, x.data(), v.data(), step_size(i), x.numel());
     }
   }
 };

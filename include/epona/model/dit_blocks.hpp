@@ -8,6 +8,7 @@
 // the official residual streams under autocast).
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <string>
 
@@ -70,12 +71,60 @@ struct JointRows {
 template <class B> using SideQueue = typename BackendTraits<B>::SideQueue;
 
 namespace detail {
-// y = (1 + scale) ⊙ LN(x) + shift over `rows` rows of x starting at `first`.
+// y = (1 + scale) ⊙ LN(x) + shift over `rows` rows of x starting at `first`; with `src`, those
+// rows are read from src instead of x.
 template <class Context, class B, class A>
 void modulate_rows(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& y, std::int64_t first, std::int64_t rows,
-                   const A* shift, const A* scale, float eps) {
+                   const A* shift, const A* scale, float eps, const A* src = nullptr) {
   const std::int64_t D = x.size(-1);
-  layer_norm_modulate(ctx, x.data() + first * D, y.data() + first * D, rows, D, shift, scale, eps);
+  layer_norm_modulate(ctx, src ? src : x.data() + first * D, y.data() + first * D, rows, D, shift, scale, eps);
+}
+
+// x_out = x + gate ⊙ y, then out = (1 + scale) ⊙ LN(x_out) + shift, with x read from `x` and the
+// update written to x_out (x_out may be x): one pass where the backend has the kernel with a
+// separate input (the GPU), else a copy and the in-place pass.
+template <class Context, class A>
+void add_gated_norm_from(Context& ctx, const A* x, A* x_out, const A* y, const A* gate, A* out, std::int64_t rows,
+                         std::int64_t n, const A* shift, const A* scale, float eps) {
+  if constexpr (requires { add_gated_layer_norm_modulate(ctx, x, x_out, y, gate, out, rows, n, shift, scale, eps); }) {
+    add_gated_layer_norm_modulate(ctx, x, x_out, y, gate, out, rows, n, shift, scale, eps);
+  } else {
+    if (x != x_out) copy(ctx, x, x_out, rows * n);
+    add_gated_layer_norm_modulate(ctx, x_out, y, gate, out, rows, n, shift, scale, eps);
+  }
+}
+
+// Rows of a packed [q | k | v] buffer (rows 3D wide) that share one QK-norm: the keys of rows
+// [first, end) and the queries of rows [q_first, end) (a pruned block's few queries).
+template <class B>
+struct QkRows {
+  std::int64_t first = 0, q_first = 0, end = 0;
+  const nn::QkNorm<B>* norm = nullptr;
+  const float* q_scale = nullptr;  // norm's, for the backend's joint kernel
+  const float* k_scale = nullptr;
+  QkRows(std::int64_t f, std::int64_t q, std::int64_t e, const nn::QkNorm<B>& n)
+      : first(f), q_first(q), end(e), norm(&n), q_scale(n.query_scale.data()), k_scale(n.key_scale.data()) {}
+};
+
+// QK RMSNorm + RoPE (rows of the joint table by token index) of every range in `parts`: one
+// launch where the backend has the joint kernel (the GPU: a double block's two streams, or a
+// single block's queries and keys), else one norm + RoPE call per range and kind.
+template <class B, class A, std::size_t S>
+void qk_norm_rope_rows(BackendContext<B>& ctx, A* qkv, const DitWidths& w, const nn::RopeTable<B>& rope,
+                       const std::array<QkRows<B>, S>& parts) {
+  const std::int64_t D = w.hidden, hd = w.head_dim();
+  if constexpr (requires { qk_norm_rope(ctx, qkv, 3 * D, D, w.heads, hd, w.rms_eps, rope.cos.data(), rope.sin.data(), parts); }) {
+    for (const auto& p : parts)
+      EPONA_CHECK(p.end <= rope.rows() && 2 * rope.pairs() == hd && p.norm->eps == parts[0].norm->eps,
+                  "QK-norm RoPE: rows up to ", p.end, " of a table of ", rope.rows(), " x ", rope.pairs(),
+                  " pairs, head dim ", hd);
+    qk_norm_rope(ctx, qkv, 3 * D, D, w.heads, hd, parts[0].norm->eps, rope.cos.data(), rope.sin.data(), parts);
+  } else {
+    for (const auto& p : parts) {
+      p.norm->queries_rope(ctx, qkv + p.q_first * 3 * D, p.end - p.q_first, 3 * D, w.heads, rope, p.q_first);
+      p.norm->keys_rope(ctx, qkv + p.first * 3 * D + D, p.end - p.first, 3 * D, w.heads, rope, p.first);
+    }
+  }
 }
 // Unmasked attention of queries at rows [q_first, q_first + q_rows) of the packed [q | k | v]
 // buffer (rows in_stride apart) over all `rows` keys; output rows out_stride apart.
@@ -118,32 +167,32 @@ struct DoubleStream {
     mlp.bind(w, p + s + "_mlp.", r);
   }
 
-  // q/k/v of rows [first, first+rows) into the joint qkv buffer, QK-normed and rotated with
-  // the same rows of the joint RoPE table; mv = this stream's modulation (shift, scale, gate) x 2.
-  // `normed`: s.modulated already holds these rows' modulated norm (the previous block's last
-  // residual add wrote it).
+  // q/k/v of rows [first, first+rows) into the joint qkv buffer (the block QK-norms and rotates
+  // both streams' rows afterwards, in one pass); mv = this stream's modulation (shift, scale,
+  // gate) x 2. `normed`: s.modulated already holds these rows' modulated norm (the previous
+  // block's last residual add wrote it). `src`: the rows' residual input when it is not in s.z
+  // yet (the condition stream of the first block reads cond_in's output where it lies).
   void project(Context& ctx, Scratch& s, const A* mv, std::int64_t first, std::int64_t rows, const DitWidths& w,
-               const nn::RopeTable<B>& rope, bool normed) const {
+               bool normed, const A* src = nullptr) const {
     const std::int64_t D = w.hidden;
-    if (!normed) detail::modulate_rows(ctx, s.z, s.modulated, first, rows, mv + 0 * D, mv + 1 * D, w.ln_eps);
+    if (!normed) detail::modulate_rows(ctx, s.z, s.modulated, first, rows, mv + 0 * D, mv + 1 * D, w.ln_eps, src);
     auto out = s.qkv.slice(first, first + rows);
     qkv(ctx, s.modulated.slice(first, first + rows), out);
-    norm.queries_rope(ctx, out.data(), rows, 3 * D, w.heads, rope, first);
-    norm.keys_rope(ctx, out.data() + D, rows, 3 * D, w.heads, rope, first);
   }
 
   // Gated attention projection and gated MLP on the stream's rows, each gated residual add
   // fused with the modulated norm after it: the MLP's, and with `next` = (shift, scale) of the
-  // next block's first norm on these rows, that one too (into s.modulated).
+  // next block's first norm on these rows, that one too (into s.modulated). `src` as in project:
+  // the first residual add reads it and writes s.z.
   void finish(Context& ctx, Scratch& s, const A* mv, std::int64_t first, std::int64_t rows, const DitWidths& w,
-              const A* next) const {
+              const A* next, const A* src = nullptr) const {
     const std::int64_t D = w.hidden;
     auto z = s.z.slice(first, first + rows);
     auto sub = s.sub.slice(first, first + rows);
     auto modulated = s.modulated.slice(first, first + rows);
     proj(ctx, s.attn.slice(first, first + rows), sub);
-    add_gated_layer_norm_modulate(ctx, z.data(), sub.data(), mv + 2 * D, modulated.data(), rows, D, mv + 3 * D,
-                                  mv + 4 * D, w.ln_eps);
+    detail::add_gated_norm_from(ctx, src ? src : z.data(), z.data(), sub.data(), mv + 2 * D, modulated.data(), rows, D,
+                                mv + 3 * D, mv + 4 * D, w.ln_eps);
     auto hidden = s.mlp.slice(first, first + rows);
     mlp(ctx, modulated, hidden, sub);
     if (next)
@@ -181,20 +230,24 @@ struct DoubleStreamBlock {
   // The two streams touch disjoint rows until the joint attention: the condition stream's
   // work goes to the side queue, overlapping the target stream's. `normed`: s.modulated holds
   // both streams' first modulated norm already; next_img / next_cond: (shift, scale) of the
-  // next block's first norm for each stream's rows (null: none).
+  // next block's first norm for each stream's rows (null: none); cond_src: the condition rows'
+  // residual input when s.z does not hold it yet (the first block; s.z gets the updated rows).
   void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
                   const nn::RopeTable<B>& rope, const A* mods, bool normed = false, const A* next_img = nullptr,
-                  const A* next_cond = nullptr) const {
+                  const A* next_cond = nullptr, const A* cond_src = nullptr) const {
     const std::int64_t D = widths.hidden;
     const A *img_mod = mods, *cond_mod = mods + 6 * D;
     Context& side = queue.side(ctx);
     queue.fork(ctx);
-    cond.project(side, s, cond_mod, 0, rows.cond, widths, rope, normed);
-    img.project(ctx, s, img_mod, rows.cond, rows.target, widths, rope, normed);
+    cond.project(side, s, cond_mod, 0, rows.cond, widths, normed, cond_src);
+    img.project(ctx, s, img_mod, rows.cond, rows.target, widths, normed);
     queue.join(ctx);
+    detail::qk_norm_rope_rows<B>(ctx, s.qkv.data(), widths, rope,
+                                 std::array{detail::QkRows<B>(0, 0, rows.cond, cond.norm),
+                                            detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)});
     detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D);
     queue.fork(ctx);
-    cond.finish(side, s, cond_mod, 0, rows.cond, widths, next_cond);
+    cond.finish(side, s, cond_mod, 0, rows.cond, widths, next_cond, cond_src);
     img.finish(ctx, s, img_mod, rows.cond, rows.target, widths, next_img);
     queue.join(ctx);
   }
@@ -253,15 +306,15 @@ struct SingleStreamBlock {
     const A* a_out = s.modulated.data() + first_out * D;
     // cat rows 0..m = [attention | GELU(mlp)] of the updated rows: the MLP GEMM writes its
     // columns directly, the attention the others. Queries and MLP (rows from first_out) run
-    // on the side queue, keys and values (all rows) on the main one.
+    // on the side queue, keys and values (all rows) on the main one; then the QK-norm and RoPE
+    // of both in one pass.
     Context& side = queue.side(ctx);
     queue.fork(ctx);
     q_part.strided(side, a_out, D, m, qkv + first_out * 3 * D, 3 * D);
     mlp_part.strided(side, a_out, D, m, s.cat.data() + D, D + Dm, BackendEpilogue<B>::GeluTanh);
-    norm.queries_rope(side, qkv + first_out * 3 * D, m, 3 * D, widths.heads, rope, first_out);
     kv_part.strided(ctx, s.modulated.data(), D, n, qkv + D, 3 * D);
-    norm.keys_rope(ctx, qkv + D, n, 3 * D, widths.heads, rope, 0);
     queue.join(ctx);
+    detail::qk_norm_rope_rows<B>(ctx, qkv, widths, rope, std::array{detail::QkRows<B>(0, first_out, n, norm)});
     detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D);
     linear2.strided(ctx, s.cat.data(), D + Dm, m, s.sub.data(), D);
     if (next)

@@ -141,6 +141,7 @@ class FluxDiT {
   std::size_t sample_bytes(std::int64_t batch, const JointRows& rows, std::int64_t steps) const {
     ArenaCounter<B> v;
     v.template take<A>({batch, rows.target, cfg_.out_channels});
+    if (kConvertInputs) v.template take<A>({batch, rows.target, cfg_.in_channels});
     const auto m = modulation_sizes(batch, steps);
     return m.kept + std::max(m.scratch, v.bytes() + velocity_bytes(rows));
   }
@@ -209,34 +210,7 @@ class FluxDiT {
   // x (batch, Lx, in) float32; out (batch, Lx, out).
   void velocity(Context& ctx, Arena<B>& arena, const Conditioning& c, const Modulations& m, std::int64_t time,
                 const Tensor<float, B>& x, Tensor<A, B>& out) const {
-    check_shape(x, {c.batch, c.rows.target, cfg_.in_channels}, "DiT input x");
-    check_shape(out, {c.batch, c.rows.target, cfg_.out_channels}, "DiT velocity output");
-    EPONA_CHECK(time >= 0 && time < m.times, "DiT: timestep index ", time, " outside the ", m.times, " prepared");
-    const std::int64_t n = c.rows.total(), D = cfg_.hidden_size;
-    for (std::int64_t b = 0; b < c.batch; ++b) {
-      ArenaScope<B> scope(arena);
-      auto [s, x_in] = plan_velocity(arena, c.rows);
-      embed_inputs(ctx, s, c, b, x[b], x_in);
-      const nn::RopeTable<B> rope{c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
-      // Each block's last residual add also writes the next block's first modulated norm
-      // (`next`: its (shift, scale), the first entries of its table columns), so every block
-      // after the first finds its input normed.
-      const A* mods = m.row(b, time);
-      for (std::size_t j = 0; j < double_blocks_.size(); ++j) {
-        const A* next = mods + double_blocks_[j].modulation_width();
-        const bool next_double = j + 1 < double_blocks_.size();  // per-stream (shift, scale)
-        double_blocks_[j](ctx, side_, s, c.rows, rope, mods, j > 0, next, next + (next_double ? 6 * D : 0));
-        mods = next;
-      }
-      for (std::size_t j = 0; j < single_blocks_.size(); ++j) {
-        const A* next = mods + single_blocks_[j].modulation_width();
-        single_blocks_[j](ctx, side_, s, c.rows, rope, mods, first_updated_row(j, c.rows),
-                          j > 0 || !double_blocks_.empty(), next);
-        mods = next;
-      }
-      auto o = out[b];
-      final_layer_(ctx, s, c.rows, mods, o, !double_blocks_.empty() || !single_blocks_.empty());
-    }
+    evaluate(ctx, arena, c, m, time, x, out);
   }
 
   // The official forward(x, ids, cond, cond_ids, t, y) in one call; t (batch) on the host.
@@ -262,14 +236,20 @@ class FluxDiT {
     for (std::int64_t b = 0; b < c.batch; ++b) std::copy_n(grid.data(), steps, t[b].data());  // t_0 .. t_{N-1}
     const Modulations m = modulations(ctx, arena, c, t);
     auto v = arena.template take<A>({c.batch, c.rows.target, cfg_.out_channels});
+    Tensor<A, B> x_cast;  // the state rounded to the GEMM type, updated by each Euler step
+    if constexpr (kConvertInputs) x_cast = arena.template take<A>(x.shape());
     GraphKey key{address(this), address(x.data()), address(v.data()), address(c.cond.data()), address(m.table.data()),
                  arena.mark(), static_cast<std::uint64_t>(c.batch), static_cast<std::uint64_t>(c.rows.cond),
                  static_cast<std::uint64_t>(c.rows.target)};
     for (float g : grid) key.push_back(std::bit_cast<std::uint32_t>(g));
     graph_.run(ctx, key, [&] {
-      euler.sample(ctx, x, v, [&](std::int64_t i, float, const Tensor<float, B>& state, Tensor<A, B>& vel) {
-        velocity(ctx, arena, c, m, i, state, vel);
-      });
+      const auto step = [&](std::int64_t i, float, const auto& state, Tensor<A, B>& vel) {
+        evaluate(ctx, arena, c, m, i, state, vel);
+      };
+      if constexpr (kConvertInputs)
+        euler.sample_cast(ctx, x, x_cast, v, step);
+      else
+        euler.sample(ctx, x, v, step);
     });
   }
 
@@ -411,16 +391,57 @@ class FluxDiT {
     return ids;
   }
 
-  // z = [cond_in(cond) | input(x)] of batch item b.
-  void embed_inputs(Context& ctx, Scratch& s, const Conditioning& c, std::int64_t b, const Tensor<float, B>& x,
+  // z = [cond_in(cond) | input(x)] of batch item b; the condition rows only when no double
+  // block reads them from c.cond itself. x is float32 (converted into x_in when the GEMMs take
+  // another type) or already of the GEMM type.
+  template <class X>
+  void embed_inputs(Context& ctx, Scratch& s, const Conditioning& c, std::int64_t b, const Tensor<X, B>& x,
                     Tensor<A, B>& x_in) const {
     auto target = s.z.slice(c.rows.cond, c.rows.total());
-    if constexpr (kConvertInputs) {
-      input_(ctx, as_activation(ctx, x, x_in), target);
-    } else {
+    if constexpr (std::is_same_v<X, A>) {
+      (void)x_in;
       input_(ctx, x, target);
+    } else {
+      input_(ctx, as_activation(ctx, x, x_in), target);
     }
-    copy(ctx, c.cond[b].data(), s.z.data(), c.rows.cond * cfg_.hidden_size);
+    if (double_blocks_.empty()) copy(ctx, c.cond[b].data(), s.z.data(), c.rows.cond * cfg_.hidden_size);
+  }
+
+  // velocity() for an input x of type X: float32 (converted per batch item when the GEMMs take
+  // another type) or already the GEMM type A (the sampler keeps its state rounded for them).
+  template <class X>
+  void evaluate(Context& ctx, Arena<B>& arena, const Conditioning& c, const Modulations& m, std::int64_t time,
+                const Tensor<X, B>& x, Tensor<A, B>& out) const {
+    check_shape(x, {c.batch, c.rows.target, cfg_.in_channels}, "DiT input x");
+    check_shape(out, {c.batch, c.rows.target, cfg_.out_channels}, "DiT velocity output");
+    EPONA_CHECK(time >= 0 && time < m.times, "DiT: timestep index ", time, " outside the ", m.times, " prepared");
+    const std::int64_t n = c.rows.total(), D = cfg_.hidden_size;
+    for (std::int64_t b = 0; b < c.batch; ++b) {
+      ArenaScope<B> scope(arena);
+      auto [s, x_in] = plan_velocity(arena, c.rows);
+      embed_inputs(ctx, s, c, b, x[b], x_in);
+      const nn::RopeTable<B> rope{c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
+      // Each block's last residual add also writes the next block's first modulated norm
+      // (`next`: its (shift, scale), the first entries of its table columns), so every block
+      // after the first finds its input normed. The first block reads the condition rows from
+      // cond_in's output (step-invariant) and writes their update into s.z: no per-step copy.
+      const A* mods = m.row(b, time);
+      for (std::size_t j = 0; j < double_blocks_.size(); ++j) {
+        const A* next = mods + double_blocks_[j].modulation_width();
+        const bool next_double = j + 1 < double_blocks_.size();  // per-stream (shift, scale)
+        double_blocks_[j](ctx, side_, s, c.rows, rope, mods, j > 0, next, next + (next_double ? 6 * D : 0),
+                          j == 0 ? c.cond[b].data() : nullptr);
+        mods = next;
+      }
+      for (std::size_t j = 0; j < single_blocks_.size(); ++j) {
+        const A* next = mods + single_blocks_[j].modulation_width();
+        single_blocks_[j](ctx, side_, s, c.rows, rope, mods, first_updated_row(j, c.rows),
+                          j > 0 || !double_blocks_.empty(), next);
+        mods = next;
+      }
+      auto o = out[b];
+      final_layer_(ctx, s, c.rows, mods, o, !double_blocks_.empty() || !single_blocks_.empty());
+    }
   }
 
   FluxDitConfig cfg_;
