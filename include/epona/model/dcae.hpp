@@ -269,10 +269,11 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
     if (!time_blocks.empty()) {
       const auto& time_rope = rope_tables(time);
       const auto& space_rope = rope_tables(space);
-      for (std::size_t i = 0; i < time_blocks.size(); ++i) {
-        time_blocks[i].forward_inplace(ctx, x, time, time_rope.first.data(), time_rope.second.data());
-        space_blocks[i].forward_inplace(ctx, x, space, space_rope.first.data(), space_rope.second.data());
-      }
+      if (!forward_fused(ctx, x, time, space, time_rope, space_rope))
+        for (std::size_t i = 0; i < time_blocks.size(); ++i) {
+          time_blocks[i].forward_inplace(ctx, x, time, time_rope.first.data(), time_rope.second.data());
+          space_blocks[i].forward_inplace(ctx, x, space, space_rope.first.data(), space_rope.second.data());
+        }
     }
     return from_tokens(ctx, x.reshape({N, L, C}), d);
   }
@@ -292,6 +293,30 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
     std::mutex mutex;
     std::map<std::array<std::int64_t, 6>, Tables> tables;
   };
+
+  // One block of the chain handed to a backend's fused_transformer_blocks.
+  struct FusedStep {
+    const nn::TransformerBlock<B, T>* block;
+    nn::TokenSequences seq;
+    const float *cos, *sin;
+  };
+
+  // The whole chain T0 S0 T1 S1 … as one fused call where the backend has one (CUDA:
+  // cuda/dcae_temporal.cuh); false when it has none or declines (then the blocks run one by one).
+  template <class Ctx>
+  bool forward_fused(Ctx& ctx, Tensor<float, B>& x, const nn::TokenSequences& time, const nn::TokenSequences& space,
+                     const Tables& time_rope, const Tables& space_rope) const {
+    if constexpr (is_host_backend<B>) {
+      return false;
+    } else {
+      std::vector<FusedStep> steps;
+      for (std::size_t i = 0; i < time_blocks.size(); ++i) {
+        steps.push_back({&time_blocks[i], time, time_rope.first.data(), time_rope.second.data()});
+        steps.push_back({&space_blocks[i], space, space_rope.first.data(), space_rope.second.data()});
+      }
+      return fused_transformer_blocks(ctx, x.data(), x.size(0), steps);
+    }
+  }
 
   // (cos, sin) of rope_table_1d in B's memory, made once per sequence layout and kept.
   const Tables& rope_tables(const nn::TokenSequences& seq) const {

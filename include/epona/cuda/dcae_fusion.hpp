@@ -1,0 +1,25 @@
+// epona/cuda/dcae_fusion.hpp — the switch of the DC-AE's fused GPU kernels (the temporal blocks
+// as one kernel per block, the upsampling pair's shuffle + shortcut in one pass, LiteMLA's
+// one-pass reductions). On by default; EPONA_CUDA_DCAE_FUSE=0 (read once) keeps the unfused kernels.
+#pragma once
+
+#include <atomic>
+#include <cstdlib>
+
+namespace epona::cuda {
+
+namespace dcae_fusion_detail {
+inline std::atomic<bool>& flag() {
+  static std::atomic<bool> on{[] {
+    const char* e = std::getenv("EPONA_CUDA_DCAE_FUSE");
+    return !(e && e[0] == '0');
+  }()};
+  return on;
+}
+}  // namespace dcae_fusion_detail
+
+// Whether the DC-AE's fused kernels run (side-by-side timing and tests turn them off).
+inline bool dcae_fusion() { return dcae_fusion_detail::flag().load(); }
+inline void set_dcae_fusion(bool on) { dcae_fusion_detail::flag().store(on); }
+
+}  // namespace epona::cuda
