@@ -395,7 +395,12 @@ TEST_CASE("cuda relu_linear_attention vs the CPU: both orders, auto choice, head
     check_mla<float>(1, 2, 16, 2, 3, order);  // 6 pixels: auto takes the quadratic order
   }
   check_mla<float>(1, 16, 32, 64, 128, O::Auto);  // decoder stage 3's map: many chunks
+  check_mla<bf16>(1, 16, 32, 64, 128, O::Auto);
   check_mla<bf16>(1, 32, 32, 16, 32, O::Auto);
+  check_mla<float>(2, 3, 16, 9, 11, O::Linear);   // d = 16: 16-byte loads, half the 32-wide tiles
+  check_mla<float>(1, 2, 12, 7, 9, O::Linear);    // d = 12: element-wise loads and stores
+  check_mla<bf16>(1, 2, 12, 7, 9, O::Linear);
+  check_mla<float>(1, 4, 32, 1, 67, O::Linear);   // a partial last tile (67 pixels)
   cuda::Context& ctx = gpu();
   Dev<float> q({1, 1, 1, 3 * 64}), o({1, 1, 1, 64});
   CHECK_THROWS_WITH_AS(cuda::relu_linear_attention(ctx, q.data(), o.data(), 1, 1, 64, 1, 1e-15f),
@@ -453,6 +458,51 @@ TEST_CASE("cuda pixel (un)shuffle with averaging / duplicating shortcuts vs the 
   check_shuffles<float>(1, 64, 3, 5, 1, 32, 128);  // r = 1: the encoder's project_out mean, decoder's project_in repeat
   check_shuffles<bf16>(1, 64, 3, 5, 1, 32, 128);
   check_shuffles<float>(1, 3, 8, 8, 2, 12, 3);     // odd channels
+}
+
+namespace {
+
+// The upsampling pair in one pass: out = shuffle_2(main) + D(x; C_out, 2) with main (N, C_out·4,
+// H, W) and x (N, C_x, H, W), against the CPU's shuffle then accumulating shortcut (float32:
+// exact sums of two values, bf16 one rounding of that sum) and against the GPU's two passes
+// (bit for bit: the same single rounding).
+template <class T>
+void check_upsample_pair(i64 N, i64 C_out, i64 C_x, i64 H, i64 W) {
+  cuda::Context& ctx = gpu();
+  HostF main = random_tensor({N, 4 * C_out, H, W}, next_seed()), x = random_tensor({N, C_x, H, W}, next_seed());
+  round_to<T>(main), round_to<T>(x);
+  HostF ref({N, C_out, 2 * H, 2 * W});
+  cpu::pixel_shuffle_duplicate(host(), main.data(), ref.data(), ShuffleShape{N, 4 * C_out, H, W, 2}, C_out, false);
+  cpu::pixel_shuffle_duplicate(host(), x.data(), ref.data(), ShuffleShape{N, C_x, H, W, 2}, C_out, true);
+  const Dev<T> dmain = upload_map<T>(ctx, main), dx = upload_map<T>(ctx, x);
+  Dev<T> fused({N, 2 * H, 2 * W, C_out}), two_pass({N, 2 * H, 2 * W, C_out});
+  poison(ctx, fused), poison(ctx, two_pass);
+  REQUIRE(cuda::pixel_shuffle_add_duplicate_fused(ctx, dmain.data(), dx.data(), fused.data(),
+                                                  ShuffleShape{N, 4 * C_out, H, W, 2}, C_out, C_x));
+  cuda::pixel_shuffle_duplicate(ctx, dmain.data(), two_pass.data(), ShuffleShape{N, 4 * C_out, H, W, 2}, C_out, false);
+  cuda::pixel_shuffle_duplicate(ctx, dx.data(), two_pass.data(), ShuffleShape{N, C_x, H, W, 2}, C_out, true);
+  const HostF got = download_map(ctx, fused);
+  const std::string what = std::string("upsample pair fused ") + type_name<T>() + " C_out " + std::to_string(C_out) +
+                           " C_x " + std::to_string(C_x);
+  check_error(measure(got, ref), one_rounding<T>(max_abs(ref)), what + " vs CPU");
+  const Diff e = measure(got, download_map(ctx, two_pass));
+  CHECK(e.nans == 0);
+  CHECK(e.max_abs == 0);
+}
+
+}  // namespace
+
+TEST_CASE("cuda upsampling pair (pixel shuffle + duplicating shortcut) in one pass vs the CPU and two passes") {
+  EPONA_REQUIRE_GPU();
+  check_upsample_pair<float>(1, 16, 32, 5, 7);   // rep 2 (decoder stages 3, 1: C -> C/2)
+  check_upsample_pair<bf16>(1, 16, 32, 5, 7);
+  check_upsample_pair<float>(2, 24, 24, 3, 9);   // rep 4 (stages 4, 2: C -> C), batch 2
+  check_upsample_pair<bf16>(2, 24, 24, 3, 9);
+  check_upsample_pair<bf16>(1, 256, 512, 8, 16);  // stage 1's widths
+  // geometries the fused kernel declines (the caller then runs the two passes)
+  const Dev<float> a({1, 4, 4, 12}), b({1, 4, 4, 3});
+  Dev<float> o({1, 8, 8, 3});
+  CHECK_FALSE(cuda::pixel_shuffle_add_duplicate_fused(gpu(), a.data(), b.data(), o.data(), ShuffleShape{1, 12, 4, 4, 2}, 3, 3));
 }
 
 TEST_CASE("cuda transpose_last2 with type conversion is exact (up to bf16 rounding)") {

@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <type_traits>
 
 #include "epona/cpu/conv.hpp"
 #include "epona/cuda/context.hpp"
@@ -19,8 +20,6 @@ namespace mla_detail {
 constexpr int kMaxDim = 32;        // head dims up to one warp
 constexpr int kThreads = 256;
 constexpr int kTile = 64;          // pixels staged in shared memory per step
-constexpr int kEntries = (kMaxDim + 1) * kMaxDim;
-constexpr int kPerThread = (kEntries + kThreads - 1) / kThreads;
 
 // Element (pixel p, channel c) of the per-head groups: q at 3·d·a + j, k at +d, v at +2d.
 struct Geometry {
@@ -31,42 +30,72 @@ struct Geometry {
 
 __device__ __forceinline__ float relu(float v) { return v > 0.f ? v : 0.f; }
 
+// Up to 8 values (as float32, zero past `left`) of a head's q, k or v from p: one 16-byte load
+// when kPacked (d a multiple of 8, rows 16-byte aligned), else element by element.
+template <bool kPacked, class T>
+__device__ __forceinline__ void load_pack(const T* p, int left, float (&v)[detail::kPack]) {
+  if constexpr (kPacked) {
+    detail::load8(p, v);
+  } else {
+#pragma unroll
+    for (int j = 0; j < detail::kPack; ++j) v[j] = j < left ? detail::to_f32(p[j]) : 0.f;
+  }
+}
+
+// d values of one pixel's q, k or v (float32, zero past d).
+template <bool kPacked, class T>
+__device__ __forceinline__ void load_head(const T* p, int d, float (&v)[kMaxDim]) {
+#pragma unroll
+  for (int j0 = 0; j0 < kMaxDim; j0 += detail::kPack) {
+    float part[detail::kPack] = {};
+    if (j0 < d) load_pack<kPacked>(p + j0, d - j0, part);
+#pragma unroll
+    for (int j = 0; j < detail::kPack; ++j) v[j0 + j] = part[j];
+  }
+}
+
 // grid (chunks, heads, images): partial[(img, head, chunk)][i·d + j] = Σ_p vrow_i(p) relu(k_j(p))
-// over the chunk's pixels, with vrow_d = 1 (the ones row: the normaliser's Σ_p relu(k_j(p))).
-template <class T>
-__global__ void partial_kernel(const T* __restrict__ qkv, float* __restrict__ partial, Geometry g,
-                               std::int64_t chunk_pixels) {
-  __shared__ float ks[kTile][kMaxDim], vs[kTile][kMaxDim];
-  const int d = g.d, a = blockIdx.y, chunk = blockIdx.x, chunks = gridDim.x;
+// over the chunk's pixels in order, with vrow_d = 1 (the ones row: the normaliser's Σ_p relu(k_j)).
+// Tiles of kTile pixels go through shared memory (16-byte loads of 8 channels per thread);
+// thread t then owns row i = t / 8 and columns 4(t % 8) … +3 (threads 0-7 also the ones row).
+template <class T, bool kPacked>
+__global__ void __launch_bounds__(kThreads) partial_kernel(const T* __restrict__ qkv, float* __restrict__ partial,
+                                                           Geometry g, std::int64_t chunk_pixels) {
+  constexpr int kRow = kMaxDim + 4, kPacks = kMaxDim / detail::kPack;  // rows padded: conflict-free stores
+  __shared__ __align__(16) float ks[kTile][kRow];
+  __shared__ __align__(16) float vs[kTile][kRow];
+  const int d = g.d, a = blockIdx.y, chunk = blockIdx.x, chunks = gridDim.x, t = threadIdx.x;
   const std::int64_t img = blockIdx.z;
   const T* base = qkv + img * g.pixels * g.row() + 3 * std::int64_t{a} * d;
   const std::int64_t p_begin = chunk * chunk_pixels, p_end = std::min(g.pixels, p_begin + chunk_pixels);
-  float acc[kPerThread] = {};
+  const int i = t / 8, j0 = 4 * (t % 8);
+  float acc[4] = {}, ones[4] = {};
   for (std::int64_t t0 = p_begin; t0 < p_end; t0 += kTile) {
     const int n = static_cast<int>(std::min<std::int64_t>(kTile, p_end - t0));
-    for (int e = threadIdx.x; e < n * d; e += blockDim.x) {
-      const int p = e / d, j = e % d;
-      const T* px = base + (t0 + p) * g.row();
-      ks[p][j] = relu(detail::to_f32(px[d + j]));
-      vs[p][j] = detail::to_f32(px[2 * d + j]);
+    for (int u = t; u < 2 * kTile * kPacks; u += kThreads) {  // unit u: 8 channels of one pixel's k or v
+      const int c8 = (u % kPacks) * detail::kPack, p = (u / kPacks) % kTile;
+      const bool is_v = u >= kTile * kPacks;
+      float v[detail::kPack] = {};
+      if (p < n && c8 < d) load_pack<kPacked>(base + (t0 + p) * g.row() + (is_v ? 2 * d : d) + c8, d - c8, v);
+      float* dst = (is_v ? vs[p] : ks[p]) + c8;
+#pragma unroll
+      for (int e = 0; e < detail::kPack; ++e) dst[e] = is_v ? v[e] : relu(v[e]);
     }
     __syncthreads();
-#pragma unroll
-    for (int t = 0; t < kPerThread; ++t) {
-      const int e = threadIdx.x + t * kThreads;
-      if (e >= (d + 1) * d) continue;
-      const int i = e / d, j = e % d;
-      float s = acc[t];
-      for (int p = 0; p < n; ++p) s += (i < d ? vs[p][i] : 1.0f) * ks[p][j];
-      acc[t] = s;
+    for (int p = 0; p < n; ++p) {
+      const float4 k4 = *reinterpret_cast<const float4*>(&ks[p][j0]);
+      const float vi = vs[p][i];
+      acc[0] += vi * k4.x, acc[1] += vi * k4.y, acc[2] += vi * k4.z, acc[3] += vi * k4.w;
+      if (t < 8) ones[0] += k4.x, ones[1] += k4.y, ones[2] += k4.z, ones[3] += k4.w;
     }
     __syncthreads();
   }
   float* out = partial + ((img * gridDim.y + a) * chunks + chunk) * std::int64_t{(d + 1) * d};
 #pragma unroll
-  for (int t = 0; t < kPerThread; ++t) {
-    const int e = threadIdx.x + t * kThreads;
-    if (e < (d + 1) * d) out[e] = acc[t];
+  for (int e = 0; e < 4; ++e) {
+    const int j = j0 + e;
+    if (i < d && j < d) out[i * d + j] = acc[e];
+    if (t < 8 && j < d) out[d * d + j] = ones[e];
   }
 }
 
@@ -84,28 +113,48 @@ __global__ void reduce_kernel(const float* __restrict__ partial, float* __restri
   }
 }
 
-// grid (pixel blocks, heads, images), one warp per pixel: out_i = Σ_j M[i][j] q_j / (Σ_j M[d][j] q_j + eps).
-template <class T>
-__global__ void apply_kernel(const T* __restrict__ qkv, const float* __restrict__ m, T* __restrict__ out, Geometry g,
-                             float eps) {
-  __shared__ float ms[(kMaxDim + 1) * (kMaxDim + 1)];
-  const int d = g.d, a = blockIdx.y, lane = threadIdx.x & 31, warps = blockDim.x >> 5;
+// grid (pixel blocks, heads, images), one thread per pixel: out_i = Σ_j M[i][j] relu(q_j) /
+// (Σ_j M[d][j] relu(q_j) + eps), M of the block's head in shared memory (read as broadcasts).
+template <class T, bool kPacked>
+__global__ void __launch_bounds__(kThreads) apply_kernel(const T* __restrict__ qkv, const float* __restrict__ m,
+                                                         T* __restrict__ out, Geometry g, float eps) {
+  __shared__ __align__(16) float ms[kMaxDim + 1][kMaxDim];
+  const int d = g.d, a = blockIdx.y;
   const std::int64_t img = blockIdx.z;
   const float* mat = m + (img * gridDim.y + a) * std::int64_t{(d + 1) * d};
-  for (int e = threadIdx.x; e < (d + 1) * d; e += blockDim.x) ms[(e / d) * (d + 1) + e % d] = mat[e];
+  for (int e = threadIdx.x; e < (kMaxDim + 1) * kMaxDim; e += blockDim.x) {
+    const int i = e / kMaxDim, j = e % kMaxDim;
+    ms[i][j] = (i < d || i == kMaxDim) && j < d ? mat[(i == kMaxDim ? d : i) * d + j] : 0.f;
+  }
   __syncthreads();
-  const T* base = qkv + img * g.pixels * g.row() + 3 * std::int64_t{a} * d;
-  T* obase = out + img * g.pixels * std::int64_t{g.heads} * d + std::int64_t{a} * d;
-  for (std::int64_t p = blockIdx.x * std::int64_t{warps} + (threadIdx.x >> 5); p < g.pixels;
-       p += std::int64_t{gridDim.x} * warps) {
-    const float q = lane < d ? relu(detail::to_f32(base[p * g.row() + lane])) : 0.f;
-    float num = 0.f, den = 0.f;
-    for (int j = 0; j < d; ++j) {
-      const float qj = __shfl_sync(0xffffffffu, q, j);
-      if (lane < d) num += ms[lane * (d + 1) + j] * qj;
-      den += ms[d * (d + 1) + j] * qj;
+  const std::int64_t p = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x;
+  if (p >= g.pixels) return;
+  float q[kMaxDim];
+  load_head<kPacked>(qkv + img * g.pixels * g.row() + p * g.row() + 3 * std::int64_t{a} * d, d, q);
+#pragma unroll
+  for (int j = 0; j < kMaxDim; ++j) q[j] = relu(q[j]);
+  const auto dot = [&](int i) {
+    float s = 0.f;
+#pragma unroll
+    for (int j = 0; j < kMaxDim; j += 4) {
+      const float4 w = *reinterpret_cast<const float4*>(&ms[i][j]);
+      s += w.x * q[j] + w.y * q[j + 1] + w.z * q[j + 2] + w.w * q[j + 3];
     }
-    if (lane < d) obase[p * g.heads * d + lane] = detail::from_f32<T>(num / (den + eps));
+    return s;
+  };
+  const float den = dot(kMaxDim) + eps;
+  T* o = out + (img * g.pixels + p) * std::int64_t{g.heads} * d + std::int64_t{a} * d;
+  if constexpr (kPacked) {
+#pragma unroll
+    for (int i0 = 0; i0 < kMaxDim; i0 += detail::kPack) {
+      if (i0 >= d) break;
+      float v[detail::kPack];
+#pragma unroll
+      for (int e = 0; e < detail::kPack; ++e) v[e] = dot(i0 + e) / den;
+      detail::store8(o + i0, v);
+    }
+  } else {
+    for (int i = 0; i < d; ++i) o[i] = detail::from_f32<T>(dot(i) / den);
   }
 }
 
@@ -156,14 +205,15 @@ void relu_linear_attention(Context& ctx, const T* qkv, T* out, std::int64_t N, s
   if (N == 0 || HW == 0) return;
   const Geometry g{HW, static_cast<int>(heads), static_cast<int>(d)};
   const bool linear = order == cpu::AttentionOrder::Auto ? HW > d : order == cpu::AttentionOrder::Linear;
-  constexpr int warps = kThreads / 32, pixels_per_warp = 16;  // amortise each block's load of the matrix
-  const std::int64_t pixel_blocks =
-      std::min<std::int64_t>((HW + warps * pixels_per_warp - 1) / (warps * pixels_per_warp), 65535);
   if (!linear) {
+    constexpr int warps = kThreads / 32, pixels_per_warp = 16;  // amortise each block's start
+    const std::int64_t pixel_blocks =
+        std::min<std::int64_t>((HW + warps * pixels_per_warp - 1) / (warps * pixels_per_warp), 65535);
     quadratic_kernel<<<grid(pixel_blocks, heads, N), kThreads, 0, ctx.stream()>>>(qkv, out, g, eps);
     EPONA_CUDA_CHECK_LAUNCH();
     return;
   }
+  EPONA_CHECK((HW + kThreads - 1) / kThreads <= 0x7fffffff, "relu_linear_attention: ", HW, " pixels exceed one launch");
   // Enough chunks for about two blocks per multiprocessor, each of at least one tile.
   const std::int64_t want = std::max<std::int64_t>(1, 2 * ctx.info().multiprocessors / (N * heads));
   const std::int64_t chunks = std::clamp<std::int64_t>(std::min(want, (HW + kTile - 1) / kTile), 1, 1024);
@@ -171,13 +221,22 @@ void relu_linear_attention(Context& ctx, const T* qkv, T* out, std::int64_t N, s
   const int entries = static_cast<int>((d + 1) * d);
   Tensor<float, Cuda> partial = scratch_tensor<float>(ctx, {N * heads * chunks * entries});
   Tensor<float, Cuda> m = scratch_tensor<float>(ctx, {N * heads * entries});
-  partial_kernel<<<grid(chunks, heads, N), kThreads, 0, ctx.stream()>>>(qkv, partial.data(), g, chunk_pixels);
-  EPONA_CUDA_CHECK_LAUNCH();
-  reduce_kernel<<<detail::grid_for(N * heads * entries, kThreads), kThreads, 0, ctx.stream()>>>(
-      partial.data(), m.data(), N * heads, static_cast<int>(chunks), entries);
-  EPONA_CUDA_CHECK_LAUNCH();
-  apply_kernel<<<grid(pixel_blocks, heads, N), kThreads, 0, ctx.stream()>>>(qkv, m.data(), out, g, eps);
-  EPONA_CUDA_CHECK_LAUNCH();
+  // 16-byte loads and stores when every head's row segment is 16-byte aligned
+  const bool packed = d % detail::kPack == 0 && detail::aligned16(qkv) && detail::aligned16(out);
+  const auto launch = [&](auto packed_tag) {
+    constexpr bool kPacked = decltype(packed_tag)::value;
+    partial_kernel<T, kPacked><<<grid(chunks, heads, N), kThreads, 0, ctx.stream()>>>(qkv, partial.data(), g,
+                                                                                      chunk_pixels);
+    EPONA_CUDA_CHECK_LAUNCH();
+    reduce_kernel<<<detail::grid_for(N * heads * entries, kThreads), kThreads, 0, ctx.stream()>>>(
+        partial.data(), m.data(), N * heads, static_cast<int>(chunks), entries);
+    EPONA_CUDA_CHECK_LAUNCH();
+    apply_kernel<T, kPacked><<<grid((HW + kThreads - 1) / kThreads, heads, N), kThreads, 0, ctx.stream()>>>(
+        qkv, m.data(), out, g, eps);
+    EPONA_CUDA_CHECK_LAUNCH();
+  };
+  if (packed) launch(std::true_type{});
+  else launch(std::false_type{});
 }
 
 }  // namespace epona::cuda

@@ -1,7 +1,8 @@
 // epona/cuda/pixel_shuffle.cuh — the DC-AE's data movement on the GPU over channels-last maps,
 // as cpu/pixel_shuffle.hpp: pixel (un)shuffle in torch's channel order with the averaging and
-// duplicating shortcuts in the same pass (optionally accumulating into a residual), and the
-// (n, a, b) -> (n, b, a) transpose (with a type conversion) between NCHW and channels-last.
+// duplicating shortcuts in the same pass (optionally accumulating into a residual), the
+// upsampling pair shuffle(conv) + duplicating shortcut in one pass, and the (n, a, b) -> (n, b, a)
+// transpose (with a type conversion) between NCHW and channels-last.
 #pragma once
 
 #include <algorithm>
@@ -9,6 +10,7 @@
 
 #include "epona/cpu/pixel_shuffle.hpp"
 #include "epona/cuda/context.hpp"
+#include "epona/cuda/dcae_fusion.hpp"
 #include "epona/cuda/device.cuh"
 
 namespace epona::cuda {
@@ -103,6 +105,47 @@ struct ShuffleLaunch {
   }
 };
 
+// The upsampling pair in one pass (r = 2): out[n, 2y+i, 2x+j, c] = round(main[n, y, x, 4c + s] +
+// x[n, y, x, (4c + s)/kRep]), s = 2i + j. One thread per input pixel and 8 output channels: it
+// reads main's 32 channels 4c0 … 4c0+31 and x's 32/kRep channels with 16-byte loads and writes
+// the 4 output pixels' 8 channels with 16-byte stores.
+template <class T, int kRep>
+__global__ void shuffle2_duplicate_add_kernel(const T* __restrict__ main, const T* __restrict__ x, T* __restrict__ out,
+                                              std::uint32_t H, std::uint32_t W, std::uint32_t Co,
+                                              std::int64_t items) {
+  constexpr int kP = detail::kPack, kMain = 4 * kP, kX = kMain / kRep;
+  const std::uint32_t packs = Co / kP, Cm = 4 * Co, Cx = Cm / kRep;
+  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < items;
+       i += std::int64_t{gridDim.x} * blockDim.x) {
+    const std::uint32_t c0 = static_cast<std::uint32_t>(i % packs) * kP;
+    const std::int64_t pixel = i / packs;  // (n, y, x) of the input
+    const std::int64_t xx = pixel % W, rest = pixel / W, y = rest % H, n = rest / H;
+    float m[kMain], s[kX];
+#pragma unroll
+    for (int q = 0; q < kMain / kP; ++q) {
+      float v[kP];
+      detail::load8(main + pixel * Cm + 4 * c0 + q * kP, v);
+#pragma unroll
+      for (int e = 0; e < kP; ++e) m[q * kP + e] = v[e];
+    }
+#pragma unroll
+    for (int q = 0; q < kX / kP; ++q) {
+      float v[kP];
+      detail::load8(x + pixel * Cx + 4 * c0 / kRep + q * kP, v);
+#pragma unroll
+      for (int e = 0; e < kP; ++e) s[q * kP + e] = v[e];
+    }
+#pragma unroll
+    for (int sub = 0; sub < 4; ++sub) {
+      float o[kP];
+#pragma unroll
+      for (int k = 0; k < kP; ++k) o[k] = m[4 * k + sub] + s[(4 * k + sub) / kRep];
+      const std::int64_t opix = (n * 2 * H + 2 * y + sub / 2) * (2 * W) + 2 * xx + sub % 2;
+      detail::store8(out + opix * Co + c0, o);
+    }
+  }
+}
+
 template <class TI, class TO>
 __global__ void transpose_kernel(const TI* __restrict__ x, TO* __restrict__ y, std::int64_t A, std::int64_t B) {
   __shared__ float tile[32][33];
@@ -161,6 +204,36 @@ void pixel_shuffle_duplicate(Context& ctx, const T* x, T* out, const ShuffleShap
   shuffle_detail::launch_shuffle<shuffle_detail::ShuffleLaunch>(ctx, x, out, q, s.batch * s.height * s.width * s.channels,
                                                                 s.batch * s.height * r * s.width * r * channels_out,
                                                                 accumulate);
+}
+
+// The upsampling pair y = shuffle_2(main) + D(x; C_out, 2) in one pass: main (N, H, W, 4·C_out)
+// (the conv's output), x (N, H, W, C_x) with 4·C_out / C_x = 2 or 4, out (N, 2H, 2W, C_out).
+// Same rounding as the two passes (round(main + x): main is already rounded, the shuffle and the
+// duplication are copies). False (nothing done) for other geometries, unaligned pointers or
+// with the DC-AE fusions off: then run pixel_shuffle_duplicate twice.
+template <class T>
+bool pixel_shuffle_add_duplicate_fused(Context& ctx, const T* main, const T* x, T* out, const ShuffleShape& s,
+                                 std::int64_t channels_out, std::int64_t x_channels) {
+  static_assert(is_device_float<T>, "pixel_shuffle_add_duplicate_fused takes float or bf16");
+  if (!dcae_fusion() || s.factor != 2 || channels_out % detail::kPack != 0 || x_channels <= 0 ||
+      s.channels != 4 * channels_out || (4 * channels_out) % x_channels != 0 || x_channels % detail::kPack != 0)
+    return false;
+  const std::int64_t rep = 4 * channels_out / x_channels;
+  if ((rep != 2 && rep != 4) || !detail::aligned16(main) || !detail::aligned16(x) || !detail::aligned16(out) ||
+      std::max({s.height, s.width, s.channels}) >= (std::int64_t{1} << 31))
+    return false;
+  const std::int64_t items = s.batch * s.height * s.width * (channels_out / detail::kPack);
+  if (items == 0) return true;
+  const auto u32 = [](std::int64_t v) { return static_cast<std::uint32_t>(v); };
+  const unsigned blocks = detail::grid_for(items, 256);
+  if (rep == 2)
+    shuffle_detail::shuffle2_duplicate_add_kernel<T, 2><<<blocks, 256, 0, ctx.stream()>>>(
+        main, x, out, u32(s.height), u32(s.width), u32(channels_out), items);
+  else
+    shuffle_detail::shuffle2_duplicate_add_kernel<T, 4><<<blocks, 256, 0, ctx.stream()>>>(
+        main, x, out, u32(s.height), u32(s.width), u32(channels_out), items);
+  EPONA_CUDA_CHECK_LAUNCH();
+  return true;
 }
 
 // y[n, j, i] = x[n, i, j] for x (N, A, B): NCHW (N, C, HW) <-> channels-last (N, HW, C), with

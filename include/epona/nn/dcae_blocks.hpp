@@ -152,9 +152,8 @@ struct UpsampleBlock : Bindable<UpsampleBlock<B, T>> {
   // in channels at H x W -> out channels at 2H x 2W
   template <class Ctx>
   Tensor<activation_t<B, T>, B> forward(Ctx& ctx, const Tensor<activation_t<B, T>, B>& x) const {
-    auto y = pixel_shuffle(ctx, conv.forward(ctx, x), factor);
-    if (shortcut) add_channel_duplicate_up(ctx, x, y, factor);
-    return y;
+    if (shortcut) return pixel_shuffle_add_duplicate(ctx, conv.forward(ctx, x), x, factor);
+    return pixel_shuffle(ctx, conv.forward(ctx, x), factor);
   }
 };
 

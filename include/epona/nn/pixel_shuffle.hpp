@@ -1,7 +1,8 @@
 // epona/nn/pixel_shuffle.hpp — F.pixel_unshuffle / F.pixel_shuffle and the DC-AE's two
 // parameter-free shortcuts on feature maps: PixelUnshuffleChannelAveragingDownSampleLayer
 // (unshuffle, then mean of consecutive channel groups) and ChannelDuplicatingPixelUnshuffleUpSampleLayer
-// (repeat-interleave channels, then shuffle). The `add_` forms accumulate into a residual sum.
+// (repeat-interleave channels, then shuffle). The `add_` forms accumulate into a residual sum;
+// pixel_shuffle_add_duplicate is the upsampling pair in one call.
 #pragma once
 
 #include <cstdint>
@@ -76,6 +77,28 @@ Tensor<A, B> pixel_shuffle(Ctx& ctx, const Tensor<A, B>& x, std::int64_t factor)
   EPONA_CHECK(factor >= 1 && s.channels % (factor * factor) == 0, "pixel_shuffle: ", s.channels,
               " channels are not divisible by factor² = ", factor * factor);
   return channel_duplicate_up(ctx, x, s.channels / (factor * factor), factor);
+}
+
+// The upsampling pair F.pixel_shuffle(main, r) + D(x; C_out, r), C_out = main's channels / r²:
+// one pass where the backend fuses it (CUDA: pixel_shuffle_add_duplicate_fused), else the shuffle and
+// the accumulating shortcut. Same result either way (the sum is rounded once).
+template <class Ctx, class A, class B>
+Tensor<A, B> pixel_shuffle_add_duplicate(Ctx& ctx, const Tensor<A, B>& main, const Tensor<A, B>& x,
+                                         std::int64_t factor) {
+  const auto s = shuffle_detail::geometry(main, factor, "pixel_shuffle");
+  const MapDims dx = map_dims(x, "channel duplicating shortcut");
+  EPONA_CHECK(factor >= 1 && s.channels % (factor * factor) == 0, "pixel_shuffle: ", s.channels,
+              " channels are not divisible by factor² = ", factor * factor);
+  EPONA_CHECK(dx.batch == s.batch && dx.height == s.height && dx.width == s.width, "upsampling pair: shortcut input ",
+              shape_str(x.shape()), " does not fit the convolution's output ", shape_str(main.shape()));
+  const std::int64_t out_channels = s.channels / (factor * factor);
+  if constexpr (!is_host_backend<B>) {
+    Tensor<A, B> y = new_map<A, B>(ctx, {s.batch, out_channels, s.height * factor, s.width * factor});
+    if (pixel_shuffle_add_duplicate_fused(ctx, main.data(), x.data(), y.data(), s, out_channels, dx.channels)) return y;
+  }
+  Tensor<A, B> y = pixel_shuffle(ctx, main, factor);
+  add_channel_duplicate_up(ctx, x, y, factor);
+  return y;
 }
 
 }  // namespace epona::nn
