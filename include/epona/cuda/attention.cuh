@@ -617,8 +617,12 @@ inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std:
 }
 
 // Which bf16 kernel runs: Auto picks by shape; the others are for tests and benchmarks.
-// Wgmma64 / Wgmma128: the Hopper kernel (attention_wgmma.cuh) with one / two warpgroups.
-enum class FlashKernel { Auto, Rows64, Rows128, Rows64Split4, Short, Wgmma64, Wgmma128 };
+// Wgmma64, Tma64, Tma128: the Hopper kernels (attention_wgmma.cuh).
+enum class FlashKernel { Auto, Rows64, Rows128, Rows64Split4, Short, Wgmma64, Tma64, Tma128 };
+
+inline bool is_wgmma(FlashKernel k) {
+  return k == FlashKernel::Wgmma64 || k == FlashKernel::Tma64 || k == FlashKernel::Tma128;
+}
 
 inline const char* flash_kernel_name(FlashKernel k) {
   switch (k) {
@@ -627,8 +631,9 @@ inline const char* flash_kernel_name(FlashKernel k) {
     case FlashKernel::Rows128: return "128 rows (4 warps x 32)";
     case FlashKernel::Rows64Split4: return "64 rows, keys split 4 (8 warps x 32)";
     case FlashKernel::Short: return "short (warp per head)";
-    case FlashKernel::Wgmma64: return "wgmma 64 rows (1 warpgroup, 64-key tiles)";
-    case FlashKernel::Wgmma128: return "wgmma 128 rows (2 warpgroups, 128-key tiles)";
+    case FlashKernel::Wgmma64: return "wgmma 64 rows, cp.async (1 warpgroup, 64-key tiles)";
+    case FlashKernel::Tma64: return "wgmma 64 rows, TMA (1 consumer warpgroup, 128-key tiles)";
+    case FlashKernel::Tma128: return "wgmma 128 rows, TMA (2 consumer warpgroups, 128-key tiles)";
   }
   return "?";
 }
@@ -659,10 +664,11 @@ void launch_flash_short(Context& ctx, const FlashParams<bf16>& p, std::int64_t s
                                                                                          pairs);
 }
 
-// The Hopper kernel (attention_wgmma.cuh, included at the end): whether this build and device
-// have it, and its launch. It takes head dim 128 with 16-byte aligned rows and no additive mask.
+// The Hopper kernels (attention_wgmma.cuh, included at the end): whether this build and device
+// have them, and their launch (false: a TMA kernel could not describe these tensors, nothing
+// ran). They take head dim 128 with 16-byte aligned rows and no additive mask.
 inline bool flash_wgmma_available(const Context& ctx);
-inline void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
+inline bool launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
                                FlashKernel kernel);
 
 inline bool short_kernel_fits(const FlashParams<bf16>& p) {
@@ -697,14 +703,20 @@ inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_
   using Rows128 = fa::Tiling<4, 2, 32, 1, 2>;  // 2 blocks of 128 threads leave 255 registers
   using Rows64Split4 = fa::Tiling<2, 2, 32, 4, 1>;
   const bool short_fits = short_kernel_fits(p);
-  if (kernel == FlashKernel::Auto) kernel = auto_flash_kernel(ctx, p, seqs, heads, exact);
+  const bool automatic = kernel == FlashKernel::Auto;
+  if (automatic) kernel = auto_flash_kernel(ctx, p, seqs, heads, exact);
   switch (kernel) {
     case FlashKernel::Wgmma64:
-    case FlashKernel::Wgmma128:
+    case FlashKernel::Tma64:
+    case FlashKernel::Tma128:
       EPONA_CHECK(wgmma_kernel_fits(ctx, p, exact),
-                  "attention: the wgmma kernel needs an sm_90a build on a 9.0 GPU, head dim 128, 16-byte aligned "
+                  "attention: the wgmma kernels need an sm_90a build on a 9.0 GPU, head dim 128, 16-byte aligned "
                   "rows and no additive mask");
-      launch_flash_wgmma(ctx, p, seqs, heads, kernel);
+      if (!launch_flash_wgmma(ctx, p, seqs, heads, kernel)) {
+        EPONA_CHECK(automatic, "attention: the TMA kernel cannot describe these tensors (", flash_kernel_name(kernel),
+                    ")");
+        launch_flash_wgmma(ctx, p, seqs, heads, FlashKernel::Wgmma64);
+      }
       break;
     case FlashKernel::Short:
       EPONA_CHECK(short_fits, "attention: the short kernel takes at most ", fa::kShortLen, " queries and keys");

@@ -1,9 +1,13 @@
-// epona/cuda/attention_wgmma.cuh — the Hopper (sm_90a) flash-attention kernel for bf16 with
+// epona/cuda/attention_wgmma.cuh — the Hopper (sm_90a) flash-attention kernels for bf16 with
 // head dim 128: warpgroup MMA (wgmma), S = Q Kᵀ with both operands in shared memory and O += P V
 // with P in registers; online softmax, masking and the output store shared with attention.cuh's
-// mma.sync kernels (same float32 accumulation, base-2 softmax and bf16 P). Included at the end
-// of attention.cuh, which declares its entry points; other targets compile an empty body.
+// mma.sync kernels (same float32 accumulation, base-2 softmax and bf16 P). Tiles arrive by
+// cp.async from the computing threads, or by the tensor memory accelerator (TMA) from a producer
+// warp while consumer warpgroups compute. Included at the end of attention.cuh, which declares
+// its entry points; other targets compile empty kernel bodies.
 #pragma once
+
+#include <cuda.h>  // CUtensorMap (the encoder itself is fetched from the driver at run time)
 
 #include <cstdint>
 
@@ -251,8 +255,139 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
 #endif
 }
 
+// ---------------------------------------------------------------------------------------
+// Warp-specialised kernel: warpgroup 0 is the producer (one thread issues TMA copies of Q and
+// of 128-key K and V tiles into two stages, signalled by mbarriers with transaction counts);
+// warpgroups 1..kConsumers each compute 64 query rows. TMA writes the same 128-byte swizzle the
+// descriptors read, and fills rows past the tensor's end with zeros. A consumer waits for K
+// (scores, softmax), then V (P V), then releases the stage to the producer.
+namespace mbar {
+__device__ __forceinline__ void init(unsigned bar, unsigned count) {
+  asm volatile("mbarrier.init.shared::cta.b64 [%0], %1;\n" ::"r"(bar), "r"(count) : "memory");
+}
+__device__ __forceinline__ void expect_bytes(unsigned bar, unsigned bytes) {
+  asm volatile("mbarrier.arrive.expect_tx.shared::cta.b64 _, [%0], %1;\n" ::"r"(bar), "r"(bytes) : "memory");
+}
+__device__ __forceinline__ void arrive(unsigned bar) {
+  asm volatile("mbarrier.arrive.shared::cta.b64 _, [%0];\n" ::"r"(bar) : "memory");
+}
+// Waits until the phase of parity `parity` has completed (on a fresh barrier, parity 1 has).
+__device__ __forceinline__ void wait(unsigned bar, unsigned parity) {
+  unsigned done = 0;
+  do {
+    asm volatile(
+        "{\n.reg .pred p;\nmbarrier.try_wait.parity.shared::cta.b64 p, [%1], %2;\nselp.u32 %0, 1, 0, p;\n}\n"
+        : "=r"(done)
+        : "r"(bar), "r"(parity)
+        : "memory");
+  } while (!done);
+}
+}  // namespace mbar
+
+// One box (64 channels x rows of one head) of a (channel, head, row, sequence) tensor map to dst.
+__device__ __forceinline__ void tma_load(unsigned dst, const CUtensorMap& map, int channel, int head, int row, int seq,
+                                         unsigned bar) {
+  asm volatile(
+      "cp.async.bulk.tensor.4d.shared::cluster.global.tile.mbarrier::complete_tx::bytes [%0], [%1, {%2, %3, %4, %5}], "
+      "[%6];\n" ::"r"(dst),
+      "l"(reinterpret_cast<std::uint64_t>(&map)), "r"(channel), "r"(head), "r"(row), "r"(seq), "r"(bar)
+      : "memory");
+}
+
+template <int kConsumers>
+struct TmaTiling {
+  static constexpr int consumers = kConsumers, keys = 128, rows = 64 * kConsumers, threads = 128 * (kConsumers + 1);
+  static constexpr int q_bytes = 64 * kMaxHeadDim * 2;      // one consumer's Q tile
+  static constexpr int k_bytes = keys * kMaxHeadDim * 2;    // one K (or V) tile
+  static constexpr int stages = 2;
+  static constexpr int bars_offset = kConsumers * q_bytes + stages * 2 * k_bytes;
+  // Tiles, the mbarriers (q, then k, v and empty per stage), alignment slack.
+  static constexpr int smem_bytes = bars_offset + 8 * (1 + 3 * stages) + kAtomBytes;
+};
+
+template <class Tile>
+__global__ void __launch_bounds__(Tile::threads, 1)
+    flash_tma_kernel(const __grid_constant__ CUtensorMap q_map, const __grid_constant__ CUtensorMap k_map,
+                     const __grid_constant__ CUtensorMap v_map, const FlashParams<bf16> p, int heads, int seqs) {
+#if defined(__CUDA_ARCH_FEAT_SM90_ALL)
+  constexpr int kKeys = Tile::keys, kStages = Tile::stages;
+  extern __shared__ __align__(16) unsigned char smem[];
+  const unsigned sQ = (smem_addr(smem) + kAtomBytes - 1) & ~unsigned{kAtomBytes - 1};
+  const auto sK = [&](int stage) { return sQ + Tile::consumers * Tile::q_bytes + stage * 2 * Tile::k_bytes; };
+  const auto sV = [&](int stage) { return sK(stage) + Tile::k_bytes; };
+  const unsigned q_full = sQ + Tile::bars_offset;
+  const auto k_full = [&](int stage) { return q_full + 8 * (1 + stage); };
+  const auto v_full = [&](int stage) { return q_full + 8 * (1 + kStages + stage); };
+  const auto empty = [&](int stage) { return q_full + 8 * (1 + 2 * kStages + stage); };
+
+  const BlockCoords b = block_coords(p, heads, seqs, Tile::rows);
+  const int tiles = key_tiles(b.q0, Tile::rows, p.lq, p.lk, p.causal, kKeys);
+  const int wg = threadIdx.x / 128;
+  if (threadIdx.x == 0) {
+    mbar::init(q_full, 1);
+    for (int st = 0; st < kStages; ++st) {
+      mbar::init(k_full(st), 1);
+      mbar::init(v_full(st), 1);
+      mbar::init(empty(st), 4 * Tile::consumers);  // lane 0 of every consumer warp
+    }
+    asm volatile("fence.mbarrier_init.release.cluster;\n" ::: "memory");
+  }
+  __syncthreads();
+
+  if (wg == 0) {  // producer
+    if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.dec.sync.aligned.u32 24;\n" ::: "memory");
+    if (threadIdx.x != 0) return;
+    mbar::expect_bytes(q_full, Tile::consumers * Tile::q_bytes);
+    for (int g = 0; g < Tile::consumers; ++g)
+      for (int half = 0; half < 2; ++half)
+        tma_load(sQ + g * Tile::q_bytes + half * 64 * kRowBytes, q_map, 64 * half, b.h, b.q0 + 64 * g,
+                 static_cast<int>(b.s), q_full);
+    for (int t = 0; t < tiles; ++t) {
+      const int st = t % kStages;
+      mbar::wait(empty(st), ((t / kStages) + 1) & 1);  // tile t - kStages released the stage
+      mbar::expect_bytes(k_full(st), Tile::k_bytes);
+      for (int half = 0; half < 2; ++half)
+        tma_load(sK(st) + half * kKeys * kRowBytes, k_map, 64 * half, b.h, t * kKeys, static_cast<int>(b.s), k_full(st));
+      mbar::expect_bytes(v_full(st), Tile::k_bytes);
+      for (int half = 0; half < 2; ++half)
+        tma_load(sV(st) + half * kKeys * kRowBytes, v_map, 64 * half, b.h, t * kKeys, static_cast<int>(b.s), v_full(st));
+    }
+    return;
+  }
+
+  // Consumer warpgroup wg - 1.
+  if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.inc.sync.aligned.u32 240;\n" ::: "memory");
+  const int group = wg - 1, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32;
+  const int group_row0 = b.q0 + 64 * group, warp_row0 = group_row0 + 16 * warp;
+  const int rows[2] = {warp_row0 + lane / 4, warp_row0 + lane / 4 + 8};
+  const bool group_active = group_row0 < p.lq;
+  float o[kDimTiles][4] = {};
+  float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
+  mbar::wait(q_full, 0);
+  for (int t = 0; t < tiles; ++t) {
+    const int st = t % kStages;
+    const unsigned parity = (t / kStages) & 1;
+    const int k0 = t * kKeys;
+    const bool compute = group_active && !(p.causal && k0 > group_row0 + 63);
+    float sc[kKeys / 8][4];
+    mbar::wait(k_full(st), parity);
+    if (compute) {
+      wg_scores<kKeys>(sc, sQ + group * Tile::q_bytes, sK(st));
+      if (tile_masked(p, warp_row0, k0, kKeys))
+        online_softmax<true>(sc, m, l, o, p, rows, k0, lane % 4);
+      else
+        online_softmax<false>(sc, m, l, o, p, rows, k0, lane % 4);
+    }
+    mbar::wait(v_full(st), parity);
+    if (compute) wg_accumulate_pv<kKeys>(o, sc, sV(st));
+    if (lane == 0) mbar::arrive(empty(st));  // this warp is done with the stage (its wgmma waited)
+  }
+  store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
+#endif
+}
+
 // Present only in sm_90a code: its static shared memory tells the host that this build has
-// the wgmma kernel (the same binary may run on a GPU whose code was built without it).
+// the wgmma kernels (the same binary may run on a GPU whose code was built without them).
 constexpr int kWgmmaMarkerWords = 12;
 __global__ void wgmma_marker_kernel(int* flag) {
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
@@ -277,6 +412,45 @@ inline bool flash_wgmma_available(const Context& ctx) {
   return built;
 }
 
+// The driver's cuTensorMapEncodeTiled, fetched once through the runtime (no libcuda link); null
+// where the driver lacks it.
+using TensorMapEncoder = CUresult (*)(CUtensorMap*, CUtensorMapDataType, cuuint32_t, void*, const cuuint64_t*,
+                                      const cuuint64_t*, const cuuint32_t*, const cuuint32_t*, CUtensorMapInterleave,
+                                      CUtensorMapSwizzle, CUtensorMapL2promotion, CUtensorMapFloatOOBfill);
+inline TensorMapEncoder tensor_map_encoder() {
+  static const TensorMapEncoder encode = [] {
+    void* fn = nullptr;
+    cudaDriverEntryPointQueryResult found{};
+    if (cudaGetDriverEntryPointByVersion("cuTensorMapEncodeTiled", &fn, 12000, cudaEnableDefault, &found) !=
+            cudaSuccess ||
+        found != cudaDriverEntryPointSuccess) {
+      (void)cudaGetLastError();
+      return TensorMapEncoder{};
+    }
+    return reinterpret_cast<TensorMapEncoder>(fn);
+  }();
+  return encode;
+}
+
+// One of q, k, v as a (channel, head, row, sequence) tensor of `rows` rows, read in boxes of 64
+// channels x box_rows rows of one head with the 128-byte swizzle; rows past the end read as
+// zeros. False where the driver cannot describe it (then the cp.async kernel runs).
+inline bool head_tensor_map(CUtensorMap& map, const bf16* base, std::int64_t heads, std::int64_t rows,
+                            std::int64_t seqs, std::int64_t row_stride, std::int64_t seq_stride, int box_rows) {
+  const TensorMapEncoder encode = tensor_map_encoder();
+  if (!encode || rows < 1) return false;
+  constexpr std::int64_t kElem = sizeof(bf16);
+  const cuuint64_t dims[4] = {kMaxHeadDim, static_cast<cuuint64_t>(heads), static_cast<cuuint64_t>(rows),
+                              static_cast<cuuint64_t>(seqs)};
+  const cuuint64_t strides[3] = {kMaxHeadDim * kElem, static_cast<cuuint64_t>(row_stride * kElem),
+                                 static_cast<cuuint64_t>(seqs > 1 ? seq_stride * kElem : rows * row_stride * kElem)};
+  const cuuint32_t box[4] = {64, 1, static_cast<cuuint32_t>(box_rows), 1};
+  const cuuint32_t unit[4] = {1, 1, 1, 1};
+  return encode(&map, CU_TENSOR_MAP_DATA_TYPE_BFLOAT16, 4, const_cast<bf16*>(base), dims, strides, box, unit,
+                CU_TENSOR_MAP_INTERLEAVE_NONE, CU_TENSOR_MAP_SWIZZLE_128B, CU_TENSOR_MAP_L2_PROMOTION_L2_256B,
+                CU_TENSOR_MAP_FLOAT_OOB_FILL_NONE) == CUDA_SUCCESS;
+}
+
 template <class Tile>
 void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
   const std::int64_t blocks = (p.lq + Tile::rows - 1) / Tile::rows * heads * seqs;
@@ -285,14 +459,30 @@ void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t s
       p, static_cast<int>(heads), static_cast<int>(seqs));
 }
 
-inline void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
+template <class Tile>
+bool launch_flash_tma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
+  CUtensorMap q_map, k_map, v_map;
+  if (!head_tensor_map(q_map, p.q, heads, p.lq, seqs, p.q_row, p.q_seq, 64) ||
+      !head_tensor_map(k_map, p.k, heads, p.lk, seqs, p.k_row, p.k_seq, Tile::keys) ||
+      !head_tensor_map(v_map, p.v, heads, p.lk, seqs, p.v_row, p.v_seq, Tile::keys))
+    return false;
+  const std::int64_t blocks = (p.lq + Tile::rows - 1) / Tile::rows * heads * seqs;
+  allow_smem<fa::flash_tma_kernel<Tile>>(Tile::smem_bytes);
+  fa::flash_tma_kernel<Tile><<<static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream()>>>(
+      q_map, k_map, v_map, p, static_cast<int>(heads), static_cast<int>(seqs));
+  return true;
+}
+
+inline bool launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
                                FlashKernel kernel) {
-  // Wgmma64: one warpgroup of 64 rows, 64-key tiles, 81 KiB: two blocks per multiprocessor.
-  // Wgmma128: two warpgroups of 64 rows sharing 128-key tiles, 161 KiB: one block.
-  if (kernel == FlashKernel::Wgmma128)
-    launch_flash_wgmma<fa::WgmmaTiling<2, 128, 1>>(ctx, p, seqs, heads);
-  else
-    launch_flash_wgmma<fa::WgmmaTiling<1, 64, 2>>(ctx, p, seqs, heads);
+  // Wgmma64: one warpgroup of 64 rows loading its own 64-key tiles by cp.async; 81 KiB, two
+  // blocks per multiprocessor. Tma64 / Tma128: a producer warpgroup and one / two consumer
+  // warpgroups (64 / 128 rows), 128-key tiles in two stages; 145 / 161 KiB, one block.
+  switch (kernel) {
+    case FlashKernel::Tma64: return launch_flash_tma<fa::TmaTiling<1>>(ctx, p, seqs, heads);
+    case FlashKernel::Tma128: return launch_flash_tma<fa::TmaTiling<2>>(ctx, p, seqs, heads);
+    default: launch_flash_wgmma<fa::WgmmaTiling<1, 64, 2>>(ctx, p, seqs, heads); return true;
+  }
 }
 
 }  // namespace epona::cuda::detail
