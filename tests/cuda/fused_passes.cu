@@ -49,21 +49,19 @@ void check_bit_identical(cuda::Context& ctx, Op op) {
 }
 
 // In place through the public function, against float64 math: within one bf16 rounding of
-// the reference (plus float32's own error, far below it).
+// each value plus float32's own error, relative to the largest output (as the pointwise tests:
+// near the zeros of GELU and SiLU float32's 1 + erf / 1 + exp cancel, so per-element relative
+// error is no bound for either path).
 template <class F64>
 void check_against_f64(cuda::Context& ctx, const char* name, void (*gpu)(cuda::Context&, bf16*, std::int64_t), F64 ref) {
   HostF x = random_tensor({kLarge}, 7, -8.f, 8.f);
   round_to<bf16>(x);
   auto d = upload<bf16>(ctx, x);
   gpu(ctx, d.data(), kLarge);
-  const HostF out = download(ctx, d);
-  double worst = 0;
-  for (std::int64_t i = 0; i < kLarge; ++i) {
-    const double r = ref(static_cast<double>(x.data()[i]));
-    worst = std::max(worst, std::abs(out.data()[i] - r) / std::max(std::abs(r), 1e-30));
-  }
-  MESSAGE(name, " bf16 table path: max relative error ", worst, " (bound 2^-8)");
-  CHECK(worst <= 1.0 / 256);
+  HostF expect({kLarge});
+  for (std::int64_t i = 0; i < kLarge; ++i) expect.data()[i] = float(ref(static_cast<double>(x.data()[i])));
+  check_error(measure(download(ctx, d), expect), one_rounding<bf16>(max_abs(expect)),
+              std::string(name) + " bf16 table path vs float64");
 }
 
 }  // namespace
@@ -205,9 +203,16 @@ void check_qk_norm_rope(cuda::Context& ctx, std::int64_t rows_q, std::int64_t ro
     cuda::apply_rope(ctx, uk.data(), rows_k, n, heads, head_dim, dcos.data(), dsin.data());
   }
   const HostF gq = download(ctx, fq), gk = download(ctx, fk);
-  CHECK_MESSAGE(std::memcmp(gq.data(), download(ctx, uq).data(), gq.numel() * sizeof(float)) == 0, what, ": q differs from the unfused ops");
-  CHECK_MESSAGE(std::memcmp(gk.data(), download(ctx, uk).data(), gk.numel() * sizeof(float)) == 0, what, ": k differs from the unfused ops");
   const bool b16 = std::is_same_v<T, bf16>;
+  if (b16) {  // bf16: the same bits as the unfused ops
+    CHECK_MESSAGE(std::memcmp(gq.data(), download(ctx, uq).data(), gq.numel() * sizeof(float)) == 0, what,
+                  ": q differs from the unfused ops");
+    CHECK_MESSAGE(std::memcmp(gk.data(), download(ctx, uk).data(), gk.numel() * sizeof(float)) == 0, what,
+                  ": k differs from the unfused ops");
+  } else {  // float32: the rotation's multiply-adds may contract differently (a few ulp)
+    check_error(measure(gq, download(ctx, uq)), {1e-6, 1e-6 * max_abs(gq)}, "fused vs unfused q " + what);
+    check_error(measure(gk, download(ctx, uk)), {1e-6, 1e-6 * max_abs(gk)}, "fused vs unfused k " + what);
+  }
   const HostF rq = reference_norm_rope(q, qw, qb, 1e-5f, head_dim, rotate ? &cos : nullptr, &sin, b16);
   const HostF rk = reference_norm_rope(k, kw, kb, 1e-6f, head_dim, rotate ? &cos : nullptr, &sin, b16);
   // bf16: the norm's output and the rotation's are each rounded (two roundings of 2^-8 relative

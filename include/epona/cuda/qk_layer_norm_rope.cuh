@@ -1,7 +1,8 @@
 // epona/cuda/qk_layer_norm_rope.cuh — the MST attention's QK-norm (nn.LayerNorm over all
 // channels of q and of k, in place) and, in the space layers, the 2-D RoPE of q and k, in one
-// launch and one pass over each row instead of four launches and three passes. Bit-identical
-// to layer_norm + apply_rope: the same row kernel (norm.cuh) then the same rotation.
+// launch and one pass over each row instead of four launches and three passes. The same row
+// kernel (norm.cuh) and rotation as layer_norm + apply_rope: bf16 results are bit-identical,
+// float32 ones within a few ulp (the compiler may contract the rotation's multiply-adds differently).
 #pragma once
 
 #include <cstdint>
@@ -73,7 +74,7 @@ __global__ void __launch_bounds__(32 * kNormWarps) qk_layer_norm_rope_kernel(QkN
 // q (rows_q, n) = LN_q(q), k (rows_k, n) = LN_k(k) in place (affine, float32 parameters), then,
 // with cos/sin, both rotated as apply_rope with table row r for row r. One launch when the rows
 // fit the warp-per-row LayerNorm that layer_norm itself would pick for each of q and k (so the
-// result is bit-identical to the unfused ops); returns false, doing nothing, otherwise.
+// statistics are the unfused ops' to the bit); returns false, doing nothing, otherwise.
 template <class T>
 bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int64_t rows_k, std::int64_t n,
                         const float* q_weight, const float* q_bias, float q_eps, const float* k_weight,

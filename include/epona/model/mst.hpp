@@ -162,7 +162,7 @@ struct MstLayer {
   }
 
   // q = q_norm(q), k = k_norm(k), then the rotation: one launch on the GPU where its fused
-  // kernel applies (layer_norm_rope_qk, bit-identical), the ops in turn otherwise.
+  // kernel applies (layer_norm_rope_qk; same bits in bf16), the ops in turn otherwise.
   void normalize_qk(Context& ctx, Tensor<A, B>& q, Tensor<A, B>& k, const nn::RopeTable<B>* rope,
                     std::int64_t heads) const {
     const std::int64_t C = q.size(-1), head_dim = C / heads;
