@@ -333,7 +333,8 @@ TEST_CASE("cuda attention rejects unsupported shapes with epona::Error") {
     }                                                                                 \
   } while (0)
 
-constexpr FlashKernel kWgmmaKernels[] = {FlashKernel::Wgmma64, FlashKernel::Tma64, FlashKernel::Tma128};
+constexpr FlashKernel kWgmmaKernels[] = {FlashKernel::Wgmma64, FlashKernel::Tma64, FlashKernel::Tma128,
+                                         FlashKernel::Tma64Pipelined, FlashKernel::Tma128Pipelined};
 
 TEST_CASE("cuda attention bf16: the wgmma kernel on awkward lengths, masks and layouts") {
   EPONA_REQUIRE_GPU();

@@ -159,15 +159,16 @@ __device__ __forceinline__ void warp_scores(float (&sc)[kM][kKeys / 8][4], const
 }
 
 // Folds the raw scores of key tile k0 (one m-tile) into the running max m and sum l of this
-// thread's two rows (base 2), leaving P = exp2(S·scale - m) in sc and the output
-// accumulators rescaled to the new max. kMasked: the tile has keys past lk, past the causal
-// diagonal of some row, or an additive mask; those scores are scaled and masked one by one.
-// Unmasked tiles (most of them) take the max of the raw scores and fold the scale into the
-// exponent's FMA, which needs scale > 0 (the caller routes any other scale to kMasked).
+// thread's two rows (base 2), leaving P = exp2(S·scale - m) in sc and in alpha the factors by
+// which the output accumulators must be rescaled to the new max. kMasked: the tile has keys
+// past lk, past the causal diagonal of some row, or an additive mask; those scores are scaled
+// and masked one by one. Unmasked tiles (most of them) take the max of the raw scores and fold
+// the scale into the exponent's FMA, which needs scale > 0 (the caller routes any other scale
+// to kMasked).
 template <bool kMasked, int kKeyTiles>
-__device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float (&m)[2], float (&l)[2],
-                                               float (&o)[kDimTiles][4], const FlashParams<bf16>& p,
-                                               const int (&rows)[2], int k0, int tq) {
+__device__ __forceinline__ void softmax_tile(float (&sc)[kKeyTiles][4], float (&m)[2], float (&l)[2],
+                                             float (&alpha)[2], const FlashParams<bf16>& p, const int (&rows)[2],
+                                             int k0, int tq) {
   const float scale = kMasked ? 1.0f : p.scale;  // masked scores are scaled in place below
 #pragma unroll
   for (int i = 0; i < 2; ++i) {
@@ -190,7 +191,7 @@ __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float 
     mx = fmaxf(mx, __shfl_xor_sync(0xffffffffu, mx, 2));
     const float m_new = fmaxf(m[i], mx * scale);
     const float base = m_new == -INFINITY ? 0.f : m_new;  // a row masked so far stays all zero
-    const float alpha = exp2_fast(m[i] - base);
+    alpha[i] = exp2_fast(m[i] - base);
     m[i] = m_new;
     float sum = 0;
 #pragma unroll
@@ -201,13 +202,26 @@ __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float 
         sc[nt][2 * i + e] = pr;
         sum += pr;
       }
-    l[i] = l[i] * alpha + sum;  // this thread's share of the row; reduced over the quad at the end
-#pragma unroll
-    for (int nt = 0; nt < kDimTiles; ++nt) {
-      o[nt][2 * i] *= alpha;
-      o[nt][2 * i + 1] *= alpha;
-    }
+    l[i] = l[i] * alpha[i] + sum;  // this thread's share of the row; reduced over the quad at the end
   }
+}
+
+__device__ __forceinline__ void rescale_rows(float (&o)[kDimTiles][4], const float (&alpha)[2]) {
+#pragma unroll
+  for (int nt = 0; nt < kDimTiles; ++nt) {
+    o[nt][0] *= alpha[0], o[nt][1] *= alpha[0];
+    o[nt][2] *= alpha[1], o[nt][3] *= alpha[1];
+  }
+}
+
+// softmax_tile, then the output accumulators rescaled at once.
+template <bool kMasked, int kKeyTiles>
+__device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float (&m)[2], float (&l)[2],
+                                               float (&o)[kDimTiles][4], const FlashParams<bf16>& p,
+                                               const int (&rows)[2], int k0, int tq) {
+  float alpha[2];
+  softmax_tile<kMasked>(sc, m, l, alpha, p, rows, k0, tq);
+  rescale_rows(o, alpha);
 }
 
 // O += P V(t): the S accumulators of two adjacent key tiles form one A fragment of P.
@@ -617,11 +631,14 @@ inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std:
 }
 
 // Which bf16 kernel runs: Auto picks by shape; the others are for tests and benchmarks.
-// Wgmma64, Tma64, Tma128: the Hopper kernels (attention_wgmma.cuh).
-enum class FlashKernel { Auto, Rows64, Rows128, Rows64Split4, Short, Wgmma64, Tma64, Tma128 };
+// Wgmma64 and the Tma kernels: the Hopper kernels (attention_wgmma.cuh).
+enum class FlashKernel {
+  Auto, Rows64, Rows128, Rows64Split4, Short, Wgmma64, Tma64, Tma128, Tma64Pipelined, Tma128Pipelined
+};
 
 inline bool is_wgmma(FlashKernel k) {
-  return k == FlashKernel::Wgmma64 || k == FlashKernel::Tma64 || k == FlashKernel::Tma128;
+  return k == FlashKernel::Wgmma64 || k == FlashKernel::Tma64 || k == FlashKernel::Tma128 ||
+         k == FlashKernel::Tma64Pipelined || k == FlashKernel::Tma128Pipelined;
 }
 
 inline const char* flash_kernel_name(FlashKernel k) {
@@ -634,6 +651,8 @@ inline const char* flash_kernel_name(FlashKernel k) {
     case FlashKernel::Wgmma64: return "wgmma 64 rows, cp.async (1 warpgroup, 64-key tiles)";
     case FlashKernel::Tma64: return "wgmma 64 rows, TMA (1 consumer warpgroup, 128-key tiles)";
     case FlashKernel::Tma128: return "wgmma 128 rows, TMA (2 consumer warpgroups, 128-key tiles)";
+    case FlashKernel::Tma64Pipelined: return "wgmma 64 rows, TMA, softmax overlapping P V";
+    case FlashKernel::Tma128Pipelined: return "wgmma 128 rows, TMA, softmax overlapping P V";
   }
   return "?";
 }
@@ -709,6 +728,8 @@ inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_
     case FlashKernel::Wgmma64:
     case FlashKernel::Tma64:
     case FlashKernel::Tma128:
+    case FlashKernel::Tma64Pipelined:
+    case FlashKernel::Tma128Pipelined:
       EPONA_CHECK(wgmma_kernel_fits(ctx, p, exact),
                   "attention: the wgmma kernels need an sm_90a build on a 9.0 GPU, head dim 128, 16-byte aligned "
                   "rows and no additive mask");

@@ -159,28 +159,33 @@ struct WgmmaTiling {
   static_assert(kKeys % 16 == 0 && kKeys <= 256);
 };
 
-// S = Q Kᵀ for the warpgroup's 64 rows and kKeys keys: 8 steps of 16 channels; a step moves
-// 32 bytes along the swizzled rows (the hardware applies the swizzle to the full address).
+template <int kGroups>
+__device__ __forceinline__ void wgmma_wait() {
+  asm volatile("wgmma.wait_group.sync.aligned %0;\n" ::"n"(kGroups) : "memory");
+}
+template <int N>
+__device__ __forceinline__ void pin(unsigned (&a)[N][4]) {
+#pragma unroll
+  for (int i = 0; i < N; ++i)
+#pragma unroll
+    for (int j = 0; j < 4; ++j) asm volatile("" : "+r"(a[i][j])::"memory");
+}
+
+// Issues S = Q Kᵀ for the warpgroup's 64 rows and kKeys keys: 8 steps of 16 channels; a step
+// moves 32 bytes along the swizzled rows (the hardware applies the swizzle to the full address).
 template <int kKeys>
-__device__ __forceinline__ void wg_scores(float (&sc)[kKeys / 8][4], unsigned sQ, unsigned sK) {
-  wgmma_fence();
+__device__ __forceinline__ void issue_scores(float (&sc)[kKeys / 8][4], unsigned sQ, unsigned sK) {
 #pragma unroll
   for (int kk = 0; kk < kMaxHeadDim / 16; ++kk) {
     const unsigned step = (kk % 4) * 32;  // within the 128-byte row of the half kk / 4
     wgmma_ss(sc, smem_desc(sQ + (kk / 4) * 64 * kRowBytes + step, 16, kAtomBytes),
              smem_desc(sK + (kk / 4) * kKeys * kRowBytes + step, 16, kAtomBytes), kk > 0);
   }
-  wgmma_commit();
-  wgmma_wait_all();
-  pin(sc);
 }
 
-// O += P V: P (the softmax's output in sc) rounded to bf16 in registers, 16 keys per step;
-// V's step of 16 keys is two 8-key atoms (2048 bytes) further.
+// P (the softmax's output in sc) rounded to bf16: the A fragments of P V, 16 keys per step.
 template <int kKeys>
-__device__ __forceinline__ void wg_accumulate_pv(float (&o)[kDimTiles][4], const float (&sc)[kKeys / 8][4],
-                                                 unsigned sV) {
-  unsigned a[kKeys / 16][4];
+__device__ __forceinline__ void pack_p(unsigned (&a)[kKeys / 16][4], const float (&sc)[kKeys / 8][4]) {
 #pragma unroll
   for (int kk = 0; kk < kKeys / 16; ++kk) {
     a[kk][0] = pack_bf16(sc[2 * kk][0], sc[2 * kk][1]);
@@ -188,13 +193,36 @@ __device__ __forceinline__ void wg_accumulate_pv(float (&o)[kDimTiles][4], const
     a[kk][2] = pack_bf16(sc[2 * kk + 1][0], sc[2 * kk + 1][1]);
     a[kk][3] = pack_bf16(sc[2 * kk + 1][2], sc[2 * kk + 1][3]);
   }
-  wgmma_fence();
+}
+
+// Issues O += P V; V's step of 16 keys is two 8-key atoms (2048 bytes) further.
+template <int kKeys>
+__device__ __forceinline__ void issue_pv(float (&o)[kDimTiles][4], const unsigned (&a)[kKeys / 16][4], unsigned sV) {
 #pragma unroll
   for (int kk = 0; kk < kKeys / 16; ++kk)
     wgmma_rs(o, a[kk], smem_desc(sV + kk * 2 * kAtomBytes, kKeys * kRowBytes, kAtomBytes));
+}
+
+template <int kKeys>
+__device__ __forceinline__ void wg_scores(float (&sc)[kKeys / 8][4], unsigned sQ, unsigned sK) {
+  wgmma_fence();
+  issue_scores<kKeys>(sc, sQ, sK);
+  wgmma_commit();
+  wgmma_wait_all();
+  pin(sc);
+}
+
+template <int kKeys>
+__device__ __forceinline__ void wg_accumulate_pv(float (&o)[kDimTiles][4], const float (&sc)[kKeys / 8][4],
+                                                 unsigned sV) {
+  unsigned a[kKeys / 16][4];
+  pack_p<kKeys>(a, sc);
+  wgmma_fence();
+  issue_pv<kKeys>(o, a, sV);
   wgmma_commit();
   wgmma_wait_all();
   pin(o);
+  pin(a);
 }
 
 // One block: Q of every group and the first key tile load together; then per key tile one
@@ -294,9 +322,12 @@ __device__ __forceinline__ void tma_load(unsigned dst, const CUtensorMap& map, i
       : "memory");
 }
 
-template <int kConsumers>
+// kPipelined: a consumer issues the scores of tile t and P V of tile t - 1 together and
+// computes tile t's softmax while P V runs (rescaling O once it has finished).
+template <int kConsumers, bool kPipelined>
 struct TmaTiling {
   static constexpr int consumers = kConsumers, keys = 128, rows = 64 * kConsumers, threads = 128 * (kConsumers + 1);
+  static constexpr bool pipelined = kPipelined;
   static constexpr int q_bytes = 64 * kMaxHeadDim * 2;      // one consumer's Q tile
   static constexpr int k_bytes = keys * kMaxHeadDim * 2;    // one K (or V) tile
   static constexpr int stages = 2;
@@ -335,7 +366,7 @@ __global__ void __launch_bounds__(Tile::threads, 1)
   __syncthreads();
 
   if (wg == 0) {  // producer
-    if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.dec.sync.aligned.u32 24;\n" ::: "memory");
+    if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.dec.sync.aligned.u32 40;\n" ::: "memory");
     if (threadIdx.x != 0) return;
     mbar::expect_bytes(q_full, Tile::consumers * Tile::q_bytes);
     for (int g = 0; g < Tile::consumers; ++g)
@@ -352,11 +383,8 @@ __global__ void __launch_bounds__(Tile::threads, 1)
       for (int half = 0; half < 2; ++half)
         tma_load(sV(st) + half * kKeys * kRowBytes, v_map, 64 * half, b.h, t * kKeys, static_cast<int>(b.s), v_full(st));
     }
-    return;
-  }
-
-  // Consumer warpgroup wg - 1.
-  if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.inc.sync.aligned.u32 240;\n" ::: "memory");
+  } else {  // consumer warpgroup wg - 1 (one branch of an if/else: setmaxnreg applies per role)
+  if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.inc.sync.aligned.u32 232;\n" ::: "memory");
   const int group = wg - 1, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32;
   const int group_row0 = b.q0 + 64 * group, warp_row0 = group_row0 + 16 * warp;
   const int rows[2] = {warp_row0 + lane / 4, warp_row0 + lane / 4 + 8};
@@ -364,6 +392,64 @@ __global__ void __launch_bounds__(Tile::threads, 1)
   float o[kDimTiles][4] = {};
   float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
   mbar::wait(q_full, 0);
+  if constexpr (Tile::pipelined) {
+    // The tiles this group computes come first (under a causal mask the later ones lie past
+    // its rows); the rest it only releases. No wgmma sits under a condition, so that the
+    // compiler keeps them asynchronous.
+    const int own = !group_active ? 0 : p.causal ? min(tiles, (group_row0 + 63) / kKeys + 1) : tiles;
+    const auto softmax = [&](float (&sc)[kKeys / 8][4], float (&alpha)[2], int k0) {
+      if (tile_masked(p, warp_row0, k0, kKeys))
+        softmax_tile<true>(sc, m, l, alpha, p, rows, k0, lane % 4);
+      else
+        softmax_tile<false>(sc, m, l, alpha, p, rows, k0, lane % 4);
+    };
+    if (own > 0) {
+      unsigned a[kKeys / 16][4];  // P of the previous tile, whose P V is still to issue
+      float sc[kKeys / 8][4];
+      float alpha[2];
+      mbar::wait(k_full(0), 0);
+      wg_scores<kKeys>(sc, sQ + group * Tile::q_bytes, sK(0));
+      softmax(sc, alpha, 0);
+      pack_p<kKeys>(a, sc);
+      for (int t = 1; t < own; ++t) {
+        const int st = t % kStages, prev = (t - 1) % kStages;
+        mbar::wait(k_full(st), (t / kStages) & 1);
+        mbar::wait(v_full(prev), ((t - 1) / kStages) & 1);
+        wgmma_fence();
+        issue_scores<kKeys>(sc, sQ + group * Tile::q_bytes, sK(st));
+        wgmma_commit();
+        issue_pv<kKeys>(o, a, sV(prev));
+        wgmma_commit();
+        wgmma_wait<1>();  // the scores (committed first) are done; P V may still run
+        pin(sc);
+        softmax(sc, alpha, t * kKeys);
+        wgmma_wait<0>();
+        pin(o);
+        pin(a);
+        if (lane == 0) mbar::arrive(empty(prev));
+        rescale_rows(o, alpha);
+        pack_p<kKeys>(a, sc);
+      }
+      const int last = (own - 1) % kStages;
+      mbar::wait(v_full(last), ((own - 1) / kStages) & 1);
+      wgmma_fence();
+      issue_pv<kKeys>(o, a, sV(last));
+      wgmma_commit();
+      wgmma_wait<0>();
+      pin(o);
+      pin(a);
+      if (lane == 0) mbar::arrive(empty(last));
+    }
+    for (int t = own; t < tiles; ++t) {  // nothing to compute: release each stage once it has landed
+      const int st = t % kStages;
+      const unsigned parity = (t / kStages) & 1;
+      mbar::wait(k_full(st), parity);
+      mbar::wait(v_full(st), parity);
+      if (lane == 0) mbar::arrive(empty(st));
+    }
+    store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
+    return;
+  }
   for (int t = 0; t < tiles; ++t) {
     const int st = t % kStages;
     const unsigned parity = (t / kStages) & 1;
@@ -383,6 +469,7 @@ __global__ void __launch_bounds__(Tile::threads, 1)
     if (lane == 0) mbar::arrive(empty(st));  // this warp is done with the stage (its wgmma waited)
   }
   store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
+  }
 #endif
 }
 
@@ -479,8 +566,10 @@ inline bool launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::in
   // blocks per multiprocessor. Tma64 / Tma128: a producer warpgroup and one / two consumer
   // warpgroups (64 / 128 rows), 128-key tiles in two stages; 145 / 161 KiB, one block.
   switch (kernel) {
-    case FlashKernel::Tma64: return launch_flash_tma<fa::TmaTiling<1>>(ctx, p, seqs, heads);
-    case FlashKernel::Tma128: return launch_flash_tma<fa::TmaTiling<2>>(ctx, p, seqs, heads);
+    case FlashKernel::Tma64: return launch_flash_tma<fa::TmaTiling<1, false>>(ctx, p, seqs, heads);
+    case FlashKernel::Tma128: return launch_flash_tma<fa::TmaTiling<2, false>>(ctx, p, seqs, heads);
+    case FlashKernel::Tma64Pipelined: return launch_flash_tma<fa::TmaTiling<1, true>>(ctx, p, seqs, heads);
+    case FlashKernel::Tma128Pipelined: return launch_flash_tma<fa::TmaTiling<2, true>>(ctx, p, seqs, heads);
     default: launch_flash_wgmma<fa::WgmmaTiling<1, 64, 2>>(ctx, p, seqs, heads); return true;
   }
 }
