@@ -127,8 +127,7 @@ void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const
               cuda::detail::flash_kernel_name(cuda::detail::auto_flash_kernel(ctx, q, k, v, o, a)));
   for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows128,
                                    FlashKernel::Rows64Split4, FlashKernel::Short, FlashKernel::Wgmma64,
-                                   FlashKernel::Tma64, FlashKernel::Tma128, FlashKernel::Tma64Pipelined,
-                                   FlashKernel::Tma128Pipelined, FlashKernel::Auto}) {
+                                   FlashKernel::Tma64, FlashKernel::Tma128, FlashKernel::Auto}) {
     if (kernel == FlashKernel::Short && !fits_short) continue;
     if (cuda::detail::is_wgmma(kernel) && !fits_wgmma) continue;
     const std::string name = label + " [" + cuda::detail::flash_kernel_name(kernel) + "]";

@@ -632,13 +632,10 @@ inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std:
 
 // Which bf16 kernel runs: Auto picks by shape; the others are for tests and benchmarks.
 // Wgmma64 and the Tma kernels: the Hopper kernels (attention_wgmma.cuh).
-enum class FlashKernel {
-  Auto, Rows64, Rows128, Rows64Split4, Short, Wgmma64, Tma64, Tma128, Tma64Pipelined, Tma128Pipelined
-};
+enum class FlashKernel { Auto, Rows64, Rows128, Rows64Split4, Short, Wgmma64, Tma64, Tma128 };
 
 inline bool is_wgmma(FlashKernel k) {
-  return k == FlashKernel::Wgmma64 || k == FlashKernel::Tma64 || k == FlashKernel::Tma128 ||
-         k == FlashKernel::Tma64Pipelined || k == FlashKernel::Tma128Pipelined;
+  return k == FlashKernel::Wgmma64 || k == FlashKernel::Tma64 || k == FlashKernel::Tma128;
 }
 
 inline const char* flash_kernel_name(FlashKernel k) {
@@ -651,8 +648,6 @@ inline const char* flash_kernel_name(FlashKernel k) {
     case FlashKernel::Wgmma64: return "wgmma 64 rows, cp.async (1 warpgroup, 64-key tiles)";
     case FlashKernel::Tma64: return "wgmma 64 rows, TMA (1 consumer warpgroup, 128-key tiles)";
     case FlashKernel::Tma128: return "wgmma 128 rows, TMA (2 consumer warpgroups, 128-key tiles)";
-    case FlashKernel::Tma64Pipelined: return "wgmma 64 rows, TMA, softmax overlapping P V";
-    case FlashKernel::Tma128Pipelined: return "wgmma 128 rows, TMA, softmax overlapping P V";
   }
   return "?";
 }
@@ -706,9 +701,18 @@ inline FlashKernel auto_flash_kernel(const Context& ctx, const FlashParams<bf16>
   // 8 x 530: 24.3 -> 20.6 us); long sequences: 128-row blocks, two m-tiles per warp
   // (1 x 16 x 4096: 220 -> 270 TFLOP/s); the rest, 64-row blocks at 16 warps per
   // multiprocessor (VisDiT 16 x 1027: 68.2 -> 61.1 us, MST spatial 160 x 515: 138 -> 119 us).
-  if (short_kernel_fits(p)) return FlashKernel::Short;
-  if (wgmma_kernel_fits(ctx, p, exact)) return FlashKernel::Wgmma64;
+  //
+  // Hopper (sm_90a builds), same run: the TMA kernels; 64-row blocks where they fit in one wave
+  // (TrajDiT 8 x 530: 20.5 -> 14.0 us, its last single block 15 x 530: 19.4 -> 13.0 us, VisDiT's
+  // 512 x 1027: 30.7 -> 20.4 us), else 128-row blocks (VisDiT 16 x 1027: 61.0 -> 40.3 us, MST
+  // spatial 160 x 515: 119.2 -> 95.6 us, its last block 16 x 515: 27.8 -> 18.2 us). Without keys
+  // (no tensor map to describe) the cp.async wgmma kernel.
   const std::int64_t blocks64 = (p.lq + 63) / 64 * heads * seqs;
+  if (short_kernel_fits(p)) return FlashKernel::Short;
+  if (wgmma_kernel_fits(ctx, p, exact))
+    return p.lk == 0                                 ? FlashKernel::Wgmma64
+           : blocks64 <= ctx.info().multiprocessors ? FlashKernel::Tma64
+                                                    : FlashKernel::Tma128;
   return blocks64 < ctx.info().multiprocessors ? FlashKernel::Rows64Split4
          : p.lq >= 2048                        ? FlashKernel::Rows128
                                                : FlashKernel::Rows64;
@@ -728,8 +732,6 @@ inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_
     case FlashKernel::Wgmma64:
     case FlashKernel::Tma64:
     case FlashKernel::Tma128:
-    case FlashKernel::Tma64Pipelined:
-    case FlashKernel::Tma128Pipelined:
       EPONA_CHECK(wgmma_kernel_fits(ctx, p, exact),
                   "attention: the wgmma kernels need an sm_90a build on a 9.0 GPU, head dim 128, 16-byte aligned "
                   "rows and no additive mask");

@@ -322,12 +322,9 @@ __device__ __forceinline__ void tma_load(unsigned dst, const CUtensorMap& map, i
       : "memory");
 }
 
-// kPipelined: a consumer issues the scores of tile t and P V of tile t - 1 together and
-// computes tile t's softmax while P V runs (rescaling O once it has finished).
-template <int kConsumers, bool kPipelined>
+template <int kConsumers>
 struct TmaTiling {
   static constexpr int consumers = kConsumers, keys = 128, rows = 64 * kConsumers, threads = 128 * (kConsumers + 1);
-  static constexpr bool pipelined = kPipelined;
   static constexpr int q_bytes = 64 * kMaxHeadDim * 2;      // one consumer's Q tile
   static constexpr int k_bytes = keys * kMaxHeadDim * 2;    // one K (or V) tile
   static constexpr int stages = 2;
@@ -384,91 +381,33 @@ __global__ void __launch_bounds__(Tile::threads, 1)
         tma_load(sV(st) + half * kKeys * kRowBytes, v_map, 64 * half, b.h, t * kKeys, static_cast<int>(b.s), v_full(st));
     }
   } else {  // consumer warpgroup wg - 1 (one branch of an if/else: setmaxnreg applies per role)
-  if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.inc.sync.aligned.u32 232;\n" ::: "memory");
-  const int group = wg - 1, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32;
-  const int group_row0 = b.q0 + 64 * group, warp_row0 = group_row0 + 16 * warp;
-  const int rows[2] = {warp_row0 + lane / 4, warp_row0 + lane / 4 + 8};
-  const bool group_active = group_row0 < p.lq;
-  float o[kDimTiles][4] = {};
-  float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
-  mbar::wait(q_full, 0);
-  if constexpr (Tile::pipelined) {
-    // The tiles this group computes come first (under a causal mask the later ones lie past
-    // its rows); the rest it only releases. No wgmma sits under a condition, so that the
-    // compiler keeps them asynchronous.
-    const int own = !group_active ? 0 : p.causal ? min(tiles, (group_row0 + 63) / kKeys + 1) : tiles;
-    const auto softmax = [&](float (&sc)[kKeys / 8][4], float (&alpha)[2], int k0) {
-      if (tile_masked(p, warp_row0, k0, kKeys))
-        softmax_tile<true>(sc, m, l, alpha, p, rows, k0, lane % 4);
-      else
-        softmax_tile<false>(sc, m, l, alpha, p, rows, k0, lane % 4);
-    };
-    if (own > 0) {
-      unsigned a[kKeys / 16][4];  // P of the previous tile, whose P V is still to issue
-      float sc[kKeys / 8][4];
-      float alpha[2];
-      mbar::wait(k_full(0), 0);
-      wg_scores<kKeys>(sc, sQ + group * Tile::q_bytes, sK(0));
-      softmax(sc, alpha, 0);
-      pack_p<kKeys>(a, sc);
-      for (int t = 1; t < own; ++t) {
-        const int st = t % kStages, prev = (t - 1) % kStages;
-        mbar::wait(k_full(st), (t / kStages) & 1);
-        mbar::wait(v_full(prev), ((t - 1) / kStages) & 1);
-        wgmma_fence();
-        issue_scores<kKeys>(sc, sQ + group * Tile::q_bytes, sK(st));
-        wgmma_commit();
-        issue_pv<kKeys>(o, a, sV(prev));
-        wgmma_commit();
-        wgmma_wait<1>();  // the scores (committed first) are done; P V may still run
-        pin(sc);
-        softmax(sc, alpha, t * kKeys);
-        wgmma_wait<0>();
-        pin(o);
-        pin(a);
-        if (lane == 0) mbar::arrive(empty(prev));
-        rescale_rows(o, alpha);
-        pack_p<kKeys>(a, sc);
-      }
-      const int last = (own - 1) % kStages;
-      mbar::wait(v_full(last), ((own - 1) / kStages) & 1);
-      wgmma_fence();
-      issue_pv<kKeys>(o, a, sV(last));
-      wgmma_commit();
-      wgmma_wait<0>();
-      pin(o);
-      pin(a);
-      if (lane == 0) mbar::arrive(empty(last));
-    }
-    for (int t = own; t < tiles; ++t) {  // nothing to compute: release each stage once it has landed
+    if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.inc.sync.aligned.u32 232;\n" ::: "memory");
+    const int group = wg - 1, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32;
+    const int group_row0 = b.q0 + 64 * group, warp_row0 = group_row0 + 16 * warp;
+    const int rows[2] = {warp_row0 + lane / 4, warp_row0 + lane / 4 + 8};
+    const bool group_active = group_row0 < p.lq;
+    float o[kDimTiles][4] = {};
+    float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
+    mbar::wait(q_full, 0);
+    for (int t = 0; t < tiles; ++t) {
       const int st = t % kStages;
       const unsigned parity = (t / kStages) & 1;
+      const int k0 = t * kKeys;
+      const bool compute = group_active && !(p.causal && k0 > group_row0 + 63);
+      float sc[kKeys / 8][4];
       mbar::wait(k_full(st), parity);
+      if (compute) {
+        wg_scores<kKeys>(sc, sQ + group * Tile::q_bytes, sK(st));
+        if (tile_masked(p, warp_row0, k0, kKeys))
+          online_softmax<true>(sc, m, l, o, p, rows, k0, lane % 4);
+        else
+          online_softmax<false>(sc, m, l, o, p, rows, k0, lane % 4);
+      }
       mbar::wait(v_full(st), parity);
-      if (lane == 0) mbar::arrive(empty(st));
+      if (compute) wg_accumulate_pv<kKeys>(o, sc, sV(st));
+      if (lane == 0) mbar::arrive(empty(st));  // this warp is done with the stage (its wgmma waited)
     }
     store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
-    return;
-  }
-  for (int t = 0; t < tiles; ++t) {
-    const int st = t % kStages;
-    const unsigned parity = (t / kStages) & 1;
-    const int k0 = t * kKeys;
-    const bool compute = group_active && !(p.causal && k0 > group_row0 + 63);
-    float sc[kKeys / 8][4];
-    mbar::wait(k_full(st), parity);
-    if (compute) {
-      wg_scores<kKeys>(sc, sQ + group * Tile::q_bytes, sK(st));
-      if (tile_masked(p, warp_row0, k0, kKeys))
-        online_softmax<true>(sc, m, l, o, p, rows, k0, lane % 4);
-      else
-        online_softmax<false>(sc, m, l, o, p, rows, k0, lane % 4);
-    }
-    mbar::wait(v_full(st), parity);
-    if (compute) wg_accumulate_pv<kKeys>(o, sc, sV(st));
-    if (lane == 0) mbar::arrive(empty(st));  // this warp is done with the stage (its wgmma waited)
-  }
-  store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
   }
 #endif
 }
@@ -566,10 +505,8 @@ inline bool launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::in
   // blocks per multiprocessor. Tma64 / Tma128: a producer warpgroup and one / two consumer
   // warpgroups (64 / 128 rows), 128-key tiles in two stages; 145 / 161 KiB, one block.
   switch (kernel) {
-    case FlashKernel::Tma64: return launch_flash_tma<fa::TmaTiling<1, false>>(ctx, p, seqs, heads);
-    case FlashKernel::Tma128: return launch_flash_tma<fa::TmaTiling<2, false>>(ctx, p, seqs, heads);
-    case FlashKernel::Tma64Pipelined: return launch_flash_tma<fa::TmaTiling<1, true>>(ctx, p, seqs, heads);
-    case FlashKernel::Tma128Pipelined: return launch_flash_tma<fa::TmaTiling<2, true>>(ctx, p, seqs, heads);
+    case FlashKernel::Tma64: return launch_flash_tma<fa::TmaTiling<1>>(ctx, p, seqs, heads);
+    case FlashKernel::Tma128: return launch_flash_tma<fa::TmaTiling<2>>(ctx, p, seqs, heads);
     default: launch_flash_wgmma<fa::WgmmaTiling<1, 64, 2>>(ctx, p, seqs, heads); return true;
   }
 }
