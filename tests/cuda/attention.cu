@@ -7,10 +7,11 @@
 // (VisDiT 16 x 1027, MST spatial 10 x 16 x 515, TrajDiT 8 x 530, temporal 515 x 16 x 10),
 // head dims 4/24/32/64/128, unaligned strides. Outputs are poisoned first; elements outside
 // the output layout must stay poisoned.
-// The Hopper wgmma kernel (both tilings, where the build and GPU have it) on lengths 1, 15,
-// 63, 64, 65, 515, 530, 1027, full and causal, cross, packed, padded and frame-strided rows,
-// the model's shapes, and Auto's choice (wgmma where it applies, the mma.sync kernels
-// elsewhere; forcing them still runs them), with the bf16 bounds below.
+// The Hopper wgmma kernels (cp.async and TMA-fed, 64- and 128-row blocks, where the build and
+// GPU have them) on lengths 1, 15, 63, 64, 65, 515, 530, 1027, full and causal, cross, packed,
+// padded and frame-strided rows, the DiTs' last-single-block queries, the model's shapes, and
+// Auto's choice (wgmma where it applies, the mma.sync kernels elsewhere; forcing those still
+// runs them), with the same bf16 bounds as the mma.sync kernels (below).
 // Bounds. float32: rel_l2 and max|err| / max|v| <= 1e-5. bf16: P is rounded to bf16 before
 // P·V (|δp| <= 2^-8 p, so |err| <= 2^-8 max|v|) and the output once more (2^-8 |o| <= 2^-8
 // max|v|): max|err| <= 2^-7 max|v|; rel_l2 <= 1e-2 (rounding errors average out; measured
