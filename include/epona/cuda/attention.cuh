@@ -616,16 +616,6 @@ __global__ void __launch_bounds__(kThreads) flash_f32_kernel(const FlashParams<f
 }
 }  // namespace fa32
 
-// Lets `Kernel` use `bytes` (> 48 KiB) of dynamic shared memory; set once per kernel.
-template <auto Kernel>
-void allow_smem(int bytes) {
-  static const bool done = [bytes] {
-    EPONA_CUDA_CHECK(cudaFuncSetAttribute(Kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, bytes));
-    return true;
-  }();
-  (void)done;
-}
-
 inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std::int64_t elems) {
   return reinterpret_cast<std::uintptr_t>(p) % 16 == 0 && seq % elems == 0 && row % elems == 0;
 }
@@ -655,7 +645,7 @@ inline const char* flash_kernel_name(FlashKernel k) {
 template <class Tile, bool kExactDim>
 void launch_flash(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
   const std::int64_t row_blocks = (p.lq + Tile::rows - 1) / Tile::rows;
-  allow_smem<fa::flash_bf16_kernel<Tile, kExactDim>>(Tile::smem_bytes);
+  allow_dynamic_smem<fa::flash_bf16_kernel<Tile, kExactDim>>(Tile::smem_bytes);
   fa::flash_bf16_kernel<Tile, kExactDim><<<static_cast<unsigned>(row_blocks * heads * seqs), Tile::threads,
                                            Tile::smem_bytes, ctx.stream()>>>(p, static_cast<int>(heads),
                                                                               static_cast<int>(seqs));
@@ -672,7 +662,7 @@ void launch_flash(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, s
 template <bool kExactDim>
 void launch_flash_short(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
   const std::int64_t pairs = seqs * heads, blocks = (pairs + fa::kShortWarps - 1) / fa::kShortWarps;
-  allow_smem<fa::flash_short_kernel<kExactDim>>(fa::short_smem_bytes(fa::kShortLen, fa::kShortLen));
+  allow_dynamic_smem<fa::flash_short_kernel<kExactDim>>(fa::short_smem_bytes(fa::kShortLen, fa::kShortLen));
   fa::flash_short_kernel<kExactDim><<<static_cast<unsigned>(blocks), fa::kShortThreads,
                                       fa::short_smem_bytes(p.lq, p.lk), ctx.stream()>>>(p, static_cast<int>(heads),
                                                                                          pairs);
@@ -797,7 +787,7 @@ void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const Att
     namespace fa32 = detail::fa32;
     const dim3 grid(static_cast<unsigned>((a.lq + fa32::kRows - 1) / fa32::kRows), static_cast<unsigned>(a.heads),
                     static_cast<unsigned>(a.seqs));
-    allow_smem<fa32::flash_f32_kernel>(fa32::kSmemBytes);
+    allow_dynamic_smem<fa32::flash_f32_kernel>(fa32::kSmemBytes);
     fa32::flash_f32_kernel<<<grid, fa32::kThreads, fa32::kSmemBytes, ctx.stream()>>>(p);
   }
   EPONA_CUDA_CHECK_LAUNCH();

@@ -480,7 +480,7 @@ inline bool head_tensor_map(CUtensorMap& map, const bf16* base, std::int64_t hea
 template <class Tile>
 void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
   const std::int64_t blocks = (p.lq + Tile::rows - 1) / Tile::rows * heads * seqs;
-  allow_smem<fa::flash_wgmma_kernel<Tile>>(Tile::smem_bytes);
+  allow_dynamic_smem<fa::flash_wgmma_kernel<Tile>>(Tile::smem_bytes);
   fa::flash_wgmma_kernel<Tile><<<static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream()>>>(
       p, static_cast<int>(heads), static_cast<int>(seqs));
 }
@@ -493,7 +493,7 @@ bool launch_flash_tma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seq
       !head_tensor_map(v_map, p.v, heads, p.lk, seqs, p.v_row, p.v_seq, Tile::keys))
     return false;
   const std::int64_t blocks = (p.lq + Tile::rows - 1) / Tile::rows * heads * seqs;
-  allow_smem<fa::flash_tma_kernel<Tile>>(Tile::smem_bytes);
+  allow_dynamic_smem<fa::flash_tma_kernel<Tile>>(Tile::smem_bytes);
   fa::flash_tma_kernel<Tile><<<static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream()>>>(
       q_map, k_map, v_map, p, static_cast<int>(heads), static_cast<int>(seqs));
   return true;
