@@ -38,7 +38,8 @@ for p in "$BIN"/test_cuda_* "$BIN"/test_apps_engine_cuda; do
   [[ -x $p ]] || continue
   runs+=("memcheck $p")
   case $(basename "$p") in  # kernels with shared memory / warp-level exchange
-    test_cuda_attention|test_cuda_pointwise|test_cuda_dcae_ops|test_cuda_dcae_layers|test_cuda_gemm) runs+=("racecheck $p") ;;
+    test_cuda_attention|test_cuda_pointwise|test_cuda_fused_passes|test_cuda_dcae_ops|test_cuda_dcae_layers|test_cuda_dcae_temporal|test_cuda_gemm)
+      runs+=("racecheck $p") ;;
   esac
 done
 
