@@ -5,9 +5,12 @@
 // weights + the scratch pool's high-water mark + inputs/outputs. One JSON object per line:
 //   {"name": "dcae_decode", "dtype": "bf16", "engine": "auto", "ms": ..., "tflops": ..., ...}
 // Options: --reps N (timed repetitions, default 20; float32 uses N/4), --hw H,W, --quick (the
-// default-engine passes only), --stages (with --quick: also the bf16 decode broken into pieces).
+// default-engine passes only), --stages (with --quick: also the bf16 decode broken into pieces),
+// --layers (the first block of each decoder stage and the resampling steps taken apart),
+// --no-f32 (bf16 passes only).
 // EPONA_CUDA_CONV_FUSE=0 runs the unfused path (no BatchNorm folding, bias/ReLU/residual passes
-// after each cuDNN conv) for side-by-side timing.
+// after each cuDNN conv), EPONA_CUDA_DCAE_FUSE=0 the unfused temporal blocks and upsampling
+// pairs, for side-by-side timing.
 #include <cuda_runtime.h>
 
 #include <algorithm>
@@ -17,6 +20,8 @@
 #include <functional>
 #include <random>
 #include <string>
+#include <type_traits>
+#include <variant>
 #include <vector>
 
 #include "epona/cuda/backend.cuh"
@@ -31,7 +36,7 @@ namespace {
 struct Options {
   int reps = 20;
   std::int64_t height = 512, width = 1024;
-  bool quick = false, stages = false;
+  bool quick = false, stages = false, layers = false, f32 = true;
 };
 
 Options parse(int argc, char** argv) {
@@ -49,8 +54,12 @@ Options parse(int argc, char** argv) {
       o.quick = true;
     } else if (a == "--stages") {
       o.stages = true;
+    } else if (a == "--layers") {
+      o.layers = true;
+    } else if (a == "--no-f32") {
+      o.f32 = false;
     } else {
-      fail("unknown option '", a, "' (--reps N, --hw H,W, --quick, --stages)");
+      fail("unknown option '", a, "' (--reps N, --hw H,W, --quick, --stages, --layers, --no-f32)");
     }
   }
   return o;
@@ -209,6 +218,65 @@ void bench_decoder_stages(cuda::Context& ctx, const Options& o, const char* dtyp
   line("decode_part_to_nchw_float", dtype, "auto", conv_ms, 0, 0, reps);
 }
 
+// Finer than the stages: the first block of each decoder stage taken apart (LiteMLA and GLUMBConv
+// of an EViT block, one ResBlock), the upsampling pair's conv and its shuffle + shortcut, and
+// project_out's norm, conv and shuffle; each piece alone, eagerly, median of 10.
+template <class T>
+void bench_decoder_layers(cuda::Context& ctx, const Options& o, const char* dtype) {
+  DcaeConfig cfg;
+  cfg.image_h = o.height, cfg.image_w = o.width;
+  Dcae<Cuda, T> model(cfg);
+  model.randomize(1);
+  using Map = typename Dcae<Cuda, T>::Map;
+  const auto& dec = model.decoder;
+  const int reps = 10;
+  const auto piece = [&](const std::string& name, const std::function<void()>& f) {
+    line(("layer_" + name).c_str(), dtype, "auto", median_ms(ctx, 2, reps, f), 0, 0, reps);
+  };
+  const auto latents = random_device(ctx, {1, cfg.latent_channels, o.height / 32, o.width / 32}, 2);
+  Map x = dec.project_in.forward(ctx, nn::map_from_nchw<T>(ctx, latents));
+  for (std::size_t s = dec.stages.size(); s-- > 1;) {
+    const std::string id = "stage" + std::to_string(s) + "_";
+    if (dec.upsample[s].conv.out_channels > 0) {
+      const auto& up = dec.upsample[s];
+      Map conv_out = up.conv.forward(ctx, x);
+      piece(id + "upsample_conv", [&] { (void)up.conv.forward(ctx, x); });
+      piece(id + "upsample_shuffle_shortcut", [&] { (void)nn::pixel_shuffle_add_duplicate(ctx, conv_out, x, 2); });
+      x = up.forward(ctx, x);
+    }
+    if (!dec.stages[s].blocks.empty()) {
+      Map y = nn::copy_of(ctx, x);
+      std::visit(
+          [&](const auto& b) {
+            using Block = std::decay_t<decltype(b)>;
+            if constexpr (std::is_same_v<Block, nn::EfficientViTBlock<Cuda, T>>) {
+              piece(id + "evit_litemla_branch", [&] { b.context.add_to(ctx, y); });
+              piece(id + "evit_glumbconv_branch", [&] { b.local.add_to(ctx, y); });
+              const nn::MapDims d = nn::map_dims(x, "bench");
+              const Map qkv = b.context.qkv.forward(ctx, x);
+              Map att = nn::new_map<T, Cuda>(ctx, d);
+              piece(id + "evit_litemla_attention_only", [&] {
+                cuda::relu_linear_attention(ctx, qkv.data(), att.data(), d.batch, b.context.heads(), b.context.head_dim,
+                                            d.pixels(), b.context.eps);
+              });
+            } else {
+              piece(id + "resblock", [&] { b.forward_inplace(ctx, y); });
+            }
+          },
+          dec.stages[s].blocks.front());
+    }
+    dec.stages[s].forward_inplace(ctx, x);
+  }
+  Map t = nn::copy_of(ctx, x);
+  piece("project_out_norm_relu", [&] { dec.out_norm.forward_inplace(ctx, t, dec.out_act); });
+  Map conv_out = dec.project_out.conv.forward(ctx, t);
+  piece("project_out_conv", [&] { (void)dec.project_out.conv.forward(ctx, t); });
+  piece("project_out_shuffle", [&] { (void)nn::pixel_shuffle(ctx, conv_out, 2); });
+  Map img = nn::pixel_shuffle(ctx, conv_out, 2);
+  Tensor<float, Cuda> out({1, 3, o.height, o.width});
+  piece("to_nchw_float", [&] { nn::map_to_nchw(ctx, img, out); });
+}
+
 // The largest convolutions of the decoder, alone: 3x3 at full width on the biggest maps.
 template <class T>
 void bench_convs(cuda::Context& ctx, const Options& o, const char* dtype) {
@@ -308,8 +376,9 @@ int main(int argc, char** argv) {
     std::printf("# fused conv epilogues + BatchNorm folding: %s\n", cuda::conv_fusion() ? "on" : "off (EPONA_CUDA_CONV_FUSE=0)");
     bench_model<bf16>(ctx, o, "bf16");
     if (!o.quick || o.stages) bench_decoder_stages<bf16>(ctx, o, "bf16");
+    if (o.layers) bench_decoder_layers<bf16>(ctx, o, "bf16");
     if (!o.quick) bench_convs<bf16>(ctx, o, "bf16");
-    bench_model<float>(ctx, o, "f32");
+    if (o.f32) bench_model<float>(ctx, o, "f32");
     if (!o.quick) bench_elementwise<bf16>(ctx, o, "bf16");
     const std::string refused = cuda::conv_fusion_report();
     std::printf("# cuDNN fused form refused: %s\n", refused.empty() ? "nowhere" : refused.c_str());

@@ -1,59 +1,88 @@
 #!/usr/bin/env bash
-# Runs the prebuilt DC-AE GPU tests, compute-sanitizer memcheck over them and bench_gpu_dcae on
-# a GPU machine in one go (binaries built elsewhere: the GPU machine has no doctest/Eigen).
-# cuDNN is loaded at run time: the first libcudnn.so.9 found on the machine goes on the path.
-# Usage: tests/cuda/dcae_device_run.sh <dir with test_cuda_dcae_* and bench_gpu_dcae> <out dir> [tests|bench|all]
+# Runs the prebuilt DC-AE GPU tests, bench_gpu_dcae (new beside an older build, same call) and
+# compute-sanitizer memcheck on a GPU machine in one go (binaries built elsewhere: the GPU
+# machine has no doctest/Eigen). cuDNN is loaded at run time: the first libcudnn.so.9 found on
+# the machine goes on the path. Summaries go to stdout and <out dir>/summary.txt.
+# Usage: tests/cuda/dcae_device_run.sh <dir with test_cuda_dcae_* and bench_gpu_dcae> <out dir>
+#        [tests|bench|all] [dir with an older bench_gpu_dcae to time beside it]
 set -u
 BIN=$(cd "$1" && pwd)
 OUT=$2
 WHAT=${3:-all}
+OLD=${4:-}
 mkdir -p "$OUT"
 lt=$(find /usr/local /opt /usr/lib -name 'libcublasLt.so.13' 2>/dev/null | head -1)
 dnn=$(find /usr/local /opt /usr/lib -name 'libcudnn.so.9' 2>/dev/null | head -1)
 export LD_LIBRARY_PATH="$(dirname "${lt:-/usr/local/cuda/lib64/x}"):$(dirname "${dnn:-/usr/local/cuda/lib64/x}"):/usr/local/cuda/lib64:${LD_LIBRARY_PATH:-}:$BIN/lib"
 SAN=$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)
 summary() { echo "$*" | tee -a "$OUT/summary.txt"; }
+ms() { echo $(( ($(date +%s%N) - $1) / 1000000 )); }
+TESTS="dcae_temporal dcae_ops dcae_layers dcae_model"
 
 nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.mem,temperature.gpu,power.draw --format=csv,noheader \
   | tee -a "$OUT/summary.txt"
 summary "cublasLt: ${lt:-not found}; cudnn: ${dnn:-not found}"
 
 if [ "$WHAT" != bench ]; then
-  for t in dcae_ops dcae_layers dcae_model; do
+  for t in $TESTS; do
+    [ -x "$BIN/test_cuda_$t" ] || continue
     start=$(date +%s%N)
-    timeout 150 "$BIN/test_cuda_$t" >"$OUT/$t.log" 2>&1
+    timeout 120 "$BIN/test_cuda_$t" >"$OUT/$t.log" 2>&1
     rc=$?
-    summary "test_cuda_$t rc=$rc ($(( ($(date +%s%N) - start) / 1000000 )) ms): $(grep -E 'test cases:' "$OUT/$t.log" | tail -1)"
-    grep -B3 -A10 -E "ERROR|FAILED|CHECK\(|REQUIRE\(" "$OUT/$t.log" | head -40
+    summary "test_cuda_$t rc=$rc ($(ms $start) ms): $(grep -E 'test cases:' "$OUT/$t.log" | tail -1)"
+    grep -B3 -A12 -E "ERROR|FAILED" "$OUT/$t.log" | head -40
   done
-  grep -hE "cuDNN engine|rel_max =" "$OUT"/dcae_ops.log "$OUT"/dcae_model.log | head -60
+  grep -hE "temporal fused|upsample pair|relu_linear_attention" "$OUT"/dcae_temporal.log "$OUT"/dcae_ops.log | head -40
+  grep -hE "rel_max =" "$OUT"/dcae_model.log | head -30
 fi
 
+# Steps past the first bench and the sanitizer are skipped once the call has run BUDGET seconds.
+BUDGET=${BUDGET:-200}
+bench() {  # name, then [VAR=value ...] command args...
+  local name=$1 start=$(date +%s%N)
+  shift
+  env "$@" >"$OUT/bench_$name.log" 2>&1
+  summary "bench $name rc=$? ($(ms $start) ms)"
+  grep -hE '"dcae_(de|en)code"' "$OUT/bench_$name.log" | sed 's/, "peak_mib.*//; s/"gflop.*"tflops"/"tflops"/'
+}
+pieces() {
+  for f in "$@"; do
+    [ -f "$OUT/bench_$f.log" ] || continue
+    echo "--- pieces ($f)"
+    grep -hE '"(decode_part|layer)_' "$OUT/bench_$f.log" | sed 's/{"name": "//; s/", "dtype".*"ms": / /; s/, "tflops".*//' | paste -sd' '
+  done
+}
+
 if [ "$WHAT" != tests ]; then
-  timeout 200 "$BIN/bench_gpu_dcae" ${BENCH_ARGS:-} >"$OUT/bench.log" 2>&1
-  summary "bench rc=$?"
-  cat "$OUT/bench.log"
-  # the unfused path (no BatchNorm folding, no fused conv epilogues) beside it, same call
-  EPONA_CUDA_CONV_FUSE=0 timeout 100 "$BIN/bench_gpu_dcae" --quick --stages >"$OUT/bench_unfused.log" 2>&1
-  summary "bench unfused rc=$?"
-  cat "$OUT/bench_unfused.log"
+  bench new timeout 100 "$BIN/bench_gpu_dcae" --quick --stages --layers
+  [ -n "$OLD" ] && bench old timeout 100 "$OLD/bench_gpu_dcae" --quick --stages
+  pieces new old
 fi
 
 if [ "$WHAT" != bench ]; then
-  for t in dcae_ops dcae_layers dcae_model; do
-    echo "=== memcheck test_cuda_$t" >>"$OUT/memcheck.log"
-    timeout 100 "$SAN" --tool memcheck --leak-check full "$BIN/test_cuda_$t" >"$OUT/mc.tmp" 2>&1
-    rc=$?
+  mc() {  # test name, doctest args...
+    local t=$1 start=$(date +%s%N)
+    shift
+    echo "=== memcheck test_cuda_$t $*" >>"$OUT/memcheck.log"
+    timeout 90 "$SAN" --tool memcheck --leak-check full "$BIN/test_cuda_$t" "$@" >"$OUT/mc.tmp" 2>&1
+    local rc=$?
     cat "$OUT/mc.tmp" >>"$OUT/memcheck.log"
-    summary "memcheck test_cuda_$t rc=$rc $(grep -E 'ERROR SUMMARY' "$OUT/mc.tmp" | tail -1) $(grep -E 'LEAK SUMMARY' "$OUT/mc.tmp" | tail -1)"
-  done
-  # the same with cuDNN off the library path (GEMM engine): the sanitizer on our own code alone
-  echo "=== memcheck test_cuda_dcae_model without cuDNN" >>"$OUT/memcheck.log"
-  LD_LIBRARY_PATH=$(echo "$LD_LIBRARY_PATH" | sed "s|$(dirname "${dnn:-/none/x}"):||") \
-    timeout 100 "$SAN" --tool memcheck --leak-check full "$BIN/test_cuda_dcae_model" >"$OUT/mc.tmp" 2>&1
-  rc=$?
-  cat "$OUT/mc.tmp" >>"$OUT/memcheck.log"
-  summary "memcheck test_cuda_dcae_model (no cuDNN) rc=$rc $(grep -E 'ERROR SUMMARY' "$OUT/mc.tmp" | tail -1) $(grep -m1 -o 'cuDNN engine: .*' "$OUT/mc.tmp")"
+    summary "memcheck test_cuda_$t $* rc=$rc ($(ms $start) ms) $(grep -E 'ERROR SUMMARY' "$OUT/mc.tmp" | tail -1) $(grep -E 'LEAK SUMMARY' "$OUT/mc.tmp" | tail -1)"
+  }
+  mc dcae_temporal
+  mc dcae_ops
+  [ $SECONDS -lt $BUDGET ] && mc dcae_model '-tc=*bf16: every*'
+  [ $SECONDS -lt $BUDGET ] && mc dcae_layers
   rm -f "$OUT/mc.tmp"
   grep -B2 -A8 "Invalid\|Leaked" "$OUT/memcheck.log" | grep -E "Invalid|Leaked|Host Frame" | head -24
 fi
+
+if [ "$WHAT" != tests ]; then
+  # the DC-AE fusions off (same build), cuDNN's timed algorithm choice, and the two builds again
+  [ $SECONDS -lt $BUDGET ] && bench unfused EPONA_CUDA_DCAE_FUSE=0 timeout 60 "$BIN/bench_gpu_dcae" --quick --no-f32 --layers
+  [ $SECONDS -lt $BUDGET ] && bench find EPONA_CUDNN_FIND=1 timeout 60 "$BIN/bench_gpu_dcae" --quick --no-f32
+  [ $SECONDS -lt $BUDGET ] && [ -n "$OLD" ] && bench old2 timeout 60 "$OLD/bench_gpu_dcae" --quick
+  [ $SECONDS -lt $BUDGET ] && bench new2 timeout 60 "$BIN/bench_gpu_dcae" --quick --no-f32
+  pieces unfused
+fi
+summary "total ${SECONDS} s"

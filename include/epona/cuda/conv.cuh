@@ -17,6 +17,7 @@
 #include "epona/cpu/conv.hpp"
 #include "epona/cuda/activation.cuh"
 #include "epona/cuda/conv_cudnn.cuh"
+#include "epona/cuda/dcae_fusion.hpp"
 #include "epona/cuda/device.cuh"
 #include "epona/cuda/gemm.cuh"
 #include "epona/cuda/scratch.hpp"
@@ -91,13 +92,16 @@ void bias_act(Context& ctx, T* y, std::int64_t pixels, std::int64_t channels, co
 
 // ---- depthwise: one thread per (channel pack, run of kRun pixels along a row); the pack's
 // k·k weights stay in registers across the run. Taps are summed in (ky, kx) order from the bias.
+// kHalves = 2 is GLUMBConv's depthwise conv and gate in one pass: the thread convolves pack c0 of
+// the value half and pack c0 + C/2 of the gate half and stores value · round(act(gate)) (each
+// conv output rounded first, as when stored) into C/2 output channels.
 constexpr int kRun = 8;
 constexpr int kMaxTaps = 9;  // 3x3 kernels (kSmall) keep their weights in registers; others read them per tap
 
-template <class T, class Op, int kVec, bool kSmall>
+template <class T, class Op, int kVec, bool kSmall, int kHalves = 1>
 __global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ w, const T* __restrict__ bias,
                                  T* __restrict__ y, std::int64_t images, int H, int W, int C, int k, bool act, Op op) {
-  const int packs = C / kVec, pad = k / 2, runs = (W + kRun - 1) / kRun, taps = k * k;
+  const int Co = C / kHalves, packs = Co / kVec, pad = k / 2, runs = (W + kRun - 1) / kRun, taps = k * k;
   const std::int64_t total = images * H * runs * packs;
   for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
        i += std::int64_t{gridDim.x} * blockDim.x) {
@@ -107,36 +111,46 @@ __global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ 
     const std::int64_t image_row = row_run / runs;  // n·H + y
     const int yo = static_cast<int>(image_row % H);
     const std::int64_t n = image_row / H;
-    float wr[kSmall ? kMaxTaps : 1][kVec];
+    const auto channel = [&](int h, int j) { return c0 + h * Co + j; };
+    float wr[kHalves][kSmall ? kMaxTaps : 1][kVec];
     if constexpr (kSmall) {
 #pragma unroll
-      for (int t = 0; t < kMaxTaps; ++t)
+      for (int h = 0; h < kHalves; ++h)
 #pragma unroll
-        for (int j = 0; j < kVec; ++j) wr[t][j] = detail::to_f32(w[(c0 + j) * taps + t]);
+        for (int t = 0; t < kMaxTaps; ++t)
+#pragma unroll
+          for (int j = 0; j < kVec; ++j) wr[h][t][j] = detail::to_f32(w[channel(h, j) * taps + t]);
     }
-    float b[kVec];
+    float b[kHalves][kVec];
 #pragma unroll
-    for (int j = 0; j < kVec; ++j) b[j] = bias ? detail::to_f32(bias[c0 + j]) : 0.f;
+    for (int h = 0; h < kHalves; ++h)
+#pragma unroll
+      for (int j = 0; j < kVec; ++j) b[h][j] = bias ? detail::to_f32(bias[channel(h, j)]) : 0.f;
     const int x_end = min(W, x0 + kRun);
     for (int xo = x0; xo < x_end; ++xo) {
-      float acc[kVec];
+      float acc[kHalves][kVec];
 #pragma unroll
-      for (int j = 0; j < kVec; ++j) acc[j] = b[j];
+      for (int h = 0; h < kHalves; ++h)
+#pragma unroll
+        for (int j = 0; j < kVec; ++j) acc[h][j] = b[h][j];
       // acc += w(tap) · x(ys, xs) for one in-image tap
       const auto add_tap = [&](int ys, int xs, int tap) {
-        const T* src = x + ((n * H + ys) * W + xs) * C + c0;
-        float v[kVec];
-        if constexpr (kVec == detail::kPack) {
-          detail::load8(src, v);
-        } else {
-          v[0] = detail::to_f32(src[0]);
-        }
 #pragma unroll
-        for (int j = 0; j < kVec; ++j) {
-          if constexpr (kSmall)
-            acc[j] += wr[tap][j] * v[j];
-          else
-            acc[j] += detail::to_f32(w[(c0 + j) * taps + tap]) * v[j];
+        for (int h = 0; h < kHalves; ++h) {
+          const T* src = x + ((n * H + ys) * W + xs) * C + channel(h, 0);
+          float v[kVec];
+          if constexpr (kVec == detail::kPack) {
+            detail::load8(src, v);
+          } else {
+            v[0] = detail::to_f32(src[0]);
+          }
+#pragma unroll
+          for (int j = 0; j < kVec; ++j) {
+            if constexpr (kSmall)
+              acc[h][j] += wr[h][tap][j] * v[j];
+            else
+              acc[h][j] += detail::to_f32(w[channel(h, j) * taps + tap]) * v[j];
+          }
         }
       };
       if constexpr (kSmall) {  // 3x3: taps unrolled, weights indexed by constants
@@ -160,13 +174,19 @@ __global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ 
           }
         }
       }
+      float out[kVec];
 #pragma unroll
-      for (int j = 0; j < kVec; ++j) acc[j] = act ? op(detail::round_to<T>(acc[j])) : acc[j];
-      T* dst = y + ((n * H + yo) * W + xo) * C + c0;
+      for (int j = 0; j < kVec; ++j) {
+        if constexpr (kHalves == 2)
+          out[j] = detail::round_to<T>(acc[0][j]) * detail::round_to<T>(op(detail::round_to<T>(acc[1][j])));
+        else
+          out[j] = act ? op(detail::round_to<T>(acc[0][j])) : acc[0][j];
+      }
+      T* dst = y + ((n * H + yo) * W + xo) * Co + c0;
       if constexpr (kVec == detail::kPack) {
-        detail::store8(dst, acc);
+        detail::store8(dst, out);
       } else {
-        dst[0] = detail::from_f32<T>(acc[0]);
+        dst[0] = detail::from_f32<T>(out[0]);
       }
     }
   }
@@ -383,6 +403,36 @@ inline void check_conv_args(const void* x, const void* weight, const void* y, co
   EPONA_CHECK(s.height * s.width <= 0x7fffffff, "conv2d: ", s.height, "x", s.width, " exceeds one image's index range");
 }
 }  // namespace conv_detail
+
+// GLUMBConv's depthwise conv and gate in one pass: x (N, H, W, C) channels-last, weight [C, 3, 3, 1],
+// bias [C] or null; out (N, H, W, C/2) = v · round(act(g)) with v, g the conv's (rounded) output
+// channels [0, C/2) and [C/2, C): the result of conv2d (no act) then gated_act. False (nothing
+// done) unless C is a multiple of 16 with 16-byte aligned maps, k = 3, and the DC-AE fusions are on.
+template <class T>
+bool depthwise_gated(Context& ctx, const T* x, const T* weight, const T* bias, T* out, const Conv2dShape& s,
+                     ConvAct act) {
+  static_assert(is_device_float<T>, "depthwise_gated takes float or bf16");
+  conv_detail::check_conv_args(x, weight, out, s);
+  const std::int64_t C = s.in_channels;
+  EPONA_CHECK(s.groups == C && s.out_channels == C, "depthwise_gated: not a depthwise convolution (", C, " -> ",
+              s.out_channels, ", groups ", s.groups, ")");
+  if (!dcae_fusion() || s.kernel != 3 || C % (2 * detail::kPack) != 0 || !detail::aligned16(x) ||
+      !detail::aligned16(out) || C > 0x7fffffff || s.height > 0x7fffffff || s.width > 0x7fffffff)
+    return false;
+  const std::int64_t items = s.batch * s.height * ((s.width + conv_detail::kRun - 1) / conv_detail::kRun) *
+                             (C / 2 / detail::kPack);
+  if (items == 0) return true;
+  constexpr int threads = 128;
+  conv_detail::with_act(act, [&](auto op) {
+    conv_detail::depthwise_kernel<T, decltype(op), detail::kPack, true, 2>
+        <<<detail::grid_for(items, threads), threads, 0, ctx.stream()>>>(
+            x, weight, bias, out, s.batch, static_cast<int>(s.height), static_cast<int>(s.width), static_cast<int>(C),
+            3, true, op);
+    EPONA_CUDA_CHECK_LAUNCH();
+  });
+  ++conv_detail::counts().depthwise;
+  return true;
+}
 
 // y = act(conv(x) + bias): x (N, H, W, C) channels-last, weight [O, k, k, C/groups] (the
 // channels-last layout of nn::conv_weight_layout), bias [O] or null, y (N, H, W, O), not

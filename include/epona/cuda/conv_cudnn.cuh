@@ -49,10 +49,14 @@ namespace epona::cuda::cudnn {
   X(cudnnConvolutionBiasActivationForward) X(cudnnCreateActivationDescriptor)                           \
   X(cudnnSetActivationDescriptor) X(cudnnDestroyActivationDescriptor)
 
+// Timed algorithm choice (EPONA_CUDNN_FIND=1): optional.
+#define EPONA_CUDNN_FIND_FUNCTIONS(X) X(cudnnFindConvolutionForwardAlgorithm)
+
 struct Api {
 #define EPONA_CUDNN_POINTER(name) decltype(&::name) name = nullptr;
   EPONA_CUDNN_FUNCTIONS(EPONA_CUDNN_POINTER)
   EPONA_CUDNN_FUSED_FUNCTIONS(EPONA_CUDNN_POINTER)
+  EPONA_CUDNN_FIND_FUNCTIONS(EPONA_CUDNN_POINTER)
 #undef EPONA_CUDNN_POINTER
   std::size_t version = 0;
   std::string unavailable;  // why cuDNN cannot be used here (empty when it can)
@@ -93,6 +97,7 @@ struct Api {
 #undef EPONA_CUDNN_RESOLVE
 #define EPONA_CUDNN_RESOLVE_OPTIONAL(name) a.name = reinterpret_cast<decltype(&::name)>(dlsym(lib, #name));
     EPONA_CUDNN_FUSED_FUNCTIONS(EPONA_CUDNN_RESOLVE_OPTIONAL)
+    EPONA_CUDNN_FIND_FUNCTIONS(EPONA_CUDNN_RESOLVE_OPTIONAL)
 #undef EPONA_CUDNN_RESOLVE_OPTIONAL
     if (!a.ok()) return a;
     a.version = a.cudnnGetVersion();
@@ -152,6 +157,17 @@ inline bool exact_algorithm(cudnnConvolutionFwdAlgo_t a) {
 }
 
 inline constexpr std::size_t kMaxWorkspace = std::size_t{1} << 30;
+
+// EPONA_CUDNN_FIND=1: plans take the fastest exact algorithm by cuDNN's own timing
+// (cudnnFindConvolutionForwardAlgorithm, once per geometry, outside any graph recording) instead
+// of its heuristic's first choice.
+inline bool timed_choice() {
+  static const bool on = [] {
+    const char* e = std::getenv("EPONA_CUDNN_FIND");
+    return e && e[0] == '1';
+  }();
+  return on;
+}
 
 template <class T>
 __global__ void widen_kernel(const T* in, float* out, std::int64_t n) {
@@ -341,8 +357,13 @@ class Engine {
     EPONA_CUDNN_CHECK(api.cudnnGetConvolutionForwardAlgorithmMaxCount(handle, &count));
     std::vector<cudnnConvolutionFwdAlgoPerf_t> found(static_cast<std::size_t>(std::max(count, 1)));
     int returned = 0;
-    EPONA_CUDNN_CHECK(api.cudnnGetConvolutionForwardAlgorithm_v7(handle, p->x, p->w, p->conv, p->y, count, &returned,
+    // the heuristic's ranking, or (EPONA_CUDNN_FIND=1) cuDNN's timing of every algorithm, fastest first
+    if (timed_choice() && api.cudnnFindConvolutionForwardAlgorithm)
+      EPONA_CUDNN_CHECK(api.cudnnFindConvolutionForwardAlgorithm(handle, p->x, p->w, p->conv, p->y, count, &returned,
                                                                  found.data()));
+    else
+      EPONA_CUDNN_CHECK(api.cudnnGetConvolutionForwardAlgorithm_v7(handle, p->x, p->w, p->conv, p->y, count,
+                                                                   &returned, found.data()));
     for (int i = 0; i < returned; ++i) {
       const auto& r = found[static_cast<std::size_t>(i)];
       if (r.status != CUDNN_STATUS_SUCCESS || !exact_algorithm(r.algo)) continue;

@@ -146,6 +146,25 @@ __global__ void shuffle2_duplicate_add_kernel(const T* __restrict__ main, const 
   }
 }
 
+// out[n, c, y, x] = float(in[n, y/r, x/r, c·r² + (y%r)·r + x%r]): the decoder's last pixel shuffle
+// written straight into the public NCHW float32 image. One thread per output element along x.
+template <class T>
+__global__ void shuffle_to_nchw_kernel(const T* __restrict__ in, float* __restrict__ out, std::uint32_t C,
+                                       std::uint32_t Ho, std::uint32_t Wo, std::uint32_t r, std::int64_t total) {
+  const std::uint32_t Cin = C * r * r, Wi = Wo / r, Hi = Ho / r;
+  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
+       i += std::int64_t{gridDim.x} * blockDim.x) {
+    const std::uint32_t xo = static_cast<std::uint32_t>(i % Wo);
+    const std::int64_t rest = i / Wo;
+    const std::uint32_t yo = static_cast<std::uint32_t>(rest % Ho);
+    const std::int64_t nc = rest / Ho;
+    const std::uint32_t c = static_cast<std::uint32_t>(nc % C);
+    const std::int64_t n = nc / C;
+    const std::int64_t src = ((n * Hi + yo / r) * Wi + xo / r) * Cin + c * r * r + (yo % r) * r + xo % r;
+    out[i] = detail::to_f32(in[src]);
+  }
+}
+
 template <class TI, class TO>
 __global__ void transpose_kernel(const TI* __restrict__ x, TO* __restrict__ y, std::int64_t A, std::int64_t B) {
   __shared__ float tile[32][33];
@@ -232,6 +251,24 @@ bool pixel_shuffle_add_duplicate_fused(Context& ctx, const T* main, const T* x, 
   else
     shuffle_detail::shuffle2_duplicate_add_kernel<T, 4><<<blocks, 256, 0, ctx.stream()>>>(
         main, x, out, u32(s.height), u32(s.width), u32(channels_out), items);
+  EPONA_CUDA_CHECK_LAUNCH();
+  return true;
+}
+
+// F.pixel_shuffle(x, r) of a channels-last map x (N, H, W, C·r²) written as NCHW float32
+// (N, C, H·r, W·r) in one pass (a plain copy per element, no rounding: what the shuffle and the
+// layout change give). False (nothing done) with the DC-AE fusions off or extents past 32 bits.
+template <class T>
+bool pixel_shuffle_to_nchw_fused(Context& ctx, const T* x, float* out, std::int64_t N, std::int64_t C, std::int64_t H,
+                                 std::int64_t W, std::int64_t r) {
+  static_assert(is_device_float<T>, "pixel_shuffle_to_nchw_fused takes float or bf16");
+  EPONA_CHECK(N >= 0 && C > 0 && H > 0 && W > 0 && r >= 1, "pixel_shuffle_to_nchw: bad extents");
+  if (!dcae_fusion() || std::max({C * r * r, H * r, W * r}) >= (std::int64_t{1} << 31)) return false;
+  const std::int64_t total = N * C * H * r * W * r;
+  if (total == 0) return true;
+  const auto u32 = [](std::int64_t v) { return static_cast<std::uint32_t>(v); };
+  shuffle_detail::shuffle_to_nchw_kernel<<<detail::grid_for(total, 256), 256, 0, ctx.stream()>>>(
+      x, out, u32(C), u32(H * r), u32(W * r), u32(r), total);
   EPONA_CUDA_CHECK_LAUNCH();
   return true;
 }

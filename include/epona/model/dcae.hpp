@@ -211,6 +211,28 @@ struct DcaeDecoder : nn::Bindable<DcaeDecoder<B, T>> {
   // latent map (1 image, latent channels, h x w) -> image map (`in` channels, 32h x 32w), in B's layout
   template <class Ctx>
   Map forward(Ctx& ctx, const Map& z, std::int64_t index, const DcaeObserver<B>& obs) const {
+    Map image = project_out.forward(ctx, features(ctx, z, index, obs));
+    dcae_detail::notify(ctx, obs, DcaePoint::DecoderImage, 0, index, image);
+    return image;
+  }
+
+  // The same, written as the public NCHW float32 image (1, in, 32h, 32w) into `image`: the last
+  // pixel shuffle and the layout change are one pass where the backend fuses them.
+  template <class Ctx>
+  void forward_into(Ctx& ctx, const Map& z, std::int64_t index, const DcaeObserver<B>& obs,
+                    Tensor<float, B>& image) const {
+    EPONA_CHECK(!project_out.shortcut, "DcaeDecoder: project_out has no shortcut");
+    nn::pixel_shuffle_to_nchw(ctx, project_out.conv.forward(ctx, features(ctx, z, index, obs)),
+                              nn::UpsampleBlock<B, T>::factor, image);
+    if (obs) obs(DcaePoint::DecoderImage, 0, index, image);
+  }
+
+ private:
+  bool has_upsample(std::size_t s) const { return upsample[s].conv.out_channels > 0; }
+
+  // project_in, the stages and project_out's norm + act: the map project_out's conv reads.
+  template <class Ctx>
+  Map features(Ctx& ctx, const Map& z, std::int64_t index, const DcaeObserver<B>& obs) const {
     using dcae_detail::notify;
     Map x = project_in.forward(ctx, z);
     nn::add_channel_duplicate_up(ctx, z, x, 1);
@@ -221,13 +243,8 @@ struct DcaeDecoder : nn::Bindable<DcaeDecoder<B, T>> {
       notify(ctx, obs, DcaePoint::DecoderStage, static_cast<int>(s), index, x);
     }
     out_norm.forward_inplace(ctx, x, out_act);
-    Map image = project_out.forward(ctx, x);
-    notify(ctx, obs, DcaePoint::DecoderImage, 0, index, image);
-    return image;
+    return x;
   }
-
- private:
-  bool has_upsample(std::size_t s) const { return upsample[s].conv.out_channels > 0; }
 };
 
 // Epona's temporal-aware front: for i = 0..n-1, `causal_time_block.{i}` over the frames of each
@@ -503,7 +520,7 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
     }
     for (std::int64_t n = 0; n < latents.size(0); ++n) {
       Tensor<float, B> out = images.slice(n, n + 1);
-      nn::map_to_nchw(ctx, decoder.forward(ctx, z.slice(n, n + 1), n, obs), out);
+      decoder.forward_into(ctx, z.slice(n, n + 1), n, obs, out);
     }
   }
 

@@ -101,4 +101,19 @@ Tensor<A, B> pixel_shuffle_add_duplicate(Ctx& ctx, const Tensor<A, B>& main, con
   return y;
 }
 
+// F.pixel_shuffle(x, r) as the public NCHW float32 tensor `out` (N, C/r², H·r, W·r): the
+// decoder's last step. One pass on channels-last backends that fuse it, else shuffle + map_to_nchw.
+template <class Ctx, class A, class B>
+void pixel_shuffle_to_nchw(Ctx& ctx, const Tensor<A, B>& x, std::int64_t factor, Tensor<float, B>& out) {
+  const auto s = shuffle_detail::geometry(x, factor, "pixel_shuffle");
+  EPONA_CHECK(factor >= 1 && s.channels % (factor * factor) == 0, "pixel_shuffle: ", s.channels,
+              " channels are not divisible by factor² = ", factor * factor);
+  const std::int64_t C = s.channels / (factor * factor);
+  check_shape(out, {s.batch, C, s.height * factor, s.width * factor}, "pixel_shuffle_to_nchw output");
+  if constexpr (channels_last_maps<B>) {
+    if (pixel_shuffle_to_nchw_fused(ctx, x.data(), out.data(), s.batch, C, s.height, s.width, factor)) return;
+  }
+  map_to_nchw(ctx, pixel_shuffle(ctx, x, factor), out);
+}
+
 }  // namespace epona::nn
