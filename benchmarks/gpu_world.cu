@@ -9,8 +9,11 @@
 // LayerNorm apart and fused, in-place LayerNorm, the erf GELU, gated residual + modulated norm).
 // CUDA events around each call after warm-up; medians. One JSON object per line (the
 // side-by-side harness reads them), then a readable table.
-// Usage: bench_gpu_world [--repeats N] [--steps S] [--only a,b,...] [--fp32]
-// (--only names: gemm, passes, mst, traj_eval, traj_sample, vis_eval, vis_sample, step)
+// Usage: bench_gpu_world [--repeats N] [--steps S] [--only a,b,...] [--fp32] [--profile]
+// (--only names: gemm, passes, dit_gemms, mst, traj_eval, traj_sample, vis_eval, vis_sample, step;
+// dit_gemms: the double blocks' per-stream products serial, on two streams, and batched;
+// --profile: one eager evaluation of each DiT between cudaProfilerStart/Stop, for ncu;
+// --tune-compare: the DiT rows again with the cuBLASLt candidate timing switched, suffixed).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -21,6 +24,8 @@
 #include <sstream>
 #include <string>
 #include <vector>
+
+#include <cuda_profiler_api.h>
 
 #include "epona/core/rng.hpp"
 #include "epona/cuda/backend.cuh"
@@ -39,6 +44,8 @@ struct Options {
   std::int64_t steps = 100;
   std::set<std::string> only;
   bool fp32 = false;
+  bool profile = false;  // one eager evaluation of each DiT inside cudaProfilerStart/Stop
+  bool tune_compare = false;  // the DiT rows again with the GEMM tuning switched
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
 };
 
@@ -53,10 +60,12 @@ Options parse(int argc, char** argv) {
     if (a == "--repeats") o.repeats = std::stoi(next());
     else if (a == "--steps") o.steps = std::stoll(next());
     else if (a == "--fp32") o.fp32 = true;
+    else if (a == "--profile") o.profile = true;
+    else if (a == "--tune-compare") o.tune_compare = true;
     else if (a == "--only") {
       std::stringstream ss(next());
       for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
-    } else fail("unknown option ", a, " (--repeats N, --steps S, --only a,b, --fp32)");
+    } else fail("unknown option ", a, " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare)");
   }
   return o;
 }
@@ -68,6 +77,9 @@ double median(std::vector<double> v) {
 }
 
 using bench::event_times_ms;
+
+// An empty kernel that marks where a profiled range starts (ncu lists it among the kernels).
+__global__ void profile_marker() {}
 
 void emit(const std::string& name, const std::vector<double>& runs, double tflop) {
   std::printf("{\"name\": \"%s\", \"ms\": %.4f, \"tflop\": %.6f, \"runs\": [", name.c_str(), median(runs), tflop);
@@ -163,6 +175,110 @@ void time_passes(cuda::Context& ctx, int repeats) {
   });
 }
 
+// One strided-batched cuBLASLt product of bf16 y_b (M, N) = act(x_b (M, K) · w_b (N, K)ᵀ + bias_b)
+// for b < batch (operands `stride_*` elements apart): the two streams of a DiT double block as
+// one launch, the shorter stream padded to M rows (what a weight layout at a constant stride
+// would allow), timed against the model's two products on two streams.
+template <class V>
+void set_layout(cublasLtMatrixLayout_t l, cublasLtMatrixLayoutAttribute_t attr, const V& value) {
+  EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutSetAttribute(l, attr, &value, sizeof value));
+}
+
+struct BatchedGemm {
+  cublasLtMatmulDesc_t op = nullptr;
+  cublasLtMatrixLayout_t a = nullptr, b = nullptr, c = nullptr;
+  cublasLtMatmulAlgo_t algo{};
+  BatchedGemm(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int64_t K, int batch, bool gelu) {
+    EPONA_CUBLAS_CHECK(cublasLtMatmulDescCreate(&op, CUBLAS_COMPUTE_32F, CUDA_R_32F));
+    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_TRANSA, CUBLAS_OP_T);
+    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_TRANSB, CUBLAS_OP_N);
+    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_EPILOGUE, gelu ? CUBLASLT_EPILOGUE_GELU_BIAS : CUBLASLT_EPILOGUE_BIAS);
+    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_BIAS_DATA_TYPE, CUDA_R_16BF);
+    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_BIAS_BATCH_STRIDE, static_cast<std::int64_t>(N));
+    const auto layout = [&](cublasLtMatrixLayout_t& l, std::int64_t rows, std::int64_t cols, std::int64_t stride) {
+      EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&l, CUDA_R_16BF, rows, cols, rows));
+      set_layout(l, CUBLASLT_MATRIX_LAYOUT_BATCH_COUNT, static_cast<std::int32_t>(batch));
+      set_layout(l, CUBLASLT_MATRIX_LAYOUT_STRIDED_BATCH_OFFSET, stride);
+    };
+    layout(a, K, N, N * K);
+    layout(b, K, M, M * K);
+    layout(c, N, M, M * N);
+    cublasLtMatmulPreference_t pref = nullptr;
+    EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceCreate(&pref));
+    const std::uint64_t ws = ctx.workspace_bytes();
+    EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceSetAttribute(pref, CUBLASLT_MATMUL_PREF_MAX_WORKSPACE_BYTES, &ws, sizeof ws));
+    cublasLtMatmulHeuristicResult_t r{};
+    int found = 0;
+    EPONA_CUBLAS_CHECK(cublasLtMatmulAlgoGetHeuristic(ctx.lt(), op, a, b, c, c, pref, 1, &r, &found));
+    cublasLtMatmulPreferenceDestroy(pref);
+    EPONA_CHECK(found > 0, "no batched algorithm");
+    algo = r.algo;
+  }
+  ~BatchedGemm() {
+    cublasLtMatrixLayoutDestroy(c);
+    cublasLtMatrixLayoutDestroy(b);
+    cublasLtMatrixLayoutDestroy(a);
+    cublasLtMatmulDescDestroy(op);
+  }
+  void operator()(cuda::Context& ctx, const bf16* x, const bf16* w, const bf16* bias, bf16* y) const {
+    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
+    const float alpha = 1, beta = 0;
+    EPONA_CUBLAS_CHECK(cublasLtMatmul(ctx.lt(), op, &alpha, w, a, x, b, &beta, y, c, y, c, &algo, ctx.workspace(),
+                                      ctx.workspace_bytes(), ctx.stream()));
+  }
+};
+
+// The double blocks' per-stream products (condition rows, target rows) three ways: in sequence
+// on one stream, on two streams (the model), and as one batch-2 strided product (rows padded to
+// the condition stream's). Row `dit_gemm_<dit>_<layer>_<how>`.
+void time_stream_gemms(cuda::Context& ctx, int repeats) {
+  cuda::Context side;
+  cudaEvent_t fork, join;
+  EPONA_CUDA_CHECK(cudaEventCreateWithFlags(&fork, cudaEventDisableTiming));
+  EPONA_CUDA_CHECK(cudaEventCreateWithFlags(&join, cudaEventDisableTiming));
+  struct Shape3 {
+    const char* name;
+    std::int64_t N, K;
+    bool gelu;
+  };
+  for (const bool vis : {true, false}) {
+    const std::int64_t D = vis ? 2048 : 1024, Mc = 515, Mt = vis ? 512 : 15;
+    for (const Shape3& sh : {Shape3{"qkv", 3 * D, D, false}, Shape3{"proj", D, D, false},
+                             Shape3{"fc1", 4 * D, D, true}, Shape3{"fc2", D, 4 * D, false}}) {
+      auto x = random_device<bf16>(ctx, {2 * Mc, sh.K}, 11), w = random_device<bf16>(ctx, {2 * sh.N, sh.K}, 12);
+      auto bias = random_device<bf16>(ctx, {2 * sh.N}, 13);
+      Tensor<bf16, Cuda> y({2 * Mc, sh.N});
+      const auto epi = sh.gelu ? cuda::Epilogue::GeluTanh : cuda::Epilogue::None;
+      const auto one = [&](cuda::Context& c, int s, std::int64_t M) {
+        cuda::linear(c, x.data() + s * Mc * sh.K, sh.K, w.data() + s * sh.N * sh.K, bias.data() + s * sh.N,
+                     y.data() + s * Mc * sh.N, sh.N, M, sh.N, sh.K, epi);
+      };
+      const std::string tag = std::string("dit_gemm_") + (vis ? "vis_" : "traj_") + sh.name;
+      const double tflop = 2.0 * (Mc + Mt) * sh.N * sh.K / 1e12;
+      const auto report = [&](const std::string& how, const std::function<void()>& fn) {
+        const auto runs = event_times_ms(ctx, repeats, 3, fn);
+        emit(tag + "_" + how, runs, tflop);
+        std::printf("# %s_%s: %.1f us, %.0f TFLOP/s (useful rows %lld + %lld)\n", tag.c_str(), how.c_str(),
+                    1e3 * median(runs), tflop / (median(runs) * 1e-3), static_cast<long long>(Mc),
+                    static_cast<long long>(Mt));
+      };
+      report("serial", [&] { one(ctx, 0, Mc), one(ctx, 1, Mt); });
+      report("two_streams", [&] {
+        EPONA_CUDA_CHECK(cudaEventRecord(fork, ctx.stream()));
+        EPONA_CUDA_CHECK(cudaStreamWaitEvent(side.stream(), fork, 0));
+        one(side, 0, Mc);
+        one(ctx, 1, Mt);
+        EPONA_CUDA_CHECK(cudaEventRecord(join, side.stream()));
+        EPONA_CUDA_CHECK(cudaStreamWaitEvent(ctx.stream(), join, 0));
+      });
+      const BatchedGemm batched(ctx, Mc, sh.N, sh.K, 2, sh.gelu);
+      report("batched", [&] { batched(ctx, x.data(), w.data(), bias.data(), y.data()); });
+    }
+  }
+  EPONA_CUDA_CHECK(cudaEventDestroy(fork));
+  EPONA_CUDA_CHECK(cudaEventDestroy(join));
+}
+
 template <class W>
 int run(const Options& o) {
   WorldModelConfig cfg;  // the shipped configuration
@@ -178,6 +294,7 @@ int run(const Options& o) {
   const double ceiling = o.want("gemm") ? gemm_ceiling_tflops(probe) : 0;
   if (ceiling > 0) emit_value("gemm_tflops", ceiling);
   if (o.want("passes")) time_passes(probe, std::max(o.repeats, 20));
+  if (o.want("dit_gemms") && !std::is_same_v<W, float>) time_stream_gemms(probe, std::max(o.repeats, 20));
 
   const std::size_t base_bytes = used_device_bytes();
   const auto t0 = std::chrono::steady_clock::now();
@@ -224,40 +341,62 @@ int run(const Options& o) {
   if (o.want("mst")) emit("mst", event_times_ms(ctx, R, 3, mst_once), mst_tflop);
 
   const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
-  for (const bool is_vis : {false, true}) {
-    const auto& dit = is_vis ? vis : traj;
-    const std::string name = is_vis ? "vis" : "traj";
-    const auto& rows = dit_rows(is_vis);
-    const auto& target_ids = is_vis ? ids.img : ids.traj;
-    const auto x0 = gen.randn({1, rows.target, is_vis ? cfg.token_dim() : std::int64_t{3}});
-    const auto x = cuda::to_device(ctx, x0);
-    Tensor<W, Cuda> v(x.shape());
-    Tensor<float, Cpu> t({1});
-    t.data()[0] = 0.3f;
-    const double eval_tflop = dit.forward_flops(rows, false).total() / 1e12;
-    if (o.want(name + "_eval"))
-      emit(name + "_eval", event_times_ms(ctx, std::max(R, 20), 3, [&] {
-             arena.reset();
-             dit.forward(ctx, arena, x, target_ids, stt, ids.cond, t, pose_emb, v);
-           }),
-           eval_tflop);
-    const auto grid = flow::get_schedule(o.steps, rows.target);
-    Tensor<float, Cuda> state(x.shape());
-    const auto sample_once = [&] {
-      arena.reset();
-      cuda::copy(ctx, x.data(), state.data(), x.numel());  // the same noise every run
-      const auto c = dit.prepare(ctx, arena, stt, ids.cond, target_ids, pose_emb);
-      dit.sample(ctx, arena, c, grid, state);
-    };
-    sample_once();  // records the sampling graph
-    const auto& counts = dit.sampler_graph().node_counts();
-    std::printf("# %s sampler graph: %d capture(s), last %.1f ms (host, capture + instantiate); %zu nodes: %zu kernels "
-                "(%.2f per step), %zu copies/sets\n",
-                name.c_str(), dit.sampler_graph().captures(), dit.sampler_graph().last_capture_ms(), counts.nodes,
-                counts.kernels, double(counts.kernels) / double(o.steps), counts.copies);
-    emit_value(name + "_graph_kernels_per_step", double(counts.kernels) / double(o.steps));
-    if (o.want(name + "_sample"))
-      emit(name + "_sample", event_times_ms(ctx, std::max(3, R / 2), 1, sample_once), eval_tflop * double(o.steps));
+  // The DiT rows; `suffix` names a second pass with the GEMM tuning switched (--tune-compare).
+  const auto time_dits = [&](const std::string& suffix) {
+    for (const bool is_vis : {false, true}) {
+      const auto& dit = is_vis ? vis : traj;
+      const std::string name = std::string(is_vis ? "vis" : "traj");
+      const auto& rows = dit_rows(is_vis);
+      const auto& target_ids = is_vis ? ids.img : ids.traj;
+      const auto x0 = gen.randn({1, rows.target, is_vis ? cfg.token_dim() : std::int64_t{3}});
+      const auto x = cuda::to_device(ctx, x0);
+      Tensor<W, Cuda> v(x.shape());
+      Tensor<float, Cpu> t({1});
+      t.data()[0] = 0.3f;
+      const double eval_tflop = dit.forward_flops(rows, false).total() / 1e12;
+      if (o.profile && suffix.empty()) {  // for `ncu --profile-from-start off`: the kernels of one evaluation, prepare included
+        arena.reset();
+        dit.forward(ctx, arena, x, target_ids, stt, ids.cond, t, pose_emb, v);  // plans made, outside the range
+        ctx.synchronize();
+        EPONA_CUDA_CHECK(cudaProfilerStart());
+        arena.reset();
+        dit.forward(ctx, arena, x, target_ids, stt, ids.cond, t, pose_emb, v);
+        ctx.synchronize();
+        EPONA_CUDA_CHECK(cudaProfilerStop());
+      }
+      if (o.want(name + "_eval"))
+        emit(name + "_eval" + suffix, event_times_ms(ctx, std::max(R, 20), 3, [&] {
+               arena.reset();
+               dit.forward(ctx, arena, x, target_ids, stt, ids.cond, t, pose_emb, v);
+             }),
+             eval_tflop);
+      const auto grid = flow::get_schedule(o.steps, rows.target);
+      Tensor<float, Cuda> state(x.shape());
+      const auto sample_once = [&] {
+        arena.reset();
+        cuda::copy(ctx, x.data(), state.data(), x.numel());  // the same noise every run
+        const auto c = dit.prepare(ctx, arena, stt, ids.cond, target_ids, pose_emb);
+        dit.sample(ctx, arena, c, grid, state);
+      };
+      sample_once();  // records the sampling graph
+      const auto& counts = dit.sampler_graph().node_counts();
+      std::printf("# %s sampler graph: %d capture(s), last %.1f ms (host, capture + instantiate); %zu nodes: %zu kernels "
+                  "(%.2f per step), %zu copies/sets\n",
+                  name.c_str(), dit.sampler_graph().captures(), dit.sampler_graph().last_capture_ms(), counts.nodes,
+                  counts.kernels, double(counts.kernels) / double(o.steps), counts.copies);
+      emit_value(name + "_graph_kernels_per_step" + suffix, double(counts.kernels) / double(o.steps));
+      if (o.want(name + "_sample"))
+        emit(name + "_sample" + suffix, event_times_ms(ctx, std::max(3, R / 2), 1, sample_once), eval_tflop * double(o.steps));
+    }
+  };
+  time_dits("");
+  if (o.tune_compare) {
+    const bool tuned = !cuda::detail::gemm_tuning();
+    cuda::set_gemm_tuning(tuned);
+    traj.reset_sampler_graph();
+    vis.reset_sampler_graph();
+    std::printf("# GEMM tuning %s for the rows suffixed _%s\n", tuned ? "on" : "off", tuned ? "tuned" : "untuned");
+    time_dits(tuned ? "_tuned" : "_untuned");
   }
   arena = Arena<Cuda>();  // the step uses the model's own arena
 

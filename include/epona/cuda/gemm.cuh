@@ -2,11 +2,15 @@
 // layout W (out, in), through cuBLASLt. Bias and the tanh GELU run in cuBLASLt's epilogue;
 // the erf GELU and SiLU (which cuBLASLt lacks) run as one extra element-wise pass. float32
 // uses true float32 arithmetic (CUBLAS_COMPUTE_32F, no TF32); bf16 accumulates in float32.
+// Optionally (EPONA_CUDA_GEMM_TUNE=1) each new problem times a few of cuBLASLt's candidates.
 #pragma once
 
 #include <cstdint>
+#include <cstdlib>
+#include <cstring>
 #include <memory>
 #include <type_traits>
+#include <vector>
 
 #include "epona/cuda/activation.cuh"
 #include "epona/cuda/memory.hpp"
@@ -34,11 +38,38 @@ void set_desc(cublasLtMatmulDesc_t d, cublasLtMatmulDescAttributes_t attr, const
   EPONA_CUBLAS_CHECK(cublasLtMatmulDescSetAttribute(d, attr, &value, sizeof value));
 }
 
+// Tuning: a new plan times cuBLASLt's first few heuristic candidates on its first call outside
+// a graph capture and keeps the fastest (the heuristic's first choice is often slow for the
+// DiTs' small-M products). Candidates that add split-K partial sums in the output type (bf16:
+// extra roundings) are not considered. EPONA_CUDA_GEMM_TUNE=1 turns it on (default off);
+// set_gemm_tuning switches it at run time (benchmarks compare both in one process).
+inline bool& gemm_tuning_flag() {
+  static bool on = [] {
+    const char* v = std::getenv("EPONA_CUDA_GEMM_TUNE");
+    return v && std::strcmp(v, "1") == 0;
+  }();
+  return on;
+}
+inline bool gemm_tuning() { return gemm_tuning_flag(); }
+constexpr int kTuneCandidates = 8, kTuneRuns = 10;
+// Untuned plans (tuning off, or made during a capture where nothing can be timed) are kept
+// under their key with this bit set in the epilogue field, so they never stand in for a tuned
+// one: a later call outside a capture with tuning on makes and tunes the plan of the plain key.
+constexpr std::int64_t kUntunedPlan = std::int64_t{1} << 40;
+
+inline bool capturing(cudaStream_t stream) {
+  cudaStreamCaptureStatus status = cudaStreamCaptureStatusNone;
+  EPONA_CUDA_CHECK(cudaStreamIsCapturing(stream, &status));
+  return status != cudaStreamCaptureStatusNone;
+}
+
 // Row-major y (M, N) = x (M, K) · w (N, K)ᵀ is, in cuBLASLt's column-major terms,
 // yᵀ (N, M) = op_T(w stored K×N) · (x stored K×M). Returns null when cuBLASLt has no
-// algorithm for this epilogue.
+// algorithm for this epilogue. `candidates` (if given) receives the heuristic's first few
+// algorithms that reduce split-K partial sums in float32 or not at all (the first always).
 template <class T>
-std::unique_ptr<LtPlan> try_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t epilogue) {
+std::unique_ptr<LtPlan> try_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t epilogue,
+                                 std::vector<cublasLtMatmulAlgo_t>* candidates = nullptr) {
   const auto [dt, M, N, K, ldx, ldy, wanted, ax, aw, ay] = key;
   (void)dt, (void)wanted;
   const cudaDataType_t type = cuda_dtype<T>();
@@ -65,22 +96,62 @@ std::unique_ptr<LtPlan> try_plan(Context& ctx, const LtPlanKey& key, cublasLtEpi
   set_pref(CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_B_BYTES, static_cast<std::uint32_t>(ax));
   set_pref(CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_C_BYTES, static_cast<std::uint32_t>(ay));
   set_pref(CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_D_BYTES, static_cast<std::uint32_t>(ay));
-  cublasLtMatmulHeuristicResult_t result{};
+  cublasLtMatmulHeuristicResult_t results[kTuneCandidates]{};
   int found = 0;
-  const cublasStatus_t status = cublasLtMatmulAlgoGetHeuristic(ctx.lt(), plan->op, plan->a, plan->b, plan->c,
-                                                               plan->c, pref, 1, &result, &found);
+  const cublasStatus_t status = cublasLtMatmulAlgoGetHeuristic(
+      ctx.lt(), plan->op, plan->a, plan->b, plan->c, plan->c, pref, candidates ? kTuneCandidates : 1, results, &found);
   if (status == CUBLAS_STATUS_NOT_SUPPORTED || found == 0) return nullptr;
   EPONA_CUBLAS_CHECK(status);
-  plan->algo = result.algo;
+  plan->algo = results[0].algo;
+  if (candidates)
+    for (int i = 0; i < found; ++i) {
+      std::uint32_t scheme = CUBLASLT_REDUCTION_SCHEME_NONE;
+      std::size_t written = 0;
+      EPONA_CUBLAS_CHECK(cublasLtMatmulAlgoConfigGetAttribute(&results[i].algo, CUBLASLT_ALGO_CONFIG_REDUCTION_SCHEME,
+                                                              &scheme, sizeof scheme, &written));
+      if (i == 0 || scheme == CUBLASLT_REDUCTION_SCHEME_NONE || scheme == CUBLASLT_REDUCTION_SCHEME_COMPUTE_TYPE)
+        candidates->push_back(results[i].algo);
+    }
   return plan;
+}
+
+// Times each candidate on the call's own operands (in stream order before the call itself, so
+// y is simply overwritten) and keeps the fastest in the plan.
+template <class T>
+void tune_plan(Context& ctx, LtPlan& plan, const std::vector<cublasLtMatmulAlgo_t>& candidates, const T* x,
+               const T* w, const T* bias, T* y) {
+  if (candidates.size() < 2) return;
+  if (plan.fuses_bias()) set_desc(plan.op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
+  cudaEvent_t events[2] = {nullptr, nullptr};
+  for (auto& e : events) EPONA_CUDA_CHECK(cudaEventCreate(&e));
+  const float alpha = 1.0f, beta = 0.0f;
+  float best = 0;
+  cublasLtMatmulAlgo_t chosen = plan.algo;
+  for (const auto& algo : candidates) {
+    const auto run = [&] {
+      return cublasLtMatmul(ctx.lt(), plan.op, &alpha, w, plan.a, x, plan.b, &beta, y, plan.c, y, plan.c, &algo,
+                            ctx.workspace(), ctx.workspace_bytes(), ctx.stream());
+    };
+    if (run() != CUBLAS_STATUS_SUCCESS) continue;  // warm-up; an algorithm that refuses is skipped
+    EPONA_CUDA_CHECK(cudaEventRecord(events[0], ctx.stream()));
+    for (int r = 0; r < kTuneRuns; ++r) EPONA_CUBLAS_CHECK(run());
+    EPONA_CUDA_CHECK(cudaEventRecord(events[1], ctx.stream()));
+    EPONA_CUDA_CHECK(cudaEventSynchronize(events[1]));
+    float ms = 0;
+    EPONA_CUDA_CHECK(cudaEventElapsedTime(&ms, events[0], events[1]));
+    if (best == 0 || ms < best) best = ms, chosen = algo;
+  }
+  for (auto e : events) EPONA_CUDA_CHECK(cudaEventDestroy(e));
+  plan.algo = chosen;
 }
 
 // The wanted fused epilogue if cuBLASLt has it for this problem, else a plain product (the
 // caller then applies bias and activation itself).
 template <class T>
-std::unique_ptr<LtPlan> make_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted) {
-  auto plan = try_plan<T>(ctx, key, wanted);
-  if (!plan && wanted != CUBLASLT_EPILOGUE_DEFAULT) plan = try_plan<T>(ctx, key, CUBLASLT_EPILOGUE_DEFAULT);
+std::unique_ptr<LtPlan> make_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted,
+                                  std::vector<cublasLtMatmulAlgo_t>* candidates = nullptr) {
+  auto plan = try_plan<T>(ctx, key, wanted, candidates);
+  if (!plan && wanted != CUBLASLT_EPILOGUE_DEFAULT) plan = try_plan<T>(ctx, key, CUBLASLT_EPILOGUE_DEFAULT, candidates);
   EPONA_CHECK(plan != nullptr, "linear: cuBLASLt has no algorithm for M=", key[1], " N=", key[2], " K=", key[3],
               " ldx=", key[4], " ldy=", key[5], " (", std::is_same_v<T, float> ? "float32" : "bf16",
               ", alignments x ", key[7], " w ", key[8], " y ", key[9], " bytes)");
@@ -131,6 +202,9 @@ void activation_epilogue(Context& ctx, T* y, std::int64_t ldy, std::int64_t rows
 
 }  // namespace detail
 
+// Turns the timing of cuBLASLt's candidates for new plans on or off (see detail::gemm_tuning).
+inline void set_gemm_tuning(bool on) { detail::gemm_tuning_flag() = on; }
+
 // Pointer form with row strides (x rows ldx apart, y rows ldy apart, so y can be a column
 // block of a wider buffer): y[M, N] = act(x[M, K] · w[N, K]ᵀ + bias[N]); bias may be null.
 // Asynchronous on ctx's stream.
@@ -152,8 +226,24 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
   const detail::LtPlanKey key{std::is_same_v<T, float> ? 0 : 1, M, N, K, ldx, ldy, static_cast<std::int64_t>(wanted),
                               detail::pointer_alignment(x), detail::pointer_alignment(w),
                               detail::pointer_alignment(y)};
-  auto& plan = ctx.gemm_plans()[key];
-  if (!plan) plan = detail::make_plan<T>(ctx, key, wanted);
+  auto& plans = ctx.gemm_plans();
+  const detail::LtPlan* found = nullptr;
+  const bool tuning = detail::gemm_tuning();
+  if (auto it = plans.find(key); tuning && it != plans.end()) {
+    found = it->second.get();
+  } else if (!tuning || detail::capturing(ctx.stream())) {
+    auto untuned = key;
+    untuned[6] |= detail::kUntunedPlan;
+    auto& p = plans[untuned];
+    if (!p) p = detail::make_plan<T>(ctx, untuned, wanted);
+    found = p.get();
+  } else {
+    std::vector<cublasLtMatmulAlgo_t> candidates;
+    auto p = detail::make_plan<T>(ctx, key, wanted, &candidates);
+    detail::tune_plan(ctx, *p, candidates, x, w, bias, y);
+    found = (plans[key] = std::move(p)).get();
+  }
+  const detail::LtPlan* plan = found;
   if (plan->fuses_bias()) detail::set_desc(plan->op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
   const float alpha = 1.0f, beta = 0.0f;
   EPONA_CUBLAS_CHECK(cublasLtMatmul(ctx.lt(), plan->op, &alpha, w, plan->a, x, plan->b, &beta, y, plan->c, y, plan->c,

@@ -255,6 +255,11 @@ class FluxDiT {
 
   // The recorded sampling loop (on the GPU: how often it was captured, how long that took).
   const typename BackendTraits<B>::GraphCache& sampler_graph() const { return graph_; }
+  // Drops the recorded loop so the next sample records it again (e.g. after a kernel choice
+  // such as the GEMM tuning changed).
+  void reset_sampler_graph() const {
+    if constexpr (requires { graph_.reset(); }) graph_.reset();
+  }
 
   // FLOPs of one velocity evaluation including cond_in, batch 1: `executed` counts what runs
   // (the last single block updates only the target rows); otherwise the official count of
