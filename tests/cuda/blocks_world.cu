@@ -1,6 +1,7 @@
 // The world model's layers and blocks on the GPU against the CPU backend on random data and
 // random weights (model/random_weights.hpp) at head dim 128 (the real one): the world-model
-// kernels added for the GPU (copy, strided copy, float32 -> bf16 conversion, Euler update),
+// kernels added for the GPU (copy, strided copy, float32 -> bf16 conversion, Euler update alone
+// and fused with the conversion, the small-product linear kernels vs float64),
 // the DiT blocks one by one (DoubleStreamBlock, SingleStreamBlock full and pruned, LastLayer),
 // the MST block by block (observer), whole DiT evaluations and samples (batch 2: modulation
 // tables, input conversion, recorded sampler graph) and world-model steps. Bounds: float32
@@ -175,6 +176,70 @@ TEST_CASE("world-model kernels: copy, strided copy, conversion, Euler update (fl
     for (std::int64_t i = 0; i < n; ++i)
       wrong_c += got_c.data()[i] != got_b.data()[i] || got_xc.data()[i] != float(bf16(got_b.data()[i]));
     CHECK(wrong_c == 0);
+  }
+}
+
+namespace {
+
+// cuda::linear on the shapes that take the small kernels (small_linear.cuh) against a float64
+// host product of the same (rounded) inputs: a few outputs per row (warp per output; K a
+// multiple of 8 or not) and a tiny K (thread per output), with and without bias, written into a
+// column block of a wider poisoned buffer (the other columns must stay poisoned). Bound per
+// element: float32 1e-5 of max|ref|; bf16 one rounding of the output (2^-8 |ref|) on top.
+template <class T>
+void check_small_linear(std::int64_t M, std::int64_t N, std::int64_t K, bool with_bias, std::uint32_t seed) {
+  auto& ctx = gpu();
+  auto x = test::random_tensor({M, K}, seed, -2.f, 2.f), w = test::random_tensor({N, K}, seed + 1, -0.5f, 0.5f);
+  auto b = test::random_tensor({N}, seed + 2);
+  test::round_to<T>(x), test::round_to<T>(w), test::round_to<T>(b);
+  const std::int64_t ldy = N + 5;
+  const auto dx = upload<T>(x), dw = upload<T>(w), db = upload<T>(b);
+  auto dy = Tensor<T, Cuda>({M, ldy});
+  cuda::fill_bytes(ctx, dy, 0xFF);
+  cuda::linear(ctx, dx.data(), K, dw.data(), with_bias ? db.data() : nullptr, dy.data(), ldy, M, N, K);
+  const auto y = download(dy);
+  double max_ref = 0;
+  std::vector<double> ref(static_cast<std::size_t>(M * N));
+  for (std::int64_t m = 0; m < M; ++m)
+    for (std::int64_t n = 0; n < N; ++n) {
+      double acc = with_bias ? b.data()[n] : 0.0;
+      for (std::int64_t k = 0; k < K; ++k) acc += double(x.at(m, k)) * double(w.at(n, k));
+      ref[m * N + n] = acc;
+      max_ref = std::max(max_ref, std::abs(acc));
+    }
+  const double u = std::is_same_v<T, bf16> ? 1.0 / 256 : 0.0;
+  int bad = 0, untouched_changed = 0;
+  double worst = 0;
+  for (std::int64_t m = 0; m < M; ++m)
+    for (std::int64_t c = 0; c < ldy; ++c) {
+      const float got = y.at(m, c);
+      if (c >= N) {
+        untouched_changed += !std::isnan(got);
+        continue;
+      }
+      const double err = std::abs(double(got) - ref[m * N + c]);
+      worst = std::max(worst, err / max_ref);
+      bad += !(err <= u * std::abs(ref[m * N + c]) + 1e-5 * max_ref);
+    }
+  MESSAGE("small linear ", test::type_name<T>(), " ", M, "x", N, "x", K, with_bias ? " +bias" : "", ": max err ", worst,
+          " of max|ref|");
+  CHECK(bad == 0);
+  CHECK(untouched_changed == 0);
+}
+
+}  // namespace
+
+TEST_CASE("linear: few outputs per row and tiny K run in the small kernels, exact to float64 within rounding") {
+  EPONA_REQUIRE_GPU();
+  std::uint32_t seed = 600;
+  for (const bool bias : {true, false}) {
+    check_small_linear<float>(15, 3, 1024, bias, seed++);   // the TrajDiT's final layer
+    check_small_linear<bf16>(15, 3, 1024, bias, seed++);
+    check_small_linear<bf16>(15, 1024, 3, bias, seed++);    // its input layer
+    check_small_linear<float>(15, 1024, 3, bias, seed++);
+    check_small_linear<bf16>(37, 16, 1027, bias, seed++);   // K not a multiple of 8: element loads
+    check_small_linear<bf16>(5, 7, 16, bias, seed++);       // largest tiny K
+    check_small_linear<bf16>(9, 17, 40, bias, seed++);      // neither: cuBLASLt
   }
 }
 

@@ -2,7 +2,8 @@
 // layout W (out, in), through cuBLASLt. Bias and the tanh GELU run in cuBLASLt's epilogue;
 // the erf GELU and SiLU (which cuBLASLt lacks) run as one extra element-wise pass. float32
 // uses true float32 arithmetic (CUBLAS_COMPUTE_32F, no TF32); bf16 accumulates in float32.
-// Optionally (EPONA_CUDA_GEMM_TUNE=1) each new problem times a few of cuBLASLt's candidates.
+// Optionally (EPONA_CUDA_GEMM_TUNE=1) each new problem times a few of cuBLASLt's candidates;
+// products with a few outputs per row or a tiny K run in our own kernels (small_linear.cuh).
 #pragma once
 
 #include <cstdint>
@@ -14,6 +15,7 @@
 
 #include "epona/cuda/activation.cuh"
 #include "epona/cuda/memory.hpp"
+#include "epona/cuda/small_linear.cuh"
 
 namespace epona::cuda {
 
@@ -51,6 +53,14 @@ inline bool& gemm_tuning_flag() {
   return on;
 }
 inline bool gemm_tuning() { return gemm_tuning_flag(); }
+// EPONA_CUDA_SMALL_GEMM=0 sends every product to cuBLASLt (side-by-side runs).
+inline bool small_linear_enabled() {
+  static const bool on = [] {
+    const char* v = std::getenv("EPONA_CUDA_SMALL_GEMM");
+    return !(v && std::strcmp(v, "0") == 0);
+  }();
+  return on;
+}
 constexpr int kTuneCandidates = 8, kTuneRuns = 10;
 // Untuned plans (tuning off, or made during a capture where nothing can be timed) are kept
 // under their key with this bit set in the epilogue field, so they never stand in for a tuned
@@ -215,6 +225,10 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
   EPONA_CHECK(M >= 0 && N > 0 && K > 0, "linear: bad extent (M ", M, ", N ", N, ", K ", K, ")");
   EPONA_CHECK(ldx >= K && ldy >= N, "linear: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K, ", N ", N);
   if (M == 0) return;
+  // A few outputs per row or a tiny K: our own kernel (cuBLASLt's choices there are slow).
+  if (epi == Epilogue::None && detail::small_linear_enabled() &&
+      detail::small_linear(ctx, x, ldx, w, bias, y, ldy, M, N, K))
+    return;
   // cuBLASLt's bias epilogue needs a 16-byte aligned bias; otherwise the bias is added apart.
   const bool bias_fusable = bias && detail::pointer_alignment(bias) >= 16;
   cublasLtEpilogue_t wanted = CUBLASLT_EPILOGUE_DEFAULT;

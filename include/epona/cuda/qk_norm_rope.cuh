@@ -2,7 +2,8 @@
 // one pass (one warp per token and head, in place on packed QKV): the two kernels rms_norm_heads
 // and apply_rope in sequence, with the same roundings — (x·rrms) rounded to the storage type,
 // times the float32 scale, rounded (the official QKNorm), then the float32 rotation of the
-// rounded pair, rounded again (`.type_as(x)`) — but one read and one write instead of two each.
+// rounded pair, rounded again (`.type_as(x)`) — but one read and one write instead of two each
+// (head dim 128: each lane keeps 4 channels in registers, 8- or 16-byte accesses).
 // qk_norm_rope does the queries and keys of several row ranges, each with its own norm scales
 // (a double block's two streams; a pruned single block's few queries), in one launch.
 #pragma once
@@ -38,15 +39,72 @@ __device__ __forceinline__ void norm_rope_head(T* p, int lane, int head_dim, con
   }
 }
 
+// The same for head_dim = 128 with each lane holding 4 consecutive channels (2 pairs) in
+// registers: one 8-byte (bf16) or 16-byte (float) load and store per lane instead of two
+// passes of 2-byte accesses. Same roundings; the squares are summed in another order.
+constexpr int kVecHeadDim = 128;
+__device__ __forceinline__ void load4(const float* p, float (&v)[4]) {
+  const float4 a = *reinterpret_cast<const float4*>(p);
+  v[0] = a.x, v[1] = a.y, v[2] = a.z, v[3] = a.w;
+}
+__device__ __forceinline__ void load4(const bf16* p, float (&v)[4]) {
+  const uint2 raw = *reinterpret_cast<const uint2*>(p);
+  v[0] = __uint_as_float(raw.x << 16), v[1] = __uint_as_float(raw.x & 0xffff0000u);
+  v[2] = __uint_as_float(raw.y << 16), v[3] = __uint_as_float(raw.y & 0xffff0000u);
+}
+__device__ __forceinline__ void store4(float* p, const float (&v)[4]) {
+  *reinterpret_cast<float4*>(p) = make_float4(v[0], v[1], v[2], v[3]);
+}
+__device__ __forceinline__ void store4(bf16* p, const float (&v)[4]) {
+  const __nv_bfloat162 a = __floats2bfloat162_rn(v[0], v[1]), b = __floats2bfloat162_rn(v[2], v[3]);
+  *reinterpret_cast<uint2*>(p) = make_uint2(*reinterpret_cast<const unsigned*>(&a), *reinterpret_cast<const unsigned*>(&b));
+}
+
 template <class T>
+__device__ __forceinline__ void norm_rope_head128(T* p, int lane, const float* scale, float eps, const float* cr,
+                                                  const float* sr) {
+  float v[4];
+  load4(p + 4 * lane, v);
+  const float ss = v[0] * v[0] + v[1] * v[1] + (v[2] * v[2] + v[3] * v[3]);
+  const float rr = 1.0f / sqrtf(warp_sum(ss) / static_cast<float>(kVecHeadDim) + eps);
+#pragma unroll
+  for (int i = 0; i < 4; ++i) v[i] = round_to<T>(round_to<T>(v[i] * rr) * scale[4 * lane + i]);
+  float out[4];
+#pragma unroll
+  for (int q = 0; q < 2; ++q) {
+    const float c = cr[2 * lane + q], s = sr[2 * lane + q], a = v[2 * q], b = v[2 * q + 1];
+    out[2 * q] = c * a - s * b;
+    out[2 * q + 1] = s * a + c * b;
+  }
+  store4(p + 4 * lane, out);
+}
+
+// A head by the warp: the register path when Vec (head_dim 128, 4-element aligned heads).
+template <bool Vec, class T>
+__device__ __forceinline__ void norm_rope_any(T* p, int lane, int head_dim, const float* scale, float eps,
+                                              const float* cr, const float* sr) {
+  if constexpr (Vec)
+    norm_rope_head128(p, lane, scale, eps, cr, sr);
+  else
+    norm_rope_head(p, lane, head_dim, scale, eps, cr, sr);
+}
+
+template <bool Vec, class T>
 __global__ void rms_norm_rope_kernel(T* x, std::int64_t rows, std::int64_t row_stride, int heads, int head_dim,
                                      const float* scale, float eps, const float* cos, const float* sin) {
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
   if (item >= rows * heads) return;
   const std::int64_t r = item / heads;
   const int pairs = head_dim / 2;
-  norm_rope_head(x + r * row_stride + (item % heads) * head_dim, threadIdx.x & 31, head_dim, scale, eps, cos + r * pairs,
-                 sin + r * pairs);
+  norm_rope_any<Vec>(x + r * row_stride + (item % heads) * head_dim, threadIdx.x & 31, head_dim, scale, eps,
+                     cos + r * pairs, sin + r * pairs);
+}
+
+// Heads of head_dim at x + r·row_stride (+ offset) can take the register path.
+template <class T>
+bool vector_heads(const T* x, std::int64_t row_stride, std::int64_t head_dim, std::int64_t offset = 0) {
+  return head_dim == kVecHeadDim && reinterpret_cast<std::uintptr_t>(x) % (4 * sizeof(T)) == 0 &&
+         row_stride % 4 == 0 && offset % 4 == 0;
 }
 
 // The row ranges of one qk_norm_rope launch: range i covers `rows[i]` rows from `first[i]` of
@@ -64,7 +122,7 @@ struct QkRopeParts {
   const float* scale[kQkParts];
 };
 
-template <class T>
+template <bool Vec, class T>
 __global__ void qk_norm_rope_kernel(QkRopeParts<T> a) {
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
   if (item >= a.start[a.parts]) return;
@@ -73,7 +131,7 @@ __global__ void qk_norm_rope_kernel(QkRopeParts<T> a) {
   const std::int64_t local = item - a.start[p], r = a.first[p] + local / a.heads;
   const int pairs = a.head_dim / 2;
   T* head = a.qkv + r * a.row_stride + (p & 1) * a.k_offset + (local % a.heads) * a.head_dim;
-  norm_rope_head(head, threadIdx.x & 31, a.head_dim, a.scale[p], a.eps, a.cos + r * pairs, a.sin + r * pairs);
+  norm_rope_any<Vec>(head, threadIdx.x & 31, a.head_dim, a.scale[p], a.eps, a.cos + r * pairs, a.sin + r * pairs);
 }
 
 inline void check_norm_rope_extent(std::int64_t rows, std::int64_t row_stride, std::int64_t heads,
@@ -104,9 +162,11 @@ void rms_norm_rope_heads(Context& ctx, T* x, std::int64_t rows, std::int64_t row
   detail::check_norm_rope_extent(rows, row_stride, heads, head_dim, "rms_norm_rope_heads");
   EPONA_CHECK(scale != nullptr && cos != nullptr && sin != nullptr, "rms_norm_rope_heads: null scale or table");
   if (rows == 0) return;
-  detail::rms_norm_rope_kernel<<<detail::norm_rope_blocks(rows * heads, "rms_norm_rope_heads"),
-                                 detail::kNormRopeThreads, 0, ctx.stream()>>>(
-      x, rows, row_stride, static_cast<int>(heads), static_cast<int>(head_dim), scale, eps, cos, sin);
+  const unsigned blocks = detail::norm_rope_blocks(rows * heads, "rms_norm_rope_heads");
+  const auto kernel = detail::vector_heads(x, row_stride, head_dim) ? detail::rms_norm_rope_kernel<true, T>
+                                                                    : detail::rms_norm_rope_kernel<false, T>;
+  kernel<<<blocks, detail::kNormRopeThreads, 0, ctx.stream()>>>(x, rows, row_stride, static_cast<int>(heads),
+                                                               static_cast<int>(head_dim), scale, eps, cos, sin);
   EPONA_CUDA_CHECK_LAUNCH();
 }
 
@@ -142,8 +202,9 @@ void qk_norm_rope(Context& ctx, T* qkv, std::int64_t row_stride, std::int64_t k_
     }
   }
   if (a.start[a.parts] == 0) return;
-  detail::qk_norm_rope_kernel<<<detail::norm_rope_blocks(a.start[a.parts], "qk_norm_rope"), detail::kNormRopeThreads,
-                                0, ctx.stream()>>>(a);
+  const auto kernel = detail::vector_heads(qkv, row_stride, head_dim, k_offset) ? detail::qk_norm_rope_kernel<true, T>
+                                                                              : detail::qk_norm_rope_kernel<false, T>;
+  kernel<<<detail::norm_rope_blocks(a.start[a.parts], "qk_norm_rope"), detail::kNormRopeThreads, 0, ctx.stream()>>>(a);
   EPONA_CUDA_CHECK_LAUNCH();
 }
 
