@@ -32,8 +32,10 @@ if [ "$WHAT" != bench ]; then
     summary "test_cuda_$t rc=$rc ($(ms $start) ms): $(grep -E 'test cases:' "$OUT/$t.log" | tail -1)"
     grep -B3 -A12 -E "ERROR|FAILED" "$OUT/$t.log" | head -40
   done
-  grep -hE "temporal fused|upsample pair|relu_linear_attention" "$OUT"/dcae_temporal.log "$OUT"/dcae_ops.log | head -40
-  grep -hE "rel_max =" "$OUT"/dcae_model.log | head -30
+  # the checks of the fused kernels, worst first per kind, and the bf16 golden figures
+  grep -hE "temporal fused|upsample pair|relu_linear_attention .*8192|depthwise_gated" "$OUT"/dcae_temporal.log \
+    "$OUT"/dcae_ops.log | sed 's/  */ /g' | tee -a "$OUT/summary.txt" | head -40
+  grep -hE "official bf16" "$OUT"/dcae_model.log | sed 's/  */ /g' | tee -a "$OUT/summary.txt" | head -12
 fi
 
 # Steps past the first bench and the sanitizer are skipped once the call has run BUDGET seconds.
@@ -71,7 +73,7 @@ if [ "$WHAT" != bench ]; then
   }
   mc dcae_temporal
   mc dcae_ops
-  [ $SECONDS -lt $BUDGET ] && mc dcae_model '-tc=*bf16: every*'
+  [ $SECONDS -lt $BUDGET ] && mc dcae_model '-tc=*bf16: every*,cuDNN state released*'
   [ $SECONDS -lt $BUDGET ] && mc dcae_layers
   rm -f "$OUT/mc.tmp"
   grep -B2 -A8 "Invalid\|Leaked" "$OUT/memcheck.log" | grep -E "Invalid|Leaked|Host Frame" | head -24

@@ -91,11 +91,11 @@ void bias_act(Context& ctx, T* y, std::int64_t pixels, std::int64_t channels, co
 }
 
 // ---- depthwise: one thread per (channel pack, run of kRun pixels along a row); the pack's
-// k·k weights stay in registers across the run. Taps are summed in (ky, kx) order from the bias.
+// k·k weights stay in registers across the run (3x3 packs: read with 16-byte loads). Taps are summed in (ky, kx) order from the bias.
 // kHalves = 2 is GLUMBConv's depthwise conv and gate in one pass: the thread convolves pack c0 of
 // the value half and pack c0 + C/2 of the gate half and stores value · round(act(gate)) (each
 // conv output rounded first, as when stored) into C/2 output channels.
-constexpr int kRun = 8;
+constexpr int kRun = 16;   // pixels per thread: the weights are loaded once per run
 constexpr int kMaxTaps = 9;  // 3x3 kernels (kSmall) keep their weights in registers; others read them per tap
 
 template <class T, class Op, int kVec, bool kSmall, int kHalves = 1>
@@ -113,7 +113,21 @@ __global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ 
     const std::int64_t n = image_row / H;
     const auto channel = [&](int h, int j) { return c0 + h * Co + j; };
     float wr[kHalves][kSmall ? kMaxTaps : 1][kVec];
-    if constexpr (kSmall) {
+    if constexpr (kSmall && kVec == detail::kPack) {
+      // the pack's 8 x 9 weights are 72 consecutive values (16-byte aligned): 9 vector loads
+#pragma unroll
+      for (int h = 0; h < kHalves; ++h)
+#pragma unroll
+        for (int q = 0; q < kMaxTaps; ++q) {
+          float part[detail::kPack];
+          detail::load8(w + channel(h, 0) * kMaxTaps + q * detail::kPack, part);
+#pragma unroll
+          for (int e = 0; e < detail::kPack; ++e) {
+            const int flat = q * detail::kPack + e;  // = j·9 + tap
+            wr[h][flat % kMaxTaps][flat / kMaxTaps] = part[e];
+          }
+        }
+    } else if constexpr (kSmall) {
 #pragma unroll
       for (int h = 0; h < kHalves; ++h)
 #pragma unroll
@@ -197,7 +211,7 @@ void depthwise(Context& ctx, const T* x, const T* w, const T* bias, T* y, const 
   const std::int64_t C = s.in_channels;
   EPONA_CHECK(s.height <= 0x7fffffff && s.width <= 0x7fffffff && C <= 0x7fffffff && s.kernel <= 0x7fffffff,
               "depthwise conv2d: extents exceed int range");
-  const bool packed = C % detail::kPack == 0 && detail::aligned16(x) && detail::aligned16(y);
+  const bool packed = C % detail::kPack == 0 && detail::aligned16(x) && detail::aligned16(y) && detail::aligned16(w);
   const std::int64_t runs = (s.width + kRun - 1) / kRun;
   const std::int64_t items = s.batch * s.height * runs * (packed ? C / detail::kPack : C);
   if (items == 0) return;
@@ -417,7 +431,7 @@ bool depthwise_gated(Context& ctx, const T* x, const T* weight, const T* bias, T
   EPONA_CHECK(s.groups == C && s.out_channels == C, "depthwise_gated: not a depthwise convolution (", C, " -> ",
               s.out_channels, ", groups ", s.groups, ")");
   if (!dcae_fusion() || s.kernel != 3 || C % (2 * detail::kPack) != 0 || !detail::aligned16(x) ||
-      !detail::aligned16(out) || C > 0x7fffffff || s.height > 0x7fffffff || s.width > 0x7fffffff)
+      !detail::aligned16(out) || !detail::aligned16(weight) || C > 0x7fffffff || s.height > 0x7fffffff || s.width > 0x7fffffff)
     return false;
   const std::int64_t items = s.batch * s.height * ((s.width + conv_detail::kRun - 1) / conv_detail::kRun) *
                              (C / 2 / detail::kPack);

@@ -214,8 +214,9 @@ void relu_linear_attention(Context& ctx, const T* qkv, T* out, std::int64_t N, s
     return;
   }
   EPONA_CHECK((HW + kThreads - 1) / kThreads <= 0x7fffffff, "relu_linear_attention: ", HW, " pixels exceed one launch");
-  // Enough chunks for about two blocks per multiprocessor, each of at least one tile.
-  const std::int64_t want = std::max<std::int64_t>(1, 2 * ctx.info().multiprocessors / (N * heads));
+  // Enough chunks for about four blocks per multiprocessor (short serial tile loops), each of at
+  // least one tile.
+  const std::int64_t want = std::max<std::int64_t>(1, 4 * ctx.info().multiprocessors / (N * heads));
   const std::int64_t chunks = std::clamp<std::int64_t>(std::min(want, (HW + kTile - 1) / kTile), 1, 1024);
   const std::int64_t chunk_pixels = (HW + chunks - 1) / chunks;
   const int entries = static_cast<int>((d + 1) * d);
