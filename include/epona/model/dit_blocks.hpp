@@ -305,17 +305,19 @@ struct SingleStreamBlock {
     A* qkv = s.qkv.data();
     const A* a_out = s.modulated.data() + first_out * D;
     // cat rows 0..m = [attention | GELU(mlp)] of the updated rows: the MLP GEMM writes its
-    // columns directly, the attention the others. Queries and MLP (rows from first_out) run
-    // on the side queue, keys and values (all rows) on the main one; then the QK-norm and RoPE
-    // of both in one pass.
+    // columns directly, the attention the others. Queries and then the MLP (rows from
+    // first_out) run on the side queue, keys and values (all rows) on the main one; the main
+    // queue waits for the queries only, so the QK-norm + RoPE (one pass for both) and the
+    // attention overlap the MLP GEMM (disjoint columns of cat); linear2 waits for both.
     Context& side = queue.side(ctx);
     queue.fork(ctx);
     q_part.strided(side, a_out, D, m, qkv + first_out * 3 * D, 3 * D);
-    mlp_part.strided(side, a_out, D, m, s.cat.data() + D, D + Dm, BackendEpilogue<B>::GeluTanh);
     kv_part.strided(ctx, s.modulated.data(), D, n, qkv + D, 3 * D);
     queue.join(ctx);
+    mlp_part.strided(side, a_out, D, m, s.cat.data() + D, D + Dm, BackendEpilogue<B>::GeluTanh);
     detail::qk_norm_rope_rows<B>(ctx, qkv, widths, rope, std::array{detail::QkRows<B>(0, first_out, n, norm)});
     detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D);
+    queue.join(ctx);
     linear2.strided(ctx, s.cat.data(), D + Dm, m, s.sub.data(), D);
     if (next)
       add_gated_layer_norm_modulate(ctx, s.z.data() + first_out * D, s.sub.data(), mv + 2 * D,
