@@ -80,11 +80,17 @@ if [ "$WHAT" != bench ]; then
 fi
 
 if [ "$WHAT" != tests ]; then
-  # the DC-AE fusions off (same build), cuDNN's timed algorithm choice, and the two builds again
-  [ $SECONDS -lt $BUDGET ] && bench unfused EPONA_CUDA_DCAE_FUSE=0 timeout 60 "$BIN/bench_gpu_dcae" --quick --no-f32 --layers
+  # the DC-AE fusions and the measured engine choice off (same build), the choice alone off,
+  # cuDNN's timed algorithm choice, and the two builds again
+  [ $SECONDS -lt $BUDGET ] && bench unfused EPONA_CUDA_DCAE_FUSE=0 EPONA_CUDA_CONV_TUNE=0 timeout 60 \
+    "$BIN/bench_gpu_dcae" --quick --no-f32 --layers
+  [ $SECONDS -lt $BUDGET ] && bench notune EPONA_CUDA_CONV_TUNE=0 timeout 60 "$BIN/bench_gpu_dcae" --quick --no-f32
   [ $SECONDS -lt $BUDGET ] && bench find EPONA_CUDNN_FIND=1 timeout 60 "$BIN/bench_gpu_dcae" --quick --no-f32
   [ $SECONDS -lt $BUDGET ] && [ -n "$OLD" ] && bench old2 timeout 60 "$OLD/bench_gpu_dcae" --quick
   [ $SECONDS -lt $BUDGET ] && bench new2 timeout 60 "$BIN/bench_gpu_dcae" --quick --no-f32
   pieces unfused
 fi
+grep -h "measured faster" "$OUT"/bench_new.log 2>/dev/null | tee -a "$OUT/summary.txt"
 summary "total ${SECONDS} s"
+# at most 8 files come back from the device tool: the logs travel as one archive
+(cd "$OUT" && tar czf logs.tgz *.log && rm -f *.log)

@@ -122,6 +122,24 @@ TEST_CASE("cuda conv2d: cuDNN runs the model's aligned geometries when it is ava
               cuda::conv_fusion_report().empty() ? "nowhere" : cuda::conv_fusion_report().c_str());
 }
 
+TEST_CASE("cuda conv2d Auto bf16: the measured engine choice gives the same results as either engine") {
+  EPONA_REQUIRE_GPU();
+  UseEngine use(cuda::ConvEngine::Auto);
+  const bool before = cuda::conv_tuning();
+  for (const bool tune : {true, false}) {
+    cuda::set_conv_tuning(tune);
+    // the decoder's upsampling shapes, scaled down (many output channels on a small map), twice:
+    // the first call times both engines, the second runs the remembered one
+    for (int call = 0; call < 2; ++call) {
+      check_conv<bf16>({1, 256, 8, 16, 1024, 3, 1}, ConvAct::None, true);
+      check_conv<bf16>({1, 128, 4, 8, 512, 3, 1}, ConvAct::Relu, true);
+    }
+  }
+  cuda::set_conv_tuning(before);
+  std::printf("  sent to the GEMM engine: %s\n",
+              cuda::conv_tuning_report().empty() ? "none" : cuda::conv_tuning_report().c_str());
+}
+
 // residual += conv(x) + bias (conv2d_residual) vs the CPU conv plus the residual in float. bf16:
 // the fused form rounds once, the unfused one rounds conv, conv + bias and the sum: max <= 3.5·u·M
 // with M the largest of |conv + bias|, |residual| and |result|; rel_l2 <= 3u.

@@ -7,7 +7,11 @@
 #pragma once
 
 #include <algorithm>
+#include <array>
 #include <atomic>
+#include <cmath>
+#include <map>
+#include <mutex>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
@@ -416,7 +420,92 @@ inline void check_conv_args(const void* x, const void* weight, const void* y, co
   EPONA_CHECK(x && weight && y, "conv2d: null input, weight or output");
   EPONA_CHECK(s.height * s.width <= 0x7fffffff, "conv2d: ", s.height, "x", s.width, " exceeds one image's index range");
 }
+
+// ---- measured engine choice (Auto, bf16 k x k): cuDNN's kernels run well below their peak on
+// small maps with many output channels (the decoder's upsampling convs at 16x32 .. 64x128:
+// 240-350 TFLOP/s), where an im2col panel + cuBLASLt does better. Each such geometry (panel at
+// most kTunePanelBytes) is timed once on both engines, eagerly (3 runs each, the best of each),
+// and remembered; the GEMM engine is taken only when at least 10% faster, so that the choice
+// does not flip on noise. Never during a graph recording (cuDNN is used then, undecided).
+// EPONA_CUDA_CONV_TUNE=0 turns it off (cuDNN for every bf16 k x k conv, as before).
+inline constexpr std::int64_t kTunePanelBytes = std::int64_t{128} << 20;
+inline std::atomic<bool>& tune_setting() {
+  static std::atomic<bool> on{[] {
+    const char* e = std::getenv("EPONA_CUDA_CONV_TUNE");
+    return !(e && e[0] == '0');
+  }()};
+  return on;
+}
+struct TuneState {
+  std::mutex mutex;
+  std::map<std::array<std::int64_t, 9>, bool> gemm_faster;  // (device, geometry, act, bias) -> choice
+  std::string report;                                      // geometries sent to the GEMM engine
+};
+inline TuneState& tune_state() {
+  static TuneState t;
+  return t;
+}
+
+// The best (smallest) of `reps` event timings of f in ms (f enqueues work on ctx's stream).
+template <class F>
+float best_ms(Context& ctx, int reps, const F& f) {
+  cudaEvent_t a = nullptr, b = nullptr;
+  EPONA_CUDA_CHECK(cudaEventCreate(&a));
+  EPONA_CUDA_CHECK(cudaEventCreate(&b));
+  float best = INFINITY;
+  for (int i = 0; i < reps; ++i) {
+    EPONA_CUDA_CHECK(cudaEventRecord(a, ctx.stream()));
+    f();
+    EPONA_CUDA_CHECK(cudaEventRecord(b, ctx.stream()));
+    EPONA_CUDA_CHECK(cudaEventSynchronize(b));
+    float ms = 0;
+    EPONA_CUDA_CHECK(cudaEventElapsedTime(&ms, a, b));
+    best = std::min(best, ms);
+  }
+  EPONA_CUDA_CHECK(cudaEventDestroy(a));
+  EPONA_CUDA_CHECK(cudaEventDestroy(b));
+  return best;
+}
+
+// Whether this Auto bf16 conv should run on the GEMM engine: decided on its first eager call
+// (run_cudnn returns false when cuDNN cannot run it: then no, the caller falls back anyway).
+template <class T, class CudnnRun, class GemmRun>
+bool tuned_to_gemm(Context& ctx, const Conv2dShape& s, ConvAct act, bool has_bias, const CudnnRun& run_cudnn,
+                   const GemmRun& run_gemm) {
+  if (std::is_same_v<T, float> || conv_engine() != ConvEngine::Auto || !tune_setting().load() || s.groups != 1 ||
+      s.batch * s.height * s.width * s.kernel * s.kernel * s.in_channels * std::int64_t{sizeof(T)} > kTunePanelBytes)
+    return false;
+  const std::array<std::int64_t, 9> key{ctx.info().device, s.batch, s.in_channels, s.height, s.width, s.out_channels,
+                                        s.kernel, static_cast<std::int64_t>(act), has_bias ? 1 : 0};
+  TuneState& t = tune_state();
+  std::lock_guard<std::mutex> lock(t.mutex);
+  if (const auto it = t.gemm_faster.find(key); it != t.gemm_faster.end()) return it->second;
+  cudaStreamCaptureStatus capture = cudaStreamCaptureStatusNone;
+  EPONA_CUDA_CHECK(cudaStreamIsCapturing(ctx.stream(), &capture));
+  if (capture != cudaStreamCaptureStatusNone) return false;
+  bool cudnn_ok = true;
+  const float cudnn_ms = best_ms(ctx, 3, [&] { cudnn_ok = cudnn_ok && run_cudnn(); });
+  const float gemm_ms = cudnn_ok ? best_ms(ctx, 3, run_gemm) : 0.f;
+  const bool gemm = cudnn_ok && gemm_ms < 0.9f * cudnn_ms;
+  t.gemm_faster.emplace(key, gemm);
+  if (gemm)
+    t.report += (t.report.empty() ? "" : "; ") + std::to_string(s.in_channels) + "->" +
+                std::to_string(s.out_channels) + " k" + std::to_string(s.kernel) + " at " + std::to_string(s.height) +
+                "x" + std::to_string(s.width) + ": " + std::to_string(gemm_ms) + " vs cuDNN " +
+                std::to_string(cudnn_ms) + " ms";
+  return gemm;
+}
 }  // namespace conv_detail
+
+// The measured engine choice for small bf16 k x k convs under Auto (on unless EPONA_CUDA_CONV_TUNE=0),
+// and the geometries it sent to the GEMM engine so far (with both timings).
+inline void set_conv_tuning(bool on) { conv_detail::tune_setting().store(on); }
+inline bool conv_tuning() { return conv_detail::tune_setting().load(); }
+inline std::string conv_tuning_report() {
+  auto& t = conv_detail::tune_state();
+  std::lock_guard<std::mutex> lock(t.mutex);
+  return t.report;
+}
 
 // GLUMBConv's depthwise conv and gate in one pass: x (N, H, W, C) channels-last, weight [C, 3, 3, 1],
 // bias [C] or null; out (N, H, W, C/2) = v · round(act(g)) with v, g the conv's (rounded) output
@@ -467,14 +556,23 @@ void conv2d(Context& ctx, const T* x, const T* weight, const T* bias, T* y, cons
   }
   if (conv_detail::wants_cudnn<T>(s)) {
     auto& engine = cudnn::Engine::get();
-    if (conv_fusion() && bias && act != ConvAct::Silu &&
-        engine.forward_fused(ctx, x, weight, bias, static_cast<const T*>(nullptr), y, s, act == ConvAct::Relu)) {
-      ++counts.cudnn, ++counts.fused;
+    const auto run_cudnn = [&]() -> int {  // 2: fused call, 1: conv + epilogue pass, 0: cuDNN cannot
+      if (conv_fusion() && bias && act != ConvAct::Silu &&
+          engine.forward_fused(ctx, x, weight, bias, static_cast<const T*>(nullptr), y, s, act == ConvAct::Relu))
+        return 2;
+      if (!engine.forward(ctx, x, weight, y, s)) return 0;
+      conv_detail::bias_act(ctx, y, s.batch * s.height * s.width, s.out_channels, bias, act);
+      return 1;
+    };
+    const auto run_gemm = [&] { conv_detail::gemm_conv(ctx, x, weight, bias, y, s, act); };
+    if (conv_detail::tuned_to_gemm<T>(ctx, s, act, bias != nullptr, [&] { return run_cudnn() > 0; }, run_gemm)) {
+      run_gemm();
+      ++counts.gemm;
       return;
     }
-    if (engine.forward(ctx, x, weight, y, s)) {
-      conv_detail::bias_act(ctx, y, s.batch * s.height * s.width, s.out_channels, bias, act);
+    if (const int done = run_cudnn()) {
       ++counts.cudnn;
+      if (done == 2) ++counts.fused;
       return;
     }
     conv_detail::require_cudnn<T>(ctx, s);
