@@ -44,7 +44,9 @@ void set_desc(cublasLtMatmulDesc_t d, cublasLtMatmulDescAttributes_t attr, const
 // a graph capture and keeps the fastest (the heuristic's first choice is often slow for the
 // DiTs' small-M products). Candidates that add split-K partial sums in the output type (bf16:
 // extra roundings) are not considered. EPONA_CUDA_GEMM_TUNE=1 turns it on (default off);
-// set_gemm_tuning switches it at run time (benchmarks compare both in one process).
+// set_gemm_tuning switches it at run time (benchmarks compare both in one process). Off because
+// it did not pay on the H200 (same run, bf16, real configuration: TrajDiT-100 13.41 -> 13.29 ms,
+// VisDiT eval 3.22 -> 3.18 ms, VisDiT-100 280.1 -> 283.6 ms, AR step 323.4 -> 323.3 ms).
 inline bool& gemm_tuning_flag() {
   static bool on = [] {
     const char* v = std::getenv("EPONA_CUDA_GEMM_TUNE");
