@@ -481,38 +481,6 @@ TEST_CASE("cuda pixel (un)shuffle with averaging / duplicating shortcuts vs the 
 
 namespace {
 
-// GLUMBConv's depthwise 3x3 conv (2h channels, bias) and gate value · round(act(gate)) in one
-// pass vs the CPU's conv2d then gated_act (float32 within 1e-5; bf16 within the stage bound),
-// and vs the GPU's two passes (bit for bit: the same roundings in the same order).
-template <class T>
-void check_depthwise_gated(i64 N, i64 h, i64 H, i64 W, ConvAct act) {
-  cuda::Context& ctx = gpu();
-  const i64 C = 2 * h;
-  HostF x = random_tensor({N, C, H, W}, next_seed(), -2.f, 2.f), w = random_tensor({C, 1, 3, 3}, next_seed());
-  HostF b = random_tensor({C}, next_seed());
-  round_to<T>(x), round_to<T>(w), round_to<T>(b);
-  const Conv2dShape s{N, C, H, W, C, 3, C};
-  HostF mixed({N, C, H, W}), ref({N, h, H, W});
-  cpu::conv2d(host(), x.data(), w.data(), b.data(), mixed.data(), s, ConvAct::None);
-  const HostF mixed_nhwc = to_nhwc(mixed);
-  HostF ref_nhwc({N, H, W, h});
-  cpu::gated_act(host(), mixed_nhwc.data(), mixed_nhwc.data() + h, ref_nhwc.data(), N * H * W, h, C, h, act);
-  ref = to_nchw(ref_nhwc);
-  const Dev<T> dx = upload_map<T>(ctx, x), dw = upload<T>(ctx, nn::conv_weight_layout<Cuda>(w)), db = upload<T>(ctx, b);
-  Dev<T> fused({N, H, W, h}), mid({N, H, W, C}), two_pass({N, H, W, h});
-  poison(ctx, fused), poison(ctx, mid), poison(ctx, two_pass);
-  REQUIRE(cuda::depthwise_gated(ctx, dx.data(), dw.data(), db.data(), fused.data(), s, act));
-  cuda::conv2d(ctx, dx.data(), dw.data(), db.data(), mid.data(), s, ConvAct::None);
-  cuda::gated_act(ctx, mid.data(), mid.data() + h, two_pass.data(), N * H * W, h, C, h, act);
-  const HostF got = download_map(ctx, fused);
-  const std::string what = std::string("depthwise_gated ") + type_name<T>() + " " + act_name(act) + " h" +
-                           std::to_string(h) + " " + std::to_string(H) + "x" + std::to_string(W);
-  check_error(measure(got, ref), stage_bound<T>(max_abs(ref)), what + " vs CPU");
-  const Diff e = measure(got, download_map(ctx, two_pass));
-  CHECK(e.nans == 0);
-  CHECK(e.max_abs == 0);
-}
-
 // The upsampling pair in one pass: out = shuffle_2(main) + D(x; C_out, 2) with main (N, C_out·4,
 // H, W) and x (N, C_x, H, W), against the CPU's shuffle then accumulating shortcut (float32:
 // exact sums of two values, bf16 one rounding of that sum) and against the GPU's two passes
@@ -554,21 +522,6 @@ TEST_CASE("cuda upsampling pair (pixel shuffle + duplicating shortcut) in one pa
   const Dev<float> a({1, 4, 4, 12}), b({1, 4, 4, 3});
   Dev<float> o({1, 8, 8, 3});
   CHECK_FALSE(cuda::pixel_shuffle_add_duplicate_fused(gpu(), a.data(), b.data(), o.data(), ShuffleShape{1, 12, 4, 4, 2}, 3, 3));
-}
-
-TEST_CASE("cuda depthwise_gated (GLUMBConv's depthwise conv + gate in one pass) vs the CPU and two passes") {
-  EPONA_REQUIRE_GPU();
-  check_depthwise_gated<float>(2, 32, 7, 13, ConvAct::Silu);
-  check_depthwise_gated<bf16>(2, 32, 7, 13, ConvAct::Silu);
-  check_depthwise_gated<float>(1, 16, 5, 8, ConvAct::Relu);
-  check_depthwise_gated<bf16>(1, 2048, 4, 9, ConvAct::Silu);  // stage 3's width (8C = 4096)
-  // declined: channels not a multiple of 16, other kernel sizes (the caller runs conv2d + gated_act)
-  const Dev<float> x({1, 4, 4, 24}), w({24, 3, 3, 1}), x32({1, 4, 4, 32}), w5({32, 5, 5, 1});
-  Dev<float> out({1, 4, 4, 16});
-  CHECK_FALSE(cuda::depthwise_gated(gpu(), x.data(), w.data(), static_cast<const float*>(nullptr), out.data(), Conv2dShape{1, 24, 4, 4, 24, 3, 24},
-                                    ConvAct::Silu));
-  CHECK_FALSE(cuda::depthwise_gated(gpu(), x32.data(), w5.data(), static_cast<const float*>(nullptr), out.data(),
-                                    Conv2dShape{1, 32, 4, 4, 32, 5, 32}, ConvAct::Silu));
 }
 
 TEST_CASE("cuda pixel_shuffle_to_nchw_fused (the decoder's last shuffle into NCHW float32) is exact") {

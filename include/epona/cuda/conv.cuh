@@ -2,7 +2,8 @@
 // the CPU's cpu/conv.hpp: conv2d (cuDNN implicit GEMM, or our GEMM engine: im2col panel +
 // cuBLASLt; depthwise as a direct kernel), bias + ReLU/SiLU epilogues, a residual-adding conv
 // (conv2d_residual), and the GLU gate. With cuDNN, bias, ReLU and the residual add ride on the
-// convolution's epilogue (its fused form). float32 never uses TF32; bf16 stores bf16 and
+// convolution's epilogue (its fused form); under Auto, small bf16 maps go to whichever engine
+// was measured faster for the geometry. float32 never uses TF32; bf16 stores bf16 and
 // accumulates in float32.
 #pragma once
 
@@ -10,18 +11,17 @@
 #include <array>
 #include <atomic>
 #include <cmath>
-#include <map>
-#include <mutex>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
+#include <map>
+#include <mutex>
 #include <string>
 #include <type_traits>
 
 #include "epona/cpu/conv.hpp"
 #include "epona/cuda/activation.cuh"
 #include "epona/cuda/conv_cudnn.cuh"
-#include "epona/cuda/dcae_fusion.hpp"
 #include "epona/cuda/device.cuh"
 #include "epona/cuda/gemm.cuh"
 #include "epona/cuda/scratch.hpp"
@@ -95,17 +95,15 @@ void bias_act(Context& ctx, T* y, std::int64_t pixels, std::int64_t channels, co
 }
 
 // ---- depthwise: one thread per (channel pack, run of kRun pixels along a row); the pack's
-// k·k weights stay in registers across the run (3x3 packs: read with 16-byte loads). Taps are summed in (ky, kx) order from the bias.
-// kHalves = 2 is GLUMBConv's depthwise conv and gate in one pass: the thread convolves pack c0 of
-// the value half and pack c0 + C/2 of the gate half and stores value · round(act(gate)) (each
-// conv output rounded first, as when stored) into C/2 output channels.
+// k·k weights stay in registers across the run (3x3 packs: read with 16-byte loads). Taps are
+// summed in (ky, kx) order from the bias.
 constexpr int kRun = 16;   // pixels per thread: the weights are loaded once per run
 constexpr int kMaxTaps = 9;  // 3x3 kernels (kSmall) keep their weights in registers; others read them per tap
 
-template <class T, class Op, int kVec, bool kSmall, int kHalves = 1>
+template <class T, class Op, int kVec, bool kSmall>
 __global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ w, const T* __restrict__ bias,
                                  T* __restrict__ y, std::int64_t images, int H, int W, int C, int k, bool act, Op op) {
-  const int Co = C / kHalves, packs = Co / kVec, pad = k / 2, runs = (W + kRun - 1) / kRun, taps = k * k;
+  const int packs = C / kVec, pad = k / 2, runs = (W + kRun - 1) / kRun, taps = k * k;
   const std::int64_t total = images * H * runs * packs;
   for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
        i += std::int64_t{gridDim.x} * blockDim.x) {
@@ -115,60 +113,48 @@ __global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ 
     const std::int64_t image_row = row_run / runs;  // n·H + y
     const int yo = static_cast<int>(image_row % H);
     const std::int64_t n = image_row / H;
-    const auto channel = [&](int h, int j) { return c0 + h * Co + j; };
-    float wr[kHalves][kSmall ? kMaxTaps : 1][kVec];
+    float wr[kSmall ? kMaxTaps : 1][kVec];
     if constexpr (kSmall && kVec == detail::kPack) {
       // the pack's 8 x 9 weights are 72 consecutive values (16-byte aligned): 9 vector loads
 #pragma unroll
-      for (int h = 0; h < kHalves; ++h)
+      for (int q = 0; q < kMaxTaps; ++q) {
+        float part[detail::kPack];
+        detail::load8(w + c0 * kMaxTaps + q * detail::kPack, part);
 #pragma unroll
-        for (int q = 0; q < kMaxTaps; ++q) {
-          float part[detail::kPack];
-          detail::load8(w + channel(h, 0) * kMaxTaps + q * detail::kPack, part);
-#pragma unroll
-          for (int e = 0; e < detail::kPack; ++e) {
-            const int flat = q * detail::kPack + e;  // = j·9 + tap
-            wr[h][flat % kMaxTaps][flat / kMaxTaps] = part[e];
-          }
+        for (int e = 0; e < detail::kPack; ++e) {
+          const int flat = q * detail::kPack + e;  // = j·9 + tap
+          wr[flat % kMaxTaps][flat / kMaxTaps] = part[e];
         }
+      }
     } else if constexpr (kSmall) {
 #pragma unroll
-      for (int h = 0; h < kHalves; ++h)
+      for (int t = 0; t < kMaxTaps; ++t)
 #pragma unroll
-        for (int t = 0; t < kMaxTaps; ++t)
-#pragma unroll
-          for (int j = 0; j < kVec; ++j) wr[h][t][j] = detail::to_f32(w[channel(h, j) * taps + t]);
+        for (int j = 0; j < kVec; ++j) wr[t][j] = detail::to_f32(w[(c0 + j) * taps + t]);
     }
-    float b[kHalves][kVec];
+    float b[kVec];
 #pragma unroll
-    for (int h = 0; h < kHalves; ++h)
-#pragma unroll
-      for (int j = 0; j < kVec; ++j) b[h][j] = bias ? detail::to_f32(bias[channel(h, j)]) : 0.f;
+    for (int j = 0; j < kVec; ++j) b[j] = bias ? detail::to_f32(bias[c0 + j]) : 0.f;
     const int x_end = min(W, x0 + kRun);
     for (int xo = x0; xo < x_end; ++xo) {
-      float acc[kHalves][kVec];
+      float acc[kVec];
 #pragma unroll
-      for (int h = 0; h < kHalves; ++h)
-#pragma unroll
-        for (int j = 0; j < kVec; ++j) acc[h][j] = b[h][j];
+      for (int j = 0; j < kVec; ++j) acc[j] = b[j];
       // acc += w(tap) · x(ys, xs) for one in-image tap
       const auto add_tap = [&](int ys, int xs, int tap) {
+        const T* src = x + ((n * H + ys) * W + xs) * C + c0;
+        float v[kVec];
+        if constexpr (kVec == detail::kPack) {
+          detail::load8(src, v);
+        } else {
+          v[0] = detail::to_f32(src[0]);
+        }
 #pragma unroll
-        for (int h = 0; h < kHalves; ++h) {
-          const T* src = x + ((n * H + ys) * W + xs) * C + channel(h, 0);
-          float v[kVec];
-          if constexpr (kVec == detail::kPack) {
-            detail::load8(src, v);
-          } else {
-            v[0] = detail::to_f32(src[0]);
-          }
-#pragma unroll
-          for (int j = 0; j < kVec; ++j) {
-            if constexpr (kSmall)
-              acc[h][j] += wr[h][tap][j] * v[j];
-            else
-              acc[h][j] += detail::to_f32(w[channel(h, j) * taps + tap]) * v[j];
-          }
+        for (int j = 0; j < kVec; ++j) {
+          if constexpr (kSmall)
+            acc[j] += wr[tap][j] * v[j];
+          else
+            acc[j] += detail::to_f32(w[(c0 + j) * taps + tap]) * v[j];
         }
       };
       if constexpr (kSmall) {  // 3x3: taps unrolled, weights indexed by constants
@@ -192,19 +178,13 @@ __global__ void depthwise_kernel(const T* __restrict__ x, const T* __restrict__ 
           }
         }
       }
-      float out[kVec];
 #pragma unroll
-      for (int j = 0; j < kVec; ++j) {
-        if constexpr (kHalves == 2)
-          out[j] = detail::round_to<T>(acc[0][j]) * detail::round_to<T>(op(detail::round_to<T>(acc[1][j])));
-        else
-          out[j] = act ? op(detail::round_to<T>(acc[0][j])) : acc[0][j];
-      }
-      T* dst = y + ((n * H + yo) * W + xo) * Co + c0;
+      for (int j = 0; j < kVec; ++j) acc[j] = act ? op(detail::round_to<T>(acc[j])) : acc[j];
+      T* dst = y + ((n * H + yo) * W + xo) * C + c0;
       if constexpr (kVec == detail::kPack) {
-        detail::store8(dst, out);
+        detail::store8(dst, acc);
       } else {
-        dst[0] = detail::from_f32<T>(out[0]);
+        dst[0] = detail::from_f32<T>(acc[0]);
       }
     }
   }
@@ -505,36 +485,6 @@ inline std::string conv_tuning_report() {
   auto& t = conv_detail::tune_state();
   std::lock_guard<std::mutex> lock(t.mutex);
   return t.report;
-}
-
-// GLUMBConv's depthwise conv and gate in one pass: x (N, H, W, C) channels-last, weight [C, 3, 3, 1],
-// bias [C] or null; out (N, H, W, C/2) = v · round(act(g)) with v, g the conv's (rounded) output
-// channels [0, C/2) and [C/2, C): the result of conv2d (no act) then gated_act. False (nothing
-// done) unless C is a multiple of 16 with 16-byte aligned maps, k = 3, and the DC-AE fusions are on.
-template <class T>
-bool depthwise_gated(Context& ctx, const T* x, const T* weight, const T* bias, T* out, const Conv2dShape& s,
-                     ConvAct act) {
-  static_assert(is_device_float<T>, "depthwise_gated takes float or bf16");
-  conv_detail::check_conv_args(x, weight, out, s);
-  const std::int64_t C = s.in_channels;
-  EPONA_CHECK(s.groups == C && s.out_channels == C, "depthwise_gated: not a depthwise convolution (", C, " -> ",
-              s.out_channels, ", groups ", s.groups, ")");
-  if (!dcae_fusion() || s.kernel != 3 || C % (2 * detail::kPack) != 0 || !detail::aligned16(x) ||
-      !detail::aligned16(out) || !detail::aligned16(weight) || C > 0x7fffffff || s.height > 0x7fffffff || s.width > 0x7fffffff)
-    return false;
-  const std::int64_t items = s.batch * s.height * ((s.width + conv_detail::kRun - 1) / conv_detail::kRun) *
-                             (C / 2 / detail::kPack);
-  if (items == 0) return true;
-  constexpr int threads = 128;
-  conv_detail::with_act(act, [&](auto op) {
-    conv_detail::depthwise_kernel<T, decltype(op), detail::kPack, true, 2>
-        <<<detail::grid_for(items, threads), threads, 0, ctx.stream()>>>(
-            x, weight, bias, out, s.batch, static_cast<int>(s.height), static_cast<int>(s.width), static_cast<int>(C),
-            3, true, op);
-    EPONA_CUDA_CHECK_LAUNCH();
-  });
-  ++conv_detail::counts().depthwise;
-  return true;
 }
 
 // y = act(conv(x) + bias): x (N, H, W, C) channels-last, weight [O, k, k, C/groups] (the

@@ -1,6 +1,7 @@
 // epona/cuda/dcae_fusion.hpp — the switch of the DC-AE's fused GPU kernels (the temporal blocks
-// as one kernel per block, the upsampling pair's shuffle + shortcut in one pass, LiteMLA's
-// one-pass reductions). On by default; EPONA_CUDA_DCAE_FUSE=0 (read once) keeps the unfused kernels.
+// as one kernel per block, the upsampling pair's shuffle + shortcut in one pass, the decoder's
+// last shuffle written straight into the NCHW image). On by default; EPONA_CUDA_DCAE_FUSE=0
+// (read once) keeps the unfused kernels.
 #pragma once
 
 #include <atomic>

@@ -1,7 +1,6 @@
 // epona/nn/glu_mbconv.hpp — GLUMBConv of EfficientViT (the DC-AE's "local module"): 1x1 expansion
 // C -> 8C with bias and activation, depthwise 3x3 with bias (no activation), value · act(gate)
 // over the two halves, 1x1 projection 4C -> C without bias, then its norm. Returns the branch.
-// On backends that fuse them (CUDA: depthwise_gated), the depthwise conv and the gate are one pass.
 #pragma once
 
 #include <cstdint>
@@ -62,16 +61,9 @@ struct GLUMBConv : Bindable<GLUMBConv<B, T>> {
   Map expand_gate_project(Ctx& ctx, const Map& x) const {
     MapDims d = map_dims(x, "GLUMBConv(" + std::to_string(channels) + ")", channels);
     Map expanded = inverted_conv.forward(ctx, x, act);  // 8C channels
+    Map mixed = depth_conv.forward(ctx, expanded);      // 8C channels
     d.channels = hidden;
     Map gated = new_map<Act, B>(ctx, d);                // 4C channels
-    if constexpr (!is_host_backend<B>) {  // the depthwise conv and the gate in one pass where the backend can
-      const Conv2dShape s{d.batch, 2 * hidden, d.height, d.width, 2 * hidden, depth_conv.kernel, 2 * hidden};
-      if (depth_conv.output_dims(expanded).channels == 2 * hidden &&
-          depthwise_gated(ctx, expanded.data(), depth_conv.weight.data(),
-                          depth_conv.has_bias ? depth_conv.bias.data() : nullptr, gated.data(), s, act))
-        return point_conv.forward(ctx, gated);
-    }
-    Map mixed = depth_conv.forward(ctx, expanded);      // 8C channels
     // value = channels [0, 4C), gate = channels [4C, 8C) of `mixed`
     const MapDims dm{d.batch, 2 * hidden, d.height, d.width};
     const ChannelBlock value = channel_block<B>(dm, 0, hidden), gate = channel_block<B>(dm, hidden, hidden);
