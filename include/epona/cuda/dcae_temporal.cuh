@@ -41,17 +41,6 @@ struct Step {
   bool causal;
 };
 
-// Four consecutive elements as float32 (8- or 16-byte loads; p aligned to 4 elements).
-__device__ __forceinline__ void load4(const float* p, float (&v)[4]) {
-  const float4 a = *reinterpret_cast<const float4*>(p);
-  v[0] = a.x, v[1] = a.y, v[2] = a.z, v[3] = a.w;
-}
-__device__ __forceinline__ void load4(const bf16* p, float (&v)[4]) {
-  const uint2 raw = *reinterpret_cast<const uint2*>(p);
-  v[0] = __uint_as_float(raw.x << 16), v[1] = __uint_as_float(raw.x & 0xffff0000u);
-  v[2] = __uint_as_float(raw.y << 16), v[3] = __uint_as_float(raw.y & 0xffff0000u);
-}
-
 // 32 consecutive elements (a weight row) as float32, 16-byte loads.
 template <class T>
 __device__ __forceinline__ void load32(const T* p, float (&v)[kDim]) {
@@ -158,15 +147,15 @@ __global__ void __launch_bounds__(kThreads) block_kernel(float* __restrict__ x, 
       const std::int64_t pos = ((r % block) / s.pos_step) % s.length, base = r - pos * s.pos_step;
       const std::int64_t keys = s.causal ? pos + 1 : s.length;
       float q[kHeadDim];
-      load4(qkv + r * kQkv + head * kHeadDim, q);
+      detail::load4(qkv + r * kQkv + head * kHeadDim, q);
       const float scale = 1.0f / sqrtf(static_cast<float>(kHeadDim)) * kLog2e;  // softmax in base 2
 #pragma unroll
       for (int e = 0; e < kHeadDim; ++e) q[e] *= scale;
       for (std::int64_t u = slice; u < keys; u += kSlices) {
         const T* kv = qkv + (base + u * s.pos_step) * kQkv + head * kHeadDim;
         float k[kHeadDim], v[kHeadDim];
-        load4(kv + kDim, k);
-        load4(kv + 2 * kDim, v);
+        detail::load4(kv + kDim, k);
+        detail::load4(kv + 2 * kDim, v);
         const float sc = q[0] * k[0] + q[1] * k[1] + q[2] * k[2] + q[3] * k[3];
         const float m_new = fmaxf(m, sc);
         const float alpha = exp2f(m - m_new), p = exp2f(sc - m_new);
