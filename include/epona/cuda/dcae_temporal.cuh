@@ -53,32 +53,28 @@ __device__ __forceinline__ void load32(const T* p, float (&v)[kDim]) {
   }
 }
 
-// Σ_j a_j · w[j] over 32 values: a from lane j of the warp, w a weight row in memory.
-template <class T>
-__device__ __forceinline__ float row_dot_lanes(float a, const T* w) {
+// Σ_j a(j) · w[j] over 32 values, w a weight row in memory (16-byte loads).
+template <class T, class Value>
+__device__ __forceinline__ float row_dot(Value a, const T* w) {
   float s = 0.f;
 #pragma unroll
   for (int j0 = 0; j0 < kDim; j0 += detail::kPack) {
     float wv[detail::kPack];
     detail::load8(w + j0, wv);
 #pragma unroll
-    for (int j = 0; j < detail::kPack; ++j) s = fmaf(__shfl_sync(0xffffffffu, a, j0 + j), wv[j], s);
+    for (int j = 0; j < detail::kPack; ++j) s = fmaf(a(j0 + j), wv[j], s);
   }
   return s;
 }
-
-// Σ_j a[j] · w[j] over 32 values, a in shared memory (the same for the whole warp: broadcast).
+// a_j from lane j of the warp.
+template <class T>
+__device__ __forceinline__ float row_dot_lanes(float a, const T* w) {
+  return row_dot([a](int j) { return __shfl_sync(0xffffffffu, a, j); }, w);
+}
+// a in shared memory (the same for the whole warp: broadcast).
 template <class T>
 __device__ __forceinline__ float row_dot_shared(const float* a, const T* w) {
-  float s = 0.f;
-#pragma unroll
-  for (int j0 = 0; j0 < kDim; j0 += detail::kPack) {
-    float wv[detail::kPack];
-    detail::load8(w + j0, wv);
-#pragma unroll
-    for (int j = 0; j < detail::kPack; ++j) s = fmaf(a[j0 + j], wv[j], s);
-  }
-  return s;
+  return row_dot([a](int j) { return a[j]; }, w);
 }
 
 // RMSNorm (weight only) of the row whose channel c = lane this warp holds, rounded to T.
