@@ -15,15 +15,6 @@ using namespace epona::test;
 
 namespace {
 
-cpu::Epilogue cpu_epilogue(cuda::Epilogue e) {
-  switch (e) {
-    case cuda::Epilogue::None: return cpu::Epilogue::None;
-    case cuda::Epilogue::GeluErf: return cpu::Epilogue::GeluErf;
-    case cuda::Epilogue::GeluTanh: return cpu::Epilogue::GeluTanh;
-    case cuda::Epilogue::Silu: return cpu::Epilogue::Silu;
-  }
-  return cpu::Epilogue::None;
-}
 const char* epilogue_name(cuda::Epilogue e) {
   switch (e) {
     case cuda::Epilogue::None: return "none";
@@ -58,7 +49,7 @@ void check_linear(cuda::Context& ctx, const Case& c, std::uint32_t seed) {
   round_to<T>(x), round_to<T>(w);
   if (c.bias) round_to<T>(b);
   HostF ref({c.M, c.N});
-  cpu::linear(cctx, x, w, b, ref, cpu_epilogue(c.epi));
+  cpu::linear(cctx, x, w, b, ref, c.epi);
 
   auto dx = upload<T>(ctx, x, c.misalign), dw = upload<T>(ctx, w, c.misalign);
   auto db = c.bias ? upload<T>(ctx, b, c.misalign) : Dev<T>();
@@ -125,7 +116,7 @@ TEST_CASE_TEMPLATE("cuda linear with row strides writes only its column block", 
     HostF ref({M, ldy});
     std::fill_n(ref.data(), ref.numel(), std::numeric_limits<float>::quiet_NaN());
     cpu::linear(cctx, xw.data(), ldx, w.data(), b.data(), ref.data() + col0, ldy, M, N, K,
-                cpu_epilogue(epi));
+                epi);
     auto dx = upload<T>(ctx, xw), dw = upload<T>(ctx, w), db = upload<T>(ctx, b);
     Dev<T> dy({M, ldy});
     poison(ctx, dy);
@@ -135,7 +126,7 @@ TEST_CASE_TEMPLATE("cuda linear with row strides writes only its column block", 
     const auto d = measure(out.data(), ref.data(), out.numel(), inside);
     HostF z({M, N}), y({M, N});  // the same product densely, for the bound
     cpu::linear(cctx, xw.data(), ldx, w.data(), b.data(), z.data(), N, M, N, K, cpu::Epilogue::None);
-    cpu::linear(cctx, xw.data(), ldx, w.data(), b.data(), y.data(), N, M, N, K, cpu_epilogue(epi));
+    cpu::linear(cctx, xw.data(), ldx, w.data(), b.data(), y.data(), N, M, N, K, epi);
     check_error(d, linear_bound<T>(epi, z, y), std::string("linear strided ") + type_name<T>() + " ldy " +
                                                    std::to_string(ldy) + " " + epilogue_name(epi));
     std::int64_t touched = 0;

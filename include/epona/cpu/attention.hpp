@@ -11,24 +11,15 @@
 #include <limits>
 
 #include "epona/core/error.hpp"
+#include "epona/core/kernel_options.hpp"
 #include "epona/cpu/context.hpp"
 #include "epona/cpu/simd.hpp"
 
 namespace epona::cpu {
 
-enum class Mask { None, Causal };
-
-// Element (s, i, h, d) of q lives at q[s * q_seq + i * q_row + h * head_dim + d]; same for k,
-// v and o. Causal: query i sees keys j <= i (queries and keys aligned at the start).
-// additive_mask (lq, lk), row-major, is added to the scaled scores (0 / −inf masks, or biases).
-// A query that sees no key (all −inf) gets a zero output, never NaN.
-struct AttentionShape {
-  std::int64_t seqs = 1, heads = 1, lq = 0, lk = 0, head_dim = 0;
-  std::int64_t q_seq = 0, q_row = 0, k_seq = 0, k_row = 0, v_seq = 0, v_row = 0, o_seq = 0, o_row = 0;
-  float scale = 0;            // 0: 1/sqrt(head_dim)
-  Mask mask = Mask::None;
-  const float* additive_mask = nullptr;  // optional (lq, lk), added to the scores
-};
+using epona::AttentionShape;
+using epona::Mask;
+// (core/kernel_options.hpp.) A query that sees no key (all −inf) gets a zero output, never NaN.
 
 namespace detail::attn {
 

@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "epona/cpu/context.hpp"  // first: includes Eigen with GCC 12's false positives silenced
+#include "epona/core/kernel_options.hpp"
 #include "epona/cpu/activation.hpp"
 #include "epona/cpu/cpu_features.hpp"
 #include "epona/cpu/gemm_driver.hpp"
@@ -21,7 +22,7 @@
 
 namespace epona::cpu {
 
-enum class Epilogue { None, GeluErf, GeluTanh, Silu };
+using epona::Epilogue;
 
 namespace detail {
 using RowMat = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;

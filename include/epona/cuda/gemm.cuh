@@ -14,12 +14,13 @@
 #include <vector>
 
 #include "epona/cuda/activation.cuh"
+#include "epona/core/kernel_options.hpp"
 #include "epona/cuda/memory.hpp"
 #include "epona/cuda/small_linear.cuh"
 
 namespace epona::cuda {
 
-enum class Epilogue { None, GeluErf, GeluTanh, Silu };
+using epona::Epilogue;
 
 namespace detail {
 

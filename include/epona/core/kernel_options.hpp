@@ -1,0 +1,27 @@
+// epona/core/kernel_options.hpp — the options every backend's kernels take, defined once so that
+// backend-generic layer code names one type: the GEMM epilogue, the attention mask and the
+// strided attention shape. epona::cpu and epona::cuda re-export them.
+#pragma once
+
+#include <cstdint>
+
+namespace epona {
+
+// What a GEMM applies to x · Wᵀ + b before storing it.
+enum class Epilogue { None, GeluErf, GeluTanh, Silu };
+
+enum class Mask { None, Causal };
+
+// Element (s, i, h, d) of q lives at q[s * q_seq + i * q_row + h * head_dim + d]; same for k,
+// v and o. Causal: query i sees keys j <= i (queries and keys aligned at the start).
+// additive_mask: optional (lq, lk) float32, row-major, in the backend's memory, added to the
+// scaled scores (0 / −inf masks, or biases).
+struct AttentionShape {
+  std::int64_t seqs = 1, heads = 1, lq = 0, lk = 0, head_dim = 0;
+  std::int64_t q_seq = 0, q_row = 0, k_seq = 0, k_row = 0, v_seq = 0, v_row = 0, o_seq = 0, o_row = 0;
+  float scale = 0;  // 0: 1/sqrt(head_dim)
+  Mask mask = Mask::None;
+  const float* additive_mask = nullptr;
+};
+
+}  // namespace epona
