@@ -18,11 +18,14 @@
 #include <mutex>
 #include <string>
 #include <type_traits>
+#include <vector>
 
+#include "epona/core/env.hpp"
 #include "epona/cpu/conv.hpp"
 #include "epona/cuda/activation.cuh"
 #include "epona/cuda/conv_cudnn.cuh"
 #include "epona/cuda/device.cuh"
+#include "epona/cuda/event_timer.hpp"
 #include "epona/cuda/gemm.cuh"
 #include "epona/cuda/scratch.hpp"
 
@@ -52,14 +55,8 @@ inline std::atomic<ConvEngine>& engine_setting() {
 
 // EPONA_CUDA_CONV_FUSE=0 turns off the fused epilogues (and the BatchNorm folding that feeds
 // them): the unfused path stays runnable for side-by-side timing and checks.
-inline bool fusion_from_env() {
-  const char* e = std::getenv("EPONA_CUDA_CONV_FUSE");
-  if (!e || !*e || std::strcmp(e, "1") == 0) return true;
-  if (std::strcmp(e, "0") == 0) return false;
-  fail("EPONA_CUDA_CONV_FUSE must be 0 or 1, got '", e, "'");
-}
 inline std::atomic<bool>& fusion_setting() {
-  static std::atomic<bool> on{fusion_from_env()};
+  static std::atomic<bool> on{env_flag("EPONA_CUDA_CONV_FUSE", true)};
   return on;
 }
 
@@ -410,10 +407,7 @@ inline void check_conv_args(const void* x, const void* weight, const void* y, co
 // EPONA_CUDA_CONV_TUNE=0 turns it off (cuDNN for every bf16 k x k conv, as before).
 inline constexpr std::int64_t kTunePanelBytes = std::int64_t{128} << 20;
 inline std::atomic<bool>& tune_setting() {
-  static std::atomic<bool> on{[] {
-    const char* e = std::getenv("EPONA_CUDA_CONV_TUNE");
-    return !(e && e[0] == '0');
-  }()};
+  static std::atomic<bool> on{env_flag("EPONA_CUDA_CONV_TUNE", true)};
   return on;
 }
 struct TuneState {
@@ -429,22 +423,8 @@ inline TuneState& tune_state() {
 // The best (smallest) of `reps` event timings of f in ms (f enqueues work on ctx's stream).
 template <class F>
 float best_ms(Context& ctx, int reps, const F& f) {
-  cudaEvent_t a = nullptr, b = nullptr;
-  EPONA_CUDA_CHECK(cudaEventCreate(&a));
-  EPONA_CUDA_CHECK(cudaEventCreate(&b));
-  float best = INFINITY;
-  for (int i = 0; i < reps; ++i) {
-    EPONA_CUDA_CHECK(cudaEventRecord(a, ctx.stream()));
-    f();
-    EPONA_CUDA_CHECK(cudaEventRecord(b, ctx.stream()));
-    EPONA_CUDA_CHECK(cudaEventSynchronize(b));
-    float ms = 0;
-    EPONA_CUDA_CHECK(cudaEventElapsedTime(&ms, a, b));
-    best = std::min(best, ms);
-  }
-  EPONA_CUDA_CHECK(cudaEventDestroy(a));
-  EPONA_CUDA_CHECK(cudaEventDestroy(b));
-  return best;
+  const std::vector<float> runs = event_times_ms(ctx, reps, f);
+  return runs.empty() ? INFINITY : *std::min_element(runs.begin(), runs.end());
 }
 
 // Whether this Auto bf16 conv should run on the GEMM engine: decided on its first eager call
