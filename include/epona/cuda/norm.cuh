@@ -160,6 +160,17 @@ __global__ void __launch_bounds__(32 * kNormWarps) row_norm_warp_kernel(RowNormA
 constexpr std::int64_t kWarpRowMax = 8 * 32 * kPack;
 inline std::int64_t warp_rows_min(const Context& ctx) { return 8 * std::int64_t{ctx.info().multiprocessors}; }
 
+// Calls f(std::integral_constant<int, P>{}) with the packs per lane P (1, 2, 4 or 8) the
+// warp-per-row kernels use for rows of n elements (n <= kWarpRowMax): the fewest that hold a row.
+template <class F>
+void with_warp_row_packs(std::int64_t n, F&& f) {
+  const std::int64_t per_lane = (n / kPack + 31) / 32;
+  if (per_lane <= 1) f(std::integral_constant<int, 1>{});
+  else if (per_lane <= 2) f(std::integral_constant<int, 2>{});
+  else if (per_lane <= 4) f(std::integral_constant<int, 4>{});
+  else f(std::integral_constant<int, 8>{});
+}
+
 template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP>
 void launch_row_norm_warp(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a) {
   const auto blocks = static_cast<unsigned>((a.rows + kNormWarps - 1) / kNormWarps);
@@ -175,11 +186,9 @@ bool try_row_norm_packed(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a)
       !packable(a.out, n, n) || !packable(a.mul, n, 0) || !packable(a.add, n, 0))
     return false;
   if (n <= kWarpRowMax && a.rows >= warp_rows_min(ctx)) {
-    const std::int64_t per_lane = (packs + 31) / 32;
-    if (per_lane <= 1) launch_row_norm_warp<1, Modulate, Residual>(ctx, a);
-    else if (per_lane <= 2) launch_row_norm_warp<2, Modulate, Residual>(ctx, a);
-    else if (per_lane <= 4) launch_row_norm_warp<4, Modulate, Residual>(ctx, a);
-    else launch_row_norm_warp<8, Modulate, Residual>(ctx, a);
+    with_warp_row_packs(n, [&](auto packs_per_lane) {
+      launch_row_norm_warp<decltype(packs_per_lane)::value, Modulate, Residual>(ctx, a);
+    });
   } else if (packs <= 256 * kRowPacks) {
     const int threads = static_cast<int>(std::min<std::int64_t>(256, (packs + 31) / 32 * 32));
     row_norm_block_kernel<TX, TY, TG, TO, TP, Modulate, Residual>

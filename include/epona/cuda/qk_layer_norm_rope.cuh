@@ -93,15 +93,11 @@ bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int6
   const detail::QkNormRopeArgs<T> a{q,      k,     rows_q, rows_k,  n,   q_weight, q_bias, k_weight, k_bias,
                                     q_eps,  k_eps, static_cast<int>(head_dim), cos, sin};
   const auto blocks = static_cast<unsigned>((rows_q + rows_k + detail::kNormWarps - 1) / detail::kNormWarps);
-  const std::int64_t per_lane = (n / detail::kPack + 31) / 32;  // the choice try_row_norm_packed makes
-  const auto launch = [&](auto kernel) {
-    kernel<<<blocks, 32 * detail::kNormWarps, 0, ctx.stream()>>>(a);
-    EPONA_CUDA_CHECK_LAUNCH();
-  };
-  if (per_lane <= 1) launch(detail::qk_layer_norm_rope_kernel<T, 1>);
-  else if (per_lane <= 2) launch(detail::qk_layer_norm_rope_kernel<T, 2>);
-  else if (per_lane <= 4) launch(detail::qk_layer_norm_rope_kernel<T, 4>);
-  else launch(detail::qk_layer_norm_rope_kernel<T, 8>);
+  detail::with_warp_row_packs(n, [&](auto packs_per_lane) {  // the choice layer_norm makes
+    detail::qk_layer_norm_rope_kernel<T, decltype(packs_per_lane)::value>
+        <<<blocks, 32 * detail::kNormWarps, 0, ctx.stream()>>>(a);
+  });
+  EPONA_CUDA_CHECK_LAUNCH();
   return true;
 }
 
