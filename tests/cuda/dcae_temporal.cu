@@ -21,15 +21,6 @@ using i64 = std::int64_t;
 
 namespace {
 
-// Turns the DC-AE fusions on or off while alive.
-struct UseDcaeFusion {
-  bool before;
-  explicit UseDcaeFusion(bool on) : before(cuda::dcae_fusion()) { cuda::set_dcae_fusion(on); }
-  ~UseDcaeFusion() { cuda::set_dcae_fusion(before); }
-  UseDcaeFusion(const UseDcaeFusion&) = delete;
-  UseDcaeFusion& operator=(const UseDcaeFusion&) = delete;
-};
-
 template <class T>
 void check_temporal(i64 N, i64 h, i64 w, i64 frames, std::uint64_t seed) {
   PoisonBuffers poisoned;

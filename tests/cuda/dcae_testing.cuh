@@ -9,6 +9,7 @@
 
 #include "cuda_test_util.cuh"
 #include "epona/cpu/context.hpp"
+#include "epona/cuda/dcae_fusion.hpp"
 #include "epona/cuda/dcae_ops.cuh"
 #include "epona/nn/feature_map.hpp"
 
@@ -71,23 +72,22 @@ struct PoisonBuffers {
   PoisonBuffers& operator=(const PoisonBuffers&) = delete;
 };
 
-// Runs the dense convolutions with engine e while alive, then restores the previous engine.
-struct UseEngine {
-  cuda::ConvEngine before;
-  explicit UseEngine(cuda::ConvEngine e) : before(cuda::conv_engine()) { cuda::set_conv_engine(e); }
-  ~UseEngine() { cuda::set_conv_engine(before); }
-  UseEngine(const UseEngine&) = delete;
-  UseEngine& operator=(const UseEngine&) = delete;
+// Sets one of the CUDA backend's global switches while alive, then restores its previous value.
+template <auto Get, auto Set>
+struct ScopedSwitch {
+  using Value = decltype(Get());
+  Value before;
+  explicit ScopedSwitch(Value v) : before(Get()) { Set(v); }
+  ~ScopedSwitch() { Set(before); }
+  ScopedSwitch(const ScopedSwitch&) = delete;
+  ScopedSwitch& operator=(const ScopedSwitch&) = delete;
 };
-
-// Turns the fused conv epilogues (and BatchNorm folding at bind time) on or off while alive.
-struct UseFusion {
-  bool before;
-  explicit UseFusion(bool on) : before(cuda::conv_fusion()) { cuda::set_conv_fusion(on); }
-  ~UseFusion() { cuda::set_conv_fusion(before); }
-  UseFusion(const UseFusion&) = delete;
-  UseFusion& operator=(const UseFusion&) = delete;
-};
+// The engine of the dense convolutions.
+using UseEngine = ScopedSwitch<cuda::conv_engine, cuda::set_conv_engine>;
+// The fused conv epilogues (and BatchNorm folding at bind time).
+using UseFusion = ScopedSwitch<cuda::conv_fusion, cuda::set_conv_fusion>;
+// The DC-AE's fused kernels (temporal blocks, upsampling pair).
+using UseDcaeFusion = ScopedSwitch<cuda::dcae_fusion, cuda::set_dcae_fusion>;
 
 inline const char* engine_name(cuda::ConvEngine e) {
   return e == cuda::ConvEngine::Gemm ? "gemm" : e == cuda::ConvEngine::Cudnn ? "cudnn" : "auto";
