@@ -7,7 +7,9 @@
 #include "epona/core/arena.hpp"
 #include "epona/core/backend.hpp"
 #include "epona/core/dtype.hpp"
+#include "epona/core/env.hpp"
 #include "epona/core/error.hpp"
+#include "epona/core/kernel_options.hpp"
 #include "epona/core/rng.hpp"
 #include "epona/core/tensor.hpp"
 

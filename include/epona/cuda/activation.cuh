@@ -7,10 +7,9 @@
 
 #include <algorithm>
 #include <cstdint>
-#include <cstdlib>
-#include <string_view>
 #include <type_traits>
 
+#include "epona/core/env.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
 
@@ -129,10 +128,7 @@ void map(Context& ctx, const TX* x, TY* y, std::int64_t n, Op op) {
 // table available); bit-identical to map() either way.
 // EPONA_CUDA_TABLES=0 turns the tables off (to time the direct path in the same binary).
 inline bool tables_enabled() {
-  static const bool on = [] {
-    const char* v = std::getenv("EPONA_CUDA_TABLES");
-    return !(v && std::string_view(v) == "0");
-  }();
+  static const bool on = env_flag("EPONA_CUDA_TABLES", true);
   return on;
 }
 

@@ -25,6 +25,7 @@
 #include <type_traits>
 #include <vector>
 
+#include "epona/core/env.hpp"
 #include "epona/core/dtype.hpp"
 #include "epona/cpu/conv.hpp"
 #include "epona/cuda/context.hpp"
@@ -162,10 +163,7 @@ inline constexpr std::size_t kMaxWorkspace = std::size_t{1} << 30;
 // (cudnnFindConvolutionForwardAlgorithm, once per geometry, outside any graph recording) instead
 // of its heuristic's first choice.
 inline bool timed_choice() {
-  static const bool on = [] {
-    const char* e = std::getenv("EPONA_CUDNN_FIND");
-    return e && e[0] == '1';
-  }();
+  static const bool on = env_flag("EPONA_CUDNN_FIND", false);
   return on;
 }
 

@@ -5,16 +5,14 @@
 #pragma once
 
 #include <atomic>
-#include <cstdlib>
+
+#include "epona/core/env.hpp"
 
 namespace epona::cuda {
 
 namespace dcae_fusion_detail {
 inline std::atomic<bool>& flag() {
-  static std::atomic<bool> on{[] {
-    const char* e = std::getenv("EPONA_CUDA_DCAE_FUSE");
-    return !(e && e[0] == '0');
-  }()};
+  static std::atomic<bool> on{env_flag("EPONA_CUDA_DCAE_FUSE", true)};
   return on;
 }
 }  // namespace dcae_fusion_detail

@@ -7,12 +7,11 @@
 #pragma once
 
 #include <cstdint>
-#include <cstdlib>
-#include <cstring>
 #include <memory>
 #include <type_traits>
 #include <vector>
 
+#include "epona/core/env.hpp"
 #include "epona/cuda/activation.cuh"
 #include "epona/core/kernel_options.hpp"
 #include "epona/cuda/memory.hpp"
@@ -49,19 +48,13 @@ void set_desc(cublasLtMatmulDesc_t d, cublasLtMatmulDescAttributes_t attr, const
 // it did not pay on the H200 (same run, bf16, real configuration: TrajDiT-100 13.41 -> 13.29 ms,
 // VisDiT eval 3.22 -> 3.18 ms, VisDiT-100 280.1 -> 283.6 ms, AR step 323.4 -> 323.3 ms).
 inline bool& gemm_tuning_flag() {
-  static bool on = [] {
-    const char* v = std::getenv("EPONA_CUDA_GEMM_TUNE");
-    return v && std::strcmp(v, "1") == 0;
-  }();
+  static bool on = env_flag("EPONA_CUDA_GEMM_TUNE", false);
   return on;
 }
 inline bool gemm_tuning() { return gemm_tuning_flag(); }
 // EPONA_CUDA_SMALL_GEMM=0 sends every product to cuBLASLt (side-by-side runs).
 inline bool small_linear_enabled() {
-  static const bool on = [] {
-    const char* v = std::getenv("EPONA_CUDA_SMALL_GEMM");
-    return !(v && std::strcmp(v, "0") == 0);
-  }();
+  static const bool on = env_flag("EPONA_CUDA_SMALL_GEMM", true);
   return on;
 }
 constexpr int kTuneCandidates = 8, kTuneRuns = 10;

@@ -10,21 +10,17 @@
 
 #include <chrono>
 #include <cstdint>
-#include <cstdlib>
-#include <cstring>
 #include <utility>
 #include <vector>
 
+#include "epona/core/env.hpp"
 #include "epona/cuda/check.hpp"
 #include "epona/cuda/context.hpp"
 
 namespace epona::cuda {
 
 inline bool graphs_enabled() {
-  static const bool on = [] {
-    const char* v = std::getenv("EPONA_CUDA_GRAPHS");
-    return !(v && std::strcmp(v, "0") == 0);
-  }();
+  static const bool on = env_flag("EPONA_CUDA_GRAPHS", true);
   return on;
 }
 
