@@ -221,10 +221,9 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
   EPONA_CHECK(M >= 0 && N > 0 && K > 0, "linear: bad extent (M ", M, ", N ", N, ", K ", K, ")");
   EPONA_CHECK(ldx >= K && ldy >= N, "linear: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K, ", N ", N);
   if (M == 0) return;
-  // A few outputs per row or a tiny K: our own kernel (cuBLASLt's choices there are slow).
-  if (epi == Epilogue::None && detail::small_linear_enabled() &&
-      detail::small_linear(ctx, x, ldx, w, bias, y, ldy, M, N, K))
-    return;
+  // Shapes cuBLASLt's tiles fit badly (a few outputs per row, a tiny K): our own kernels, which
+  // say which epilogues they take (small_linear.cuh).
+  if (detail::small_linear_enabled() && detail::small_linear(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi)) return;
   // cuBLASLt's bias epilogue needs a 16-byte aligned bias; otherwise the bias is added apart.
   const bool bias_fusable = bias && detail::pointer_alignment(bias) >= 16;
   cublasLtEpilogue_t wanted = CUBLASLT_EPILOGUE_DEFAULT;

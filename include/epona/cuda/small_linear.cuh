@@ -7,6 +7,7 @@
 
 #include <cstdint>
 
+#include "epona/core/kernel_options.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
 
@@ -68,11 +69,12 @@ __global__ void small_linear_thread_kernel(SmallLinearArgs<T> a) {
 // in a legacy unaligned kernel).
 constexpr std::int64_t kSmallKMax = 16, kFewOutputsMax = 16, kFewOutputsItems = 4096, kTinyKItems = 1 << 20;
 
-// Runs y = x · wᵀ + bias with a small kernel when the product is one of those shapes; false
-// (nothing launched) otherwise.
+// Runs y = act(x · wᵀ + bias) with a small kernel when the product is one of those shapes and
+// the epilogue one they take (none); false (nothing launched) otherwise.
 template <class T>
 bool small_linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bias, T* y, std::int64_t ldy,
-                  std::int64_t M, std::int64_t N, std::int64_t K) {
+                  std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi) {
+  if (epi != Epilogue::None) return false;
   const std::int64_t items = M * N;
   const SmallLinearArgs<T> a{x, ldx, w, bias, y, ldy, static_cast<int>(M), static_cast<int>(N), static_cast<int>(K)};
   constexpr int threads = 256;
