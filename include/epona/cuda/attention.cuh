@@ -7,10 +7,12 @@
 // frames; float32 runs a float32 SIMT kernel so it matches the CPU to float32 rounding.
 #pragma once
 
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <limits>
 
+#include "epona/core/env.hpp"
 #include "epona/core/kernel_options.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
@@ -92,6 +94,44 @@ __device__ __forceinline__ float exp2_fast(float x) {
 __device__ __forceinline__ unsigned pack_bf16(float lo, float hi) {
   const __nv_bfloat162 v = __floats2bfloat162_rn(lo, hi);
   return *reinterpret_cast<const unsigned*>(&v);
+}
+// Sum over the four threads of a quad (the threads that share an accumulator row).
+__device__ __forceinline__ float quad_sum(float x) {
+  x += __shfl_xor_sync(0xffffffffu, x, 1);
+  return x + __shfl_xor_sync(0xffffffffu, x, 2);
+}
+
+// A thread's partial results for its two accumulator rows over some of the keys: o
+// (unnormalised), the running max m (base 2) and its share l of the row sums. In a slot, value v
+// at at(v): o[nt][c] at 4 nt + c, then m[0], m[1], l[0], l[1].
+constexpr int kPartialValues = kDimTiles * 4 + 4;
+template <class At>
+__device__ __forceinline__ void stash_partial(const float (&o)[kDimTiles][4], const float (&m)[2],
+                                              const float (&l)[2], At at) {
+#pragma unroll
+  for (int nt = 0; nt < kDimTiles; ++nt)
+#pragma unroll
+    for (int c = 0; c < 4; ++c) at(4 * nt + c) = o[nt][c];
+#pragma unroll
+  for (int i = 0; i < 2; ++i) at(kDimTiles * 4 + i) = m[i], at(kDimTiles * 4 + 2 + i) = l[i];
+}
+// Folds the stashed partial results of the same rows over other keys into (o, m, l), as online
+// softmax over both key sets would.
+template <class At>
+__device__ __forceinline__ void fold_partial(float (&o)[kDimTiles][4], float (&m)[2], float (&l)[2], At at) {
+#pragma unroll
+  for (int i = 0; i < 2; ++i) {
+    const float m_other = at(kDimTiles * 4 + i);
+    const float m_new = fmaxf(m[i], m_other);
+    const float base = m_new == -INFINITY ? 0.f : m_new;
+    const float mine = exp2_fast(m[i] - base), other = exp2_fast(m_other - base);
+    m[i] = m_new;
+    l[i] = l[i] * mine + at(kDimTiles * 4 + 2 + i) * other;
+#pragma unroll
+    for (int nt = 0; nt < kDimTiles; ++nt)
+#pragma unroll
+      for (int e = 0; e < 2; ++e) o[nt][2 * i + e] = o[nt][2 * i + e] * mine + at(4 * nt + 2 * i + e) * other;
+  }
 }
 
 // Rows [row0, row0 + count) of one head (row i at src + i * stride) into shared memory,
@@ -250,9 +290,7 @@ __device__ __forceinline__ void store_rows(const float (&o)[kDimTiles][4], const
                                            int D, int tq) {
 #pragma unroll
   for (int i = 0; i < 2; ++i) {
-    float sum = l[i];
-    sum += __shfl_xor_sync(0xffffffffu, sum, 1);
-    sum += __shfl_xor_sync(0xffffffffu, sum, 2);
+    const float sum = quad_sum(l[i]);
     const float inv = sum > 0.f ? 1.0f / sum : 0.f;
     if (rows[i] >= p.lq) continue;
     bf16* og = p.o + s * p.o_seq + std::int64_t{rows[i]} * p.o_row + std::int64_t{h} * D;
@@ -308,7 +346,7 @@ struct Tiling {
   static constexpr int rows = 16 * kWarps * kM, threads = 32 * kWarps * kGroups;
   static constexpr int kv_elems = 2 * kKeys * kStride;  // one K and one V tile
   // Per thread: o, then m and l of each m-tile.
-  static constexpr int merge_values = kM * (kDimTiles * 4 + 4);
+  static constexpr int merge_values = kM * kPartialValues;
   static constexpr int merge_bytes = (kGroups - 1) * kWarps * 32 * merge_values * 4;
   static constexpr int kv_bytes = 2 * kGroups * kv_elems * 2;
   static constexpr int smem_bytes = rows * kStride * 2 + (kv_bytes > merge_bytes ? kv_bytes : merge_bytes);
@@ -316,51 +354,28 @@ struct Tiling {
 };
 
 // Group g > 0 leaves its partial results in slot g - 1 of `red`; group 0 folds them into its
-// own (each thread's partners hold the same rows and columns), as online softmax would.
+// own (each thread's partners hold the same rows and columns).
 template <class Tile>
 __device__ __forceinline__ void merge_groups(float (&o)[Tile::m_tiles][kDimTiles][4], float (&m)[Tile::m_tiles][2],
                                              float (&l)[Tile::m_tiles][2], float* red, int group, int warp_in_group,
                                              int lane) {
   constexpr int kM = Tile::m_tiles, kValues = Tile::merge_values, kSlot = Tile::warps * 32 * kValues;
-  // Value v of this thread at (warp_in_group * kValues + v) * 32 + lane: lanes hit consecutive words.
-  const auto at = [&](float* slot, int v) -> float& { return slot[(warp_in_group * kValues + v) * 32 + lane]; };
+  // Value v of m-tile mt of this thread at (warp_in_group * kValues + mt * kPartialValues + v) * 32 + lane:
+  // lanes hit consecutive words.
+  const auto slot_of = [&](int g, int mt) {
+    float* slot = red + (g - 1) * kSlot + (warp_in_group * kValues + mt * kPartialValues) * 32 + lane;
+    return [slot](int v) -> float& { return slot[v * 32]; };
+  };
   __syncthreads();  // every group is done with the K and V tiles
   if (group > 0) {
-    float* slot = red + (group - 1) * kSlot;
 #pragma unroll
-    for (int mt = 0; mt < kM; ++mt) {
-#pragma unroll
-      for (int nt = 0; nt < kDimTiles; ++nt)
-#pragma unroll
-        for (int c = 0; c < 4; ++c) at(slot, (mt * kDimTiles + nt) * 4 + c) = o[mt][nt][c];
-#pragma unroll
-      for (int i = 0; i < 2; ++i) {
-        at(slot, kM * kDimTiles * 4 + mt * 4 + i) = m[mt][i];
-        at(slot, kM * kDimTiles * 4 + mt * 4 + 2 + i) = l[mt][i];
-      }
-    }
+    for (int mt = 0; mt < kM; ++mt) stash_partial(o[mt], m[mt], l[mt], slot_of(group, mt));
   }
   __syncthreads();
   if (group > 0) return;
-  for (int g = 1; g < Tile::groups; ++g) {
-    float* slot = red + (g - 1) * kSlot;
+  for (int g = 1; g < Tile::groups; ++g)
 #pragma unroll
-    for (int mt = 0; mt < kM; ++mt)
-#pragma unroll
-      for (int i = 0; i < 2; ++i) {
-        const float m_other = at(slot, kM * kDimTiles * 4 + mt * 4 + i);
-        const float m_new = fmaxf(m[mt][i], m_other);
-        const float base = m_new == -INFINITY ? 0.f : m_new;
-        const float mine = exp2_fast(m[mt][i] - base), other = exp2_fast(m_other - base);
-        m[mt][i] = m_new;
-        l[mt][i] = l[mt][i] * mine + at(slot, kM * kDimTiles * 4 + mt * 4 + 2 + i) * other;
-#pragma unroll
-        for (int nt = 0; nt < kDimTiles; ++nt)
-#pragma unroll
-          for (int e = 0; e < 2; ++e)
-            o[mt][nt][2 * i + e] = o[mt][nt][2 * i + e] * mine + at(slot, (mt * kDimTiles + nt) * 4 + 2 * i + e) * other;
-      }
-  }
+    for (int mt = 0; mt < kM; ++mt) fold_partial(o[mt], m[mt], l[mt], slot_of(g, mt));
 }
 
 // Block -> (sequence, head, first query row) for blocks of `rows` query rows. The row blocks
@@ -371,7 +386,8 @@ struct BlockCoords {
   std::int64_t s;
   int h, q0;
 };
-__device__ __forceinline__ BlockCoords block_coords(const FlashParams<bf16>& p, int heads, int seqs, int rows) {
+template <class T>
+__device__ __forceinline__ BlockCoords block_coords(const FlashParams<T>& p, int heads, int seqs, int rows) {
   const int full = p.lq / rows;
   const std::int64_t pairs = std::int64_t{heads} * seqs, b = blockIdx.x;
   std::int64_t pair;
@@ -525,7 +541,7 @@ __device__ __forceinline__ void load_tile(float* dst, const float* src, std::int
   }
 }
 
-__global__ void __launch_bounds__(kThreads) flash_f32_kernel(const FlashParams<float> p) {
+__global__ void __launch_bounds__(kThreads) flash_f32_kernel(const FlashParams<float> p, int heads, int seqs) {
   extern __shared__ __align__(16) unsigned char smem[];
   float* sQ = reinterpret_cast<float*>(smem);
   float* sK = sQ + kRows * kStride;
@@ -533,8 +549,9 @@ __global__ void __launch_bounds__(kThreads) flash_f32_kernel(const FlashParams<f
   float* sP = sV + kKeys * kStride;  // (kRows, kKeys + 1)
 
   const int r = threadIdx.x / 4, quad = threadIdx.x % 4;
-  const int q0 = blockIdx.x * kRows, h = blockIdx.y, D = p.head_dim;
-  const std::int64_t s = blockIdx.z;
+  const fa::BlockCoords b = fa::block_coords(p, heads, seqs, kRows);  // full row blocks first
+  const int q0 = b.q0, h = b.h, D = p.head_dim;
+  const std::int64_t s = b.s;
   const int row = q0 + r;
   const float* kg = p.k + s * p.k_seq + std::int64_t{h} * D;
   const float* vg = p.v + s * p.v_seq + std::int64_t{h} * D;
@@ -613,10 +630,37 @@ inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std:
 
 // Which bf16 kernel runs: Auto picks by shape; the others are for tests and benchmarks.
 // Wgmma64 and the Tma kernels: the Hopper kernels (attention_wgmma.cuh).
-enum class FlashKernel { Auto, Rows64, Rows128, Rows64Split4, Short, Wgmma64, Tma64, Tma128 };
+enum class FlashKernel { Auto, Rows64, Rows128, Rows64Split4, Short, Wgmma64, Tma64, Tma128, TmaPlanned };
 
 inline bool is_wgmma(FlashKernel k) {
-  return k == FlashKernel::Wgmma64 || k == FlashKernel::Tma64 || k == FlashKernel::Tma128;
+  return k == FlashKernel::Wgmma64 || k == FlashKernel::Tma64 || k == FlashKernel::Tma128 ||
+         k == FlashKernel::TmaPlanned;
+}
+
+// How TmaPlanned (a producer and two consumer warpgroups) covers a call. rows: query rows per
+// block; 64: the consumers share them and take alternate key tiles (merged in shared memory at
+// the end), 128: 64 each, except in a last row block of <= 64 rows, which is shared
+// (share_rows). splits > 1: each row block's key tiles are cut into that many ranges, one block
+// each, whose float32 partial results a combine kernel normalises (tail_only: only the last,
+// partial row block). narrow_last: the sequence's last key tile is multiplied only as wide as
+// its keys (32 or 64). A single wave of blocks that leaves multiprocessors idle, or a last wave
+// of full-length blocks for a few rows, is what the plan avoids.
+struct TmaPlan {
+  int rows = 128;
+  int splits = 1;
+  bool tail_only = false;
+  bool share_rows = true;
+  bool narrow_last = true;
+};
+inline constexpr int kMaxSplits = 16;
+// Partial results of split blocks live in one buffer of the context (attention_wgmma.cuh).
+inline constexpr std::int64_t kSplitPartialBytes = std::int64_t{8} << 20;
+
+// EPONA_CUDA_ATTN_SPLIT=0: Auto takes the Tma64 / Tma128 kernels as before the plans (to time
+// both in one binary); set_attention_split switches at run time.
+inline std::atomic<bool>& attention_split_setting() {
+  static std::atomic<bool> on{env_flag("EPONA_CUDA_ATTN_SPLIT", false)};
+  return on;
 }
 
 inline const char* flash_kernel_name(FlashKernel k) {
@@ -629,6 +673,7 @@ inline const char* flash_kernel_name(FlashKernel k) {
     case FlashKernel::Wgmma64: return "wgmma 64 rows, cp.async (1 warpgroup, 64-key tiles)";
     case FlashKernel::Tma64: return "wgmma 64 rows, TMA (1 consumer warpgroup, 128-key tiles)";
     case FlashKernel::Tma128: return "wgmma 128 rows, TMA (2 consumer warpgroups, 128-key tiles)";
+    case FlashKernel::TmaPlanned: return "wgmma, TMA, planned (2 consumers, key ranges, 3 stages)";
   }
   return "?";
 }
@@ -664,7 +709,9 @@ void launch_flash_short(Context& ctx, const FlashParams<bf16>& p, std::int64_t s
 // ran). They take head dim 128 with 16-byte aligned rows and no additive mask.
 inline bool flash_wgmma_available(const Context& ctx);
 inline bool launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
-                               FlashKernel kernel);
+                               FlashKernel kernel, const TmaPlan* plan);
+// TmaPlanned's plan under Auto.
+inline TmaPlan auto_tma_plan(const Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads);
 
 inline bool short_kernel_fits(const FlashParams<bf16>& p) {
   return p.lq <= fa::kShortLen && p.lk <= fa::kShortLen;
@@ -688,10 +735,13 @@ inline FlashKernel auto_flash_kernel(const Context& ctx, const FlashParams<bf16>
   // 512 x 1027: 30.7 -> 20.4 us), else 128-row blocks (VisDiT 16 x 1027: 61.0 -> 40.3 us, MST
   // spatial 160 x 515: 119.2 -> 95.6 us, its last block 16 x 515: 27.8 -> 18.2 us). Without keys
   // (no tensor map to describe) the cp.async wgmma kernel.
+  //
+  // The planned TMA kernel (auto_tma_plan) replaces both where EPONA_CUDA_ATTN_SPLIT is on.
   const std::int64_t blocks64 = (p.lq + 63) / 64 * heads * seqs;
   if (short_kernel_fits(p)) return FlashKernel::Short;
   if (wgmma_kernel_fits(ctx, p, exact))
     return p.lk == 0                                 ? FlashKernel::Wgmma64
+           : attention_split_setting().load()        ? FlashKernel::TmaPlanned
            : blocks64 <= ctx.info().multiprocessors ? FlashKernel::Tma64
                                                     : FlashKernel::Tma128;
   return blocks64 < ctx.info().multiprocessors ? FlashKernel::Rows64Split4
@@ -700,7 +750,7 @@ inline FlashKernel auto_flash_kernel(const Context& ctx, const FlashParams<bf16>
 }
 
 inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
-                           bool exact, FlashKernel kernel) {
+                           bool exact, FlashKernel kernel, const TmaPlan* plan) {
   // 32-key tiles throughout: 64-key tiles cost registers (S), so fewer warps per multiprocessor
   // (measured slower), and with two m-tiles per warp they spill (o and S take 192 registers).
   using Rows64 = fa::Tiling<4, 1, 32, 1, 4>;  // 128 registers: 16 warps per multiprocessor
@@ -713,13 +763,14 @@ inline void attention_bf16(Context& ctx, const FlashParams<bf16>& p, std::int64_
     case FlashKernel::Wgmma64:
     case FlashKernel::Tma64:
     case FlashKernel::Tma128:
+    case FlashKernel::TmaPlanned:
       EPONA_CHECK(wgmma_kernel_fits(ctx, p, exact),
                   "attention: the wgmma kernels need an sm_90a build on a 9.0 GPU, head dim 128, 16-byte aligned "
                   "rows and no additive mask");
-      if (!launch_flash_wgmma(ctx, p, seqs, heads, kernel)) {
+      if (!launch_flash_wgmma(ctx, p, seqs, heads, kernel, plan)) {
         EPONA_CHECK(automatic, "attention: the TMA kernel cannot describe these tensors (", flash_kernel_name(kernel),
                     ")");
-        launch_flash_wgmma(ctx, p, seqs, heads, FlashKernel::Wgmma64);
+        launch_flash_wgmma(ctx, p, seqs, heads, FlashKernel::Wgmma64, nullptr);
       }
       break;
     case FlashKernel::Short:
@@ -758,9 +809,11 @@ inline FlashKernel auto_flash_kernel(const Context& ctx, const bf16* q, const bf
   return auto_flash_kernel(ctx, p, a.seqs, a.heads, exact_head_dim(p));
 }
 
-// attention() with the bf16 kernel chosen by the caller (tests, benchmarks).
+// attention() with the bf16 kernel chosen by the caller (tests, benchmarks); plan: TmaPlanned's
+// (null: Auto's).
 template <class T>
-void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const AttentionShape& a, FlashKernel kernel) {
+void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const AttentionShape& a, FlashKernel kernel,
+               const TmaPlan* plan = nullptr) {
   static_assert(is_device_float<T>, "attention takes float or bf16");
   EPONA_CHECK(a.seqs >= 0 && a.heads >= 0 && a.lq >= 0 && a.lk >= 0, "attention: negative extent");
   EPONA_CHECK(a.head_dim >= 1 && a.head_dim <= kMaxHeadDim, "attention: head_dim ", a.head_dim, " unsupported (1..",
@@ -773,13 +826,13 @@ void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const Att
 
   FlashParams<T> p = flash_params(q, k, v, o, a);
   if constexpr (std::is_same_v<T, bf16>) {
-    attention_bf16(ctx, p, a.seqs, a.heads, exact_head_dim(p), kernel);
+    attention_bf16(ctx, p, a.seqs, a.heads, exact_head_dim(p), kernel, plan);
   } else {
     namespace fa32 = detail::fa32;
-    const dim3 grid(static_cast<unsigned>((a.lq + fa32::kRows - 1) / fa32::kRows), static_cast<unsigned>(a.heads),
-                    static_cast<unsigned>(a.seqs));
+    const std::int64_t blocks = (a.lq + fa32::kRows - 1) / fa32::kRows * a.heads * a.seqs;
     allow_dynamic_smem<fa32::flash_f32_kernel>(fa32::kSmemBytes);
-    fa32::flash_f32_kernel<<<grid, fa32::kThreads, fa32::kSmemBytes, ctx.stream()>>>(p);
+    fa32::flash_f32_kernel<<<static_cast<unsigned>(blocks), fa32::kThreads, fa32::kSmemBytes, ctx.stream()>>>(
+        p, static_cast<int>(a.heads), static_cast<int>(a.seqs));
   }
   EPONA_CUDA_CHECK_LAUNCH();
 }

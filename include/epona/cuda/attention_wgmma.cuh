@@ -9,6 +9,7 @@
 
 #include <cuda.h>  // CUtensorMap (the encoder itself is fetched from the driver at run time)
 
+#include <algorithm>
 #include <cstdint>
 
 #include "epona/cuda/attention.cuh"
@@ -79,9 +80,11 @@ __device__ __forceinline__ void pin(float (&d)[N][4]) {
 
 // The accumulator operands of a wgmma (d[i][0..3] for each n8 block i), in PTX operand order.
 #define EPONA_WGMMA_BLOCK(d, i) "+f"(d[i][0]), "+f"(d[i][1]), "+f"(d[i][2]), "+f"(d[i][3])
-#define EPONA_WGMMA_ACCUMULATORS_8(d)                                                                \
-  EPONA_WGMMA_BLOCK(d, 0), EPONA_WGMMA_BLOCK(d, 1), EPONA_WGMMA_BLOCK(d, 2), EPONA_WGMMA_BLOCK(d, 3), \
-      EPONA_WGMMA_BLOCK(d, 4), EPONA_WGMMA_BLOCK(d, 5), EPONA_WGMMA_BLOCK(d, 6), EPONA_WGMMA_BLOCK(d, 7)
+#define EPONA_WGMMA_ACCUMULATORS_4(d) \
+  EPONA_WGMMA_BLOCK(d, 0), EPONA_WGMMA_BLOCK(d, 1), EPONA_WGMMA_BLOCK(d, 2), EPONA_WGMMA_BLOCK(d, 3)
+#define EPONA_WGMMA_ACCUMULATORS_8(d) \
+  EPONA_WGMMA_ACCUMULATORS_4(d), EPONA_WGMMA_BLOCK(d, 4), EPONA_WGMMA_BLOCK(d, 5), EPONA_WGMMA_BLOCK(d, 6), \
+      EPONA_WGMMA_BLOCK(d, 7)
 #define EPONA_WGMMA_ACCUMULATORS_16(d)                                                                 \
   EPONA_WGMMA_ACCUMULATORS_8(d), EPONA_WGMMA_BLOCK(d, 8), EPONA_WGMMA_BLOCK(d, 9), EPONA_WGMMA_BLOCK(d, 10), \
       EPONA_WGMMA_BLOCK(d, 11), EPONA_WGMMA_BLOCK(d, 12), EPONA_WGMMA_BLOCK(d, 13), EPONA_WGMMA_BLOCK(d, 14), \
@@ -90,6 +93,15 @@ __device__ __forceinline__ void pin(float (&d)[N][4]) {
 // d (64 x N float32 in the accumulator layout: per warp 16 rows, d[i] = the n8 block i as
 // mma.sync's C fragment) (+)= A (64 x 16, shared, descriptor a) B (16 x N, shared, descriptor b).
 // accumulate = 0: d = A B.
+__device__ __forceinline__ void wgmma_ss(float (&d)[4][4], std::uint64_t a, std::uint64_t b, int accumulate) {
+  asm volatile(
+      "{\n.reg .pred p;\nsetp.ne.b32 p, %18, 0;\n"
+      "wgmma.mma_async.sync.aligned.m64n32k16.f32.bf16.bf16 {%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15}, %16, %17, p, 1, 1, 0, 0;\n}\n"
+      :
+      EPONA_WGMMA_ACCUMULATORS_4(d)
+      : "l"(a), "l"(b), "r"(accumulate));
+}
+
 __device__ __forceinline__ void wgmma_ss(float (&d)[8][4], std::uint64_t a, std::uint64_t b, int accumulate) {
   asm volatile(
       "{\n.reg .pred p;\nsetp.ne.b32 p, %34, 0;\n"
@@ -120,6 +132,7 @@ __device__ __forceinline__ void wgmma_rs(float (&d)[16][4], const unsigned (&a)[
 }
 #undef EPONA_WGMMA_ACCUMULATORS_16
 #undef EPONA_WGMMA_ACCUMULATORS_8
+#undef EPONA_WGMMA_ACCUMULATORS_4
 #undef EPONA_WGMMA_BLOCK
 
 // A block: kGroups consumer warpgroups, each owning 64 query rows of one (sequence, head),
@@ -147,15 +160,16 @@ __device__ __forceinline__ void pin(unsigned (&a)[N][4]) {
     for (int j = 0; j < 4; ++j) asm volatile("" : "+r"(a[i][j])::"memory");
 }
 
-// Issues S = Q Kᵀ for the warpgroup's 64 rows and kKeys keys: 8 steps of 16 channels; a step
-// moves 32 bytes along the swizzled rows (the hardware applies the swizzle to the full address).
-template <int kKeys>
+// Issues S = Q Kᵀ for the warpgroup's 64 rows and the first kKeys keys of a tile of kTileKeys
+// (kKeys < kTileKeys: the sequence's last, narrow tile): 8 steps of 16 channels; a step moves
+// 32 bytes along the swizzled rows (the hardware applies the swizzle to the full address).
+template <int kKeys, int kTileKeys>
 __device__ __forceinline__ void issue_scores(float (&sc)[kKeys / 8][4], unsigned sQ, unsigned sK) {
 #pragma unroll
   for (int kk = 0; kk < kMaxHeadDim / 16; ++kk) {
     const unsigned step = (kk % 4) * 32;  // within the 128-byte row of the half kk / 4
     wgmma_ss(sc, smem_desc(sQ + (kk / 4) * 64 * kRowBytes + step, 16, kAtomBytes),
-             smem_desc(sK + (kk / 4) * kKeys * kRowBytes + step, 16, kAtomBytes), kk > 0);
+             smem_desc(sK + (kk / 4) * kTileKeys * kRowBytes + step, 16, kAtomBytes), kk > 0);
   }
 }
 
@@ -171,30 +185,31 @@ __device__ __forceinline__ void pack_p(unsigned (&a)[kKeys / 16][4], const float
   }
 }
 
-// Issues O += P V; V's step of 16 keys is two 8-key atoms (2048 bytes) further.
-template <int kKeys>
+// Issues O += P V over the first kKeys keys of a V tile of kTileKeys; a step of 16 keys is two
+// 8-key atoms (2048 bytes) further, the two 64-channel halves kTileKeys rows apart.
+template <int kKeys, int kTileKeys>
 __device__ __forceinline__ void issue_pv(float (&o)[kDimTiles][4], const unsigned (&a)[kKeys / 16][4], unsigned sV) {
 #pragma unroll
   for (int kk = 0; kk < kKeys / 16; ++kk)
-    wgmma_rs(o, a[kk], smem_desc(sV + kk * 2 * kAtomBytes, kKeys * kRowBytes, kAtomBytes));
+    wgmma_rs(o, a[kk], smem_desc(sV + kk * 2 * kAtomBytes, kTileKeys * kRowBytes, kAtomBytes));
 }
 
-template <int kKeys>
+template <int kKeys, int kTileKeys = kKeys>
 __device__ __forceinline__ void wg_scores(float (&sc)[kKeys / 8][4], unsigned sQ, unsigned sK) {
   wgmma_fence();
-  issue_scores<kKeys>(sc, sQ, sK);
+  issue_scores<kKeys, kTileKeys>(sc, sQ, sK);
   wgmma_commit();
   wgmma_wait_all();
   pin(sc);
 }
 
-template <int kKeys>
+template <int kKeys, int kTileKeys = kKeys>
 __device__ __forceinline__ void wg_accumulate_pv(float (&o)[kDimTiles][4], const float (&sc)[kKeys / 8][4],
                                                  unsigned sV) {
   unsigned a[kKeys / 16][4];
   pack_p<kKeys>(a, sc);
   wgmma_fence();
-  issue_pv<kKeys>(o, a, sV);
+  issue_pv<kKeys, kTileKeys>(o, a, sV);
   wgmma_commit();
   wgmma_wait_all();
   pin(o);
@@ -298,21 +313,96 @@ __device__ __forceinline__ void tma_load(unsigned dst, const CUtensorMap& map, i
       : "memory");
 }
 
-template <int kConsumers>
+// A TmaPlan resolved for one call (the kernel's argument). Blocks: the full row blocks of every
+// (sequence, head), full_splits key ranges each, then the last, partial row block of every
+// (sequence, head), tail_splits ranges: the grid ends with the short work. Rows from
+// split_row0 on belong to split row blocks, whose blocks leave partial results: 128
+// unnormalised outputs per (pair, row, range) in partial, its max and sum in partial_ml.
+struct TmaGrid {
+  int heads, seqs, rows, full_row_blocks, full_splits, tail_splits, splits, split_row0;
+  bool share_rows, narrow_last;
+  float *partial, *partial_ml;
+};
+
+// kStages: K and V tiles in flight. Two consumers sharing rows take alternate tiles, so with
+// two stages each would own one and wait for its next load; a third keeps one tile ahead.
+template <int kConsumers, int kStages = 2>
 struct TmaTiling {
   static constexpr int consumers = kConsumers, keys = 128, rows = 64 * kConsumers, threads = 128 * (kConsumers + 1);
   static constexpr int q_bytes = 64 * kMaxHeadDim * 2;      // one consumer's Q tile
   static constexpr int k_bytes = keys * kMaxHeadDim * 2;    // one K (or V) tile
-  static constexpr int stages = 2;
+  static constexpr int stages = kStages;
   static constexpr int bars_offset = kConsumers * q_bytes + stages * 2 * k_bytes;
   // Tiles, the mbarriers (q, then k, v and empty per stage), alignment slack.
   static constexpr int smem_bytes = bars_offset + 8 * (1 + 3 * stages) + kAtomBytes;
+  static_assert(kConsumers * 128 * kPartialValues * 4 <= stages * 2 * k_bytes, "the merge fits the stages");
 };
+
+// A block's share of the work (tma_grid's order): its (sequence, head), first query row, key
+// tiles [t_begin, t_end) and, for a block of a split row block, its key range's index.
+struct TmaBlock {
+  std::int64_t s, pair;
+  int h, q0, t_begin, t_end;
+  int split;  // -1: the block has all of its rows' keys and stores the normalised output
+};
+__device__ __forceinline__ TmaBlock tma_block(const FlashParams<bf16>& p, const TmaGrid& g, int tile_keys) {
+  const std::int64_t pairs = std::int64_t{g.heads} * g.seqs, per_pair = std::int64_t{g.full_row_blocks} * g.full_splits;
+  const std::int64_t b = blockIdx.x;
+  std::int64_t pair;
+  int rb, range, ranges;
+  if (b < per_pair * pairs) {
+    pair = b / per_pair;
+    const int r = static_cast<int>(b % per_pair);
+    rb = r / g.full_splits, range = r % g.full_splits, ranges = g.full_splits;
+    if (p.causal) rb = g.full_row_blocks - 1 - rb;  // causal: the longest rows first
+  } else {
+    pair = (b - per_pair * pairs) / g.tail_splits;
+    range = static_cast<int>((b - per_pair * pairs) % g.tail_splits), rb = g.full_row_blocks, ranges = g.tail_splits;
+  }
+  const int q0 = rb * g.rows, tiles = key_tiles(q0, g.rows, p.lq, p.lk, p.causal, tile_keys);
+  return {pair / g.heads, pair, static_cast<int>(pair % g.heads), q0, range * tiles / ranges,
+          (range + 1) * tiles / ranges, ranges > 1 ? range : -1};
+}
+
+// A split block's float32 partial results for one warp's rows g and g + 8: the unnormalised
+// output, the rows' max and sum, in the slot of (pair, row, range) that the combine reads.
+__device__ __forceinline__ void store_partial(const float (&o)[kDimTiles][4], const float (&m)[2], const float (&l)[2],
+                                              const FlashParams<bf16>& p, const TmaGrid& g, const TmaBlock& b,
+                                              const int (&rows)[2], int tq) {
+#pragma unroll
+  for (int i = 0; i < 2; ++i) {
+    const float sum = quad_sum(l[i]);
+    if (rows[i] >= p.lq) continue;
+    const std::int64_t slot = (b.pair * (p.lq - g.split_row0) + rows[i] - g.split_row0) * g.splits + b.split;
+    float* out = g.partial + slot * kMaxHeadDim;
+#pragma unroll
+    for (int nt = 0; nt < kDimTiles; ++nt)
+      *reinterpret_cast<float2*>(out + nt * 8 + 2 * tq) = make_float2(o[nt][2 * i], o[nt][2 * i + 1]);
+    if (tq == 0) *reinterpret_cast<float2*>(g.partial_ml + 2 * slot) = make_float2(m[i], sum);
+  }
+}
+
+// One key tile for a consumer warpgroup: S = Q Kᵀ over the tile's first kWidth keys (all of
+// them, or a narrow last tile's, which saves the products with its zero-filled rows), softmax,
+// then, once V has landed, O += P V.
+template <int kWidth, int kTileKeys, class WaitV>
+__device__ __forceinline__ void consume_tile(float (&o)[kDimTiles][4], float (&m)[2], float (&l)[2],
+                                             const FlashParams<bf16>& p, unsigned sQ, unsigned sK, unsigned sV,
+                                             const int (&rows)[2], int warp_row0, int k0, int lane, WaitV wait_v) {
+  float sc[kWidth / 8][4];
+  wg_scores<kWidth, kTileKeys>(sc, sQ, sK);
+  if (tile_masked(p, warp_row0, k0, kWidth))
+    online_softmax<true>(sc, m, l, o, p, rows, k0, lane % 4);
+  else
+    online_softmax<false>(sc, m, l, o, p, rows, k0, lane % 4);
+  wait_v();
+  wg_accumulate_pv<kWidth, kTileKeys>(o, sc, sV);
+}
 
 template <class Tile>
 __global__ void __launch_bounds__(Tile::threads, 1)
     flash_tma_kernel(const __grid_constant__ CUtensorMap q_map, const __grid_constant__ CUtensorMap k_map,
-                     const __grid_constant__ CUtensorMap v_map, const FlashParams<bf16> p, int heads, int seqs) {
+                     const __grid_constant__ CUtensorMap v_map, const FlashParams<bf16> p, const TmaGrid g) {
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
   constexpr int kKeys = Tile::keys, kStages = Tile::stages;
   extern __shared__ __align__(16) unsigned char smem[];
@@ -324,8 +414,11 @@ __global__ void __launch_bounds__(Tile::threads, 1)
   const auto v_full = [&](int stage) { return q_full + 8 * (1 + kStages + stage); };
   const auto empty = [&](int stage) { return q_full + 8 * (1 + 2 * kStages + stage); };
 
-  const BlockCoords b = block_coords(p, heads, seqs, Tile::rows);
-  const int tiles = key_tiles(b.q0, Tile::rows, p.lq, p.lk, p.causal, kKeys);
+  const TmaBlock b = tma_block(p, g, kKeys);
+  const int tiles = b.t_end - b.t_begin;
+  // At most 64 live rows: every consumer takes them, each a share of the key tiles.
+  const bool shared_rows = Tile::consumers > 1 && g.share_rows && p.lq - b.q0 <= 64;
+  const int q_tiles = shared_rows ? 1 : Tile::consumers;
   const int wg = threadIdx.x / 128;
   if (threadIdx.x == 0) {
     mbar::init(q_full, 1);
@@ -341,51 +434,101 @@ __global__ void __launch_bounds__(Tile::threads, 1)
   if (wg == 0) {  // producer
     if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.dec.sync.aligned.u32 40;\n" ::: "memory");
     if (threadIdx.x != 0) return;
-    mbar::expect_bytes(q_full, Tile::consumers * Tile::q_bytes);
-    for (int g = 0; g < Tile::consumers; ++g)
+    mbar::expect_bytes(q_full, q_tiles * Tile::q_bytes);
+    for (int c = 0; c < q_tiles; ++c)
       for (int half = 0; half < 2; ++half)
-        tma_load(sQ + g * Tile::q_bytes + half * 64 * kRowBytes, q_map, 64 * half, b.h, b.q0 + 64 * g,
+        tma_load(sQ + c * Tile::q_bytes + half * 64 * kRowBytes, q_map, 64 * half, b.h, b.q0 + 64 * c,
                  static_cast<int>(b.s), q_full);
-    for (int t = 0; t < tiles; ++t) {
-      const int st = t % kStages;
-      mbar::wait(empty(st), ((t / kStages) + 1) & 1);  // tile t - kStages released the stage
+    for (int i = 0; i < tiles; ++i) {
+      const int st = i % kStages, key0 = (b.t_begin + i) * kKeys;
+      mbar::wait(empty(st), ((i / kStages) + 1) & 1);  // tile i - kStages released the stage
       mbar::expect_bytes(k_full(st), Tile::k_bytes);
       for (int half = 0; half < 2; ++half)
-        tma_load(sK(st) + half * kKeys * kRowBytes, k_map, 64 * half, b.h, t * kKeys, static_cast<int>(b.s), k_full(st));
+        tma_load(sK(st) + half * kKeys * kRowBytes, k_map, 64 * half, b.h, key0, static_cast<int>(b.s), k_full(st));
       mbar::expect_bytes(v_full(st), Tile::k_bytes);
       for (int half = 0; half < 2; ++half)
-        tma_load(sV(st) + half * kKeys * kRowBytes, v_map, 64 * half, b.h, t * kKeys, static_cast<int>(b.s), v_full(st));
+        tma_load(sV(st) + half * kKeys * kRowBytes, v_map, 64 * half, b.h, key0, static_cast<int>(b.s), v_full(st));
     }
   } else {  // consumer warpgroup wg - 1 (one branch of an if/else: setmaxnreg applies per role)
     if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.inc.sync.aligned.u32 232;\n" ::: "memory");
     const int group = wg - 1, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32;
-    const int group_row0 = b.q0 + 64 * group, warp_row0 = group_row0 + 16 * warp;
+    const int q_tile = shared_rows ? 0 : group;
+    const int group_row0 = b.q0 + 64 * q_tile, warp_row0 = group_row0 + 16 * warp;
     const int rows[2] = {warp_row0 + lane / 4, warp_row0 + lane / 4 + 8};
     const bool group_active = group_row0 < p.lq;
     float o[kDimTiles][4] = {};
     float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
     mbar::wait(q_full, 0);
-    for (int t = 0; t < tiles; ++t) {
-      const int st = t % kStages;
-      const unsigned parity = (t / kStages) & 1;
-      const int k0 = t * kKeys;
-      const bool compute = group_active && !(p.causal && k0 > group_row0 + 63);
-      float sc[kKeys / 8][4];
+    for (int i = 0; i < tiles; ++i) {
+      const int st = i % kStages;
+      const unsigned parity = (i / kStages) & 1;
+      const int k0 = (b.t_begin + i) * kKeys;
+      const bool mine = !shared_rows || i % Tile::consumers == group;
+      const bool compute = mine && group_active && !(p.causal && k0 > group_row0 + 63);
+      const auto wait_v = [&] { mbar::wait(v_full(st), parity); };
+      // Every consumer waits for every tile, its own or not, before releasing the stage: an
+      // early release would count towards the stage's next phase.
       mbar::wait(k_full(st), parity);
-      if (compute) {
-        wg_scores<kKeys>(sc, sQ + group * Tile::q_bytes, sK(st));
-        if (tile_masked(p, warp_row0, k0, kKeys))
-          online_softmax<true>(sc, m, l, o, p, rows, k0, lane % 4);
+      if (!compute) {
+        wait_v();
+      } else {
+        const unsigned q = sQ + q_tile * Tile::q_bytes;
+        const int width = g.narrow_last ? p.lk - k0 : kKeys;
+        if (width <= 32)
+          consume_tile<32, kKeys>(o, m, l, p, q, sK(st), sV(st), rows, warp_row0, k0, lane, wait_v);
+        else if (width <= 64)
+          consume_tile<64, kKeys>(o, m, l, p, q, sK(st), sV(st), rows, warp_row0, k0, lane, wait_v);
         else
-          online_softmax<false>(sc, m, l, o, p, rows, k0, lane % 4);
+          consume_tile<kKeys, kKeys>(o, m, l, p, q, sK(st), sV(st), rows, warp_row0, k0, lane, wait_v);
       }
-      mbar::wait(v_full(st), parity);
-      if (compute) wg_accumulate_pv<kKeys>(o, sc, sV(st));
       if (lane == 0) mbar::arrive(empty(st));  // this warp is done with the stage (its wgmma waited)
     }
-    store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
+    if (shared_rows) {
+      // Every tile has landed and been read: the stages hold the other consumers' partial
+      // results, folded into consumer 0's.
+      float* stash = reinterpret_cast<float*>(smem + (sK(0) - smem_addr(smem)));
+      const int thread = threadIdx.x % 128;
+      constexpr int kConsumerThreads = 128 * Tile::consumers;
+      group_barrier(1, kConsumerThreads);
+      if (group > 0)
+        stash_partial(o, m, l, [&](int v) -> float& { return stash[((group - 1) * kPartialValues + v) * 128 + thread]; });
+      group_barrier(1, kConsumerThreads);
+      if (group > 0) return;
+      for (int c = 1; c < Tile::consumers; ++c)
+        fold_partial(o, m, l, [&](int v) -> float& { return stash[((c - 1) * kPartialValues + v) * 128 + thread]; });
+    }
+    if (b.split < 0)
+      store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
+    else
+      store_partial(o, m, l, p, g, b, rows, lane % 4);
   }
 #endif
+}
+
+// Split row blocks: one warp per query row folds the rows' partial results over the key ranges
+// (as online softmax would) and stores the normalised output, rounded to bf16 once.
+constexpr int kCombineWarps = 4;
+__global__ void __launch_bounds__(32 * kCombineWarps) combine_splits_kernel(const FlashParams<bf16> p, const TmaGrid g) {
+  const int lane = threadIdx.x % 32;
+  const std::int64_t split_rows = p.lq - g.split_row0;
+  const std::int64_t r = std::int64_t{blockIdx.x} * kCombineWarps + threadIdx.x / 32;  // (pair, row)
+  if (r >= split_rows * g.heads * g.seqs) return;
+  const float2* ml = reinterpret_cast<const float2*>(g.partial_ml) + r * g.splits;
+  float mx = -INFINITY;
+  for (int j = 0; j < g.splits; ++j) mx = fmaxf(mx, ml[j].x);
+  const float base = mx == -INFINITY ? 0.f : mx;  // rows without a key stay zero
+  float sum = 0.f;
+  float4 acc = make_float4(0.f, 0.f, 0.f, 0.f);
+  for (int j = 0; j < g.splits; ++j) {
+    const float w = exp2_fast(ml[j].x - base);
+    const float4 v = reinterpret_cast<const float4*>(g.partial + (r * g.splits + j) * kMaxHeadDim)[lane];
+    sum += ml[j].y * w;
+    acc.x += v.x * w, acc.y += v.y * w, acc.z += v.z * w, acc.w += v.w * w;
+  }
+  const float inv = sum > 0.f ? 1.0f / sum : 0.f;
+  const std::int64_t pair = r / split_rows, row = g.split_row0 + r % split_rows;
+  bf16* out = p.o + pair / g.heads * p.o_seq + row * p.o_row + pair % g.heads * kMaxHeadDim + 4 * lane;
+  *reinterpret_cast<uint2*>(out) = make_uint2(pack_bf16(acc.x * inv, acc.y * inv), pack_bf16(acc.z * inv, acc.w * inv));
 }
 
 // Present only in sm_90a code: its static shared memory tells the host that this build has
@@ -461,28 +604,105 @@ void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t s
       p, static_cast<int>(heads), static_cast<int>(seqs));
 }
 
+inline std::int64_t tma_partial_bytes(const fa::TmaGrid& g, const FlashParams<bf16>& p) {
+  if (g.splits == 1) return 0;
+  return std::int64_t{g.heads} * g.seqs * (p.lq - g.split_row0) * g.splits * (kMaxHeadDim + 2) * 4;
+}
+
+inline fa::TmaGrid tma_grid(const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads, const TmaPlan& plan) {
+  fa::TmaGrid g{};
+  g.heads = static_cast<int>(heads), g.seqs = static_cast<int>(seqs), g.rows = plan.rows;
+  g.full_row_blocks = p.lq / plan.rows;
+  const bool tail = p.lq % plan.rows != 0, split_full = plan.splits > 1 && !plan.tail_only;
+  g.full_splits = split_full ? plan.splits : 1;
+  g.tail_splits = tail ? plan.splits : 0;
+  g.splits = split_full || tail ? plan.splits : 1;
+  g.split_row0 = g.splits == 1 ? p.lq : split_full ? 0 : g.full_row_blocks * plan.rows;
+  g.share_rows = plan.share_rows, g.narrow_last = plan.narrow_last;
+  return g;
+}
+
+inline TmaPlan auto_tma_plan(const Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
+  const std::int64_t sms = ctx.info().multiprocessors, pairs = seqs * heads;
+  const int tiles = (p.lk + 127) / 128, most = std::min(kMaxSplits, std::max(1, (tiles + 1) / 2));
+  const std::int64_t blocks64 = (p.lq + 63) / 64 * pairs;
+  TmaPlan plan;
+  if (blocks64 <= sms) {  // a wave of 64-row blocks: key ranges fill the idle multiprocessors
+    plan.rows = 64;
+    plan.splits = static_cast<int>(std::clamp<std::int64_t>(sms / blocks64, 1, most));
+  } else {  // many waves: only the short last row block is cut into key ranges, to fill the last
+    plan.rows = 128;
+    plan.tail_only = true;
+    plan.splits = p.lq % 128 ? most : 1;
+  }
+  while (plan.splits > 1 && tma_partial_bytes(tma_grid(p, seqs, heads, plan), p) > kSplitPartialBytes) --plan.splits;
+  return plan;
+}
+
+// The context's buffer for split blocks' partial results, kept for its lifetime: one per
+// context, so per stream, whose calls run one after another. A graph capture's first call may
+// create it (an allocation that nothing in the graph fills), hence relaxed capture mode.
+inline float* split_partial_buffer(Context& ctx) {
+  cudaStreamCaptureMode mode = cudaStreamCaptureModeRelaxed;
+  EPONA_CUDA_CHECK(cudaThreadExchangeStreamCaptureMode(&mode));
+  bool created = false;
+  void* buffer = nullptr;
+  try {
+    buffer = ctx.constant_table("attention.split_partials", kSplitPartialBytes, &created);
+  } catch (...) {
+    (void)cudaThreadExchangeStreamCaptureMode(&mode);
+    throw;
+  }
+  EPONA_CUDA_CHECK(cudaThreadExchangeStreamCaptureMode(&mode));
+  return static_cast<float*>(buffer);
+}
+
 template <class Tile>
-bool launch_flash_tma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
+bool launch_flash_tma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
+                      const TmaPlan& plan) {
+  EPONA_CHECK((plan.rows == 64 || plan.rows == Tile::rows) && plan.splits >= 1 && plan.splits <= kMaxSplits,
+              "attention: a TMA plan of ", plan.rows, " rows and ", plan.splits, " key ranges is unsupported (64 or ",
+              Tile::rows, " rows, 1..", kMaxSplits, " ranges)");
   CUtensorMap q_map, k_map, v_map;
   if (!head_tensor_map(q_map, p.q, heads, p.lq, seqs, p.q_row, p.q_seq, 64) ||
       !head_tensor_map(k_map, p.k, heads, p.lk, seqs, p.k_row, p.k_seq, Tile::keys) ||
       !head_tensor_map(v_map, p.v, heads, p.lk, seqs, p.v_row, p.v_seq, Tile::keys))
     return false;
-  const std::int64_t blocks = (p.lq + Tile::rows - 1) / Tile::rows * heads * seqs;
+  fa::TmaGrid g = tma_grid(p, seqs, heads, plan);
+  const std::int64_t bytes = tma_partial_bytes(g, p);
+  if (bytes > 0) {
+    EPONA_CHECK(bytes <= kSplitPartialBytes, "attention: ", plan.splits, " key ranges need ", bytes,
+                " bytes of partial results; the buffer holds ", kSplitPartialBytes);
+    g.partial = split_partial_buffer(ctx);
+    g.partial_ml = g.partial + bytes / 4 / (kMaxHeadDim + 2) * kMaxHeadDim;
+  }
+  const std::int64_t blocks = heads * seqs * (std::int64_t{g.full_row_blocks} * g.full_splits + g.tail_splits);
   allow_dynamic_smem<fa::flash_tma_kernel<Tile>>(Tile::smem_bytes);
   fa::flash_tma_kernel<Tile><<<static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream()>>>(
-      q_map, k_map, v_map, p, static_cast<int>(heads), static_cast<int>(seqs));
+      q_map, k_map, v_map, p, g);
+  if (bytes > 0) {
+    EPONA_CUDA_CHECK_LAUNCH();
+    const std::int64_t rows = heads * seqs * (p.lq - g.split_row0);
+    fa::combine_splits_kernel<<<static_cast<unsigned>((rows + fa::kCombineWarps - 1) / fa::kCombineWarps),
+                                32 * fa::kCombineWarps, 0, ctx.stream()>>>(p, g);
+  }
   return true;
 }
 
 inline bool launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
-                               FlashKernel kernel) {
+                               FlashKernel kernel, const TmaPlan* plan) {
   // Wgmma64: one warpgroup of 64 rows loading its own 64-key tiles by cp.async; 81 KiB, two
   // blocks per multiprocessor. Tma64 / Tma128: a producer warpgroup and one / two consumer
   // warpgroups (64 / 128 rows), 128-key tiles in two stages; 145 / 161 KiB, one block.
+  // TmaPlanned: two consumers, three stages (225 KiB), blocks as the plan says.
+  constexpr TmaPlan kWhole{64, 1, false, false, false};  // one block per row block, as before the plans
   switch (kernel) {
-    case FlashKernel::Tma64: return launch_flash_tma<fa::TmaTiling<1>>(ctx, p, seqs, heads);
-    case FlashKernel::Tma128: return launch_flash_tma<fa::TmaTiling<2>>(ctx, p, seqs, heads);
+    case FlashKernel::Tma64: return launch_flash_tma<fa::TmaTiling<1>>(ctx, p, seqs, heads, kWhole);
+    case FlashKernel::Tma128:
+      return launch_flash_tma<fa::TmaTiling<2>>(ctx, p, seqs, heads, TmaPlan{128, 1, false, false, false});
+    case FlashKernel::TmaPlanned:
+      return launch_flash_tma<fa::TmaTiling<2, 3>>(ctx, p, seqs, heads,
+                                                    plan ? *plan : auto_tma_plan(ctx, p, seqs, heads));
     default: launch_flash_wgmma<fa::WgmmaTiling<1, 64, 2>>(ctx, p, seqs, heads); return true;
   }
 }
