@@ -174,62 +174,10 @@ void time_passes(cuda::Context& ctx, int repeats) {
   });
 }
 
-// One strided-batched cuBLASLt product of bf16 y_b (M, N) = act(x_b (M, K) · w_b (N, K)ᵀ + bias_b)
-// for b < batch (operands `stride_*` elements apart): the two streams of a DiT double block as
-// one launch, the shorter stream padded to M rows (what a weight layout at a constant stride
-// would allow), timed against the model's two products on two streams.
-template <class V>
-void set_layout(cublasLtMatrixLayout_t l, cublasLtMatrixLayoutAttribute_t attr, const V& value) {
-  EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutSetAttribute(l, attr, &value, sizeof value));
-}
-
-struct BatchedGemm {
-  cublasLtMatmulDesc_t op = nullptr;
-  cublasLtMatrixLayout_t a = nullptr, b = nullptr, c = nullptr;
-  cublasLtMatmulAlgo_t algo{};
-  BatchedGemm(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int64_t K, int batch, bool gelu) {
-    EPONA_CUBLAS_CHECK(cublasLtMatmulDescCreate(&op, CUBLAS_COMPUTE_32F, CUDA_R_32F));
-    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_TRANSA, CUBLAS_OP_T);
-    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_TRANSB, CUBLAS_OP_N);
-    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_EPILOGUE, gelu ? CUBLASLT_EPILOGUE_GELU_BIAS : CUBLASLT_EPILOGUE_BIAS);
-    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_BIAS_DATA_TYPE, CUDA_R_16BF);
-    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_BIAS_BATCH_STRIDE, static_cast<std::int64_t>(N));
-    const auto layout = [&](cublasLtMatrixLayout_t& l, std::int64_t rows, std::int64_t cols, std::int64_t stride) {
-      EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&l, CUDA_R_16BF, rows, cols, rows));
-      set_layout(l, CUBLASLT_MATRIX_LAYOUT_BATCH_COUNT, static_cast<std::int32_t>(batch));
-      set_layout(l, CUBLASLT_MATRIX_LAYOUT_STRIDED_BATCH_OFFSET, stride);
-    };
-    layout(a, K, N, N * K);
-    layout(b, K, M, M * K);
-    layout(c, N, M, M * N);
-    cublasLtMatmulPreference_t pref = nullptr;
-    EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceCreate(&pref));
-    const std::uint64_t ws = ctx.workspace_bytes();
-    EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceSetAttribute(pref, CUBLASLT_MATMUL_PREF_MAX_WORKSPACE_BYTES, &ws, sizeof ws));
-    cublasLtMatmulHeuristicResult_t r{};
-    int found = 0;
-    EPONA_CUBLAS_CHECK(cublasLtMatmulAlgoGetHeuristic(ctx.lt(), op, a, b, c, c, pref, 1, &r, &found));
-    cublasLtMatmulPreferenceDestroy(pref);
-    EPONA_CHECK(found > 0, "no batched algorithm");
-    algo = r.algo;
-  }
-  ~BatchedGemm() {
-    cublasLtMatrixLayoutDestroy(c);
-    cublasLtMatrixLayoutDestroy(b);
-    cublasLtMatrixLayoutDestroy(a);
-    cublasLtMatmulDescDestroy(op);
-  }
-  void operator()(cuda::Context& ctx, const bf16* x, const bf16* w, const bf16* bias, bf16* y) const {
-    cuda::detail::set_desc(op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
-    const float alpha = 1, beta = 0;
-    EPONA_CUBLAS_CHECK(cublasLtMatmul(ctx.lt(), op, &alpha, w, a, x, b, &beta, y, c, y, c, &algo, ctx.workspace(),
-                                      ctx.workspace_bytes(), ctx.stream()));
-  }
-};
-
 // The double blocks' per-stream products (condition rows, target rows) three ways: in sequence
-// on one stream, on two streams (the model), and as one batch-2 strided product (rows padded to
-// the condition stream's). Row `dit_gemm_<dit>_<layer>_<how>`.
+// on one stream, on two streams (the model with EPONA_CUDA_PAIR_GEMM=0), and as one batch-2
+// strided product (cuda::linear_batched, both items on the condition stream's rows: what the
+// VisDiT's paired path runs). Row `dit_gemm_<dit>_<layer>_<how>`.
 void time_stream_gemms(cuda::Context& ctx, int repeats) {
   cuda::Context side;
   cudaEvent_t fork, join;
@@ -270,8 +218,10 @@ void time_stream_gemms(cuda::Context& ctx, int repeats) {
         EPONA_CUDA_CHECK(cudaEventRecord(join, side.stream()));
         EPONA_CUDA_CHECK(cudaStreamWaitEvent(ctx.stream(), join, 0));
       });
-      const BatchedGemm batched(ctx, Mc, sh.N, sh.K, 2, sh.gelu);
-      report("batched", [&] { batched(ctx, x.data(), w.data(), bias.data(), y.data()); });
+      report("batched", [&] {
+        cuda::linear_batched(ctx, x.data(), sh.K, w.data(), bias.data(), y.data(), sh.N, Mc, sh.N, sh.K,
+                             cuda::GemmBatch{2, Mc * sh.K, sh.N * sh.K, sh.N, Mc * sh.N}, epi);
+      });
     }
   }
   EPONA_CUDA_CHECK(cudaEventDestroy(fork));
@@ -290,6 +240,10 @@ int run(const Options& o) {
   std::printf("# device: %s, %d SMs, sm_%d%d, %.1f GiB; driver %d, runtime %d; weights %s\n", info.name.c_str(),
               info.multiprocessors, info.major, info.minor, info.global_bytes / 1073741824.0, driver, runtime,
               std::is_same_v<W, float> ? "float32" : "bf16");
+  // The double blocks' path (EPONA_CUDA_PAIR_GEMM, EPONA_DIT_PAIR_FORK), so side-by-side runs tell their rows apart.
+  std::printf("# double blocks: %s products%s\n", cuda::pair_gemm_enabled(probe) ? "paired" : "per-stream",
+              cuda::pair_gemm_enabled(probe) && model::detail::fork_paired_norms() ? ", norms on two streams" : "");
+  emit_value("pair_gemm", cuda::pair_gemm_enabled(probe) ? 1 : 0);
   const double ceiling = o.want("gemm") ? gemm_ceiling_tflops(probe) : 0;
   if (ceiling > 0) emit_value("gemm_tflops", ceiling);
   if (o.want("passes")) time_passes(probe, std::max(o.repeats, 20));

@@ -4,6 +4,7 @@
 // uses true float32 arithmetic (CUBLAS_COMPUTE_32F, no TF32); bf16 accumulates in float32.
 // Optionally (EPONA_CUDA_GEMM_TUNE=1) each new problem times a few of cuBLASLt's candidates;
 // products with a few outputs per row or a tiny K run in our own kernels (small_linear.cuh).
+// The plan, launch and epilogue steps are shared with the strided-batched form (gemm_batched.cuh).
 #pragma once
 
 #include <cstdint>
@@ -20,6 +21,13 @@
 namespace epona::cuda {
 
 using epona::Epilogue;
+
+// A strided-batched product: `count` items, each operand's items `x`, `w`, `bias`, `y` elements
+// apart (any sign; 0 repeats the operand). count 1 is the plain product.
+struct GemmBatch {
+  std::int32_t count = 1;
+  std::int64_t x = 0, w = 0, bias = 0, y = 0;
+};
 
 namespace detail {
 
@@ -69,12 +77,31 @@ inline bool capturing(cudaStream_t stream) {
   return status != cudaStreamCaptureStatusNone;
 }
 
+template <class V>
+void set_layout(cublasLtMatrixLayout_t l, cublasLtMatrixLayoutAttribute_t attr, const V& value) {
+  EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutSetAttribute(l, attr, &value, sizeof value));
+}
+
+// Writes the batch count and strides into a plan's descriptors. A cached batched plan is keyed
+// by the strides' alignments and signs, not their values (each layer's weights lie at another
+// distance), so every call sets its own strides, as it sets its bias pointer.
+inline void apply_batch(LtPlan& plan, const GemmBatch& batch) {
+  const auto strided = [&](cublasLtMatrixLayout_t l, std::int64_t stride) {
+    set_layout(l, CUBLASLT_MATRIX_LAYOUT_BATCH_COUNT, batch.count);
+    set_layout(l, CUBLASLT_MATRIX_LAYOUT_STRIDED_BATCH_OFFSET, stride);
+  };
+  strided(plan.a, batch.w);
+  strided(plan.b, batch.x);
+  strided(plan.c, batch.y);
+  set_desc(plan.op, CUBLASLT_MATMUL_DESC_BIAS_BATCH_STRIDE, batch.bias);
+}
+
 // Row-major y (M, N) = x (M, K) · w (N, K)ᵀ is, in cuBLASLt's column-major terms,
 // yᵀ (N, M) = op_T(w stored K×N) · (x stored K×M). Returns null when cuBLASLt has no
 // algorithm for this epilogue. `candidates` (if given) receives the heuristic's first few
 // algorithms that reduce split-K partial sums in float32 or not at all (the first always).
 template <class T>
-std::unique_ptr<LtPlan> try_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t epilogue,
+std::unique_ptr<LtPlan> try_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t epilogue, const GemmBatch& batch,
                                  std::vector<cublasLtMatmulAlgo_t>* candidates = nullptr) {
   const auto [dt, M, N, K, ldx, ldy, wanted, ax, aw, ay] = key;
   (void)dt, (void)wanted;
@@ -89,6 +116,7 @@ std::unique_ptr<LtPlan> try_plan(Context& ctx, const LtPlanKey& key, cublasLtEpi
   EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->a, type, K, N, K));
   EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->b, type, K, M, ldx));
   EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->c, type, N, M, ldy));
+  if (batch.count > 1) apply_batch(*plan, batch);
 
   cublasLtMatmulPreference_t pref = nullptr;
   EPONA_CUBLAS_CHECK(cublasLtMatmulPreferenceCreate(&pref));
@@ -154,12 +182,13 @@ void tune_plan(Context& ctx, LtPlan& plan, const std::vector<cublasLtMatmulAlgo_
 // The wanted fused epilogue if cuBLASLt has it for this problem, else a plain product (the
 // caller then applies bias and activation itself).
 template <class T>
-std::unique_ptr<LtPlan> make_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted,
+std::unique_ptr<LtPlan> make_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted, const GemmBatch& batch,
                                   std::vector<cublasLtMatmulAlgo_t>* candidates = nullptr) {
-  auto plan = try_plan<T>(ctx, key, wanted, candidates);
-  if (!plan && wanted != CUBLASLT_EPILOGUE_DEFAULT) plan = try_plan<T>(ctx, key, CUBLASLT_EPILOGUE_DEFAULT, candidates);
+  auto plan = try_plan<T>(ctx, key, wanted, batch, candidates);
+  if (!plan && wanted != CUBLASLT_EPILOGUE_DEFAULT)
+    plan = try_plan<T>(ctx, key, CUBLASLT_EPILOGUE_DEFAULT, batch, candidates);
   EPONA_CHECK(plan != nullptr, "linear: cuBLASLt has no algorithm for M=", key[1], " N=", key[2], " K=", key[3],
-              " ldx=", key[4], " ldy=", key[5], " (", std::is_same_v<T, float> ? "float32" : "bf16",
+              " ldx=", key[4], " ldy=", key[5], " batch ", batch.count, " (", std::is_same_v<T, float> ? "float32" : "bf16",
               ", alignments x ", key[7], " w ", key[8], " y ", key[9], " bytes)");
   return plan;
 }
@@ -206,6 +235,64 @@ void activation_epilogue(Context& ctx, T* y, std::int64_t ldy, std::int64_t rows
   bias_activation(ctx, y, ldy, rows, n, bias, op);
 }
 
+// The cuBLASLt epilogue to ask for: cuBLASLt's GELU is the tanh form; its bias epilogue needs
+// a 16-byte aligned bias (`bias_alignment`: of every batch item's), otherwise the bias is added apart.
+inline cublasLtEpilogue_t wanted_epilogue(Epilogue epi, bool has_bias, std::int64_t bias_alignment) {
+  const bool bias_fusable = has_bias && bias_alignment >= 16;
+  if (epi == Epilogue::GeluTanh && (bias_fusable || !has_bias))
+    return has_bias ? CUBLASLT_EPILOGUE_GELU_BIAS : CUBLASLT_EPILOGUE_GELU;
+  return bias_fusable ? CUBLASLT_EPILOGUE_BIAS : CUBLASLT_EPILOGUE_DEFAULT;
+}
+
+// The cached plan of `key` (made, and with tuning on timed on this call's operands, when new).
+template <class T>
+LtPlan& plan_for(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted, const GemmBatch& batch, const T* x,
+                 const T* w, const T* bias, T* y) {
+  auto& plans = ctx.gemm_plans();
+  const bool tuning = gemm_tuning();
+  if (auto it = plans.find(key); tuning && it != plans.end()) return *it->second;
+  if (!tuning || capturing(ctx.stream())) {
+    auto untuned = key;
+    untuned[6] |= kUntunedPlan;
+    auto& p = plans[untuned];
+    if (!p) p = make_plan<T>(ctx, untuned, wanted, batch);
+    return *p;
+  }
+  std::vector<cublasLtMatmulAlgo_t> candidates;
+  auto p = make_plan<T>(ctx, key, wanted, batch, &candidates);
+  tune_plan(ctx, *p, candidates, x, w, bias, y);
+  return *(plans[key] = std::move(p));
+}
+
+// The product itself (every batch item the plan's layouts name), asynchronous on ctx's stream.
+template <class T>
+void run_plan(Context& ctx, const LtPlan& plan, const T* x, const T* w, const T* bias, T* y) {
+  if (plan.fuses_bias()) set_desc(plan.op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
+  const float alpha = 1.0f, beta = 0.0f;
+  EPONA_CUBLAS_CHECK(cublasLtMatmul(ctx.lt(), plan.op, &alpha, w, plan.a, x, plan.b, &beta, y, plan.c, y, plan.c,
+                                    &plan.algo, ctx.workspace(), ctx.workspace_bytes(), ctx.stream()));
+}
+
+// What cuBLASLt did not do for y (M, N) rows ldy apart, in one pass: the bias when unfused,
+// then the activation (always for the erf GELU and SiLU, which cuBLASLt lacks).
+template <class T>
+void finish_epilogue(Context& ctx, const LtPlan& plan, Epilogue epi, T* y, std::int64_t ldy, std::int64_t M,
+                     std::int64_t N, const T* bias) {
+  const T* rest_bias = plan.fuses_bias() ? nullptr : bias;
+  switch (epi) {
+    case Epilogue::None:
+      if (rest_bias) bias_activation(ctx, y, ldy, M, N, rest_bias, Identity{});
+      break;
+    case Epilogue::GeluTanh:
+      if (!plan.fuses_gelu()) activation_epilogue(ctx, y, ldy, M, N, rest_bias, GeluTanhOp{});
+      break;
+    case Epilogue::GeluErf: activation_epilogue(ctx, y, ldy, M, N, rest_bias, GeluErfOp{}); break;
+    case Epilogue::Silu: activation_epilogue(ctx, y, ldy, M, N, rest_bias, SiluOp{}); break;
+  }
+}
+
+template <class T> constexpr std::int64_t dtype_tag() { return std::is_same_v<T, float> ? 0 : 1; }
+
 }  // namespace detail
 
 // Turns the timing of cuBLASLt's candidates for new plans on or off (see detail::gemm_tuning).
@@ -224,53 +311,13 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
   // Shapes cuBLASLt's tiles fit badly (a few outputs per row, a tiny K): our own kernels, which
   // say which epilogues they take (small_linear.cuh).
   if (detail::small_linear_enabled() && detail::small_linear(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi)) return;
-  // cuBLASLt's bias epilogue needs a 16-byte aligned bias; otherwise the bias is added apart.
-  const bool bias_fusable = bias && detail::pointer_alignment(bias) >= 16;
-  cublasLtEpilogue_t wanted = CUBLASLT_EPILOGUE_DEFAULT;
-  if (epi == Epilogue::GeluTanh && (bias_fusable || !bias))
-    wanted = bias ? CUBLASLT_EPILOGUE_GELU_BIAS : CUBLASLT_EPILOGUE_GELU;  // cuBLASLt's GELU is the tanh form
-  else if (bias_fusable)
-    wanted = CUBLASLT_EPILOGUE_BIAS;
-
-  const detail::LtPlanKey key{std::is_same_v<T, float> ? 0 : 1, M, N, K, ldx, ldy, static_cast<std::int64_t>(wanted),
+  const cublasLtEpilogue_t wanted = detail::wanted_epilogue(epi, bias != nullptr, detail::pointer_alignment(bias));
+  const detail::LtPlanKey key{detail::dtype_tag<T>(), M, N, K, ldx, ldy, static_cast<std::int64_t>(wanted),
                               detail::pointer_alignment(x), detail::pointer_alignment(w),
                               detail::pointer_alignment(y)};
-  auto& plans = ctx.gemm_plans();
-  const detail::LtPlan* found = nullptr;
-  const bool tuning = detail::gemm_tuning();
-  if (auto it = plans.find(key); tuning && it != plans.end()) {
-    found = it->second.get();
-  } else if (!tuning || detail::capturing(ctx.stream())) {
-    auto untuned = key;
-    untuned[6] |= detail::kUntunedPlan;
-    auto& p = plans[untuned];
-    if (!p) p = detail::make_plan<T>(ctx, untuned, wanted);
-    found = p.get();
-  } else {
-    std::vector<cublasLtMatmulAlgo_t> candidates;
-    auto p = detail::make_plan<T>(ctx, key, wanted, &candidates);
-    detail::tune_plan(ctx, *p, candidates, x, w, bias, y);
-    found = (plans[key] = std::move(p)).get();
-  }
-  const detail::LtPlan* plan = found;
-  if (plan->fuses_bias()) detail::set_desc(plan->op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
-  const float alpha = 1.0f, beta = 0.0f;
-  EPONA_CUBLAS_CHECK(cublasLtMatmul(ctx.lt(), plan->op, &alpha, w, plan->a, x, plan->b, &beta, y, plan->c, y, plan->c,
-                                    &plan->algo, ctx.workspace(), ctx.workspace_bytes(), ctx.stream()));
-
-  // What cuBLASLt did not do, in one pass: the bias when unfused, then the activation
-  // (always for the erf GELU and SiLU, which cuBLASLt lacks).
-  const T* rest_bias = plan->fuses_bias() ? nullptr : bias;
-  switch (epi) {
-    case Epilogue::None:
-      if (rest_bias) detail::bias_activation(ctx, y, ldy, M, N, rest_bias, detail::Identity{});
-      break;
-    case Epilogue::GeluTanh:
-      if (!plan->fuses_gelu()) detail::activation_epilogue(ctx, y, ldy, M, N, rest_bias, detail::GeluTanhOp{});
-      break;
-    case Epilogue::GeluErf: detail::activation_epilogue(ctx, y, ldy, M, N, rest_bias, detail::GeluErfOp{}); break;
-    case Epilogue::Silu: detail::activation_epilogue(ctx, y, ldy, M, N, rest_bias, detail::SiluOp{}); break;
-  }
+  const detail::LtPlan& plan = detail::plan_for(ctx, key, wanted, GemmBatch{}, x, w, bias, y);
+  detail::run_plan(ctx, plan, x, w, bias, y);
+  detail::finish_epilogue(ctx, plan, epi, y, ldy, M, N, bias);
 }
 
 // x: (..., K); w: (N, K); bias: (N) or empty; y: (..., N) preallocated. Same dtype throughout.
@@ -288,3 +335,6 @@ void linear(Context& ctx, const Tensor<T, Cuda>& x, const Tensor<T, Cuda>& w, co
 }
 
 }  // namespace epona::cuda
+
+// The strided-batched form (several products in one launch) shares the steps above.
+#include "epona/cuda/gemm_batched.cuh"

@@ -8,11 +8,13 @@
 // the official residual streams under autocast).
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 #include <string>
 
 #include "epona/core/arena.hpp"
+#include "epona/core/env.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
@@ -34,37 +36,59 @@ struct DitWidths {
   std::int64_t head_dim() const { return hidden / heads; }
 };
 
-// Activation buffers of one DiT evaluation of one batch item (`rows` = condition + target
-// tokens), shared by all blocks; A is the activation type.
-template <class B, class A = float>
-struct DitScratch {
-  Tensor<A, B> z;         // (rows, D) residual stream: condition rows, then target rows
-  Tensor<A, B> modulated; // (rows, D) (1 + scale)·LN(z) + shift
-  Tensor<A, B> qkv;       // (rows, 3D) [q | k | v], heads contiguous inside each
-  Tensor<A, B> attn;      // (rows, D) attention output (double blocks)
-  Tensor<A, B> mlp;       // (rows, Dm) MLP hidden
-  Tensor<A, B> cat;       // (rows, D + Dm) single blocks: [attention | GELU(mlp)]
-  Tensor<A, B> sub;       // (rows, D) a sublayer's output before its gate
-
-  template <class Alloc>
-  static DitScratch plan(Alloc& a, std::int64_t rows, const DitWidths& w) {
-    const std::int64_t D = w.hidden, Dm = w.mlp_hidden;
-    DitScratch s;
-    s.z = a.template take<A>({rows, D});
-    s.modulated = a.template take<A>({rows, D});
-    s.qkv = a.template take<A>({rows, 3 * D});
-    s.attn = a.template take<A>({rows, D});
-    s.mlp = a.template take<A>({rows, Dm});
-    s.cat = a.template take<A>({rows, D + Dm});
-    s.sub = a.template take<A>({rows, D});
-    return s;
-  }
-};
-
 // Token ranges of the joint sequence.
 struct JointRows {
   std::int64_t cond = 0, target = 0;
   std::int64_t total() const { return cond + target; }
+};
+
+// Whether a double block may run each layer's two per-stream products as one batched product
+// over max(cond, target) = cond rows per stream: only where the target stream is at most as
+// long (its padded rows then lie past the table, never inside the condition's) and nearly as
+// long (the padding is wasted work): the VisDiT's 515 / 512, not the TrajDiT's 515 / 15.
+inline bool streams_pairable(const JointRows& r) {
+  return r.target > 0 && r.target <= r.cond && 10 * r.target >= 9 * r.cond;
+}
+// Rows past the joint table that paired products read and write (the target stream's item
+// runs cond rows from row cond): scratch padding whose contents never reach a result.
+inline std::int64_t paired_padding(const JointRows& r) { return streams_pairable(r) ? r.cond - r.target : 0; }
+
+// Activation buffers of one DiT evaluation of one batch item (`rows` = condition + target
+// tokens), shared by all blocks; A is the activation type. The buffers that GEMMs read or write
+// have `pad` more rows (paired_padding), which only paired products touch.
+template <class B, class A = float>
+struct DitScratch {
+  Tensor<A, B> z;         // (rows, D) residual stream: condition rows, then target rows
+  Tensor<A, B> modulated; // (rows + pad, D) (1 + scale)·LN(z) + shift
+  Tensor<A, B> qkv;       // (rows + pad, 3D) [q | k | v], heads contiguous inside each
+  Tensor<A, B> attn;      // (rows + pad, D) attention output (double blocks)
+  Tensor<A, B> mlp;       // (rows + pad, Dm) MLP hidden
+  Tensor<A, B> cat;       // (rows, D + Dm) single blocks: [attention | GELU(mlp)]
+  Tensor<A, B> sub;       // (rows + pad, D) a sublayer's output before its gate
+
+  template <class Alloc>
+  static DitScratch plan(Alloc& a, std::int64_t rows, const DitWidths& w, std::int64_t pad = 0) {
+    const std::int64_t D = w.hidden, Dm = w.mlp_hidden, padded = rows + pad;
+    DitScratch s;
+    s.z = a.template take<A>({rows, D});
+    s.modulated = a.template take<A>({padded, D});
+    s.qkv = a.template take<A>({padded, 3 * D});
+    s.attn = a.template take<A>({padded, D});
+    s.mlp = a.template take<A>({padded, Dm});
+    s.cat = a.template take<A>({rows, D + Dm});
+    s.sub = a.template take<A>({padded, D});
+    return s;
+  }
+  // Sized for the joint rows, padded where the double blocks pair their streams' products.
+  template <class Alloc>
+  static DitScratch plan(Alloc& a, const JointRows& rows, const DitWidths& w) {
+    return plan(a, rows.total(), w, paired_padding(rows));
+  }
+
+  // Rows every buffer a double block's GEMM reads or writes holds.
+  std::int64_t gemm_rows() const {
+    return std::min({modulated.size(0), qkv.size(0), attn.size(0), mlp.size(0), sub.size(0)});
+  }
 };
 
 // The second queue a block may overlap work on (a second CUDA stream; the CPU runs in order).
@@ -167,43 +191,96 @@ struct DoubleStream {
     mlp.bind(w, p + s + "_mlp.", r);
   }
 
-  // q/k/v of rows [first, first+rows) into the joint qkv buffer (the block QK-norms and rotates
-  // both streams' rows afterwards, in one pass); mv = this stream's modulation (shift, scale,
-  // gate) x 2. `normed`: s.modulated already holds these rows' modulated norm (the previous
-  // block's last residual add wrote it). `src`: the rows' residual input when it is not in s.z
-  // yet (the condition stream of the first block reads cond_in's output where it lies).
-  void project(Context& ctx, Scratch& s, const A* mv, std::int64_t first, std::int64_t rows, const DitWidths& w,
-               bool normed, const A* src = nullptr) const {
-    const std::int64_t D = w.hidden;
-    if (!normed) detail::modulate_rows(ctx, s.z, s.modulated, first, rows, mv + 0 * D, mv + 1 * D, w.ln_eps, src);
-    auto out = s.qkv.slice(first, first + rows);
-    qkv(ctx, s.modulated.slice(first, first + rows), out);
-  }
-
-  // Gated attention projection and gated MLP on the stream's rows, each gated residual add
-  // fused with the modulated norm after it: the MLP's, and with `next` = (shift, scale) of the
-  // next block's first norm on these rows, that one too (into s.modulated). `src` as in project:
-  // the first residual add reads it and writes s.z.
-  void finish(Context& ctx, Scratch& s, const A* mv, std::int64_t first, std::int64_t rows, const DitWidths& w,
-              const A* next, const A* src = nullptr) const {
-    const std::int64_t D = w.hidden;
-    auto z = s.z.slice(first, first + rows);
-    auto sub = s.sub.slice(first, first + rows);
-    auto modulated = s.modulated.slice(first, first + rows);
-    proj(ctx, s.attn.slice(first, first + rows), sub);
-    detail::add_gated_norm_from(ctx, src ? src : z.data(), z.data(), sub.data(), mv + 2 * D, modulated.data(), rows, D,
-                                mv + 3 * D, mv + 4 * D, w.ln_eps);
-    auto hidden = s.mlp.slice(first, first + rows);
-    mlp(ctx, modulated, hidden, sub);
-    if (next)
-      add_gated_layer_norm_modulate(ctx, z.data(), sub.data(), mv + 5 * D, modulated.data(), rows, D, next, next + D,
-                                    w.ln_eps);
-    else
-      add_gated(ctx, z.data(), sub.data(), mv + 5 * D, rows, D);
-  }
+  // The stream's Linear layers, as StreamPair::linear picks them.
+  static const nn::Linear<B, W>& qkv_of(const DoubleStream& s) { return s.qkv; }
+  static const nn::Linear<B, W>& proj_of(const DoubleStream& s) { return s.proj; }
+  static const nn::Linear<B, W>& fc1_of(const DoubleStream& s) { return s.mlp.fc1; }
+  static const nn::Linear<B, W>& fc2_of(const DoubleStream& s) { return s.mlp.fc2; }
 
   double flops(std::int64_t rows) const { return qkv.flops(rows) + proj.flops(rows) + mlp.flops(rows); }
 };
+
+namespace detail {
+// EPONA_DIT_PAIR_FORK=1: with paired products, the per-stream norms between them still run on
+// two queues (fork/join around each pair of them) instead of back to back on the main queue.
+inline bool fork_paired_norms() {
+  static const bool on = env_flag("EPONA_DIT_PAIR_FORK", false);
+  return on;
+}
+
+// How a double block runs its two streams (condition rows [0, cond), target rows after them).
+// Paired (the backend batches two products, streams_pairable, the scratch padded): each
+// layer's two products are one batched product on the main queue, and the per-stream norms
+// between them run there too. Otherwise one product per stream, the condition stream's work
+// on the side queue between fork() and join(), overlapping the target stream's.
+template <class B, class W>
+class StreamPair {
+ public:
+  using Context = BackendContext<B>;
+  using A = Activation<B, W>;
+  using Epilogue = BackendEpilogue<B>;
+  // One stream's rows, modulation vectors and layers, and the queue its work goes to.
+  struct Part {
+    const DoubleStream<B, W>* layers = nullptr;
+    std::int64_t first = 0, rows = 0;
+    const A* mv = nullptr;    // (shift, scale, gate) x 2
+    const A* next = nullptr;  // (shift, scale) of the next block's first norm on these rows, or null
+    const A* src = nullptr;   // the rows' residual input when s.z does not hold it yet, or null
+    Context* ctx = nullptr;
+  };
+
+  StreamPair(Context& main, SideQueue<B>& queue, bool paired, Part cond, Part img)
+      : main_(main), queue_(queue), paired_(paired), forked_norms_(paired && fork_paired_norms()), cond_(cond),
+        img_(img) {
+    cond_.ctx = paired && !forked_norms_ ? &main : &queue.side(main);
+    img_.ctx = &main;
+  }
+
+  // Whether the block may pair: rows close enough and the scratch padded for it.
+  template <class Scratch>
+  static bool pairs(Context& ctx, const Scratch& s, const JointRows& rows) {
+    return nn::Linear<B, W>::pair_available(ctx) && streams_pairable(rows) && s.gemm_rows() >= 2 * rows.cond;
+  }
+
+  // A stretch where the streams touch disjoint rows (per-stream products: on two queues).
+  void fork() {
+    if (!paired_) queue_.fork(main_);
+  }
+  void join() {
+    if (!paired_) queue_.join(main_);
+  }
+
+  // f(context, part) for the condition stream, then the target stream.
+  template <class F>
+  void each(F&& f) {
+    if (forked_norms_) queue_.fork(main_);
+    f(*cond_.ctx, cond_);
+    f(*img_.ctx, img_);
+    if (forked_norms_) queue_.join(main_);
+  }
+
+  // y = layer(x) on each stream's rows of x and y; `layer` picks a stream's Linear.
+  template <class Layer>
+  void linear(Layer layer, const Tensor<A, B>& x, Tensor<A, B>& y, Epilogue epilogue = Epilogue::None) const {
+    const std::int64_t ldx = x.size(-1), ldy = y.size(-1);
+    if (paired_) {
+      const std::int64_t apart = img_.first - cond_.first, rows = std::max(cond_.rows, img_.rows);
+      layer(*cond_.layers).pair(main_, layer(*img_.layers), x.data() + cond_.first * ldx, ldx, apart * ldx, rows,
+                                y.data() + cond_.first * ldy, ldy, apart * ldy, epilogue);
+      return;
+    }
+    for (const Part* p : {&cond_, &img_})
+      layer(*p->layers).strided(*p->ctx, x.data() + p->first * ldx, ldx, p->rows, y.data() + p->first * ldy, ldy,
+                                epilogue);
+  }
+
+ private:
+  Context& main_;
+  SideQueue<B>& queue_;
+  bool paired_, forked_norms_;
+  Part cond_, img_;
+};
+}  // namespace detail
 
 template <class B, class W>
 struct DoubleStreamBlock {
@@ -227,29 +304,50 @@ struct DoubleStreamBlock {
     cond.mod.rows(ctx, silu_vecs, n, table + 6 * widths.hidden, ld);
   }
 
-  // The two streams touch disjoint rows until the joint attention: the condition stream's
-  // work goes to the side queue, overlapping the target stream's. `normed`: s.modulated holds
-  // both streams' first modulated norm already; next_img / next_cond: (shift, scale) of the
-  // next block's first norm for each stream's rows (null: none); cond_src: the condition rows'
-  // residual input when s.z does not hold it yet (the first block; s.z gets the updated rows).
+  // The two streams touch disjoint rows until the joint attention: their products run paired
+  // or on two queues (detail::StreamPair). `normed`: s.modulated holds both streams' first
+  // modulated norm already; next_img / next_cond: (shift, scale) of the next block's first norm
+  // for each stream's rows (null: none); cond_src: the condition rows' residual input when s.z
+  // does not hold it yet (the first block; s.z gets the updated rows). Each gated residual add
+  // is fused with the modulated norm after it.
   void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
                   const nn::RopeTable<B>& rope, const A* mods, bool normed = false, const A* next_img = nullptr,
                   const A* next_cond = nullptr, const A* cond_src = nullptr) const {
+    using Pair = detail::StreamPair<B, W>;
+    using Part = typename Pair::Part;
+    using Stream = DoubleStream<B, W>;
     const std::int64_t D = widths.hidden;
-    const A *img_mod = mods, *cond_mod = mods + 6 * D;
-    Context& side = queue.side(ctx);
-    queue.fork(ctx);
-    cond.project(side, s, cond_mod, 0, rows.cond, widths, normed, cond_src);
-    img.project(ctx, s, img_mod, rows.cond, rows.target, widths, normed);
-    queue.join(ctx);
+    const float eps = widths.ln_eps;
+    Pair pair(ctx, queue, Pair::pairs(ctx, s, rows), Part{&cond, 0, rows.cond, mods + 6 * D, next_cond, cond_src},
+              Part{&img, rows.cond, rows.target, mods, next_img, nullptr});
+    const auto at = [](auto& t, const Part& p) { return t.data() + p.first * t.size(-1); };  // p's first row of t
+    pair.fork();
+    if (!normed)
+      pair.each([&](Context& c, const Part& p) {
+        detail::modulate_rows(c, s.z, s.modulated, p.first, p.rows, p.mv, p.mv + D, eps, p.src);
+      });
+    pair.linear(Stream::qkv_of, s.modulated, s.qkv);
+    pair.join();
     detail::qk_norm_rope_rows<B>(ctx, s.qkv.data(), widths, rope,
                                  std::array{detail::QkRows<B>(0, 0, rows.cond, cond.norm),
                                             detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)});
     detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D);
-    queue.fork(ctx);
-    cond.finish(side, s, cond_mod, 0, rows.cond, widths, next_cond, cond_src);
-    img.finish(ctx, s, img_mod, rows.cond, rows.target, widths, next_img);
-    queue.join(ctx);
+    pair.fork();
+    pair.linear(Stream::proj_of, s.attn, s.sub);
+    pair.each([&](Context& c, const Part& p) {
+      detail::add_gated_norm_from(c, p.src ? p.src : at(s.z, p), at(s.z, p), at(s.sub, p), p.mv + 2 * D,
+                                  at(s.modulated, p), p.rows, D, p.mv + 3 * D, p.mv + 4 * D, eps);
+    });
+    pair.linear(Stream::fc1_of, s.modulated, s.mlp, img.mlp.fc1_epilogue());
+    pair.linear(Stream::fc2_of, s.mlp, s.sub);
+    pair.each([&](Context& c, const Part& p) {
+      if (p.next)
+        add_gated_layer_norm_modulate(c, at(s.z, p), at(s.sub, p), p.mv + 5 * D, at(s.modulated, p), p.rows, D, p.next,
+                                      p.next + D, eps);
+      else
+        add_gated(c, at(s.z, p), at(s.sub, p), p.mv + 5 * D, p.rows, D);
+    });
+    pair.join();
   }
 
   nn::Flops flops(const JointRows& rows) const {

@@ -364,10 +364,11 @@ class FluxDiT {
     return {kept.bytes(), scratch.bytes()};
   }
 
-  // One batch item's block scratch, and its input x as a GEMM operand (empty when A is float).
+  // One batch item's block scratch (padded for the double blocks' paired products), and its
+  // input x as a GEMM operand (empty when A is float).
   template <class Alloc>
   std::pair<Scratch, Tensor<A, B>> plan_velocity(Alloc& a, const JointRows& rows) const {
-    auto s = Scratch::plan(a, rows.total(), widths_);
+    auto s = Scratch::plan(a, rows, widths_);
     Tensor<A, B> x_in;
     if (kConvertInputs) x_in = a.template take<A>({rows.target, cfg_.in_channels});
     return {s, x_in};

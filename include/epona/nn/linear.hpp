@@ -1,7 +1,8 @@
 // epona/nn/linear.hpp — nn.Linear: y = x·Wᵀ (+ b) with PyTorch's weight layout W (out, in),
 // optionally followed by an activation fused into the GEMM epilogue. Weights in T (float or
 // bf16); activations in Activation<B, T> (float on the CPU, T on the GPU). Mirrors
-// torch.nn.Linear (keys `<prefix>weight`, `<prefix>bias`).
+// torch.nn.Linear (keys `<prefix>weight`, `<prefix>bias`). Two layers of one shape can run as one
+// batched product where the backend has it (pair: the DiT double blocks' two streams).
 #pragma once
 
 #include <cstdint>
@@ -56,6 +57,32 @@ struct Linear {
                Epilogue epilogue = Epilogue::None) const {
     linear(ctx, x, ldx, weight.data(), has_bias ? bias.data() : static_cast<const T*>(nullptr), y, ldy, rows, out, in,
            epilogue);
+  }
+
+  // Whether `pair` runs as one product on this backend (the GPU's strided-batched cuBLASLt
+  // product, unless switched off), rather than as two.
+  static bool pair_available(Context& ctx) {
+    if constexpr (requires { pair_gemm_enabled(ctx); })
+      return pair_gemm_enabled(ctx);
+    else
+      return false;
+  }
+
+  // This layer and `second` (same shape) on `rows` rows each: y = layer(x) and
+  // y + y_stride = second(x + x_stride) (strides in elements, rows ldx / ldy apart inside each).
+  void pair(Context& ctx, const Linear& second, const A* x, std::int64_t ldx, std::int64_t x_stride, std::int64_t rows,
+            A* y, std::int64_t ldy, std::int64_t y_stride, Epilogue epilogue = Epilogue::None) const {
+    EPONA_CHECK(second.in == in && second.out == out && second.has_bias == has_bias, "Linear::pair: (", in, " -> ",
+                out, ") with (", second.in, " -> ", second.out, ")");
+    const auto bias_of = [](const Linear& l) { return l.has_bias ? l.bias.data() : static_cast<const T*>(nullptr); };
+    if constexpr (requires { linear_pair(ctx, x, ldx, x_stride, weight.data(), bias_of(*this), second.weight.data(),
+                                         bias_of(second), y, ldy, y_stride, rows, out, in, epilogue); }) {
+      linear_pair(ctx, x, ldx, x_stride, weight.data(), bias_of(*this), second.weight.data(), bias_of(second), y, ldy,
+                  y_stride, rows, out, in, epilogue);
+    } else {
+      strided(ctx, x, ldx, rows, y, ldy, epilogue);
+      second.strided(ctx, x + x_stride, ldx, rows, y + y_stride, ldy, epilogue);
+    }
   }
 
   double flops(std::int64_t tokens) const { return 2.0 * double(tokens) * double(in) * double(out); }

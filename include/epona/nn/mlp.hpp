@@ -36,9 +36,11 @@ struct SequentialMlp {
 
   // x (rows, in) -> y (rows, out); hidden (rows, hidden) is scratch.
   void operator()(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& hidden, Tensor<A, B>& y) const {
-    fc1(ctx, x, hidden, gelu == Gelu::Erf ? Epilogue::GeluErf : Epilogue::GeluTanh);
+    fc1(ctx, x, hidden, fc1_epilogue());
     fc2(ctx, hidden, y);
   }
+  // fc1's fused activation (for callers that run the two layers themselves, e.g. paired).
+  Epilogue fc1_epilogue() const { return gelu == Gelu::Erf ? Epilogue::GeluErf : Epilogue::GeluTanh; }
 
   std::int64_t hidden_width() const { return fc1.out; }
   double flops(std::int64_t tokens) const { return fc1.flops(tokens) + fc2.flops(tokens); }

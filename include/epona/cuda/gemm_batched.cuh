@@ -1,0 +1,111 @@
+// epona/cuda/gemm_batched.cuh — several Linear products of one shape as one strided-batched
+// cuBLASLt product (each item its own x, W, bias, y), and linear_pair: two layers' products
+// (a FLUX double block's condition and target streams, which have separate weights) in one
+// launch. Same arithmetic per element as cuda::linear (float32 sums, one rounding, same epilogues).
+#pragma once
+
+#include <cstdint>
+#include <cstdlib>
+#include <optional>
+
+#include "epona/core/env.hpp"
+#include "epona/cuda/gemm.cuh"
+
+namespace epona::cuda {
+
+namespace detail {
+
+// EPONA_CUDA_PAIR_GEMM=0 keeps the double blocks' one product per stream (side-by-side runs);
+// set_pair_gemm switches it at run time (tests compare both in one process).
+inline bool& pair_gemm_flag() {
+  static bool on = env_flag("EPONA_CUDA_PAIR_GEMM", true);
+  return on;
+}
+
+// p advanced by `elems` elements, computed on the address: batch items may lie in different
+// allocations (two layers' weights), where pointer arithmetic would not be defined.
+template <class T>
+T* advance(T* p, std::int64_t elems) {
+  const auto bytes = static_cast<std::intptr_t>(elems * static_cast<std::int64_t>(sizeof(T)));
+  return reinterpret_cast<T*>(reinterpret_cast<std::uintptr_t>(p) + static_cast<std::uintptr_t>(bytes));
+}
+
+// Elements from a to b, when the byte distance is a whole number of elements.
+template <class T>
+std::optional<std::int64_t> element_distance(const T* a, const T* b) {
+  const auto bytes = static_cast<std::int64_t>(reinterpret_cast<std::intptr_t>(b) - reinterpret_cast<std::intptr_t>(a));
+  if (bytes % static_cast<std::int64_t>(sizeof(T)) != 0) return std::nullopt;
+  return bytes / static_cast<std::int64_t>(sizeof(T));
+}
+
+// The alignment every item's start keeps: the base's and the stride's (item b is base + b·stride).
+template <class T>
+std::int64_t batch_alignment(const T* base, std::int64_t stride) {
+  const auto stride_bytes = static_cast<std::uintptr_t>(std::llabs(stride) * static_cast<std::int64_t>(sizeof(T)));
+  return std::min(pointer_alignment(base), pointer_alignment(reinterpret_cast<const void*>(stride_bytes)));
+}
+
+// The plan key of a batched product: linear's fields, with the count and the strides' signs in
+// the dtype field (linear's keys hold 0 or 1 there) and each operand's batch alignment.
+template <class T>
+LtPlanKey batched_key(std::int64_t M, std::int64_t N, std::int64_t K, std::int64_t ldx, std::int64_t ldy,
+                      cublasLtEpilogue_t wanted, const T* x, const T* w, const T* y, const GemmBatch& b) {
+  const std::int64_t signs = (b.x < 0) | (b.w < 0) << 1 | (b.bias < 0) << 2 | (b.y < 0) << 3;
+  const std::int64_t tag = dtype_tag<T>() | std::int64_t{b.count} << 8 | signs << 40;
+  return {tag, M, N, K, ldx, ldy, static_cast<std::int64_t>(wanted), batch_alignment(x, b.x), batch_alignment(w, b.w),
+          batch_alignment(y, b.y)};
+}
+
+}  // namespace detail
+
+inline void set_pair_gemm(bool on) { detail::pair_gemm_flag() = on; }
+// Whether linear_pair is the double blocks' path (ADL hook of nn::Linear::pair_available).
+inline bool pair_gemm_enabled(const Context&) { return detail::pair_gemm_flag(); }
+
+// y_b[M, N] = act(x_b[M, K] · w_bᵀ + bias_b) for b < batch.count, with x_b = x + b·batch.x and
+// likewise for w, bias (null: none) and y; rows ldx / ldy apart within an item. The items'
+// outputs must not overlap. One cuBLASLt launch; an erf GELU / SiLU (or a bias cuBLASLt cannot
+// take) is one pass per item afterwards. Asynchronous on ctx's stream.
+template <class T>
+void linear_batched(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bias, T* y, std::int64_t ldy,
+                    std::int64_t M, std::int64_t N, std::int64_t K, const GemmBatch& batch,
+                    Epilogue epi = Epilogue::None) {
+  static_assert(is_device_float<T>, "linear_batched takes float or bf16");
+  EPONA_CHECK(batch.count >= 1, "linear_batched: batch count ", batch.count);
+  if (batch.count == 1) return linear(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi);
+  EPONA_CHECK(M >= 0 && N > 0 && K > 0, "linear_batched: bad extent (M ", M, ", N ", N, ", K ", K, ")");
+  EPONA_CHECK(ldx >= K && ldy >= N, "linear_batched: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K,
+              ", N ", N);
+  if (M == 0) return;
+  // Items writing the same elements would race inside the one launch.
+  EPONA_CHECK(std::llabs(batch.y) >= (M - 1) * ldy + N, "linear_batched: output items ", batch.y,
+              " elements apart overlap (", M, " rows ", ldy, " apart, ", N, " wide)");
+  const std::int64_t bias_alignment = bias ? detail::batch_alignment(bias, batch.bias) : 0;
+  const cublasLtEpilogue_t wanted = detail::wanted_epilogue(epi, bias != nullptr, bias_alignment);
+  const auto key = detail::batched_key(M, N, K, ldx, ldy, wanted, x, w, y, batch);
+  detail::LtPlan& plan = detail::plan_for(ctx, key, wanted, batch, x, w, bias, y);
+  detail::apply_batch(plan, batch);
+  detail::run_plan(ctx, plan, x, w, bias, y);
+  for (std::int32_t b = 0; b < batch.count; ++b)
+    detail::finish_epilogue(ctx, plan, epi, detail::advance(y, b * batch.y), ldy, M, N,
+                            bias ? detail::advance(bias, b * batch.bias) : bias);
+}
+
+// Two layers of one shape on M rows each: y_i = act(x_i · w_iᵀ + b_i), x_1 = x + x_stride and
+// y_1 = y + y_stride (elements), as one batch-2 product whose weight (bias) stride is the
+// distance w1 - w0 (b1 - b0). Two products where that distance is no whole number of elements
+// or only one layer has a bias.
+template <class T>
+void linear_pair(Context& ctx, const T* x, std::int64_t ldx, std::int64_t x_stride, const T* w0, const T* b0,
+                 const T* w1, const T* b1, T* y, std::int64_t ldy, std::int64_t y_stride, std::int64_t M,
+                 std::int64_t N, std::int64_t K, Epilogue epi = Epilogue::None) {
+  const auto w_stride = detail::element_distance(w0, w1);
+  const auto b_stride = b0 && b1 ? detail::element_distance(b0, b1) : std::optional<std::int64_t>(0);
+  if (w_stride && b_stride && (b0 == nullptr) == (b1 == nullptr))
+    return linear_batched(ctx, x, ldx, w0, b0, y, ldy, M, N, K, GemmBatch{2, x_stride, *w_stride, *b_stride, y_stride},
+                          epi);
+  linear(ctx, x, ldx, w0, b0, y, ldy, M, N, K, epi);
+  linear(ctx, x + x_stride, ldx, w1, b1, y + y_stride, ldy, M, N, K, epi);
+}
+
+}  // namespace epona::cuda
