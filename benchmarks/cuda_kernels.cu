@@ -114,30 +114,60 @@ double bench_linear(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int
   return ms;
 }
 
+std::string plan_name(const cuda::detail::TmaPlan& p) {
+  return "planned " + std::to_string(p.rows) + " rows, " + std::to_string(p.splits) + " key ranges" +
+         (p.splits > 1 ? (p.tail_only ? " (last row block)" : " (all row blocks)") : "") +
+         (p.share_rows ? "" : ", unshared") + (p.narrow_last ? "" : ", wide last tile");
+}
+
 // One attention shape timed with the automatic choice (first and last: its two medians show
-// the run-to-run spread) and every bf16 kernel that can run it.
+// the run-to-run spread), Auto before the plans (EPONA_CUDA_ATTN_SPLIT=0) and after, every bf16
+// kernel that can run it, and the planned TMA kernel under several plans.
 void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const bf16* q, const bf16* k,
                              const bf16* v, bf16* o, const cuda::AttentionShape& a, double flop, double bytes,
                              int reps) {
   using cuda::detail::FlashKernel;
+  using cuda::detail::TmaPlan;
   const bool fits_short = a.lq <= 16 && a.lk <= 16;
   const auto params = cuda::detail::flash_params(q, k, v, o, a);
   const bool fits_wgmma = cuda::detail::wgmma_kernel_fits(ctx, params, cuda::detail::exact_head_dim(params));
-  std::printf("%s: Auto runs [%s]\n", label.c_str(),
-              cuda::detail::flash_kernel_name(cuda::detail::auto_flash_kernel(ctx, q, k, v, o, a)));
-  for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows128,
-                                   FlashKernel::Rows64Split4, FlashKernel::Short, FlashKernel::Wgmma64,
-                                   FlashKernel::Tma64, FlashKernel::Tma128, FlashKernel::Auto}) {
+  auto& split = cuda::detail::attention_split_setting();
+  const bool saved = split.load();
+  const auto time = [&](const std::string& name, FlashKernel kernel, const TmaPlan* plan) {
+    try {
+      const double ms = median_ms(ctx, reps, [&](int) { cuda::detail::attention(ctx, q, k, v, o, a, kernel, plan); });
+      row(label + " [" + name + "]", ms, flop, bytes);
+      return ms;
+    } catch (const epona::Error& e) {  // a TMA kernel refusing these strides, a plan too large
+      std::printf("%-58s not run: %s\n", (label + " [" + name + "]").c_str(), e.what());
+      return 0.0;
+    }
+  };
+  double auto_ms[2] = {};
+  for (const bool on : {false, true}) {
+    split.store(on);
+    const FlashKernel kernel = cuda::detail::auto_flash_kernel(ctx, q, k, v, o, a);
+    std::string name = std::string(on ? "Auto, planned: " : "Auto, unplanned: ") + cuda::detail::flash_kernel_name(kernel);
+    if (kernel == FlashKernel::TmaPlanned)
+      name += ", " + plan_name(cuda::detail::auto_tma_plan(ctx, params, a.seqs, a.heads));
+    auto_ms[on] = time(name, FlashKernel::Auto, nullptr);
+  }
+  if (auto_ms[0] > 0 && auto_ms[1] > 0)
+    std::printf("  -> %s: Auto unplanned %.1f us, planned %.1f us (x%.2f)\n", label.c_str(), 1e3 * auto_ms[0],
+                1e3 * auto_ms[1], auto_ms[0] / auto_ms[1]);
+  split.store(saved);
+  for (const FlashKernel kernel : {FlashKernel::Rows64, FlashKernel::Rows128, FlashKernel::Rows64Split4,
+                                   FlashKernel::Short, FlashKernel::Wgmma64, FlashKernel::Tma64,
+                                   FlashKernel::Tma128, FlashKernel::Auto}) {
     if (kernel == FlashKernel::Short && !fits_short) continue;
     if (cuda::detail::is_wgmma(kernel) && !fits_wgmma) continue;
-    const std::string name = label + " [" + cuda::detail::flash_kernel_name(kernel) + "]";
-    try {
-      const double ms = median_ms(ctx, reps, [&](int) { cuda::detail::attention(ctx, q, k, v, o, a, kernel); });
-      row(name, ms, flop, bytes);
-    } catch (const epona::Error& e) {  // a TMA kernel refusing these strides
-      std::printf("%-58s not run: %s\n", name.c_str(), e.what());
-    }
+    time(cuda::detail::flash_kernel_name(kernel), kernel, nullptr);
   }
+  if (!fits_wgmma || a.lk == 0 || fits_short) return;
+  const TmaPlan plans[] = {{64, 1},       {64, 2},       {64, 3},          {64, 5},
+                           {128, 1, true}, {128, 2, true}, {128, 3, true},  {128, 5, true},
+                           {128, 2},       {128, 3},       {64, 1, false, true, false}, {128, 1, true, false, false}};
+  for (const TmaPlan& plan : plans) time(plan_name(plan), FlashKernel::TmaPlanned, &plan);
 }
 
 // Self-attention over packed (seqs, L, 3, heads, 128) QKV into (seqs, L - q_first, heads,

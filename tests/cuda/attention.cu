@@ -20,6 +20,9 @@
 
 #include <algorithm>
 #include <limits>
+#include <vector>
+
+#include "epona/cuda/graph.hpp"
 
 using namespace epona;
 using namespace epona::test;
@@ -91,15 +94,75 @@ using cuda::detail::FlashKernel;
 constexpr FlashKernel kBlockKernels[] = {FlashKernel::Rows64, FlashKernel::Rows128,
                                          FlashKernel::Rows64Split4};
 
+cuda::AttentionShape device_shape(const Layout& l, const float* additive_mask) {
+  cuda::AttentionShape ga;
+  ga.seqs = l.seqs, ga.heads = l.heads, ga.lq = l.lq, ga.lk = l.lk, ga.head_dim = l.dim;
+  ga.q_seq = l.q_seq, ga.q_row = l.q_row, ga.k_seq = l.k_seq, ga.k_row = l.k_row;
+  ga.v_seq = l.v_seq, ga.v_row = l.v_row, ga.o_seq = l.o_seq, ga.o_row = l.o_row;
+  ga.mask = l.causal ? cuda::Mask::Causal : cuda::Mask::None;
+  ga.additive_mask = additive_mask;
+  return ga;
+}
+
+std::int64_t input_elems(const Layout& l) {
+  return std::max({extent(l.q_off, l.q_seq, l.q_row, l.seqs, l.lq, l), extent(l.k_off, l.k_seq, l.k_row, l.seqs, l.lk, l),
+                   extent(l.v_off, l.v_seq, l.v_row, l.seqs, l.lk, l), std::int64_t{1}});
+}
+std::int64_t output_elems(const Layout& l) { return std::max(extent(0, l.o_seq, l.o_row, l.seqs, l.lq, l), std::int64_t{1}); }
+
+// Runs the GPU kernel on `in` (uploaded as T) into a poisoned output and compares with `ref`
+// (NaN where the output layout has no element: those must stay poisoned). plan: the planned
+// TMA kernel's (its partial-result buffer is poisoned too, so that a slot the combine reads
+// but no block wrote shows).
+template <class T>
+void compare_gpu(cuda::Context& ctx, const Layout& l, const HostF& in, const float* dmask, const HostF& ref,
+                 const std::string& name, FlashKernel kernel, const cuda::detail::TmaPlan* plan = nullptr) {
+  auto din = upload<T>(ctx, in);
+  Dev<T> dout({output_elems(l)});
+  poison(ctx, dout);
+  if (plan)
+    EPONA_CUDA_CHECK(cudaMemsetAsync(cuda::detail::split_partial_buffer(ctx), 0xFF,
+                                     cuda::detail::kSplitPartialBytes, ctx.stream()));
+  const cuda::AttentionShape ga = device_shape(l, dmask);
+  try {
+    cuda::detail::attention(ctx, din.data() + l.q_off, din.data() + l.k_off, din.data() + l.v_off, dout.data(), ga,
+                            kernel, plan);
+  } catch (const epona::Error& e) {
+    // A TMA kernel may refuse strides the driver cannot describe; Auto then runs another kernel.
+    const bool refused = std::string(e.what()).find("cannot describe") != std::string::npos;
+    CHECK_MESSAGE(refused, e.what());
+    if (refused) MESSAGE((name + ": " + e.what()));
+    return;
+  }
+  const HostF out = download(ctx, dout);
+
+  const auto written = [&](std::int64_t i) { return !std::isnan(ref.data()[i]); };
+  const auto d = measure(out.data(), ref.data(), out.numel(), written);
+  std::int64_t stray = 0;
+  for (std::int64_t i = 0; i < out.numel(); ++i) stray += !written(i) && !std::isnan(out.data()[i]);
+  constexpr double max_v = 2.0;  // inputs are uniform in [-2, 2)
+  const Bound b = std::is_same_v<T, float> ? Bound{kF32Tol, kF32Tol * max_v} : Bound{1e-2, 2 * kBf16Roundoff * max_v};
+  std::string what = std::string("attention ") + type_name<T>() + " " + name + " d=" + std::to_string(l.dim) +
+                     (l.causal ? " causal" : "") + (dmask ? " +mask" : "");
+  if (std::is_same_v<T, bf16> && kernel != FlashKernel::Auto)
+    what += std::string(" [") + cuda::detail::flash_kernel_name(kernel) + "]";
+  if (plan)
+    what += " plan{rows " + std::to_string(plan->rows) + ", splits " + std::to_string(plan->splits) +
+            (plan->tail_only ? ", tail only" : "") + (plan->share_rows ? "" : ", unshared") +
+            (plan->narrow_last ? "" : ", wide last") + "}";
+  if (l.lq > 0 && l.seqs > 0) {
+    check_error(d, b, what);
+  } else {
+    CHECK(d.n == 0);
+  }
+  CHECK_MESSAGE(stray == 0, what);
+}
+
 template <class T>
 void check_attention(cuda::Context& ctx, const Layout& l, std::uint32_t seed, const std::string& name,
                      FlashKernel kernel = FlashKernel::Auto) {
   cpu::Context cctx;
-  const std::int64_t in_elems = std::max({extent(l.q_off, l.q_seq, l.q_row, l.seqs, l.lq, l),
-                                          extent(l.k_off, l.k_seq, l.k_row, l.seqs, l.lk, l),
-                                          extent(l.v_off, l.v_seq, l.v_row, l.seqs, l.lk, l), std::int64_t{1}});
-  const std::int64_t out_elems = std::max(extent(0, l.o_seq, l.o_row, l.seqs, l.lq, l), std::int64_t{1});
-  HostF in = random_tensor({in_elems}, seed, -2.f, 2.f);
+  HostF in = random_tensor({input_elems(l)}, seed, -2.f, 2.f);
   round_to<T>(in);
   HostF mask;
   if (l.additive) {
@@ -116,51 +179,53 @@ void check_attention(cuda::Context& ctx, const Layout& l, std::uint32_t seed, co
   ca.v_seq = l.v_seq, ca.v_row = l.v_row, ca.o_seq = l.o_seq, ca.o_row = l.o_row;
   ca.mask = l.causal ? cpu::Mask::Causal : cpu::Mask::None;
   ca.additive_mask = l.additive ? mask.data() : nullptr;
-  HostF ref({out_elems});
+  HostF ref({output_elems(l)});
   std::fill_n(ref.data(), ref.numel(), std::numeric_limits<float>::quiet_NaN());
   cpu::attention(cctx, in.data() + l.q_off, in.data() + l.k_off, in.data() + l.v_off, ref.data(), ca);
 
-  auto din = upload<T>(ctx, in);
   auto dmask = l.additive ? upload<float>(ctx, mask) : Dev<float>();
-  Dev<T> dout({out_elems});
-  poison(ctx, dout);
-  cuda::AttentionShape ga;
-  ga.seqs = l.seqs, ga.heads = l.heads, ga.lq = l.lq, ga.lk = l.lk, ga.head_dim = l.dim;
-  ga.q_seq = l.q_seq, ga.q_row = l.q_row, ga.k_seq = l.k_seq, ga.k_row = l.k_row;
-  ga.v_seq = l.v_seq, ga.v_row = l.v_row, ga.o_seq = l.o_seq, ga.o_row = l.o_row;
-  ga.mask = l.causal ? cuda::Mask::Causal : cuda::Mask::None;
-  ga.additive_mask = l.additive ? dmask.data() : nullptr;
-  try {
-    cuda::detail::attention(ctx, din.data() + l.q_off, din.data() + l.k_off, din.data() + l.v_off, dout.data(), ga,
-                            kernel);
-  } catch (const epona::Error& e) {
-    // A TMA kernel may refuse strides the driver cannot describe; Auto then runs another kernel.
-    const bool refused = std::string(e.what()).find("cannot describe") != std::string::npos;
-    CHECK_MESSAGE(refused, e.what());
-    if (refused) MESSAGE((name + ": " + e.what()));
-    return;
-  }
-  const HostF out = download(ctx, dout);
+  compare_gpu<T>(ctx, l, in, l.additive ? dmask.data() : nullptr, ref, name, kernel);
+}
 
-  // The CPU writes exactly the output layout's elements: those are compared, the rest must
-  // still hold the GPU's poison.
-  const auto written = [&](std::int64_t i) { return !std::isnan(ref.data()[i]); };
-  const auto d = measure(out.data(), ref.data(), out.numel(), written);
-  std::int64_t stray = 0;
-  for (std::int64_t i = 0; i < out.numel(); ++i) stray += !written(i) && !std::isnan(out.data()[i]);
-  constexpr double max_v = 2.0;  // inputs are uniform in [-2, 2)
-  const Bound b = std::is_same_v<T, float> ? Bound{kF32Tol, kF32Tol * max_v} : Bound{1e-2, 2 * kBf16Roundoff * max_v};
-  const std::string what = std::string("attention ") + type_name<T>() + " " + name + " d=" + std::to_string(l.dim) +
-                           (l.causal ? " causal" : "") + (l.additive ? " +mask" : "") +
-                           (std::is_same_v<T, bf16> && kernel != FlashKernel::Auto
-                                ? std::string(" [") + cuda::detail::flash_kernel_name(kernel) + "]"
-                                : std::string());
-  if (l.lq > 0 && l.seqs > 0) {
-    check_error(d, b, what);
-  } else {
-    CHECK(d.n == 0);
+// Attention over `in` in float64 (softmax(q kᵀ / sqrt(dim)) v per row; causal: keys <= the
+// query's row; no keys: zeros), NaN outside the output layout.
+HostF reference_f64(const Layout& l, const HostF& in) {
+  HostF ref({output_elems(l)});
+  std::fill_n(ref.data(), ref.numel(), std::numeric_limits<float>::quiet_NaN());
+  const double scale = 1.0 / std::sqrt(static_cast<double>(l.dim));
+  const std::int64_t rows = l.seqs * l.heads * l.lq;
+#pragma omp parallel for schedule(dynamic, 8)
+  for (std::int64_t r = 0; r < rows; ++r) {
+    const std::int64_t s = r / (l.heads * l.lq), h = r / l.lq % l.heads, i = r % l.lq;
+    const float* q = in.data() + l.q_off + s * l.q_seq + i * l.q_row + h * l.dim;
+    const std::int64_t keys = l.causal ? std::min(l.lk, i + 1) : l.lk;
+    std::vector<double> p(static_cast<std::size_t>(keys));
+    double mx = -std::numeric_limits<double>::infinity(), sum = 0;
+    for (std::int64_t j = 0; j < keys; ++j) {
+      const float* k = in.data() + l.k_off + s * l.k_seq + j * l.k_row + h * l.dim;
+      double dot = 0;
+      for (std::int64_t c = 0; c < l.dim; ++c) dot += double(q[c]) * k[c];
+      p[j] = dot * scale;
+      mx = std::max(mx, p[j]);
+    }
+    for (auto& x : p) sum += (x = std::exp(x - mx));
+    float* o = ref.data() + s * l.o_seq + i * l.o_row + h * l.dim;
+    for (std::int64_t c = 0; c < l.dim; ++c) {
+      double acc = 0;
+      for (std::int64_t j = 0; j < keys; ++j) acc += p[j] * in.data()[l.v_off + s * l.v_seq + j * l.v_row + h * l.dim + c];
+      o[c] = keys ? static_cast<float>(acc / sum) : 0.f;
+    }
   }
-  CHECK(stray == 0);
+  return ref;
+}
+
+// One bf16 layout (random inputs, float64 reference built once) against every plan given.
+void check_plans(cuda::Context& ctx, const Layout& l, std::uint32_t seed, const std::string& name,
+                 const std::vector<cuda::detail::TmaPlan>& plans) {
+  HostF in = random_tensor({input_elems(l)}, seed, -2.f, 2.f);
+  round_to<bf16>(in);
+  const HostF ref = reference_f64(l, in);
+  for (const auto& plan : plans) compare_gpu<bf16>(ctx, l, in, nullptr, ref, name, FlashKernel::TmaPlanned, &plan);
 }
 
 }  // namespace
@@ -334,7 +399,8 @@ TEST_CASE("cuda attention rejects unsupported shapes with epona::Error") {
     }                                                                                 \
   } while (0)
 
-constexpr FlashKernel kWgmmaKernels[] = {FlashKernel::Wgmma64, FlashKernel::Tma64, FlashKernel::Tma128};
+constexpr FlashKernel kWgmmaKernels[] = {FlashKernel::Wgmma64, FlashKernel::Tma64, FlashKernel::Tma128,
+                                         FlashKernel::TmaPlanned};
 
 TEST_CASE("cuda attention bf16: the wgmma kernel on awkward lengths, masks and layouts") {
   EPONA_REQUIRE_GPU();
@@ -394,9 +460,28 @@ TEST_CASE("cuda attention bf16: Auto takes the wgmma kernel where it applies, th
   const auto pick = [&](const bf16* q) { return cuda::detail::auto_flash_kernel(ctx, q, d + 128, d + 256, d, a); };
   CHECK(cuda::detail::is_wgmma(pick(d)) == wgmma);
   if (wgmma) {
+    const bool saved = cuda::detail::attention_split_setting().load();
+    cuda::detail::attention_split_setting().store(false);
     CHECK(pick(d) == FlashKernel::Tma64);  // 9 blocks of 64 rows: one wave
     a.heads = 4, a.seqs = 40;              // 1440 blocks of 64 rows, more than a wave: 128-row blocks
     CHECK(pick(d) == FlashKernel::Tma128);
+    cuda::detail::attention_split_setting().store(true);
+    CHECK(pick(d) == FlashKernel::TmaPlanned);
+    // Auto's plans: 128-row blocks over many waves, the partial last row block (530 = 4 x 128 +
+    // 18) cut into key ranges; 64-row blocks within a wave; partials within the buffer.
+    const auto plan = [&] {
+      const auto p = cuda::detail::flash_params<bf16>(d, d + 128, d + 256, d, a);
+      return cuda::detail::auto_tma_plan(ctx, p, a.seqs, a.heads);
+    };
+    CHECK(plan().rows == 128);
+    CHECK(plan().tail_only);
+    a.heads = 8, a.seqs = 1;
+    CHECK(plan().rows == 64);
+    a.lq = 15;
+    CHECK(plan().rows == 64);
+    CHECK(plan().splits > 1);  // 8 blocks of 15 rows: the keys are cut into ranges
+    a.lq = 530;
+    cuda::detail::attention_split_setting().store(saved);
     a.heads = 1, a.seqs = 1;
   }
   CHECK(!cuda::detail::is_wgmma(pick(d + 1)));  // rows not 16-byte aligned: the generic path
@@ -419,4 +504,114 @@ TEST_CASE("cuda attention bf16: Auto takes the wgmma kernel where it applies, th
   std::uint32_t seed = 600;
   for (const FlashKernel kernel : {FlashKernel::Auto, FlashKernel::Rows64, FlashKernel::Rows64Split4})
     check_attention<bf16>(ctx, packed(2, 2, 530, 128), seed++, "packed qkv 530", kernel);
+}
+
+// The planned TMA kernel (TmaPlanned): each way a plan covers a call. 64-row blocks (the two
+// consumers share the rows and take alternate key tiles) and 128-row blocks (a last row block of
+// <= 64 rows shared), key ranges (float32 partials and the combine kernel) on every row block or
+// the last only, unshared rows and the wide last tile; against float64 loops, with the bf16
+// bound above.
+using cuda::detail::TmaPlan;
+std::vector<TmaPlan> every_plan() {
+  return {TmaPlan{64, 1},          TmaPlan{64, 2},        TmaPlan{64, 3},         TmaPlan{64, 5},
+          TmaPlan{128, 1, true},   TmaPlan{128, 3, true}, TmaPlan{128, 2},        TmaPlan{128, 4},
+          TmaPlan{128, 16},        TmaPlan{64, 2, false, false, false},       TmaPlan{128, 3, true, false, true}};
+}
+
+TEST_CASE("cuda attention bf16: the planned TMA kernel, every plan on awkward lengths") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  EPONA_REQUIRE_WGMMA(ctx);
+  const auto plans = every_plan();
+  std::uint32_t seed = 700;
+  for (const std::int64_t len : {1, 3, 15, 64, 65, 130, 515, 530}) {
+    const std::string name = "packed qkv 8 heads x " + std::to_string(len);
+    check_plans(ctx, packed(1, 8, len, 128, /*o_pad=*/len % 2 ? 8 : 0), seed++, name, plans);
+    Layout c = packed(2, 3, len, 128);
+    c.causal = true;
+    check_plans(ctx, c, seed++, "packed qkv 2 x 3 heads x " + std::to_string(len), plans);
+  }
+  check_plans(ctx, packed(2, 2, 1027, 128), seed++, "packed qkv 2 x 2 heads x 1027", plans);
+  Layout c = packed(1, 3, 1027, 128);
+  c.causal = true;
+  check_plans(ctx, c, seed++, "packed qkv 3 heads x 1027", plans);
+  struct Cross { std::int64_t lq, lk; };
+  for (const Cross x : {Cross{15, 530}, Cross{3, 1027}, Cross{1, 65}, Cross{65, 1}, Cross{130, 20}, Cross{200, 129}}) {
+    const std::string name = "cross " + std::to_string(x.lq) + " x " + std::to_string(x.lk);
+    check_plans(ctx, dense(2, 2, x.lq, x.lk, 128), seed++, name, plans);
+    Layout cc = dense(1, 3, x.lq, x.lk, 128);
+    cc.causal = true;
+    check_plans(ctx, cc, seed++, name, plans);
+  }
+  check_plans(ctx, packed_tail(1, 8, 530, 515, 128), seed++, "TrajDiT last single block 15 of 530", plans);
+  check_plans(ctx, temporal(10, 37, 2, 128), seed++, "MST temporal (10 frames x 37)", plans);
+  check_plans(ctx, mst_temporal(10, 37, 2, 128, true), seed++, "MST temporal, last frame", plans);
+}
+
+// Large: left out of the sanitizer runs, like the other model-shape cases.
+TEST_CASE("cuda attention bf16 model shapes: the planned TMA kernel") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  EPONA_REQUIRE_WGMMA(ctx);
+  const std::vector<TmaPlan> plans = {TmaPlan{64, 1},        TmaPlan{64, 3},  TmaPlan{128, 1, true},
+                                      TmaPlan{128, 5, true}, TmaPlan{128, 2}, TmaPlan{64, 5}};
+  std::uint32_t seed = 800;
+  check_plans(ctx, packed(1, 16, 1027, 128), seed++, "VisDiT joint 16 x 1027", plans);
+  check_plans(ctx, packed_tail(1, 16, 1027, 515, 128), seed++, "VisDiT last single 512 of 1027", plans);
+  check_plans(ctx, packed(10, 16, 515, 128), seed++, "MST spatial 10 x 16 x 515", plans);
+  check_plans(ctx, packed(1, 16, 515, 128), seed++, "MST spatial, last block 16 x 515", plans);
+  check_plans(ctx, packed(1, 8, 530, 128, /*o_pad=*/24), seed++, "TrajDiT joint 8 x 530", plans);
+  check_plans(ctx, packed_tail(1, 8, 530, 515, 128), seed++, "TrajDiT last single 15 of 530", plans);
+  // Auto's plan, with the switch on and off.
+  const bool saved = cuda::detail::attention_split_setting().load();
+  for (const bool split : {true, false}) {
+    cuda::detail::attention_split_setting().store(split);
+    const std::string name = split ? " (Auto, planned)" : " (Auto, unplanned)";
+    check_attention<bf16>(ctx, packed(1, 16, 1027, 128), seed++, "VisDiT joint 16 x 1027" + name);
+    check_attention<bf16>(ctx, packed(10, 16, 515, 128), seed++, "MST spatial 10 x 16 x 515" + name);
+    check_attention<bf16>(ctx, packed(1, 8, 530, 128), seed++, "TrajDiT joint 8 x 530" + name);
+    check_attention<bf16>(ctx, packed_tail(1, 8, 530, 515, 128), seed++, "TrajDiT last single 15 of 530" + name);
+  }
+  cuda::detail::attention_split_setting().store(saved);
+}
+
+TEST_CASE("cuda attention bf16: planned TMA kernel in a CUDA graph, bad plans rejected") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;  // fresh: the partial-result buffer is first made while the graph records
+  EPONA_REQUIRE_WGMMA(ctx);
+  const Layout l = packed_tail(1, 8, 530, 515, 128);
+  HostF in = random_tensor({input_elems(l)}, 900, -2.f, 2.f);
+  round_to<bf16>(in);
+  const HostF ref = reference_f64(l, in);
+  auto din = upload<bf16>(ctx, in);
+  Dev<bf16> dout({output_elems(l)});
+  const TmaPlan plan{64, 3};
+  const cuda::AttentionShape ga = device_shape(l, nullptr);
+  cuda::GraphCache graph;
+  for (int run = 0; run < 3; ++run) {  // records once, then replays
+    poison(ctx, dout);
+    if (run > 0)  // the first run makes the buffer while recording
+      EPONA_CUDA_CHECK(cudaMemsetAsync(cuda::detail::split_partial_buffer(ctx), 0xFF,
+                                       cuda::detail::kSplitPartialBytes, ctx.stream()));
+    graph.run(ctx, {1}, [&] {
+      cuda::detail::attention(ctx, din.data() + l.q_off, din.data() + l.k_off, din.data() + l.v_off, dout.data(), ga,
+                              FlashKernel::TmaPlanned, &plan);
+    });
+    const HostF out = download(ctx, dout);
+    const auto written = [&](std::int64_t i) { return !std::isnan(ref.data()[i]); };
+    check_error(measure(out.data(), ref.data(), out.numel(), written), Bound{1e-2, 2 * kBf16Roundoff * 2.0},
+                "planned TMA kernel in a graph, run " + std::to_string(run));
+  }
+  if (cuda::graphs_enabled()) CHECK(graph.captures() == 1);
+
+  const auto run_plan = [&](const Layout& lay, TmaPlan p) {
+    cuda::detail::attention(ctx, din.data(), din.data(), din.data(), dout.data(), device_shape(lay, nullptr),
+                            FlashKernel::TmaPlanned, &p);
+  };
+  CHECK_THROWS_WITH_AS(run_plan(l, TmaPlan{96, 1}), doctest::Contains("unsupported"), epona::Error);
+  CHECK_THROWS_WITH_AS(run_plan(l, TmaPlan{64, 17}), doctest::Contains("unsupported"), epona::Error);
+  // 1 x 8 x 530 rows x 16 ranges of partials: 35 MB, more than the buffer holds.
+  Layout big = packed(1, 8, 530, 128);
+  CHECK(input_elems(big) <= din.numel());
+  CHECK_THROWS_WITH_AS(run_plan(big, TmaPlan{64, 16}), doctest::Contains("partial results"), epona::Error);
 }
