@@ -1,7 +1,7 @@
 // The world model's layers and blocks on the GPU against the CPU backend on random data and
 // random weights (model/random_weights.hpp) at head dim 128 (the real one): the world-model
 // kernels added for the GPU (copy, strided copy, float32 -> bf16 conversion, Euler update alone
-// and fused with the conversion, the small-product linear kernels vs float64),
+// and fused with the conversion, qk_norm_rope's row path vs its head-per-warp path),
 // the DiT blocks one by one (DoubleStreamBlock, SingleStreamBlock full and pruned, LastLayer),
 // the MST block by block (observer), whole DiT evaluations and samples (batch 2: modulation
 // tables, input conversion, recorded sampler graph) and world-model steps. Bounds: float32
@@ -11,7 +11,9 @@
 // Outputs and the arena are poisoned (0xFF: NaN) before every GPU call.
 #include <doctest/doctest.h>
 
+#include <array>
 #include <cmath>
+#include <cstring>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -181,66 +183,62 @@ TEST_CASE("world-model kernels: copy, strided copy, conversion, Euler update (fl
 
 namespace {
 
-// cuda::linear on the shapes that take the small kernels (small_linear.cuh) against a float64
-// host product of the same (rounded) inputs: a few outputs per row (warp per output; K a
-// multiple of 8 or not) and a tiny K (thread per output), with and without bias, written into a
-// column block of a wider poisoned buffer (the other columns must stay poisoned). Bound per
-// element: float32 1e-5 of max|ref|; bf16 one rounding of the output (2^-8 |ref|) on top.
+// qk_norm_rope's row path (a warp per row of a part, 16-byte accesses) against its
+// head-per-warp path on the same input: bit-identical (same roundings, same summation tree;
+// the head-per-warp path is checked against the CPU's unfused ops in test_cuda_pointwise),
+// every other channel untouched. Two segments (the second with fewer queries than keys);
+// head counts that leave a partial warp access (3, 5) or take several rounds (20); a buffer
+// misaligned for 16-byte accesses (the row path declines it: the same result either way).
+struct QkRows {
+  std::int64_t first, q_first, end;
+  const float* q_scale;
+  const float* k_scale;
+};
+
 template <class T>
-void check_small_linear(std::int64_t M, std::int64_t N, std::int64_t K, bool with_bias, std::uint32_t seed) {
+void check_qk_rows(std::int64_t heads, std::int64_t rows, std::uint32_t seed, std::int64_t misalign = 0) {
   auto& ctx = gpu();
-  auto x = test::random_tensor({M, K}, seed, -2.f, 2.f), w = test::random_tensor({N, K}, seed + 1, -0.5f, 0.5f);
-  auto b = test::random_tensor({N}, seed + 2);
-  test::round_to<T>(x), test::round_to<T>(w), test::round_to<T>(b);
-  const std::int64_t ldy = N + 5;
-  const auto dx = upload<T>(x), dw = upload<T>(w), db = upload<T>(b);
-  auto dy = Tensor<T, Cuda>({M, ldy});
-  cuda::fill_bytes(ctx, dy, 0xFF);
-  cuda::linear(ctx, dx.data(), K, dw.data(), with_bias ? db.data() : nullptr, dy.data(), ldy, M, N, K);
-  const auto y = download(dy);
-  double max_ref = 0;
-  std::vector<double> ref(static_cast<std::size_t>(M * N));
-  for (std::int64_t m = 0; m < M; ++m)
-    for (std::int64_t n = 0; n < N; ++n) {
-      double acc = with_bias ? b.data()[n] : 0.0;
-      for (std::int64_t k = 0; k < K; ++k) acc += double(x.at(m, k)) * double(w.at(n, k));
-      ref[m * N + n] = acc;
-      max_ref = std::max(max_ref, std::abs(acc));
-    }
-  const double u = std::is_same_v<T, bf16> ? 1.0 / 256 : 0.0;
-  int bad = 0, untouched_changed = 0;
-  double worst = 0;
-  for (std::int64_t m = 0; m < M; ++m)
-    for (std::int64_t c = 0; c < ldy; ++c) {
-      const float got = y.at(m, c);
-      if (c >= N) {
-        untouched_changed += !std::isnan(got);
-        continue;
-      }
-      const double err = std::abs(double(got) - ref[m * N + c]);
-      worst = std::max(worst, err / max_ref);
-      bad += !(err <= u * std::abs(ref[m * N + c]) + 1e-5 * max_ref);
-    }
-  MESSAGE("small linear ", test::type_name<T>(), " ", M, "x", N, "x", K, with_bias ? " +bias" : "", ": max err ", worst,
-          " of max|ref|");
-  CHECK(bad == 0);
-  CHECK(untouched_changed == 0);
+  const std::int64_t width = heads * 128, stride = 3 * width + 8, pairs = 64;
+  auto x = test::random_tensor({rows, stride}, seed, -2.f, 2.f);
+  test::round_to<T>(x);
+  const auto angle = test::random_tensor({rows, pairs}, seed + 1, -20.f, 20.f);
+  Tensor<float, Cpu> cos({rows, pairs}), sin({rows, pairs});
+  for (std::int64_t i = 0; i < angle.numel(); ++i) cos.data()[i] = std::cos(angle.data()[i]), sin.data()[i] = std::sin(angle.data()[i]);
+  const auto dcos = upload<float>(cos), dsin = upload<float>(sin);
+  std::vector<Tensor<float, Cuda>> scales;
+  for (std::uint32_t i = 0; i < 4; ++i) scales.push_back(upload<float>(test::random_tensor({128}, seed + 10 + i, 0.5f, 1.5f)));
+  const std::int64_t half = rows / 2;
+  const std::array<QkRows, 2> segs{QkRows{0, 0, half, scales[0].data(), scales[1].data()},
+                                   QkRows{half, half + 3, rows, scales[2].data(), scales[3].data()}};
+  const auto run = [&](bool row_path) {
+    auto dx = test::upload<T>(ctx, x, misalign);
+    cuda::set_qk_norm_rope_rows(row_path);
+    cuda::qk_norm_rope(ctx, dx.data(), stride, width, heads, 128, 1e-6f, dcos.data(), dsin.data(), segs);
+    cuda::set_qk_norm_rope_rows(true);
+    return download(dx);
+  };
+  const auto rows_out = run(true), heads_out = run(false);
+  std::int64_t differ = 0, changed = 0;
+  for (std::int64_t i = 0; i < x.numel(); ++i) {
+    differ += std::memcmp(&rows_out.data()[i], &heads_out.data()[i], sizeof(float)) != 0;
+    changed += i % stride >= 2 * width && std::memcmp(&rows_out.data()[i], &x.data()[i], sizeof(float)) != 0;
+  }
+  MESSAGE("qk_norm_rope row path ", test::type_name<T>(), " heads ", heads, " rows ", rows, " misaligned by ", misalign,
+          ": ", differ, " values differ from the head-per-warp path, ", changed, " untouched changed");
+  CHECK(differ == 0);
+  CHECK(changed == 0);
 }
 
 }  // namespace
 
-TEST_CASE("linear: few outputs per row and tiny K run in the small kernels, exact to float64 within rounding") {
+TEST_CASE_TEMPLATE("qk_norm_rope: the row path gives the head-per-warp path's bits", T, float, bf16) {
   EPONA_REQUIRE_GPU();
-  std::uint32_t seed = 600;
-  for (const bool bias : {true, false}) {
-    check_small_linear<float>(15, 3, 1024, bias, seed++);   // the TrajDiT's final layer
-    check_small_linear<bf16>(15, 3, 1024, bias, seed++);
-    check_small_linear<bf16>(15, 1024, 3, bias, seed++);    // its input layer
-    check_small_linear<float>(15, 1024, 3, bias, seed++);
-    check_small_linear<bf16>(37, 16, 1027, bias, seed++);   // K not a multiple of 8: element loads
-    check_small_linear<bf16>(5, 7, 16, bias, seed++);       // largest tiny K
-    check_small_linear<bf16>(9, 17, 40, bias, seed++);      // neither: cuBLASLt
-  }
+  check_qk_rows<T>(16, 1027, 950);  // the VisDiT's joint rows
+  check_qk_rows<T>(8, 530, 951);    // the TrajDiT's
+  check_qk_rows<T>(3, 41, 952);
+  check_qk_rows<T>(5, 40, 953);
+  check_qk_rows<T>(20, 33, 954);
+  check_qk_rows<T>(8, 30, 955, 1);  // declined: the head-per-warp path on both sides
 }
 
 namespace {

@@ -5,12 +5,14 @@
 // rounded pair, rounded again (`.type_as(x)`) — but one read and one write instead of two each
 // (head dim 128: each lane keeps 4 channels in registers, 8- or 16-byte accesses).
 // qk_norm_rope does the queries and keys of several row ranges, each with its own norm scales
-// (a double block's two streams; a pruned single block's few queries), in one launch.
+// (a double block's two streams; a pruned single block's few queries), in one launch; at head
+// dim 128 a warp takes all heads of a row with 16-byte accesses (the row path, same bits).
 #pragma once
 
 #include <array>
 #include <cstdint>
 
+#include "epona/core/env.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
 
@@ -39,26 +41,39 @@ __device__ __forceinline__ void norm_rope_head(T* p, int lane, int head_dim, con
   }
 }
 
+// The arithmetic of the head-dim-128 paths, one piece of code so that they give the same bits:
+// the squares of 4 consecutive channels (in this order), the inverse RMS of a head's sum,
+// a channel normed and scaled (rounded twice), and the rotation of one (a, b) pair.
+constexpr int kVecHeadDim = 128;
+__device__ __forceinline__ float sum_sq4(const float* v) {
+  return v[0] * v[0] + v[1] * v[1] + (v[2] * v[2] + v[3] * v[3]);
+}
+__device__ __forceinline__ float inv_rms128(float sum_sq, float eps) {
+  return 1.0f / sqrtf(sum_sq / static_cast<float>(kVecHeadDim) + eps);
+}
+template <class T>
+__device__ __forceinline__ float norm_scaled(float v, float rr, float scale) {
+  return round_to<T>(round_to<T>(v * rr) * scale);
+}
+__device__ __forceinline__ void rotate_pair(float c, float s, float a, float b, float* out) {
+  out[0] = c * a - s * b;
+  out[1] = s * a + c * b;
+}
+
 // The same for head_dim = 128 with each lane holding 4 consecutive channels (2 pairs) in
 // registers: one 8-byte (bf16) or 16-byte (float) load and store per lane instead of two
 // passes of 2-byte accesses. Same roundings; the squares are summed in another order.
-constexpr int kVecHeadDim = 128;
 template <class T>
 __device__ __forceinline__ void norm_rope_head128(T* p, int lane, const float* scale, float eps, const float* cr,
                                                   const float* sr) {
   float v[4];
   load4(p + 4 * lane, v);
-  const float ss = v[0] * v[0] + v[1] * v[1] + (v[2] * v[2] + v[3] * v[3]);
-  const float rr = 1.0f / sqrtf(warp_sum(ss) / static_cast<float>(kVecHeadDim) + eps);
+  const float rr = inv_rms128(warp_sum(sum_sq4(v)), eps);
 #pragma unroll
-  for (int i = 0; i < 4; ++i) v[i] = round_to<T>(round_to<T>(v[i] * rr) * scale[4 * lane + i]);
+  for (int i = 0; i < 4; ++i) v[i] = norm_scaled<T>(v[i], rr, scale[4 * lane + i]);
   float out[4];
 #pragma unroll
-  for (int q = 0; q < 2; ++q) {
-    const float c = cr[2 * lane + q], s = sr[2 * lane + q], a = v[2 * q], b = v[2 * q + 1];
-    out[2 * q] = c * a - s * b;
-    out[2 * q + 1] = s * a + c * b;
-  }
+  for (int q = 0; q < 2; ++q) rotate_pair(cr[2 * lane + q], sr[2 * lane + q], v[2 * q], v[2 * q + 1], out + 2 * q);
   store4(p + 4 * lane, out);
 }
 
@@ -115,6 +130,101 @@ __global__ void qk_norm_rope_kernel(QkRopeParts<T> a) {
   const int pairs = a.head_dim / 2;
   T* head = a.qkv + r * a.row_stride + (p & 1) * a.k_offset + (local % a.heads) * a.head_dim;
   norm_rope_any<Vec>(head, threadIdx.x & 31, a.head_dim, a.scale[p], a.eps, a.cos + r * pairs, a.sin + r * pairs);
+}
+
+// The row path of qk_norm_rope (head_dim 128, 16-byte aligned rows, tables and scales): a warp
+// takes all query or key heads of one row of one part, each lane 16 bytes of a head (bf16: 8
+// channels, 16 lanes a head, two heads per access; float: 4 channels, 32 lanes), so a row's
+// cos/sin and the part's scale are loaded once for all its heads and several heads' loads are
+// in flight together (the head-per-warp kernel had one 8-byte load per lane in flight).
+// Bit-identical to norm_rope_head128: the same helpers, and the same tree for the sum of
+// squares — a 16-lane head's lane j holds that kernel's lanes 2j and 2j + 1, whose two 4-channel
+// partials are each reduced over the 16 lanes in that kernel's order and then added (its last
+// butterfly step).
+template <class T>
+struct RowLanes {
+  static constexpr int kElems = 16 / static_cast<int>(sizeof(T));  // channels of a lane
+  static constexpr int kPerHead = kVecHeadDim / kElems;              // lanes of a head
+  static constexpr int kHeads = 32 / kPerHead;                       // heads per warp access
+};
+constexpr int kRowAccesses = 8;  // warp accesses (bf16: 16 heads, float: 8) whose loads go together
+
+template <int Lanes>
+__device__ __forceinline__ float lanes_sum(float v) {
+#pragma unroll
+  for (int o = Lanes / 2; o > 0; o >>= 1) v += __shfl_xor_sync(0xffffffffu, v, o);
+  return v;
+}
+template <class T>
+__device__ __forceinline__ void load_lane(const T* p, float (&v)[RowLanes<T>::kElems]) {
+  if constexpr (RowLanes<T>::kElems == kPack) load8(p, v); else load4(p, v);
+}
+template <class T>
+__device__ __forceinline__ void store_lane(T* p, const float (&v)[RowLanes<T>::kElems]) {
+  if constexpr (RowLanes<T>::kElems == kPack) store8(p, v); else store4(p, v);
+}
+
+// One lane's channels of a head: norm, scale, rotate, in place (every lane of the warp calls it).
+template <class T>
+__device__ __forceinline__ void norm_rope_lane(float (&v)[RowLanes<T>::kElems], const float* scale, float eps,
+                                               const float* cr, const float* sr) {
+  constexpr int E = RowLanes<T>::kElems;
+  float sum = 0;
+#pragma unroll
+  for (int i = 0; i < E / 4; ++i) sum += lanes_sum<RowLanes<T>::kPerHead>(sum_sq4(v + 4 * i));  // 0 + s0 (+ s1)
+  const float rr = inv_rms128(sum, eps);
+#pragma unroll
+  for (int i = 0; i < E; ++i) v[i] = norm_scaled<T>(v[i], rr, scale[i]);
+#pragma unroll
+  for (int i = 0; i < E / 2; ++i) rotate_pair(cr[i], sr[i], v[2 * i], v[2 * i + 1], v + 2 * i);
+}
+
+template <class T>
+__global__ void qk_norm_rope_rows_kernel(QkRopeParts<T> a) {
+  using L = RowLanes<T>;
+  constexpr int E = L::kElems;
+  const std::int64_t head0 = (blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32) * a.heads;
+  if (head0 >= a.start[a.parts]) return;
+  int p = 0;
+  while (head0 >= a.start[p + 1]) ++p;
+  const std::int64_t r = a.first[p] + (head0 - a.start[p]) / a.heads;
+  const int lane = threadIdx.x & 31, sub = lane / L::kPerHead, c0 = (lane % L::kPerHead) * E;
+  float cr[E / 2], sr[E / 2], scale[E];
+  const float* cos_row = a.cos + r * (kVecHeadDim / 2) + c0 / 2;
+  const float* sin_row = a.sin + r * (kVecHeadDim / 2) + c0 / 2;
+#pragma unroll
+  for (int i = 0; i < E / 2; ++i) cr[i] = cos_row[i], sr[i] = sin_row[i];
+#pragma unroll
+  for (int i = 0; i < E; ++i) scale[i] = a.scale[p][c0 + i];
+  T* row = a.qkv + r * a.row_stride + (p & 1) * a.k_offset + c0;
+  for (int h0 = 0; h0 < a.heads; h0 += kRowAccesses * L::kHeads) {
+    float v[kRowAccesses][E] = {};
+#pragma unroll
+    for (int u = 0; u < kRowAccesses; ++u)
+      if (const int h = h0 + u * L::kHeads + sub; h < a.heads) load_lane(row + h * kVecHeadDim, v[u]);
+#pragma unroll
+    for (int u = 0; u < kRowAccesses; ++u) {
+      norm_rope_lane<T>(v[u], scale, a.eps, cr, sr);
+      if (const int h = h0 + u * L::kHeads + sub; h < a.heads) store_lane(row + h * kVecHeadDim, v[u]);
+    }
+  }
+}
+
+// The row path's conditions: head dim 128 and every 16-byte access aligned.
+template <class T>
+bool row_path(const QkRopeParts<T>& a) {
+  const auto elems16 = [](std::int64_t n) { return n * static_cast<std::int64_t>(sizeof(T)) % 16 == 0; };
+  bool ok = a.head_dim == kVecHeadDim && aligned16(a.qkv) && elems16(a.row_stride) && elems16(a.k_offset) &&
+            aligned16(a.cos) && aligned16(a.sin);
+  for (int p = 0; p < a.parts; ++p) ok = ok && aligned16(a.scale[p]);
+  return ok;
+}
+
+// EPONA_CUDA_QK_ROWS=0 keeps the head-per-warp kernel for qk_norm_rope; set_qk_norm_rope_rows
+// switches it at run time (benchmarks compare both in one process).
+inline bool& qk_rows_flag() {
+  static bool on = env_flag("EPONA_CUDA_QK_ROWS", true);
+  return on;
 }
 
 inline void check_norm_rope_extent(std::int64_t rows, std::int64_t row_stride, std::int64_t heads,
@@ -185,10 +295,19 @@ void qk_norm_rope(Context& ctx, T* qkv, std::int64_t row_stride, std::int64_t k_
     }
   }
   if (a.start[a.parts] == 0) return;
-  const auto kernel = detail::vector_heads(qkv, row_stride, head_dim, k_offset) ? detail::qk_norm_rope_kernel<true, T>
-                                                                              : detail::qk_norm_rope_kernel<false, T>;
-  kernel<<<detail::norm_rope_blocks(a.start[a.parts], "qk_norm_rope"), detail::kNormRopeThreads, 0, ctx.stream()>>>(a);
+  if (detail::qk_rows_flag() && detail::row_path(a)) {
+    constexpr int threads = 128;  // 4 rows a block: the VisDiT's 2054 (part, row) warps spread over all SMs
+    const std::int64_t blocks = (a.start[a.parts] / a.heads + threads / 32 - 1) / (threads / 32);
+    detail::qk_norm_rope_rows_kernel<T><<<static_cast<unsigned>(blocks), threads, 0, ctx.stream()>>>(a);
+  } else {
+    const auto kernel = detail::vector_heads(qkv, row_stride, head_dim, k_offset) ? detail::qk_norm_rope_kernel<true, T>
+                                                                                : detail::qk_norm_rope_kernel<false, T>;
+    kernel<<<detail::norm_rope_blocks(a.start[a.parts], "qk_norm_rope"), detail::kNormRopeThreads, 0, ctx.stream()>>>(a);
+  }
   EPONA_CUDA_CHECK_LAUNCH();
 }
+
+// Turns qk_norm_rope's row path on or off at run time (see detail::qk_rows_flag).
+inline void set_qk_norm_rope_rows(bool on) { detail::qk_rows_flag() = on; }
 
 }  // namespace epona::cuda

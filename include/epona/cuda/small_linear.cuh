@@ -3,6 +3,7 @@
 // cuBLASLt runs as a 14 µs GEMV-like kernel) or a tiny inner dimension (its input layer: K = 3,
 // a legacy unaligned kernel). A warp per output (lanes split K, float32 sums) or a thread per
 // output (tiny K); bias added in float32 and one rounding, as cuBLASLt's bias epilogue.
+// Products of at most 16 rows otherwise go to the skinny-M kernel (skinny_linear.cuh).
 #pragma once
 
 #include <cstdint>
@@ -10,26 +11,16 @@
 #include "epona/core/kernel_options.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
+#include "epona/cuda/skinny_linear.cuh"
 
 namespace epona::cuda {
 
 namespace detail {
 
-template <class T>
-struct SmallLinearArgs {
-  const T* x;
-  std::int64_t ldx;
-  const T* w;
-  const T* bias;  // or null
-  T* y;
-  std::int64_t ldy;
-  int M, N, K;
-};
-
 // One warp per output (m, n); with Packed, lanes take 8-element packs of the row (K % 8 == 0,
 // rows 16-byte aligned), else single elements.
 template <class T, bool Packed>
-__global__ void small_linear_warp_kernel(SmallLinearArgs<T> a) {
+__global__ void small_linear_warp_kernel(LinearArgs<T> a) {
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
   if (item >= std::int64_t{a.M} * a.N) return;
   const int lane = threadIdx.x & 31, m = static_cast<int>(item / a.N), n = static_cast<int>(item % a.N);
@@ -53,7 +44,7 @@ __global__ void small_linear_warp_kernel(SmallLinearArgs<T> a) {
 
 // One thread per output, for a tiny K.
 template <class T>
-__global__ void small_linear_thread_kernel(SmallLinearArgs<T> a) {
+__global__ void small_linear_thread_kernel(LinearArgs<T> a) {
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x;
   if (item >= std::int64_t{a.M} * a.N) return;
   const int m = static_cast<int>(item / a.N), n = static_cast<int>(item % a.N);
@@ -69,20 +60,17 @@ __global__ void small_linear_thread_kernel(SmallLinearArgs<T> a) {
 // in a legacy unaligned kernel).
 constexpr std::int64_t kSmallKMax = 16, kFewOutputsMax = 16, kFewOutputsItems = 4096, kTinyKItems = 1 << 20;
 
-// Runs y = act(x · wᵀ + bias) with a small kernel when the product is one of those shapes and
-// the epilogue one they take (none); false (nothing launched) otherwise.
+// The warp-per-output or thread-per-output kernel for those shapes (no epilogue); false
+// (nothing launched) for other shapes.
 template <class T>
-bool small_linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bias, T* y, std::int64_t ldy,
-                  std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi) {
-  if (epi != Epilogue::None) return false;
-  const std::int64_t items = M * N;
-  const SmallLinearArgs<T> a{x, ldx, w, bias, y, ldy, static_cast<int>(M), static_cast<int>(N), static_cast<int>(K)};
+bool few_outputs_linear(Context& ctx, const LinearArgs<T>& a) {
+  const std::int64_t items = std::int64_t{a.M} * a.N;
   constexpr int threads = 256;
-  if (K <= kSmallKMax && items <= kTinyKItems) {
+  if (a.K <= kSmallKMax && items <= kTinyKItems) {
     small_linear_thread_kernel<T><<<static_cast<unsigned>((items + threads - 1) / threads), threads, 0, ctx.stream()>>>(a);
-  } else if (N <= kFewOutputsMax && items <= kFewOutputsItems && K <= 0x7fffffff) {
+  } else if (a.N <= kFewOutputsMax && items <= kFewOutputsItems) {
     const unsigned blocks = static_cast<unsigned>((items + threads / 32 - 1) / (threads / 32));
-    if (packable(x, K, ldx) && packable(w, K, K))
+    if (packable(a.x, a.K, a.ldx) && packable(a.w, a.K, a.K))
       small_linear_warp_kernel<T, true><<<blocks, threads, 0, ctx.stream()>>>(a);
     else
       small_linear_warp_kernel<T, false><<<blocks, threads, 0, ctx.stream()>>>(a);
@@ -91,6 +79,19 @@ bool small_linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const 
   }
   EPONA_CUDA_CHECK_LAUNCH();
   return true;
+}
+
+// Runs y = act(x · wᵀ + bias) with one of our kernels when the product has one of those shapes
+// (epilogue none) or at most 16 rows (skinny_linear: none or the tanh GELU); false (nothing
+// launched) otherwise.
+template <class T>
+bool small_linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bias, T* y, std::int64_t ldy,
+                  std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi) {
+  if (M > 0x7fffffff || N > 0x7fffffff || K > 0x7fffffff) return false;
+  const int m = static_cast<int>(M), n = static_cast<int>(N), k = static_cast<int>(K);
+  if (epi == Epilogue::None && few_outputs_linear(ctx, LinearArgs<T>{x, ldx, w, bias, y, ldy, m, n, k}))
+    return true;
+  return skinny_linear_flag() && skinny_linear(ctx, LinearArgs<T>{x, ldx, w, bias, y, ldy, m, n, k}, epi);
 }
 
 }  // namespace detail

@@ -1,0 +1,219 @@
+// The DiT step's small kernels old vs new in one process (plain CUDA events, no Google
+// Benchmark): skinny-M products (at most 16 rows: the TrajDiT's trajectory stream, batch-1
+// modulation vectors) in cuBLASLt vs the skinny kernel (skinny_linear.cuh, several rounds of
+// loads in flight), and qk_norm_rope's head-per-warp vs row path at the VisDiT's and TrajDiT's
+// sizes. Each row times a recorded graph of calls, each on its own copy of the weights (or qkv
+// buffer), at least 20 and 256 MB in all, so that the 50-60 MB L2 holds none of them (the
+// sampler's weights are cold too), and reports the median per call. --profile runs each variant once, eagerly,
+// inside cudaProfilerStart/Stop (for ncu; the order is printed).
+// Usage: bench_cuda_small_kernels [--repeats N] [--profile]
+#include <cuda_profiler_api.h>
+
+#include <algorithm>
+#include <array>
+#include <cstdint>
+#include <cstdio>
+#include <cstring>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "epona/cuda/ops.cuh"
+#include "epona/cuda/qk_norm_rope.cuh"
+#include "gpu_event_timer.cuh"
+
+using namespace epona;
+
+namespace {
+
+constexpr std::int64_t kPoolBytes = std::int64_t{256} << 20;  // > 4x the L2
+
+// Calls (one buffer copy each) per recorded graph for buffers of `bytes`.
+int calls_for(std::int64_t bytes) {
+  return static_cast<int>(std::clamp<std::int64_t>((kPoolBytes + bytes - 1) / bytes, 20, 256));
+}
+
+__global__ void fill_kernel(float* f, bf16* b, std::int64_t n, std::uint32_t seed) {
+  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < n;
+       i += std::int64_t{gridDim.x} * blockDim.x) {
+    std::uint32_t h = static_cast<std::uint32_t>(i) * 2654435761u ^ seed * 2246822519u;
+    h ^= h >> 15, h *= 2246822519u, h ^= h >> 13, h *= 3266489917u, h ^= h >> 16;
+    const float v = (h >> 8) * (2.0f / 16777216.0f) - 1.0f;  // [-1, 1): never all zeros
+    if (f) f[i] = v;
+    if (b) b[i] = cuda::detail::from_f32<bf16>(v);
+  }
+}
+template <class T>
+Tensor<T, Cuda> random_device(cuda::Context& ctx, std::int64_t n, std::uint32_t seed) {
+  Tensor<T, Cuda> t({n});
+  if constexpr (std::is_same_v<T, float>)
+    fill_kernel<<<1024, 256, 0, ctx.stream()>>>(t.data(), nullptr, n, seed);
+  else
+    fill_kernel<<<1024, 256, 0, ctx.stream()>>>(nullptr, t.data(), n, seed);
+  EPONA_CUDA_CHECK_LAUNCH();
+  return t;
+}
+
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v[v.size() / 2];
+}
+
+struct Options {
+  int repeats = 30;
+  bool profile = false;
+};
+
+// Times fn(i) for i = 0..calls-1 recorded as one graph (after an eager warm-up call of each i);
+// returns the median microseconds per call.
+double graph_us(cuda::Context& ctx, int repeats, int calls, const std::function<void(int)>& fn) {
+  for (int i = 0; i < calls; ++i) fn(i);
+  ctx.synchronize();
+  cudaGraph_t graph;
+  cudaGraphExec_t exec;
+  EPONA_CUDA_CHECK(cudaStreamBeginCapture(ctx.stream(), cudaStreamCaptureModeThreadLocal));
+  for (int i = 0; i < calls; ++i) fn(i);
+  EPONA_CUDA_CHECK(cudaStreamEndCapture(ctx.stream(), &graph));
+  EPONA_CUDA_CHECK(cudaGraphInstantiate(&exec, graph, 0));
+  const auto runs = bench::event_times_ms(ctx, repeats, 3, [&] { EPONA_CUDA_CHECK(cudaGraphLaunch(exec, ctx.stream())); });
+  EPONA_CUDA_CHECK(cudaGraphExecDestroy(exec));
+  EPONA_CUDA_CHECK(cudaGraphDestroy(graph));
+  return 1e3 * median(runs) / calls;
+}
+
+// One eager call inside the profiler range, named on stdout (ncu lists kernels in this order).
+void profiled(const Options& o, cuda::Context& ctx, const std::string& what, const std::function<void()>& fn) {
+  if (!o.profile) return;
+  ctx.synchronize();
+  EPONA_CUDA_CHECK(cudaProfilerStart());
+  fn();
+  ctx.synchronize();
+  EPONA_CUDA_CHECK(cudaProfilerStop());
+  std::printf("# profiled: %s\n", what.c_str());
+}
+
+void report(const std::string& name, double us, double bytes) {
+  std::printf("{\"name\": \"%s\", \"us\": %.3f, \"gbps\": %.0f}\n", name.c_str(), us, bytes / (us * 1e3));
+  std::fflush(stdout);
+}
+
+struct Shape {
+  const char* name;
+  std::int64_t M, N, K;
+  bool gelu;
+};
+
+// cuBLASLt vs the skinny kernel (default rounds of 4 chunks, and 1, 2) on one product shape.
+template <class T>
+void time_product(const Options& o, cuda::Context& ctx, const Shape& s) {
+  const std::int64_t wn = s.N * s.K;
+  const int calls = calls_for(wn * std::int64_t{sizeof(T)});
+  const auto pool = random_device<T>(ctx, wn * calls, 1);
+  const auto x = random_device<T>(ctx, s.M * s.K, 2), bias = random_device<T>(ctx, s.N, 3);
+  Tensor<T, Cuda> y({s.M, s.N});
+  const auto epi = s.gelu ? Epilogue::GeluTanh : Epilogue::None;
+  const auto args = [&](int i) {
+    return cuda::detail::LinearArgs<T>{x.data(), s.K, pool.data() + i * wn, bias.data(), y.data(), s.N,
+                                       static_cast<int>(s.M), static_cast<int>(s.N), static_cast<int>(s.K)};
+  };
+  const auto via_linear = [&](bool skinny) {
+    return [&, skinny](int i) {
+      cuda::set_skinny_linear(skinny);
+      const auto a = args(i);
+      cuda::linear(ctx, a.x, a.ldx, a.w, a.bias, a.y, a.ldy, s.M, s.N, s.K, epi);
+    };
+  };
+  const auto direct = [&]<int U>() {
+    return [&](int i) { EPONA_CHECK(cuda::detail::skinny_linear<T, U>(ctx, args(i), epi), "skinny declined"); };
+  };
+  const std::string tag = std::string("linear_") + (std::is_same_v<T, float> ? "f32_" : "bf16_") + s.name;
+  const double bytes = double(sizeof(T)) * (wn + s.M * s.K + s.M * s.N);
+  const std::vector<std::pair<std::string, std::function<void(int)>>> variants{
+      {"cublaslt", via_linear(false)}, {"skinny", via_linear(true)}, {"skinny_u2", direct.template operator()<2>()},
+      {"skinny_u1", direct.template operator()<1>()}};
+  double base = 0;
+  for (const auto& [name, fn] : variants) {
+    if (std::is_same_v<T, float> && name.rfind("skinny_u", 0) == 0) continue;
+    const double us = graph_us(ctx, o.repeats, calls, fn);
+    if (name == "cublaslt") base = us;
+    report(tag + "_" + name, us, bytes);
+    std::printf("# %s %s: %.2f us (%.2fx cuBLASLt), %.0f GB/s\n", tag.c_str(), name.c_str(), us, base / us,
+                bytes / (us * 1e3));
+    profiled(o, ctx, tag + "_" + name, [&] { fn(0); });
+  }
+  cuda::set_skinny_linear(true);
+}
+
+// qk_norm_rope head-per-warp vs row path over the segments of one DiT's joint qkv rows.
+template <class T, std::size_t S>
+void time_qk(const Options& o, cuda::Context& ctx, const char* name, std::int64_t rows, std::int64_t heads,
+             const std::array<std::array<std::int64_t, 3>, S>& ranges) {
+  struct Segment {
+    std::int64_t first, q_first, end;
+    const float* q_scale;
+    const float* k_scale;
+  };
+  const std::int64_t width = heads * 128, stride = 3 * width, n = rows * stride;
+  const int calls = calls_for(n * std::int64_t{sizeof(T)});
+  auto pool = random_device<T>(ctx, n * calls, 4);
+  const auto cos = random_device<float>(ctx, rows * 64, 5), sin = random_device<float>(ctx, rows * 64, 6);
+  const auto scale = random_device<float>(ctx, 128, 7);
+  std::array<Segment, S> segs{};
+  double moved = 0;
+  for (std::size_t i = 0; i < S; ++i) {
+    segs[i] = {ranges[i][0], ranges[i][1], ranges[i][2], scale.data(), scale.data()};
+    moved += 2.0 * double(sizeof(T)) * width * double((ranges[i][2] - ranges[i][0]) + (ranges[i][2] - ranges[i][1]));
+  }
+  const std::string tag = std::string("qk_norm_rope_") + (std::is_same_v<T, float> ? "f32_" : "bf16_") + name;
+  double base = 0;
+  for (const bool row_path : {false, true}) {
+    const auto fn = [&, row_path](int i) {
+      cuda::set_qk_norm_rope_rows(row_path);
+      cuda::qk_norm_rope(ctx, pool.data() + i * n, stride, width, heads, 128, 1e-6f, cos.data(), sin.data(),
+                         segs);
+    };
+    const double us = graph_us(ctx, o.repeats, calls, fn);
+    if (!row_path) base = us;
+    const std::string variant = row_path ? "rows" : "heads";
+    report(tag + "_" + variant, us, moved);
+    std::printf("# %s %s: %.2f us (%.2fx head-per-warp), %.0f GB/s\n", tag.c_str(), variant.c_str(), us, base / us,
+                moved / (us * 1e3));
+    profiled(o, ctx, tag + "_" + variant, [&] { fn(0); });
+  }
+  cuda::set_qk_norm_rope_rows(true);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    Options o;
+    for (int i = 1; i < argc; ++i) {
+      if (!std::strcmp(argv[i], "--profile")) o.profile = true;
+      else if (!std::strcmp(argv[i], "--repeats") && i + 1 < argc) o.repeats = std::atoi(argv[++i]);
+      else fail("unknown option ", argv[i], " (--repeats N, --profile)");
+    }
+    if (!cuda::has_gpu()) {
+      std::printf("no CUDA device: nothing to measure\n");
+      return 0;
+    }
+    cuda::Context ctx;
+    std::printf("# device: %s, %d SMs\n", ctx.info().name.c_str(), ctx.info().multiprocessors);
+    // The TrajDiT's trajectory stream (15 rows, D 1024, MLP 4096), batch-1 modulation vectors.
+    const std::vector<Shape> shapes{{"traj_qkv", 15, 3072, 1024, false},   {"traj_proj", 15, 1024, 1024, false},
+                                    {"traj_fc1", 15, 4096, 1024, true},    {"traj_fc2", 15, 1024, 4096, false},
+                                    {"traj_linear2", 15, 1024, 5120, false}, {"traj_mod", 1, 6144, 1024, false},
+                                    {"vis_mod", 1, 12288, 2048, false}};
+    for (const auto& s : shapes) time_product<bf16>(o, ctx, s);
+    for (const auto& s : {shapes[0], shapes[4]}) time_product<float>(o, ctx, s);
+    using R = std::array<std::int64_t, 3>;
+    time_qk<bf16, 2>(o, ctx, "vis", 1027, 16, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 1027}});
+    time_qk<bf16, 2>(o, ctx, "traj", 530, 8, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 530}});
+    time_qk<bf16, 1>(o, ctx, "traj_pruned", 530, 8, std::array<R, 1>{R{0, 515, 530}});
+    time_qk<float, 2>(o, ctx, "vis", 1027, 16, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 1027}});
+    return 0;
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "bench_cuda_small_kernels: %s\n", e.what());
+    return 1;
+  }
+}
