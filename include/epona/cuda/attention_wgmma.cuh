@@ -417,8 +417,8 @@ __global__ void __launch_bounds__(Tile::threads, 1)
   const TmaBlock b = tma_block(p, g, kKeys);
   const int tiles = b.t_end - b.t_begin;
   // At most 64 live rows: every consumer takes them, each a share of the key tiles.
-  const bool shared_rows = Tile::consumers > 1 && g.share_rows && p.lq - b.q0 <= 64;
-  const int q_tiles = shared_rows ? 1 : Tile::consumers;
+  const bool shared_rows = Tile::consumers > 1 && g.share_rows && min(p.lq - b.q0, g.rows) <= 64;
+  const int q_tiles = shared_rows ? 1 : g.rows / 64;
   const int wg = threadIdx.x / 128;
   if (threadIdx.x == 0) {
     mbar::init(q_full, 1);
@@ -455,7 +455,7 @@ __global__ void __launch_bounds__(Tile::threads, 1)
     const int q_tile = shared_rows ? 0 : group;
     const int group_row0 = b.q0 + 64 * q_tile, warp_row0 = group_row0 + 16 * warp;
     const int rows[2] = {warp_row0 + lane / 4, warp_row0 + lane / 4 + 8};
-    const bool group_active = group_row0 < p.lq;
+    const bool group_active = group_row0 < p.lq && q_tile < q_tiles;
     float o[kDimTiles][4] = {};
     float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
     mbar::wait(q_full, 0);
@@ -497,6 +497,7 @@ __global__ void __launch_bounds__(Tile::threads, 1)
       for (int c = 1; c < Tile::consumers; ++c)
         fold_partial(o, m, l, [&](int v) -> float& { return stash[((c - 1) * kPartialValues + v) * 128 + thread]; });
     }
+    if (q_tile >= q_tiles) return;  // a 64-row block's second consumer, idle without sharing
     if (b.split < 0)
       store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
     else
