@@ -65,6 +65,28 @@ double median_ms(cuda::Context& ctx, int reps, const std::function<void(int)>& f
   return ms[reps / 2];
 }
 
+// Median milliseconds per call of `call` recorded kGraphCalls times into one CUDA graph.
+constexpr int kGraphCalls = 20;
+double median_graph_ms(cuda::Context& ctx, int reps, const std::function<void()>& call) {
+  call();  // outside the capture: one-time setup (kernel attributes, buffers)
+  cudaGraph_t graph = nullptr;
+  cudaGraphExec_t exec = nullptr;
+  EPONA_CUDA_CHECK(cudaStreamBeginCapture(ctx.stream(), cudaStreamCaptureModeRelaxed));
+  try {
+    for (int i = 0; i < kGraphCalls; ++i) call();
+  } catch (...) {
+    (void)cudaStreamEndCapture(ctx.stream(), &graph);
+    if (graph) cudaGraphDestroy(graph);
+    throw;
+  }
+  EPONA_CUDA_CHECK(cudaStreamEndCapture(ctx.stream(), &graph));
+  EPONA_CUDA_CHECK(cudaGraphInstantiate(&exec, graph, 0));
+  const double ms = median_ms(ctx, reps, [&](int) { EPONA_CUDA_CHECK(cudaGraphLaunch(exec, ctx.stream())); });
+  cudaGraphExecDestroy(exec);
+  cudaGraphDestroy(graph);
+  return ms / kGraphCalls;
+}
+
 double g_gemm_ceiling = 0;  // TFLOP/s of the bf16 8192³ product, the reference for the rest
 
 void row(const std::string& name, double ms, double flop, double bytes) {
@@ -133,11 +155,16 @@ void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const
   const bool fits_wgmma = cuda::detail::wgmma_kernel_fits(ctx, params, cuda::detail::exact_head_dim(params));
   auto& split = cuda::detail::attention_split_setting();
   const bool saved = split.load();
+  // Eager (one launch after another: small kernels are bound by the host's launch cost) and
+  // from a graph of kGraphCalls calls (as the samplers run them: kernel and dependency time).
   const auto time = [&](const std::string& name, FlashKernel kernel, const TmaPlan* plan) {
     try {
-      const double ms = median_ms(ctx, reps, [&](int) { cuda::detail::attention(ctx, q, k, v, o, a, kernel, plan); });
+      const auto call = [&] { cuda::detail::attention(ctx, q, k, v, o, a, kernel, plan); };
+      const double ms = median_ms(ctx, reps, [&](int) { call(); });
       row(label + " [" + name + "]", ms, flop, bytes);
-      return ms;
+      const double graph_ms = median_graph_ms(ctx, reps, call);
+      row(label + " [" + name + "] in a graph", graph_ms, flop, bytes);
+      return graph_ms;
     } catch (const epona::Error& e) {  // a TMA kernel refusing these strides, a plan too large
       std::printf("%-58s not run: %s\n", (label + " [" + name + "]").c_str(), e.what());
       return 0.0;
@@ -153,7 +180,7 @@ void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const
     auto_ms[on] = time(name, FlashKernel::Auto, nullptr);
   }
   if (auto_ms[0] > 0 && auto_ms[1] > 0)
-    std::printf("  -> %s: Auto unplanned %.1f us, planned %.1f us (x%.2f)\n", label.c_str(), 1e3 * auto_ms[0],
+    std::printf("  -> %s: Auto in a graph: unplanned %.1f us, planned %.1f us (x%.2f)\n", label.c_str(), 1e3 * auto_ms[0],
                 1e3 * auto_ms[1], auto_ms[0] / auto_ms[1]);
   split.store(saved);
   for (const FlashKernel kernel : {FlashKernel::Rows64, FlashKernel::Rows128, FlashKernel::Rows64Split4,

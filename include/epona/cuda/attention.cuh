@@ -659,7 +659,7 @@ inline constexpr std::int64_t kSplitPartialBytes = std::int64_t{8} << 20;
 // EPONA_CUDA_ATTN_SPLIT=0: Auto takes the Tma64 / Tma128 kernels as before the plans (to time
 // both in one binary); set_attention_split switches at run time.
 inline std::atomic<bool>& attention_split_setting() {
-  static std::atomic<bool> on{env_flag("EPONA_CUDA_ATTN_SPLIT", false)};
+  static std::atomic<bool> on{env_flag("EPONA_CUDA_ATTN_SPLIT", true)};
   return on;
 }
 

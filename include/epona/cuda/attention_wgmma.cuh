@@ -3,8 +3,10 @@
 // with P in registers; online softmax, masking and the output store shared with attention.cuh's
 // mma.sync kernels (same float32 accumulation, base-2 softmax and bf16 P). Tiles arrive by
 // cp.async from the computing threads, or by the tensor memory accelerator (TMA) from a producer
-// warp while consumer warpgroups compute. Included at the end of attention.cuh, which declares
-// its entry points; other targets compile empty kernel bodies.
+// warp while consumer warpgroups compute; the planned variant sizes its blocks to fill the GPU
+// (consumers sharing a block's rows split its key tiles, key ranges over blocks are merged by a
+// combine kernel). Included at the end of attention.cuh, which declares its entry points; other
+// targets compile empty kernel bodies.
 #pragma once
 
 #include <cuda.h>  // CUtensorMap (the encoder itself is fetched from the driver at run time)
@@ -631,10 +633,15 @@ inline TmaPlan auto_tma_plan(const Context& ctx, const FlashParams<bf16>& p, std
   if (blocks64 <= sms) {  // a wave of 64-row blocks: key ranges fill the idle multiprocessors
     plan.rows = 64;
     plan.splits = static_cast<int>(std::clamp<std::int64_t>(sms / blocks64, 1, most));
-  } else {  // many waves: only the short last row block is cut into key ranges, to fill the last
+  } else {
+    // 128-row blocks. Where the full ones fit one wave but the short last row blocks would make
+    // a second, those are cut into key ranges that fill the first wave's idle multiprocessors
+    // and a short second one (VisDiT 16 x 1027: 128 + 16 blocks). Otherwise the short blocks
+    // fill the last wave as they are (measured: cutting them costs the combine and more blocks).
+    const std::int64_t full = p.lq / 128 * pairs, tails = p.lq % 128 ? pairs : 0;
     plan.rows = 128;
     plan.tail_only = true;
-    plan.splits = p.lq % 128 ? most : 1;
+    plan.splits = tails && full <= sms && full + tails > sms ? most : 1;
   }
   while (plan.splits > 1 && tma_partial_bytes(tma_grid(p, seqs, heads, plan), p) > kSplitPartialBytes) --plan.splits;
   return plan;
