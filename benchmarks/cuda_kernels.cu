@@ -256,8 +256,9 @@ void bench_temporal(cuda::Context& ctx, bool last_only, int reps) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  g_once = argc > 1 && std::string(argv[1]) == "--once";
-  const bool attention_only = argc > 1 && std::string(argv[1]) == "--attention";  // only that section
+  const auto flag = [&](const char* name) { return std::find(argv + 1, argv + argc, std::string(name)) != argv + argc; };
+  g_once = flag("--once");
+  const bool attention_only = flag("--attention");  // only that section
   if (!cuda::has_gpu()) {
     std::printf("no CUDA device: skipping\n");
     return 0;

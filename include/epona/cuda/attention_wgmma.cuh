@@ -13,6 +13,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <string>
 
 #include "epona/cuda/attention.cuh"
 
@@ -651,12 +652,15 @@ inline TmaPlan auto_tma_plan(const Context& ctx, const FlashParams<bf16>& p, std
 // context, so per stream, whose calls run one after another. A graph capture's first call may
 // create it (an allocation that nothing in the graph fills), hence relaxed capture mode.
 inline float* split_partial_buffer(Context& ctx) {
+  static const std::string name = "attention.split_partials";
+  bool created = false;
+  if (ctx.has_constant_table(name))  // the common case: no capture-mode calls
+    return static_cast<float*>(ctx.constant_table(name, kSplitPartialBytes, &created));
   cudaStreamCaptureMode mode = cudaStreamCaptureModeRelaxed;
   EPONA_CUDA_CHECK(cudaThreadExchangeStreamCaptureMode(&mode));
-  bool created = false;
   void* buffer = nullptr;
   try {
-    buffer = ctx.constant_table("attention.split_partials", kSplitPartialBytes, &created);
+    buffer = ctx.constant_table(name, kSplitPartialBytes, &created);
   } catch (...) {
     (void)cudaThreadExchangeStreamCaptureMode(&mode);
     throw;
