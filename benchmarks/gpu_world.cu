@@ -240,9 +240,8 @@ int run(const Options& o) {
   std::printf("# device: %s, %d SMs, sm_%d%d, %.1f GiB; driver %d, runtime %d; weights %s\n", info.name.c_str(),
               info.multiprocessors, info.major, info.minor, info.global_bytes / 1073741824.0, driver, runtime,
               std::is_same_v<W, float> ? "float32" : "bf16");
-  // The double blocks' path (EPONA_CUDA_PAIR_GEMM, EPONA_DIT_PAIR_FORK), so side-by-side runs tell their rows apart.
-  std::printf("# double blocks: %s products%s\n", cuda::pair_gemm_enabled(probe) ? "paired" : "per-stream",
-              cuda::pair_gemm_enabled(probe) && model::detail::fork_paired_norms() ? ", norms on two streams" : "");
+  // The double blocks' path (EPONA_CUDA_PAIR_GEMM), so side-by-side runs tell their rows apart.
+  std::printf("# double blocks: %s products\n", cuda::pair_gemm_enabled(probe) ? "paired" : "per-stream");
   emit_value("pair_gemm", cuda::pair_gemm_enabled(probe) ? 1 : 0);
   const double ceiling = o.want("gemm") ? gemm_ceiling_tflops(probe) : 0;
   if (ceiling > 0) emit_value("gemm_tflops", ceiling);

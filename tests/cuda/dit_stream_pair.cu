@@ -1,10 +1,13 @@
 // The DiT double blocks' paired products: cuda::linear_batched (one strided-batched cuBLASLt
-// product) against a float64 loop written here — batch 2 and 3, every operand's batch stride
-// positive and negative, row strides, bias or none, no activation / tanh GELU (fused) / erf GELU
-// (extra pass per item), float32 and bf16, outputs and the gaps between them poisoned (NaN) so
-// unwritten and stray elements show; cuda::linear_pair on two separate allocations in both
-// orders. Per element |err| <= u (1.13 |z| + |ref|) + 1e-5 max|ref| (z the pre-activation; u =
-// 2^-8 for bf16: one rounding of the product, one of the activation; 0 for float32).
+// product) against a float64 loop written here — batch 2 and 3, batch strides all positive, all
+// negative (one product from the last item) and of mixed signs (one product per item; the plan
+// cache shows which ran), misaligned items, row strides, bias or none, no activation / tanh
+// GELU (fused) / erf GELU (extra pass per item), float32 and bf16, outputs and the gaps between
+// them poisoned (NaN) so unwritten and stray elements show; cuda::linear_pair on two separate
+// allocations in both orders, and with only one bias. Per element |err| <= u (1.13 |z| + |ref|)
+// + 1e-5 max|ref| (z the pre-activation; u = 2^-8 for bf16: one rounding of the product, one of
+// the activation; 0 for float32), plus u |x·wᵀ| where the bias is added apart (misaligned items:
+// the product is rounded before the bias, as cuda::linear does).
 // Then a double block with cond 37 / target 34 rows (paired) run paired and per stream on
 // the GPU and on the CPU backend: float32 within 1e-5, bf16 within 1e-2 of the float32 CPU,
 // paired vs per-stream within a few bf16 roundings; nothing reads the padded rows (the arena
@@ -81,19 +84,20 @@ const char* epilogue_name(cuda::Epilogue e) {
 // outside the items' outputs must still be NaN.
 template <class T>
 void check_items(const std::string& what, int count, const Items& x, const Items& w, const Items* b, const Items& y,
-                 const HostF& got, cuda::Epilogue epi) {
+                 const HostF& got, cuda::Epilogue epi, bool bias_apart = false) {
   const double u = std::is_same_v<T, bf16> ? kBf16Roundoff : 0.0;
   std::vector<char> output(static_cast<std::size_t>(got.numel()), 0);
-  std::vector<double> z, ref;
+  std::vector<double> product, z, ref;
   double max_ref = 0;
   for (int i = 0; i < count; ++i)
     for (std::int64_t m = 0; m < y.rows; ++m)
       for (std::int64_t n = 0; n < y.cols; ++n) {
-        double acc = b ? b->data.data()[b->at(i, 0, n)] : 0.0;
+        double acc = 0;
         for (std::int64_t k = 0; k < x.cols; ++k)
           acc += double(x.data.data()[x.at(i, m, k)]) * double(w.data.data()[w.at(i, n, k)]);
-        z.push_back(acc);
-        ref.push_back(activation(epi, acc));
+        product.push_back(acc);
+        z.push_back(acc + (b ? b->data.data()[b->at(i, 0, n)] : 0.0));
+        ref.push_back(activation(epi, z.back()));
         max_ref = std::max(max_ref, std::abs(ref.back()));
       }
   int bad = 0, stray = 0;
@@ -106,7 +110,8 @@ void check_items(const std::string& what, int count, const Items& x, const Items
         output[e] = 1;
         const double err = std::abs(double(got.data()[e]) - ref[j]);
         worst = std::max(worst, err / max_ref);
-        bad += !(err <= u * (1.13 * std::abs(z[j]) + std::abs(ref[j])) + kF32Tol * max_ref);  // NaN fails too
+        const double rounded_product = bias_apart ? std::abs(product[j]) : 0.0;
+        bad += !(err <= u * (rounded_product + 1.13 * std::abs(z[j]) + std::abs(ref[j])) + kF32Tol * max_ref);  // NaN fails
       }
   for (std::int64_t e = 0; e < got.numel(); ++e) stray += !output[e] && !std::isnan(got.data()[e]);
   MESSAGE(what, ": max err ", worst, " of max|ref|");
@@ -114,8 +119,17 @@ void check_items(const std::string& what, int count, const Items& x, const Items
   CHECK(stray == 0);
 }
 
+// Plans of `count`-item batched products in the context's cache (detail::batched_key keeps the
+// count in bits 8..39 of the first field): which path a call took.
+std::size_t batch_plans(cuda::Context& ctx, int count) {
+  std::size_t n = 0;
+  for (const auto& [key, plan] : ctx.gemm_plans()) n += ((key[0] >> 8) & 0xFFFFFFFF) == count;
+  return n;
+}
+
 template <class T>
-void check_batched(cuda::Context& ctx, const BatchedCase& c, std::uint32_t seed) {
+void check_batched(const BatchedCase& c, std::uint32_t seed) {
+  cuda::Context ctx;  // its own plan cache: the path taken shows in it
   const std::int64_t ldx = c.K + 8, ldy = c.N + 8;
   Items x(c.count, c.M, c.K, ldx, c.x_dir, c.gap), w(c.count, c.N, c.K, c.K, c.w_dir, c.gap);
   Items b(c.count, 1, c.N, c.N, c.b_dir, c.gap), y(c.count, c.M, c.N, ldy, c.y_dir, c.gap);
@@ -133,7 +147,10 @@ void check_batched(cuda::Context& ctx, const BatchedCase& c, std::uint32_t seed)
                            (c.bias ? " +bias " : " ") + epilogue_name(c.epi) + " strides x" + std::to_string(x.stride) +
                            " w" + std::to_string(w.stride) + " b" + std::to_string(b.stride) + " y" +
                            std::to_string(y.stride);
-  check_items<T>(what, c.count, x, w, c.bias ? &b : nullptr, y, download(ctx, dy), c.epi);
+  check_items<T>(what, c.count, x, w, c.bias ? &b : nullptr, y, download(ctx, dy), c.epi, c.bias && c.gap % 8 != 0);
+  // Strides of one sign: one cuBLASLt product (negative ones from the last item); mixed: one per item.
+  const bool one_sign = c.x_dir == c.w_dir && c.w_dir == c.y_dir && (!c.bias || c.b_dir == c.y_dir);
+  CHECK(batch_plans(ctx, c.count) == (one_sign ? 1u : 0u));
 }
 
 // linear_pair on two layers in separate allocations (their distance is the weight stride),
@@ -178,13 +195,15 @@ void batched_cases(cuda::Context& ctx) {
   std::uint32_t seed = 900;
   for (const auto epi : {cuda::Epilogue::None, cuda::Epilogue::GeluTanh, cuda::Epilogue::GeluErf})
     for (const bool bias : {true, false}) {
-      check_batched<T>(ctx, {2, 37, 48, 40, bias, epi, 1, 1, 1, 1}, seed++);
-      check_batched<T>(ctx, {2, 37, 48, 40, bias, epi, 1, -1, 1, -1}, seed++);   // weights (bias) in reverse
-      check_batched<T>(ctx, {2, 37, 48, 40, bias, epi, -1, 1, -1, 1}, seed++);   // activations in reverse
-      check_batched<T>(ctx, {3, 21, 64, 72, bias, epi, -1, -1, 1, -1}, seed++);  // three items
-      check_batched<T>(ctx, {2, 19, 40, 24, bias, epi, 1, -1, 1, 1, 3}, seed++); // items 6 bytes apart (bf16)
+      check_batched<T>({2, 37, 48, 40, bias, epi, 1, 1, 1, 1}, seed++);
+      check_batched<T>({2, 37, 48, 40, bias, epi, -1, -1, -1, -1}, seed++);  // every operand in reverse
+      check_batched<T>({2, 37, 48, 40, bias, epi, 1, -1, 1, -1}, seed++);    // weights (bias) in reverse
+      check_batched<T>({2, 37, 48, 40, bias, epi, -1, 1, -1, 1}, seed++);    // activations in reverse
+      check_batched<T>({3, 21, 64, 72, bias, epi, 1, 1, 1, 1}, seed++);      // three items
+      check_batched<T>({3, 21, 64, 72, bias, epi, -1, -1, -1, -1}, seed++);
+      check_batched<T>({2, 19, 40, 24, bias, epi, 1, 1, 1, 1, 3}, seed++);   // items 6 bytes apart (bf16)
     }
-  check_batched<T>(ctx, {2, 515, 256, 128, true, cuda::Epilogue::GeluTanh, 1, -1, 1, 1}, seed++);  // many rows
+  check_batched<T>({2, 515, 256, 128, true, cuda::Epilogue::GeluTanh, 1, 1, 1, 1}, seed++);  // many rows
   for (const auto epi : {cuda::Epilogue::None, cuda::Epilogue::GeluTanh})
     for (const bool bias1 : {true, false}) check_pair<T>(ctx, 37, 64, 48, epi, bias1, seed++ * 7);
 }
@@ -319,8 +338,11 @@ void paired_block(bool first) {
   const auto cpu_out = k.run<Cpu, float>(cctx, first, false);
   cuda::set_pair_gemm(true);
   const auto paired = k.run<Cuda, W>(ctx, first, true);
+  CHECK(batch_plans(ctx, 2) == 4);  // qkv, proj, fc1, fc2: one product each
   cuda::set_pair_gemm(false);
-  const auto per_stream = k.run<Cuda, W>(ctx, first, false);
+  cuda::Context other;
+  const auto per_stream = k.run<Cuda, W>(other, first, false);
+  CHECK(batch_plans(other, 2) == 0);
   cuda::set_pair_gemm(true);
   // A float32 GPU block matches the CPU to float32 rounding; bf16 activations to 1e-2. Paired and
   // per-stream differ only where cuBLASLt's algorithm sums in another order: float32 1e-5, bf16

@@ -4,6 +4,7 @@
 // launch. Same arithmetic per element as cuda::linear (float32 sums, one rounding, same epilogues).
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <cstdlib>
 #include <optional>
@@ -45,16 +46,26 @@ std::int64_t batch_alignment(const T* base, std::int64_t stride) {
   return std::min(pointer_alignment(base), pointer_alignment(reinterpret_cast<const void*>(stride_bytes)));
 }
 
-// The plan key of a batched product: linear's fields, with the count and the strides' signs in
-// the dtype field (linear's keys hold 0 or 1 there) and each operand's batch alignment.
+// The plan key of a batched product: linear's fields, with the count in the dtype field
+// (linear's keys hold 0 or 1 there) and each operand's batch alignment.
 template <class T>
 LtPlanKey batched_key(std::int64_t M, std::int64_t N, std::int64_t K, std::int64_t ldx, std::int64_t ldy,
                       cublasLtEpilogue_t wanted, const T* x, const T* w, const T* y, const GemmBatch& b) {
-  const std::int64_t signs = (b.x < 0) | (b.w < 0) << 1 | (b.bias < 0) << 2 | (b.y < 0) << 3;
-  const std::int64_t tag = dtype_tag<T>() | std::int64_t{b.count} << 8 | signs << 40;
+  const std::int64_t tag = dtype_tag<T>() | std::int64_t{b.count} << 8;
   return {tag, M, N, K, ldx, ldy, static_cast<std::int64_t>(wanted), batch_alignment(x, b.x), batch_alignment(w, b.w),
           batch_alignment(y, b.y)};
 }
+
+// Strides cuBLASLt's batched kernels take: none negative (its bf16 kernels read out of bounds
+// with one on the H200; float32 ran) and none of 2^40 bytes or more (a TMA tensor map's limit).
+template <class T>
+bool cublaslt_strides(const GemmBatch& b) {
+  constexpr std::int64_t limit = (std::int64_t{1} << 40) / static_cast<std::int64_t>(sizeof(T));
+  for (const std::int64_t s : {b.x, b.w, b.bias, b.y})
+    if (s < 0 || s >= limit) return false;
+  return true;
+}
+inline bool no_positive_stride(const GemmBatch& b) { return b.x <= 0 && b.w <= 0 && b.bias <= 0 && b.y <= 0; }
 
 }  // namespace detail
 
@@ -64,8 +75,9 @@ inline bool pair_gemm_enabled(const Context&) { return detail::pair_gemm_flag();
 
 // y_b[M, N] = act(x_b[M, K] · w_bᵀ + bias_b) for b < batch.count, with x_b = x + b·batch.x and
 // likewise for w, bias (null: none) and y; rows ldx / ldy apart within an item. The items'
-// outputs must not overlap. One cuBLASLt launch; an erf GELU / SiLU (or a bias cuBLASLt cannot
-// take) is one pass per item afterwards. Asynchronous on ctx's stream.
+// outputs must not overlap. One cuBLASLt launch (one per item where the strides' signs are
+// mixed: see detail::cublaslt_strides); an erf GELU / SiLU (or a bias cuBLASLt cannot take) is
+// one pass per item afterwards. Asynchronous on ctx's stream.
 template <class T>
 void linear_batched(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bias, T* y, std::int64_t ldy,
                     std::int64_t M, std::int64_t N, std::int64_t K, const GemmBatch& batch,
@@ -80,21 +92,34 @@ void linear_batched(Context& ctx, const T* x, std::int64_t ldx, const T* w, cons
   // Items writing the same elements would race inside the one launch.
   EPONA_CHECK(std::llabs(batch.y) >= (M - 1) * ldy + N, "linear_batched: output items ", batch.y,
               " elements apart overlap (", M, " rows ", ldy, " apart, ", N, " wide)");
-  const std::int64_t bias_alignment = bias ? detail::batch_alignment(bias, batch.bias) : 0;
+  GemmBatch b = batch;
+  if (!bias) b.bias = 0;
+  if (!detail::cublaslt_strides<T>(b)) {
+    const std::int64_t last = b.count - 1;
+    const auto at = [&](auto* p, std::int64_t stride, std::int64_t i) { return p ? detail::advance(p, i * stride) : p; };
+    // Every stride <= 0: the same items from the last one, strides negated.
+    if (detail::no_positive_stride(b))
+      return linear_batched(ctx, at(x, b.x, last), ldx, at(w, b.w, last), at(bias, b.bias, last), at(y, b.y, last), ldy,
+                            M, N, K, GemmBatch{b.count, -b.x, -b.w, -b.bias, -b.y}, epi);
+    for (std::int64_t i = 0; i <= last; ++i)  // mixed signs or huge strides: one product per item
+      linear(ctx, at(x, b.x, i), ldx, at(w, b.w, i), at(bias, b.bias, i), at(y, b.y, i), ldy, M, N, K, epi);
+    return;
+  }
+  const std::int64_t bias_alignment = bias ? detail::batch_alignment(bias, b.bias) : 0;
   const cublasLtEpilogue_t wanted = detail::wanted_epilogue(epi, bias != nullptr, bias_alignment);
-  const auto key = detail::batched_key(M, N, K, ldx, ldy, wanted, x, w, y, batch);
-  detail::LtPlan& plan = detail::plan_for(ctx, key, wanted, batch, x, w, bias, y);
-  detail::apply_batch(plan, batch);
+  const auto key = detail::batched_key(M, N, K, ldx, ldy, wanted, x, w, y, b);
+  detail::LtPlan& plan = detail::plan_for(ctx, key, wanted, b, x, w, bias, y);
+  detail::apply_batch(plan, b);
   detail::run_plan(ctx, plan, x, w, bias, y);
-  for (std::int32_t b = 0; b < batch.count; ++b)
-    detail::finish_epilogue(ctx, plan, epi, detail::advance(y, b * batch.y), ldy, M, N,
-                            bias ? detail::advance(bias, b * batch.bias) : bias);
+  for (std::int32_t i = 0; i < b.count; ++i)
+    detail::finish_epilogue(ctx, plan, epi, detail::advance(y, i * b.y), ldy, M, N,
+                            bias ? detail::advance(bias, i * b.bias) : bias);
 }
 
 // Two layers of one shape on M rows each: y_i = act(x_i · w_iᵀ + b_i), x_1 = x + x_stride and
 // y_1 = y + y_stride (elements), as one batch-2 product whose weight (bias) stride is the
-// distance w1 - w0 (b1 - b0). Two products where that distance is no whole number of elements
-// or only one layer has a bias.
+// distance w1 - w0 (b1 - b0). Two products where that distance is no whole number of elements,
+// only one layer has a bias, or the strides' signs differ (Linear::bind_pair keeps w1 after w0).
 template <class T>
 void linear_pair(Context& ctx, const T* x, std::int64_t ldx, std::int64_t x_stride, const T* w0, const T* b0,
                  const T* w1, const T* b1, T* y, std::int64_t ldy, std::int64_t y_stride, std::int64_t M,

@@ -5,7 +5,8 @@
 // [condition tokens | target tokens], so the streams' concatenation costs nothing. Blocks read
 // their modulation vectors from a table computed before the sampling loop (FluxDiT), so a
 // step only runs the token-wise work. Activations are Activation<B, W> (bf16 on the GPU, as
-// the official residual streams under autocast).
+// the official residual streams under autocast). On the GPU a double block runs each layer's
+// two per-stream products as one batched product where the streams' rows are close (StreamPair).
 #pragma once
 
 #include <algorithm>
@@ -14,7 +15,6 @@
 #include <string>
 
 #include "epona/core/arena.hpp"
-#include "epona/core/env.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
@@ -182,13 +182,19 @@ struct DoubleStream {
       : mod(w.hidden, 6), qkv(w.hidden, 3 * w.hidden, true), proj(w.hidden, w.hidden, true),
         norm(w.head_dim(), w.rms_eps), mlp(w.hidden, w.mlp_hidden, w.hidden, true, nn::Gelu::Tanh) {}
 
-  // s ∈ {"img", "cond"}: "<s>_mod.lin.", "<s>_attn.qkv.", "<s>_attn.norm.", "<s>_attn.proj.", "<s>_mlp."
+  // s ∈ {"img", "cond"}: "<s>_mod.lin.", "<s>_attn.norm."; the Linear layers ("<s>_attn.qkv.",
+  // "<s>_attn.proj.", "<s>_mlp.") are bound with the other stream's (bind_layers).
   void bind(const io::TensorMap& w, const std::string& p, const std::string& s, io::BindReport& r) {
     mod.bind(w, p + s + "_mod.lin.", r);
-    qkv.bind(w, p + s + "_attn.qkv.", r);
     norm.bind(w, p + s + "_attn.norm.", r);
-    proj.bind(w, p + s + "_attn.proj.", r);
-    mlp.bind(w, p + s + "_mlp.", r);
+  }
+  // The Linear layers of streams a and b, each layer's weights of both in one allocation (a's
+  // first), so a paired product's weight stride is one matrix (Linear::bind_pair).
+  static void bind_layers(DoubleStream& a, const std::string& pa, DoubleStream& b, const std::string& pb,
+                          io::BindReport& r) {
+    nn::Linear<B, W>::bind_pair(a.qkv, pa + "_attn.qkv.", b.qkv, pb + "_attn.qkv.", r);
+    nn::Linear<B, W>::bind_pair(a.proj, pa + "_attn.proj.", b.proj, pb + "_attn.proj.", r);
+    nn::SequentialMlp<B, W>::bind_pair(a.mlp, pa + "_mlp.", b.mlp, pb + "_mlp.", r);
   }
 
   // The stream's Linear layers, as StreamPair::linear picks them.
@@ -201,18 +207,12 @@ struct DoubleStream {
 };
 
 namespace detail {
-// EPONA_DIT_PAIR_FORK=1: with paired products, the per-stream norms between them still run on
-// two queues (fork/join around each pair of them) instead of back to back on the main queue.
-inline bool fork_paired_norms() {
-  static const bool on = env_flag("EPONA_DIT_PAIR_FORK", false);
-  return on;
-}
-
 // How a double block runs its two streams (condition rows [0, cond), target rows after them).
 // Paired (the backend batches two products, streams_pairable, the scratch padded): each
 // layer's two products are one batched product on the main queue, and the per-stream norms
-// between them run there too. Otherwise one product per stream, the condition stream's work
-// on the side queue between fork() and join(), overlapping the target stream's.
+// between them run there too, back to back (on two queues they gained nothing: VisDiT-100
+// 263.6 ms either way on the H200). Otherwise one product per stream, the condition stream's
+// work on the side queue between fork() and join(), overlapping the target stream's.
 template <class B, class W>
 class StreamPair {
  public:
@@ -230,9 +230,8 @@ class StreamPair {
   };
 
   StreamPair(Context& main, SideQueue<B>& queue, bool paired, Part cond, Part img)
-      : main_(main), queue_(queue), paired_(paired), forked_norms_(paired && fork_paired_norms()), cond_(cond),
-        img_(img) {
-    cond_.ctx = paired && !forked_norms_ ? &main : &queue.side(main);
+      : main_(main), queue_(queue), paired_(paired), cond_(cond), img_(img) {
+    cond_.ctx = paired ? &main : &queue.side(main);
     img_.ctx = &main;
   }
 
@@ -253,10 +252,8 @@ class StreamPair {
   // f(context, part) for the condition stream, then the target stream.
   template <class F>
   void each(F&& f) {
-    if (forked_norms_) queue_.fork(main_);
     f(*cond_.ctx, cond_);
     f(*img_.ctx, img_);
-    if (forked_norms_) queue_.join(main_);
   }
 
   // y = layer(x) on each stream's rows of x and y; `layer` picks a stream's Linear.
@@ -277,7 +274,7 @@ class StreamPair {
  private:
   Context& main_;
   SideQueue<B>& queue_;
-  bool paired_, forked_norms_;
+  bool paired_;
   Part cond_, img_;
 };
 }  // namespace detail
@@ -292,9 +289,11 @@ struct DoubleStreamBlock {
   DoubleStreamBlock() = default;
   explicit DoubleStreamBlock(const DitWidths& w) : widths(w), img(w), cond(w) {}
 
+  // The condition stream's layers come first in each paired allocation: its rows come first.
   void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
     img.bind(w, p, "img", r);
     cond.bind(w, p, "cond", r);
+    DoubleStream<B, W>::bind_layers(cond, p + "cond", img, p + "img", r);
   }
 
   // Modulation vectors of this block in a table row: [img 6D | cond 6D].

@@ -34,6 +34,14 @@ struct SequentialMlp {
     fc2.bind(w, prefix + "2.", report);
   }
 
+  // Binds two MLPs of one shape with each layer's weights of both in one allocation (a's first;
+  // Linear::bind_pair), for paired products.
+  static void bind_pair(SequentialMlp& a, const std::string& first, SequentialMlp& b, const std::string& second,
+                        io::BindReport& report) {
+    Linear<B, T>::bind_pair(a.fc1, first + "0.", b.fc1, second + "0.", report);
+    Linear<B, T>::bind_pair(a.fc2, first + "2.", b.fc2, second + "2.", report);
+  }
+
   // x (rows, in) -> y (rows, out); hidden (rows, hidden) is scratch.
   void operator()(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& hidden, Tensor<A, B>& y) const {
     fc1(ctx, x, hidden, fc1_epilogue());
