@@ -1,8 +1,8 @@
 // The DiT step's small kernels old vs new in one process (plain CUDA events, no Google
 // Benchmark): skinny-M products (at most 16 rows: the TrajDiT's trajectory stream, batch-1
 // modulation vectors) in cuBLASLt vs the skinny kernel (skinny_linear.cuh, several rounds of
-// loads in flight), and qk_norm_rope's head-per-warp vs row path at the VisDiT's and TrajDiT's
-// sizes. Each row times a recorded graph of calls, each on its own copy of the weights (or qkv
+// loads in flight), and qk_norm_rope's head-per-warp vs row path (groups of 2, 4, 8 warp
+// accesses) at the VisDiT's and TrajDiT's sizes. Each row times a recorded graph of calls, each on its own copy of the weights (or qkv
 // buffer), at least 20 and 256 MB in all, so that the 50-60 MB L2 holds none of them (the
 // sampler's weights are cold too), and reports the median per call. --profile runs each variant once, eagerly,
 // inside cudaProfilerStart/Stop (for ncu; the order is printed).
@@ -97,15 +97,25 @@ void report(const std::string& name, double us, double bytes) {
   std::fflush(stdout);
 }
 
-struct Shape {
+// The skinny kernel called directly with `Unroll` chunks per round of loads.
+template <int Unroll, class T>
+std::function<void(int)> skinny_with(cuda::Context& ctx, std::function<cuda::detail::LinearArgs<T>(int)> args,
+                                     Epilogue epi) {
+  return [&ctx, args, epi](int i) {
+    const bool ran = cuda::detail::skinny_linear<T, Unroll>(ctx, args(i), epi);
+    EPONA_CHECK(ran, "skinny kernel declined");
+  };
+}
+
+struct ProductShape {
   const char* name;
   std::int64_t M, N, K;
   bool gelu;
 };
 
-// cuBLASLt vs the skinny kernel (default rounds of 4 chunks, and 1, 2) on one product shape.
+// cuBLASLt vs the skinny kernel (default rounds of 2 chunks, and 1, 4) on one product shape.
 template <class T>
-void time_product(const Options& o, cuda::Context& ctx, const Shape& s) {
+void time_product(const Options& o, cuda::Context& ctx, const ProductShape& s) {
   const std::int64_t wn = s.N * s.K;
   const int calls = calls_for(wn * std::int64_t{sizeof(T)});
   const auto pool = random_device<T>(ctx, wn * calls, 1);
@@ -123,14 +133,11 @@ void time_product(const Options& o, cuda::Context& ctx, const Shape& s) {
       cuda::linear(ctx, a.x, a.ldx, a.w, a.bias, a.y, a.ldy, s.M, s.N, s.K, epi);
     };
   };
-  const auto direct = [&]<int U>() {
-    return [&](int i) { EPONA_CHECK(cuda::detail::skinny_linear<T, U>(ctx, args(i), epi), "skinny declined"); };
-  };
   const std::string tag = std::string("linear_") + (std::is_same_v<T, float> ? "f32_" : "bf16_") + s.name;
   const double bytes = double(sizeof(T)) * (wn + s.M * s.K + s.M * s.N);
   const std::vector<std::pair<std::string, std::function<void(int)>>> variants{
-      {"cublaslt", via_linear(false)}, {"skinny", via_linear(true)}, {"skinny_u2", direct.template operator()<2>()},
-      {"skinny_u1", direct.template operator()<1>()}};
+      {"cublaslt", via_linear(false)}, {"skinny", via_linear(true)}, {"skinny_u1", skinny_with<1, T>(ctx, args, epi)},
+      {"skinny_u4", skinny_with<4, T>(ctx, args, epi)}};
   double base = 0;
   for (const auto& [name, fn] : variants) {
     if (std::is_same_v<T, float> && name.rfind("skinny_u", 0) == 0) continue;
@@ -166,21 +173,24 @@ void time_qk(const Options& o, cuda::Context& ctx, const char* name, std::int64_
   }
   const std::string tag = std::string("qk_norm_rope_") + (std::is_same_v<T, float> ? "f32_" : "bf16_") + name;
   double base = 0;
-  for (const bool row_path : {false, true}) {
-    const auto fn = [&, row_path](int i) {
-      cuda::set_qk_norm_rope_rows(row_path);
+  const int default_accesses = cuda::detail::qk_rows_accesses();
+  for (const int accesses : {0, 2, 4, 8}) {  // 0: the head-per-warp kernel
+    const auto fn = [&, accesses](int i) {
+      cuda::set_qk_norm_rope_rows(accesses > 0);
+      cuda::detail::qk_rows_accesses() = accesses > 0 ? accesses : default_accesses;
       cuda::qk_norm_rope(ctx, pool.data() + i * n, stride, width, heads, 128, 1e-6f, cos.data(), sin.data(),
                          segs);
     };
     const double us = graph_us(ctx, o.repeats, calls, fn);
-    if (!row_path) base = us;
-    const std::string variant = row_path ? "rows" : "heads";
+    if (accesses == 0) base = us;
+    const std::string variant = accesses ? "rows_a" + std::to_string(accesses) : "heads";
     report(tag + "_" + variant, us, moved);
     std::printf("# %s %s: %.2f us (%.2fx head-per-warp), %.0f GB/s\n", tag.c_str(), variant.c_str(), us, base / us,
                 moved / (us * 1e3));
     profiled(o, ctx, tag + "_" + variant, [&] { fn(0); });
   }
   cuda::set_qk_norm_rope_rows(true);
+  cuda::detail::qk_rows_accesses() = default_accesses;
 }
 
 }  // namespace
@@ -200,7 +210,7 @@ int main(int argc, char** argv) {
     cuda::Context ctx;
     std::printf("# device: %s, %d SMs\n", ctx.info().name.c_str(), ctx.info().multiprocessors);
     // The TrajDiT's trajectory stream (15 rows, D 1024, MLP 4096), batch-1 modulation vectors.
-    const std::vector<Shape> shapes{{"traj_qkv", 15, 3072, 1024, false},   {"traj_proj", 15, 1024, 1024, false},
+    const std::vector<ProductShape> shapes{{"traj_qkv", 15, 3072, 1024, false},   {"traj_proj", 15, 1024, 1024, false},
                                     {"traj_fc1", 15, 4096, 1024, true},    {"traj_fc2", 15, 1024, 4096, false},
                                     {"traj_linear2", 15, 1024, 5120, false}, {"traj_mod", 1, 6144, 1024, false},
                                     {"vis_mod", 1, 12288, 2048, false}};

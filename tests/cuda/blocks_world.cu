@@ -187,7 +187,8 @@ namespace {
 // head-per-warp path on the same input: bit-identical (same roundings, same summation tree;
 // the head-per-warp path is checked against the CPU's unfused ops in test_cuda_pointwise),
 // every other channel untouched. Two segments (the second with fewer queries than keys);
-// head counts that leave a partial warp access (3, 5) or take several rounds (20); a buffer
+// head counts that leave a partial warp access or group (3, 5, 20), groups of 2, 4 and 8
+// accesses; a buffer
 // misaligned for 16-byte accesses (the row path declines it: the same result either way).
 struct QkRows {
   std::int64_t first, q_first, end;
@@ -217,16 +218,23 @@ void check_qk_rows(std::int64_t heads, std::int64_t rows, std::uint32_t seed, st
     cuda::set_qk_norm_rope_rows(true);
     return download(dx);
   };
-  const auto rows_out = run(true), heads_out = run(false);
-  std::int64_t differ = 0, changed = 0;
-  for (std::int64_t i = 0; i < x.numel(); ++i) {
-    differ += std::memcmp(&rows_out.data()[i], &heads_out.data()[i], sizeof(float)) != 0;
-    changed += i % stride >= 2 * width && std::memcmp(&rows_out.data()[i], &x.data()[i], sizeof(float)) != 0;
+  const auto heads_out = run(false);
+  const int default_accesses = cuda::detail::qk_rows_accesses();
+  for (const int accesses : {2, 4, 8}) {  // heads per warp: 2, 4, 8 times the heads of one access
+    cuda::detail::qk_rows_accesses() = accesses;
+    const auto rows_out = run(true);
+    std::int64_t differ = 0, changed = 0;
+    for (std::int64_t i = 0; i < x.numel(); ++i) {
+      differ += std::memcmp(&rows_out.data()[i], &heads_out.data()[i], sizeof(float)) != 0;
+      changed += i % stride >= 2 * width && std::memcmp(&rows_out.data()[i], &x.data()[i], sizeof(float)) != 0;
+    }
+    MESSAGE(("qk_norm_rope row path " + std::string(test::type_name<T>())), " accesses ", accesses, " heads ", heads,
+            " rows ", rows, " misaligned by ", misalign, ": ", differ, " values differ from the head-per-warp path, ",
+            changed, " untouched changed");
+    CHECK(differ == 0);
+    CHECK(changed == 0);
   }
-  MESSAGE("qk_norm_rope row path ", test::type_name<T>(), " heads ", heads, " rows ", rows, " misaligned by ", misalign,
-          ": ", differ, " values differ from the head-per-warp path, ", changed, " untouched changed");
-  CHECK(differ == 0);
-  CHECK(changed == 0);
+  cuda::detail::qk_rows_accesses() = default_accesses;
 }
 
 }  // namespace

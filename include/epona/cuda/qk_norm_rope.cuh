@@ -133,10 +133,10 @@ __global__ void qk_norm_rope_kernel(QkRopeParts<T> a) {
 }
 
 // The row path of qk_norm_rope (head_dim 128, 16-byte aligned rows, tables and scales): a warp
-// takes all query or key heads of one row of one part, each lane 16 bytes of a head (bf16: 8
-// channels, 16 lanes a head, two heads per access; float: 4 channels, 32 lanes), so a row's
-// cos/sin and the part's scale are loaded once for all its heads and several heads' loads are
-// in flight together (the head-per-warp kernel had one 8-byte load per lane in flight).
+// takes a group of query or key heads of one row of one part, each lane 16 bytes of a head
+// (bf16: 8 channels, 16 lanes a head, two heads per access; float: 4 channels, 32 lanes), so
+// a row's cos/sin and the part's scale are loaded once for the group and all the group's loads
+// are in flight together (the head-per-warp kernel had one 8-byte load per lane in flight).
 // Bit-identical to norm_rope_head128: the same helpers, and the same tree for the sum of
 // squares — a 16-lane head's lane j holds that kernel's lanes 2j and 2j + 1, whose two 4-channel
 // partials are each reduced over the 16 lanes in that kernel's order and then added (its last
@@ -147,7 +147,6 @@ struct RowLanes {
   static constexpr int kPerHead = kVecHeadDim / kElems;              // lanes of a head
   static constexpr int kHeads = 32 / kPerHead;                       // heads per warp access
 };
-constexpr int kRowAccesses = 8;  // warp accesses (bf16: 16 heads, float: 8) whose loads go together
 
 template <int Lanes>
 __device__ __forceinline__ float lanes_sum(float v) {
@@ -179,16 +178,20 @@ __device__ __forceinline__ void norm_rope_lane(float (&v)[RowLanes<T>::kElems], 
   for (int i = 0; i < E / 2; ++i) rotate_pair(cr[i], sr[i], v[2 * i], v[2 * i + 1], v + 2 * i);
 }
 
-template <class T>
+// Accesses: warp accesses per group (bf16: 2 heads each, float: 1).
+template <class T, int Accesses>
 __global__ void qk_norm_rope_rows_kernel(QkRopeParts<T> a) {
   using L = RowLanes<T>;
-  constexpr int E = L::kElems;
-  const std::int64_t head0 = (blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32) * a.heads;
+  constexpr int E = L::kElems, group_heads = Accesses * L::kHeads;
+  const int groups = (a.heads + group_heads - 1) / group_heads;
+  const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;  // (part, row, group)
+  const std::int64_t head0 = item / groups * a.heads;
   if (head0 >= a.start[a.parts]) return;
   int p = 0;
   while (head0 >= a.start[p + 1]) ++p;
   const std::int64_t r = a.first[p] + (head0 - a.start[p]) / a.heads;
-  const int lane = threadIdx.x & 31, sub = lane / L::kPerHead, c0 = (lane % L::kPerHead) * E;
+  const int lane = threadIdx.x & 31, c0 = (lane % L::kPerHead) * E;
+  const int h0 = static_cast<int>(item % groups) * group_heads + lane / L::kPerHead;  // this lane's first head
   float cr[E / 2], sr[E / 2], scale[E];
   const float* cos_row = a.cos + r * (kVecHeadDim / 2) + c0 / 2;
   const float* sin_row = a.sin + r * (kVecHeadDim / 2) + c0 / 2;
@@ -197,16 +200,14 @@ __global__ void qk_norm_rope_rows_kernel(QkRopeParts<T> a) {
 #pragma unroll
   for (int i = 0; i < E; ++i) scale[i] = a.scale[p][c0 + i];
   T* row = a.qkv + r * a.row_stride + (p & 1) * a.k_offset + c0;
-  for (int h0 = 0; h0 < a.heads; h0 += kRowAccesses * L::kHeads) {
-    float v[kRowAccesses][E] = {};
+  float v[Accesses][E] = {};
 #pragma unroll
-    for (int u = 0; u < kRowAccesses; ++u)
-      if (const int h = h0 + u * L::kHeads + sub; h < a.heads) load_lane(row + h * kVecHeadDim, v[u]);
+  for (int u = 0; u < Accesses; ++u)
+    if (const int h = h0 + u * L::kHeads; h < a.heads) load_lane(row + h * kVecHeadDim, v[u]);
 #pragma unroll
-    for (int u = 0; u < kRowAccesses; ++u) {
-      norm_rope_lane<T>(v[u], scale, a.eps, cr, sr);
-      if (const int h = h0 + u * L::kHeads + sub; h < a.heads) store_lane(row + h * kVecHeadDim, v[u]);
-    }
+  for (int u = 0; u < Accesses; ++u) {
+    norm_rope_lane<T>(v[u], scale, a.eps, cr, sr);
+    if (const int h = h0 + u * L::kHeads; h < a.heads) store_lane(row + h * kVecHeadDim, v[u]);
   }
 }
 
@@ -225,6 +226,28 @@ bool row_path(const QkRopeParts<T>& a) {
 inline bool& qk_rows_flag() {
   static bool on = env_flag("EPONA_CUDA_QK_ROWS", true);
   return on;
+}
+// Warp accesses per head group of the row path (2, 4 or 8; benchmarks compare them).
+inline int& qk_rows_accesses() {
+  static int accesses = 4;
+  return accesses;
+}
+
+template <class T, int Accesses>
+void launch_qk_rows(Context& ctx, const QkRopeParts<T>& a) {
+  constexpr int threads = 128, group_heads = Accesses * RowLanes<T>::kHeads;
+  const std::int64_t warps = a.start[a.parts] / a.heads * ((a.heads + group_heads - 1) / group_heads);
+  const std::int64_t blocks = (warps + threads / 32 - 1) / (threads / 32);
+  EPONA_CHECK(blocks <= 0x7fffffff, "qk_norm_rope: ", warps, " head groups exceed one launch");
+  qk_norm_rope_rows_kernel<T, Accesses><<<static_cast<unsigned>(blocks), threads, 0, ctx.stream()>>>(a);
+}
+template <class T>
+void launch_qk_rows(Context& ctx, const QkRopeParts<T>& a) {
+  switch (qk_rows_accesses()) {
+    case 2: return launch_qk_rows<T, 2>(ctx, a);
+    case 8: return launch_qk_rows<T, 8>(ctx, a);
+    default: return launch_qk_rows<T, 4>(ctx, a);
+  }
 }
 
 inline void check_norm_rope_extent(std::int64_t rows, std::int64_t row_stride, std::int64_t heads,
@@ -296,9 +319,7 @@ void qk_norm_rope(Context& ctx, T* qkv, std::int64_t row_stride, std::int64_t k_
   }
   if (a.start[a.parts] == 0) return;
   if (detail::qk_rows_flag() && detail::row_path(a)) {
-    constexpr int threads = 128;  // 4 rows a block: the VisDiT's 2054 (part, row) warps spread over all SMs
-    const std::int64_t blocks = (a.start[a.parts] / a.heads + threads / 32 - 1) / (threads / 32);
-    detail::qk_norm_rope_rows_kernel<T><<<static_cast<unsigned>(blocks), threads, 0, ctx.stream()>>>(a);
+    detail::launch_qk_rows(ctx, a);
   } else {
     const auto kernel = detail::vector_heads(qkv, row_stride, head_dim, k_offset) ? detail::qk_norm_rope_kernel<true, T>
                                                                                 : detail::qk_norm_rope_kernel<false, T>;

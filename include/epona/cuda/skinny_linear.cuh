@@ -26,7 +26,7 @@ constexpr int kSkinnyRows = 16;                  // rows of x one launch takes (
 constexpr int kSkinnyBand = 32;                  // output columns per cluster: 4 tiles of 8
 constexpr int kSkinnyTiles = kSkinnyBand / 8;
 constexpr int kSkinnyWarps = 8, kSkinnyThreads = 32 * kSkinnyWarps;
-constexpr int kSkinnyUnroll = 4;                 // k-chunks whose loads a warp issues together
+constexpr int kSkinnyUnroll = 2;                 // k-chunks whose loads a warp issues together (best of 1, 2, 4 on the H200)
 constexpr int kSkinnyMaxSplit = 8;               // CTAs per cluster (the portable limit)
 
 // EPONA_CUDA_SKINNY=0 sends these products back to cuBLASLt; set_skinny_linear switches it at
@@ -168,24 +168,34 @@ __device__ __forceinline__ void cluster_sync() {
   __cluster_barrier_wait();
 }
 
-// Sums the cluster's partial tiles (fixed order: rank, then warp) for this CTA's share of the
-// band's outputs, adds the bias, applies the activation and stores.
-
+// Sums the cluster's partial tiles for this CTA's share of the band's outputs, adds the bias,
+// applies the activation and stores. Each CTA first adds its warps' tiles into tile 0 (local,
+// fixed order); then a rank reads the `split` CTA totals of an output with all remote loads
+// issued together (one distributed-shared-memory latency, not one per rank and warp).
 template <class T, bool Gelu>
 __device__ void skinny_finish(const LinearArgs<T>& a, float (*part)[kSkinnyRows][kSkinnyBand], int split) {
-  cluster_sync();  // every rank's partials written
+  constexpr int kTile = kSkinnyRows * kSkinnyBand;
+  __syncthreads();  // the warps' tiles written
+  for (int e = threadIdx.x; e < kTile; e += kSkinnyThreads) {
+    float sum = part[0][0][e];
+#pragma unroll
+    for (int w = 1; w < kSkinnyWarps; ++w) sum += part[w][0][e];
+    part[0][0][e] = sum;
+  }
+  cluster_sync();  // every rank's total written
   const int n0 = blockIdx.y * kSkinnyBand;
   for (int e = static_cast<int>(__clusterRelativeBlockRank()) * kSkinnyThreads + threadIdx.x; e < a.M * kSkinnyBand;
        e += split * kSkinnyThreads) {
     const int m = e / kSkinnyBand, col = e % kSkinnyBand, n = n0 + col;
     if (n >= a.N) continue;
-    float sum = 0;
-    for (int r = 0; r < split; ++r) {
-      const auto* remote = static_cast<const float(*)[kSkinnyRows][kSkinnyBand]>(
-          __cluster_map_shared_rank(part, static_cast<unsigned>(r)));
+    float ranks[kSkinnyMaxSplit];
 #pragma unroll
-      for (int w = 0; w < kSkinnyWarps; ++w) sum += remote[w][m][col];
-    }
+    for (int r = 0; r < kSkinnyMaxSplit; ++r)
+      ranks[r] = r < split ? static_cast<const float*>(__cluster_map_shared_rank(part, static_cast<unsigned>(r)))[e] : 0.f;
+    float sum = ranks[0];
+#pragma unroll
+    for (int r = 1; r < kSkinnyMaxSplit; ++r)
+      if (r < split) sum += ranks[r];
     if (a.bias) sum += to_f32(a.bias[n]);
     if constexpr (Gelu) sum = GeluTanhOp{}(sum);
     a.y[m * a.ldy + n] = from_f32<T>(sum);
