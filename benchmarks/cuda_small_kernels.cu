@@ -177,6 +177,7 @@ void time_qk(const Options& o, cuda::Context& ctx, const char* name, std::int64_
   for (const int accesses : {0, 2, 4, 8}) {  // 0: the head-per-warp kernel
     const auto fn = [&, accesses](int i) {
       cuda::set_qk_norm_rope_rows(accesses > 0);
+      cuda::detail::qk_rows_forced() = accesses > 0;  // timed where it does not pay too
       cuda::detail::qk_rows_accesses() = accesses > 0 ? accesses : default_accesses;
       cuda::qk_norm_rope(ctx, pool.data() + i * n, stride, width, heads, 128, 1e-6f, cos.data(), sin.data(),
                          segs);
@@ -190,6 +191,7 @@ void time_qk(const Options& o, cuda::Context& ctx, const char* name, std::int64_
     profiled(o, ctx, tag + "_" + variant, [&] { fn(0); });
   }
   cuda::set_qk_norm_rope_rows(true);
+  cuda::detail::qk_rows_forced() = false;
   cuda::detail::qk_rows_accesses() = default_accesses;
 }
 

@@ -211,11 +211,13 @@ void check_qk_rows(std::int64_t heads, std::int64_t rows, std::uint32_t seed, st
   const std::int64_t half = rows / 2;
   const std::array<QkRows, 2> segs{QkRows{0, 0, half, scales[0].data(), scales[1].data()},
                                    QkRows{half, half + 3, rows, scales[2].data(), scales[3].data()}};
-  const auto run = [&](bool row_path) {
+  const auto run = [&](bool row_path) {  // the row path wherever it can run (not only where it pays)
     auto dx = test::upload<T>(ctx, x, misalign);
     cuda::set_qk_norm_rope_rows(row_path);
+    cuda::detail::qk_rows_forced() = row_path;
     cuda::qk_norm_rope(ctx, dx.data(), stride, width, heads, 128, 1e-6f, dcos.data(), dsin.data(), segs);
     cuda::set_qk_norm_rope_rows(true);
+    cuda::detail::qk_rows_forced() = false;
     return download(dx);
   };
   const auto heads_out = run(false);

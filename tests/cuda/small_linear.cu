@@ -1,8 +1,9 @@
 // Our kernels for linear layers cuBLASLt's tiles fit badly (small_linear.cuh, skinny_linear.cuh)
 // against a float64 host product of the same (rounded) inputs: a few outputs per row (warp per
 // output; K a multiple of 8 or not), a tiny K (thread per output), and at most 16 rows (the
-// skinny-M kernel: the TrajDiT's 15 trajectory rows at its real widths, 1, 2 and 16 rows, 3
-// outputs, bias or none, no activation or the tanh GELU). x is a column block of a wider
+// skinny-M kernel, called directly and through cuda::linear, which takes it only where it beats
+// cuBLASLt: the TrajDiT's 15 trajectory rows at its real widths, 1, 2 and 16 rows, 3 outputs,
+// bias or none, no activation or the tanh GELU). x is a column block of a wider
 // buffer (ldx > K) and y is written into a column block of a wider poisoned buffer, whose
 // other columns must stay poisoned. Bound per element: float32 1e-5 of max|ref|; bf16 one
 // rounding of the output (2^-8 |ref|) on top.

@@ -5,7 +5,7 @@
 // asynchronous copies, a round of them in flight per warp) and the partial sums meet in
 // distributed shared memory; bias and the tanh GELU are applied in float32 and rounded once
 // (cuBLASLt's fused epilogue). bf16 on tensor cores (mma m16n8k16, rows padded to 16 with
-// zeros); float32 with FMA (true float32 arithmetic).
+// zeros); float32 with FMA (true float32 arithmetic). Used where it beats cuBLASLt (skinny_wins).
 #pragma once
 
 #include <algorithm>
@@ -26,7 +26,10 @@ constexpr int kSkinnyRows = 16;                  // rows of x one launch takes (
 constexpr int kSkinnyBand = 32;                  // output columns per cluster: 4 tiles of 8
 constexpr int kSkinnyTiles = kSkinnyBand / 8;
 constexpr int kSkinnyWarps = 8, kSkinnyThreads = 32 * kSkinnyWarps;
-constexpr int kSkinnyUnroll = 2;                 // k-chunks whose loads a warp issues together (best of 1, 2, 4 on the H200)
+// k-chunks whose loads a warp issues together: the measured best where the kernel is used
+// (skinny_wins; bf16 1 of 1, 2, 4; float32 2, the only one timed: 15 x 1024 x 5120 47.8 ->
+// 39.4 us against cuBLASLt).
+template <class T> constexpr int kSkinnyUnroll = std::is_same_v<T, float> ? 2 : 1;
 constexpr int kSkinnyMaxSplit = 8;               // CTAs per cluster (the portable limit)
 
 // EPONA_CUDA_SKINNY=0 sends these products back to cuBLASLt; set_skinny_linear switches it at
@@ -264,10 +267,18 @@ inline int skinny_split(int multiprocessors, std::int64_t bands, std::int64_t ch
   return split;
 }
 
+// Where the skinny kernel beats cuBLASLt. Measured on the H200 (bf16, graph of calls on cold
+// weights, per call, cuBLASLt -> skinny with 1 / 2 chunks a round): at K >= 4096, where
+// cuBLASLt adds a split-K reduce kernel, it wins (15 x 1024 x 4096: 7.28 -> 6.55 / 6.71 us;
+// x 5120: 7.75 -> 7.21 / 7.84 us); at K = 1024 it loses (15 x 3072: 4.90 -> 5.67 us, 15 x
+// 1024: 4.32 -> 4.47, 15 x 4096 + GELU: 5.12 -> 6.06), and so at every batch-1 vector
+// (1 x 6144 x 1024: 5.78 -> 7.11 us; 1 x 12288 x 2048: 15.25 -> 23.7; cuBLASLt's GEMV).
+inline bool skinny_wins(std::int64_t M, std::int64_t K) { return M >= 2 && K >= 4096; }
+
 // Runs the product when it is skinny (M <= 16), K a multiple of 8 with 16-byte aligned rows,
 // and the epilogue none or the tanh GELU; false (nothing launched) otherwise.
 // Unroll: chunks per round of loads (benchmarks compare others).
-template <class T, int Unroll = kSkinnyUnroll>
+template <class T, int Unroll = kSkinnyUnroll<T>>
 bool skinny_linear(Context& ctx, const LinearArgs<T>& a, Epilogue epi) {
   if (a.M < 1 || a.M > kSkinnyRows || (epi != Epilogue::None && epi != Epilogue::GeluTanh)) return false;
   if (!packable(a.x, a.K, a.ldx) || !packable(a.w, a.K, a.K)) return false;

@@ -3,7 +3,7 @@
 // cuBLASLt runs as a 14 µs GEMV-like kernel) or a tiny inner dimension (its input layer: K = 3,
 // a legacy unaligned kernel). A warp per output (lanes split K, float32 sums) or a thread per
 // output (tiny K); bias added in float32 and one rounding, as cuBLASLt's bias epilogue.
-// Products of at most 16 rows otherwise go to the skinny-M kernel (skinny_linear.cuh).
+// Products of 2 to 16 rows with K >= 4096 go to the skinny-M kernel (skinny_linear.cuh).
 #pragma once
 
 #include <cstdint>
@@ -82,8 +82,8 @@ bool few_outputs_linear(Context& ctx, const LinearArgs<T>& a) {
 }
 
 // Runs y = act(x · wᵀ + bias) with one of our kernels when the product has one of those shapes
-// (epilogue none) or at most 16 rows (skinny_linear: none or the tanh GELU); false (nothing
-// launched) otherwise.
+// (epilogue none) or is skinny where that kernel wins (skinny_wins: 2-16 rows, K >= 4096; none
+// or the tanh GELU); false (nothing launched) otherwise.
 template <class T>
 bool small_linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bias, T* y, std::int64_t ldy,
                   std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi) {
@@ -91,7 +91,8 @@ bool small_linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const 
   const int m = static_cast<int>(M), n = static_cast<int>(N), k = static_cast<int>(K);
   if (epi == Epilogue::None && few_outputs_linear(ctx, LinearArgs<T>{x, ldx, w, bias, y, ldy, m, n, k}))
     return true;
-  return skinny_linear_flag() && skinny_linear(ctx, LinearArgs<T>{x, ldx, w, bias, y, ldy, m, n, k}, epi);
+  return skinny_linear_flag() && skinny_wins(M, K) &&
+         skinny_linear(ctx, LinearArgs<T>{x, ldx, w, bias, y, ldy, m, n, k}, epi);
 }
 
 }  // namespace detail
