@@ -275,6 +275,31 @@ inline int skinny_split(int multiprocessors, std::int64_t bands, std::int64_t ch
 // (1 x 6144 x 1024: 5.78 -> 7.11 us; 1 x 12288 x 2048: 15.25 -> 23.7; cuBLASLt's GEMV).
 inline bool skinny_wins(std::int64_t M, std::int64_t K) { return M >= 2 && K >= 4096; }
 
+// Kernel launched on grid (x, y) in clusters of (x, 1, 1) with `smem` bytes of dynamic shared memory.
+template <class... Params, class... Args>
+void launch_in_clusters(void (*kernel)(Params...), dim3 grid, int threads, int smem, cudaStream_t stream,
+                        Args... args) {
+  cudaLaunchConfig_t cfg{};
+  cfg.gridDim = grid;
+  cfg.blockDim = dim3(static_cast<unsigned>(threads));
+  cfg.dynamicSmemBytes = static_cast<std::size_t>(smem);
+  cfg.stream = stream;
+  cudaLaunchAttribute cluster{};
+  cluster.id = cudaLaunchAttributeClusterDimension;
+  cluster.val.clusterDim.x = grid.x, cluster.val.clusterDim.y = 1, cluster.val.clusterDim.z = 1;
+  cfg.attrs = &cluster;
+  cfg.numAttrs = 1;
+  EPONA_CUDA_CHECK(cudaLaunchKernelEx(&cfg, kernel, args...));
+}
+
+template <class T, bool Gelu, int Unroll>
+void launch_skinny(Context& ctx, const LinearArgs<T>& a, int split, std::int64_t bands) {
+  constexpr int smem = skinny_smem_bytes<T, Unroll>();
+  allow_dynamic_smem<skinny_linear_kernel<T, Gelu, Unroll>>(smem);
+  launch_in_clusters(skinny_linear_kernel<T, Gelu, Unroll>, dim3(static_cast<unsigned>(split), static_cast<unsigned>(bands)),
+                     kSkinnyThreads, smem, ctx.stream(), a, split);
+}
+
 // Runs the product when it is skinny (M <= 16), K a multiple of 8 with 16-byte aligned rows,
 // and the epilogue none or the tanh GELU; false (nothing launched) otherwise.
 // Unroll: chunks per round of loads (benchmarks compare others).
@@ -285,24 +310,10 @@ bool skinny_linear(Context& ctx, const LinearArgs<T>& a, Epilogue epi) {
   const std::int64_t bands = (std::int64_t{a.N} + kSkinnyBand - 1) / kSkinnyBand;
   if (bands > 65535) return false;
   const int split = skinny_split(ctx.info().multiprocessors, bands, (a.K + kSkinnyChunk<T> - 1) / kSkinnyChunk<T>, Unroll);
-  cudaLaunchConfig_t cfg{};
-  cfg.gridDim = dim3(static_cast<unsigned>(split), static_cast<unsigned>(bands));
-  cfg.blockDim = dim3(kSkinnyThreads);
-  cfg.stream = ctx.stream();
-  cudaLaunchAttribute cluster{};
-  cluster.id = cudaLaunchAttributeClusterDimension;
-  cluster.val.clusterDim.x = static_cast<unsigned>(split), cluster.val.clusterDim.y = 1, cluster.val.clusterDim.z = 1;
-  cfg.attrs = &cluster;
-  cfg.numAttrs = 1;
-  constexpr int smem = skinny_smem_bytes<T, Unroll>();
-  const bool gelu = epi == Epilogue::GeluTanh;
-  if (gelu)
-    allow_dynamic_smem<skinny_linear_kernel<T, true, Unroll>>(smem);
+  if (epi == Epilogue::GeluTanh)
+    launch_skinny<T, true, Unroll>(ctx, a, split, bands);
   else
-    allow_dynamic_smem<skinny_linear_kernel<T, false, Unroll>>(smem);
-  cfg.dynamicSmemBytes = smem;
-  const auto kernel = gelu ? skinny_linear_kernel<T, true, Unroll> : skinny_linear_kernel<T, false, Unroll>;
-  EPONA_CUDA_CHECK(cudaLaunchKernelEx(&cfg, kernel, a, split));
+    launch_skinny<T, false, Unroll>(ctx, a, split, bands);
   return true;
 }
 
