@@ -17,6 +17,7 @@
 #include "epona/cuda/activation.cuh"  // GeluTanhOp: the same function as the other GEMM epilogues
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
+#include "epona/cuda/mma.cuh"
 
 namespace epona::cuda {
 
@@ -58,28 +59,12 @@ template <class T> constexpr int kSkinnyChunk = 4 * kSkinnyElems<T>;
 
 __device__ __forceinline__ uint4 load16(const void* p) { return __ldg(reinterpret_cast<const uint4*>(p)); }
 
-// 16 bytes from global p to shared dst without passing through registers, or zeros where !ok
-// (nothing read; the address given is then `base`, valid memory, so no tool sees a wild one).
-// Asynchronous copies because with register loads ptxas kept 67-78 registers whatever the
-// unroll, i.e. not a round's loads in flight; the copies of a round are all issued before the
-// first wait.
-__device__ __forceinline__ void copy16_async(uint4* dst, const void* p, bool ok, const void* base) {
-  const auto s = static_cast<unsigned>(__cvta_generic_to_shared(dst));
-  asm volatile("cp.async.cg.shared.global [%0], [%1], 16, %2;\n" ::"r"(s), "l"(ok ? p : base), "r"(ok ? 16 : 0));
-}
+// Weights come by asynchronous copies (mma.cuh) because with register loads ptxas kept 67-78
+// registers whatever the unroll, i.e. not a round's loads in flight; the copies of a round are
+// all issued before the first wait.
 __device__ __forceinline__ void wait_async_copies() {
-  asm volatile("cp.async.commit_group;\ncp.async.wait_group 0;\n" ::: "memory");
-}
-
-// d (16x8, f32) += a (16x16 bf16, row) · b (16x8 bf16, col). The same instruction as the
-// attention kernels' fa::mma_bf16, not included from there so that every GEMM user does not
-// pull in the attention headers.
-__device__ __forceinline__ void mma_16816(float (&d)[4], const unsigned (&a)[4], unsigned b0, unsigned b1) {
-  asm volatile(
-      "mma.sync.aligned.m16n8k16.row.col.f32.bf16.bf16.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
-      "{%0, %1, %2, %3};\n"
-      : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
-      : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b0), "r"(b1));
+  cp_async_commit();
+  cp_async_wait_all();
 }
 
 // How a warp multiplies its k-chunks by x, per storage type; Unroll chunks' loads in flight.
@@ -95,16 +80,16 @@ struct SkinnyEngine<bf16, Unroll> {
   float acc[kSkinnyTiles][4] = {};
 
   __device__ void prefetch(const LinearArgs<bf16>& a, uint4* x_slots, std::int64_t k, bool ok, int g) {
-    copy16_async(x_slots, a.x + g * a.ldx + k, ok && g < a.M, a.x);
-    copy16_async(x_slots + 32, a.x + (g + 8) * a.ldx + k, ok && g + 8 < a.M, a.x);
+    cp_async_16_or_zero(x_slots, a.x + g * a.ldx + k, ok && g < a.M, a.x);
+    cp_async_16_or_zero(x_slots + 32, a.x + (g + 8) * a.ldx + k, ok && g + 8 < a.M, a.x);
   }
   __device__ void step(const LinearArgs<bf16>&, const uint4* x_slots, std::int64_t, bool, const uint4 (&wv)[kSkinnyTiles]) {
     const uint4 lo = x_slots[0], hi = x_slots[32];
     const unsigned first[4] = {lo.x, hi.x, lo.y, hi.y}, second[4] = {lo.z, hi.z, lo.w, hi.w};
 #pragma unroll
     for (int t = 0; t < kSkinnyTiles; ++t) {
-      mma_16816(acc[t], first, wv[t].x, wv[t].y);
-      mma_16816(acc[t], second, wv[t].z, wv[t].w);
+      mma_bf16(acc[t], first, wv[t].x, wv[t].y);
+      mma_bf16(acc[t], second, wv[t].z, wv[t].w);
     }
   }
   // Accumulator (row g or g + 8, columns 8t + 2q, + 1) into the warp's (16, 32) partial tile.
@@ -239,7 +224,7 @@ __global__ void __launch_bounds__(kSkinnyThreads) skinny_linear_kernel(LinearArg
       const std::int64_t k = (c + u) * C + q * E;
       const bool ok = c + u < run.end && k < a.K;
 #pragma unroll
-      for (int t = 0; t < kSkinnyTiles; ++t) copy16_async(stage + (u * S + t) * 32, wrow[t] + k, ok && has_row[t], a.w);
+      for (int t = 0; t < kSkinnyTiles; ++t) cp_async_16_or_zero(stage + (u * S + t) * 32, wrow[t] + k, ok && has_row[t], a.w);
       engine.prefetch(a, stage + (u * S + kSkinnyTiles) * 32, k, ok, g);
     }
     wait_async_copies();  // each lane reads back only its own slots: no barrier
