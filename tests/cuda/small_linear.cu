@@ -6,7 +6,8 @@
 // bias or none, no activation or the tanh GELU). x is a column block of a wider
 // buffer (ldx > K) and y is written into a column block of a wider poisoned buffer, whose
 // other columns must stay poisoned. Bound per element: float32 1e-5 of max|ref|; bf16 one
-// rounding of the output (2^-8 |ref|) on top.
+// rounding of the output (2^-8 |ref|) on top for our kernels; through cuda::linear also one of
+// the product before cuBLASLt's bias / GELU epilogue (see check_product).
 #include <doctest/doctest.h>
 
 #include <cmath>
@@ -57,13 +58,19 @@ void check_product(const Product& p, Route route, std::uint32_t seed) {
   }
   const auto y = test::download(ctx, dy);
   double max_ref = 0;
-  std::vector<double> ref(static_cast<std::size_t>(p.M * p.N));
+  std::vector<double> ref(static_cast<std::size_t>(p.M * p.N)), slack(ref.size());
+  // bf16: our kernels round once, the output. Through cuda::linear the product may go to
+  // cuBLASLt, whose bias / GELU epilogue on these small-M shapes can also round x·w before the
+  // bias and the activation (seen on the H200: up to 1.4 roundings of max|ref|), so there each
+  // element may be off by 2^-8 (1.13 (|x·w| + |x·w + b|) + |ref|), 1.13 bounding GELU's slope.
   for (std::int64_t m = 0; m < p.M; ++m)
     for (std::int64_t n = 0; n < p.N; ++n) {
-      double acc = p.bias ? b.data()[n] : 0.0;
-      for (std::int64_t k = 0; k < p.K; ++k) acc += double(x.at(m, x_col + k)) * double(w.at(n, k));
-      ref[m * p.N + n] = p.epi == Epilogue::GeluTanh ? gelu_tanh(acc) : acc;
-      max_ref = std::max(max_ref, std::abs(ref[m * p.N + n]));
+      double xw = 0;
+      for (std::int64_t k = 0; k < p.K; ++k) xw += double(x.at(m, x_col + k)) * double(w.at(n, k));
+      const double z = xw + (p.bias ? b.data()[n] : 0.0), r = p.epi == Epilogue::GeluTanh ? gelu_tanh(z) : z;
+      ref[m * p.N + n] = r;
+      slack[m * p.N + n] = route == Route::Linear ? 1.13 * (std::abs(xw) + std::abs(z)) + std::abs(r) : std::abs(r);
+      max_ref = std::max(max_ref, std::abs(r));
     }
   const double u = std::is_same_v<T, bf16> ? 1.0 / 256 : 0.0;
   int bad = 0, untouched_changed = 0;
@@ -77,7 +84,7 @@ void check_product(const Product& p, Route route, std::uint32_t seed) {
       }
       const double r = ref[m * p.N + c - y_col], err = std::abs(double(got) - r);
       worst = std::max(worst, err / max_ref);
-      bad += !(err <= u * std::abs(r) + 1e-5 * max_ref);
+      bad += !(err <= u * slack[m * p.N + c - y_col] + 1e-5 * max_ref);
     }
   const std::string via = route == Route::Linear ? "linear " : "skinny ";
   MESSAGE((via + test::type_name<T>()), " ", p.M, "x", p.N, "x", p.K,
