@@ -150,4 +150,15 @@ inline double max_abs(const HostF& t) {
   return m;
 }
 
+// A GEMM epilogue's name, for test messages.
+inline const char* epilogue_name(Epilogue e) {
+  switch (e) {
+    case Epilogue::None: return "none";
+    case Epilogue::GeluErf: return "gelu_erf";
+    case Epilogue::GeluTanh: return "gelu_tanh";
+    case Epilogue::Silu: return "silu";
+  }
+  return "?";
+}
+
 }  // namespace epona::test

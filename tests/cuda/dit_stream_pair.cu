@@ -70,16 +70,6 @@ struct BatchedCase {
   std::int64_t gap = 8;  // elements between items (8: 16-byte aligned items; odd: bias added apart)
 };
 
-const char* epilogue_name(cuda::Epilogue e) {
-  switch (e) {
-    case cuda::Epilogue::None: return "none";
-    case cuda::Epilogue::GeluErf: return "gelu_erf";
-    case cuda::Epilogue::GeluTanh: return "gelu_tanh";
-    case cuda::Epilogue::Silu: return "silu";
-  }
-  return "?";
-}
-
 // Checks y (downloaded, every item) against the float64 product of the host items; elements
 // outside the items' outputs must still be NaN.
 template <class T>

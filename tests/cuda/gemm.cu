@@ -15,16 +15,6 @@ using namespace epona::test;
 
 namespace {
 
-const char* epilogue_name(cuda::Epilogue e) {
-  switch (e) {
-    case cuda::Epilogue::None: return "none";
-    case cuda::Epilogue::GeluErf: return "gelu_erf";
-    case cuda::Epilogue::GeluTanh: return "gelu_tanh";
-    case cuda::Epilogue::Silu: return "silu";
-  }
-  return "?";
-}
-
 // See the header comment; z is the pre-activation (x wᵀ + b), ref the result.
 template <class T>
 Bound linear_bound(cuda::Epilogue epi, const HostF& z, const HostF& ref) {
