@@ -93,9 +93,17 @@ void check_product(const Product& p, Route route, std::uint32_t seed) {
   CHECK(untouched_changed == 0);
 }
 
+// The skinny kernel needs thread-block clusters: a GPU of compute capability 9.0 or newer
+// running code built for one (elsewhere cuda::linear never takes it).
+bool skinny_here() {
+  const bool here = cuda::detail::skinny_available(gpu());
+  if (!here) MESSAGE("no thread-block clusters on this GPU / in this build: skinny kernel not checked directly");
+  return here;
+}
+
 template <class T>
 void check_both_routes(const Product& p, std::uint32_t seed) {
-  check_product<T>(p, Route::Skinny, seed);
+  if (skinny_here()) check_product<T>(p, Route::Skinny, seed);
   check_product<T>(p, Route::Linear, seed + 7);
 }
 
@@ -144,6 +152,6 @@ TEST_CASE("skinny linear declines what it cannot run (the caller falls back to c
   CHECK_FALSE(cuda::detail::skinny_linear(ctx, args(15, 1024, 1032, x.data() + 1), Epilogue::None));  // alignment
   CHECK_FALSE(cuda::detail::skinny_linear(ctx, args(15, 1024, 1032, x.data()), Epilogue::GeluErf));
   CHECK_FALSE(cuda::detail::skinny_linear(ctx, args(15, 1024, 1032, x.data()), Epilogue::Silu));
-  CHECK(cuda::detail::skinny_linear(ctx, args(15, 1024, 1032, x.data()), Epilogue::None));
+  CHECK(cuda::detail::skinny_linear(ctx, args(15, 1024, 1032, x.data()), Epilogue::None) == skinny_here());
   ctx.synchronize();
 }

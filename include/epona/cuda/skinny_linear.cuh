@@ -149,11 +149,21 @@ __device__ __forceinline__ ChunkRun warp_chunks(std::int64_t chunks, int split, 
   return {chunks * slot / slots, chunks * (slot + 1) / slots};
 }
 
+// Thread-block clusters exist from sm_90 on: device code built for older targets leaves the
+// cluster parts out (the host never launches the kernel there: skinny_available).
+#if !defined(__CUDA_ARCH__) || __CUDA_ARCH__ >= 900
+#define EPONA_SKINNY_CLUSTERS 1
+#else
+#define EPONA_SKINNY_CLUSTERS 0
+#endif
+
 // Both halves of a cluster-wide barrier (the sm_90 runtime intrinsics: cooperative_groups.h
 // would bring a namespace `cuda` that clashes with epona::cuda under `using namespace epona`).
 __device__ __forceinline__ void cluster_sync() {
+#if EPONA_SKINNY_CLUSTERS
   __cluster_barrier_arrive();
   __cluster_barrier_wait();
+#endif
 }
 
 // Sums the cluster's partial tiles for this CTA's share of the band's outputs, adds the bias,
@@ -171,6 +181,7 @@ __device__ void skinny_finish(const LinearArgs<T>& a, float (*part)[kSkinnyRows]
     part[0][0][e] = sum;
   }
   cluster_sync();  // every rank's total written
+#if EPONA_SKINNY_CLUSTERS
   const int n0 = blockIdx.y * kSkinnyBand;
   for (int e = static_cast<int>(__clusterRelativeBlockRank()) * kSkinnyThreads + threadIdx.x; e < a.M * kSkinnyBand;
        e += split * kSkinnyThreads) {
@@ -188,6 +199,10 @@ __device__ void skinny_finish(const LinearArgs<T>& a, float (*part)[kSkinnyRows]
     if constexpr (Gelu) sum = GeluTanhOp{}(sum);
     a.y[m * a.ldy + n] = from_f32<T>(sum);
   }
+#else
+  (void)a, (void)split;
+  __trap();  // unreachable: no cluster launch on a pre-sm_90 build
+#endif
   cluster_sync();  // no rank leaves (freeing its shared memory) while another still reads it
 }
 
@@ -260,6 +275,33 @@ inline int skinny_split(int multiprocessors, std::int64_t bands, std::int64_t ch
 // (1 x 6144 x 1024: 5.78 -> 7.11 us; 1 x 12288 x 2048: 15.25 -> 23.7; cuBLASLt's GEMV).
 inline bool skinny_wins(std::int64_t M, std::int64_t K) { return M >= 2 && K >= 4096; }
 
+// It has static shared memory only in device code with clusters: tells the host whether the
+// code this GPU runs (built for some target) has the skinny kernel's cluster parts.
+constexpr int kSkinnyMarkerWords = 6;
+__global__ void skinny_marker_kernel(int* flag) {
+#if EPONA_SKINNY_CLUSTERS
+  __shared__ int present[kSkinnyMarkerWords];
+  present[threadIdx.x % kSkinnyMarkerWords] = 1;
+  __syncthreads();
+  if (flag) *flag = present[0];
+#else
+  (void)flag;
+#endif
+}
+// A GPU with clusters (compute capability 9.0 or newer) running code built with them.
+inline bool skinny_available(const Context& ctx) {
+  if (ctx.info().major < 9) return false;
+  static const bool built = [] {
+    cudaFuncAttributes attr{};
+    if (cudaFuncGetAttributes(&attr, skinny_marker_kernel) != cudaSuccess) {
+      (void)cudaGetLastError();
+      return false;
+    }
+    return attr.sharedSizeBytes > 0;  // reported rounded up to the allocation granularity
+  }();
+  return built;
+}
+
 // Kernel launched on grid (x, y) in clusters of (x, 1, 1) with `smem` bytes of dynamic shared memory.
 template <class... Params, class... Args>
 void launch_in_clusters(void (*kernel)(Params...), dim3 grid, int threads, int smem, cudaStream_t stream,
@@ -286,10 +328,12 @@ void launch_skinny(Context& ctx, const LinearArgs<T>& a, int split, std::int64_t
 }
 
 // Runs the product when it is skinny (M <= 16), K a multiple of 8 with 16-byte aligned rows,
-// and the epilogue none or the tanh GELU; false (nothing launched) otherwise.
+// and the epilogue none or the tanh GELU, on a GPU and build with clusters; false (nothing
+// launched) otherwise.
 // Unroll: chunks per round of loads (benchmarks compare others).
 template <class T, int Unroll = kSkinnyUnroll<T>>
 bool skinny_linear(Context& ctx, const LinearArgs<T>& a, Epilogue epi) {
+  if (!skinny_available(ctx)) return false;
   if (a.M < 1 || a.M > kSkinnyRows || (epi != Epilogue::None && epi != Epilogue::GeluTanh)) return false;
   if (!packable(a.x, a.K, a.ldx) || !packable(a.w, a.K, a.K)) return false;
   const std::int64_t bands = (std::int64_t{a.N} + kSkinnyBand - 1) / kSkinnyBand;
