@@ -535,29 +535,19 @@ __global__ void __launch_bounds__(32 * kCombineWarps) combine_splits_kernel(cons
   *reinterpret_cast<uint2*>(out) = make_uint2(pack_bf16(acc.x * inv, acc.y * inv), pack_bf16(acc.z * inv, acc.w * inv));
 }
 
-// Present only in sm_90a code: its static shared memory tells the host that this build has
-// the wgmma kernels (the same binary may run on a GPU whose code was built without them).
-constexpr int kWgmmaMarkerWords = 12;
+// Marks sm_90a code (mark_build), which has the wgmma kernels.
 __global__ void wgmma_marker_kernel(int* flag) {
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
-  __shared__ int present[kWgmmaMarkerWords];
-  present[threadIdx.x % kWgmmaMarkerWords] = 1;
-  __syncthreads();
-  if (flag) *flag = present[0];
+  mark_build(flag);
+#else
+  (void)flag;
 #endif
 }
 }  // namespace fa
 
 inline bool flash_wgmma_available(const Context& ctx) {
   if (ctx.info().major != 9 || ctx.info().minor != 0) return false;  // sm_90a code runs on 9.0 only
-  static const bool built = [] {
-    cudaFuncAttributes a{};
-    if (cudaFuncGetAttributes(&a, fa::wgmma_marker_kernel) != cudaSuccess) {
-      (void)cudaGetLastError();
-      return false;
-    }
-    return a.sharedSizeBytes > 0;  // reported rounded up to the allocation granularity
-  }();
+  static const bool built = build_marked(fa::wgmma_marker_kernel);
   return built;
 }
 

@@ -113,6 +113,26 @@ __device__ __forceinline__ void store4(bf16* p, const float (&v)[4]) {
 
 inline bool aligned16(const void* p) { return reinterpret_cast<std::uintptr_t>(p) % 16 == 0; }
 
+// Build markers: one binary may carry device code for several targets, and some kernels exist
+// only in some of them (wgmma in sm_90a code, thread-block clusters from sm_90). A marker
+// kernel calls mark_build only inside the feature's #if; its static shared memory then tells
+// the host (build_marked) whether the code this GPU runs has the feature.
+__device__ __forceinline__ void mark_build(int* flag) {
+  __shared__ int present[4];
+  present[threadIdx.x % 4] = 1;
+  __syncthreads();
+  if (flag) *flag = present[0];
+}
+template <class Marker>
+bool build_marked(Marker* marker) {
+  cudaFuncAttributes attr{};
+  if (cudaFuncGetAttributes(&attr, marker) != cudaSuccess) {
+    (void)cudaGetLastError();
+    return false;
+  }
+  return attr.sharedSizeBytes > 0;  // reported rounded up to the allocation granularity
+}
+
 // Rows of width n, ldp apart, can be walked in 16-byte packs from p (null p counts as fine).
 inline bool packable(const void* p, std::int64_t n, std::int64_t ldp) {
   return !p || (aligned16(p) && n % kPack == 0 && ldp % kPack == 0);

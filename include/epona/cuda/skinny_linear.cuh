@@ -275,15 +275,10 @@ inline int skinny_split(int multiprocessors, std::int64_t bands, std::int64_t ch
 // (1 x 6144 x 1024: 5.78 -> 7.11 us; 1 x 12288 x 2048: 15.25 -> 23.7; cuBLASLt's GEMV).
 inline bool skinny_wins(std::int64_t M, std::int64_t K) { return M >= 2 && K >= 4096; }
 
-// It has static shared memory only in device code with clusters: tells the host whether the
-// code this GPU runs (built for some target) has the skinny kernel's cluster parts.
-constexpr int kSkinnyMarkerWords = 6;
+// Marks device code with clusters (mark_build), which has the skinny kernel's cluster parts.
 __global__ void skinny_marker_kernel(int* flag) {
 #if EPONA_SKINNY_CLUSTERS
-  __shared__ int present[kSkinnyMarkerWords];
-  present[threadIdx.x % kSkinnyMarkerWords] = 1;
-  __syncthreads();
-  if (flag) *flag = present[0];
+  mark_build(flag);
 #else
   (void)flag;
 #endif
@@ -291,14 +286,7 @@ __global__ void skinny_marker_kernel(int* flag) {
 // A GPU with clusters (compute capability 9.0 or newer) running code built with them.
 inline bool skinny_available(const Context& ctx) {
   if (ctx.info().major < 9) return false;
-  static const bool built = [] {
-    cudaFuncAttributes attr{};
-    if (cudaFuncGetAttributes(&attr, skinny_marker_kernel) != cudaSuccess) {
-      (void)cudaGetLastError();
-      return false;
-    }
-    return attr.sharedSizeBytes > 0;  // reported rounded up to the allocation granularity
-  }();
+  static const bool built = build_marked(skinny_marker_kernel);
   return built;
 }
 
