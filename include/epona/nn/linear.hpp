@@ -5,10 +5,8 @@
 // batched product where the backend has it (pair: the DiT double blocks' two streams).
 #pragma once
 
-#include <algorithm>
 #include <cstdint>
 #include <string>
-#include <utility>
 
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
@@ -53,7 +51,7 @@ struct Linear {
     EPONA_CHECK(a.in == b.in && a.out == b.out && a.has_bias == b.has_bias, "Linear::bind_pair: (", a.in, " -> ", a.out,
                 ") with (", b.in, " -> ", b.out, ")");
     const auto both = [&](const std::string& name, const Shape& shape, Tensor<T, B>& ta, Tensor<T, B>& tb) {
-      auto stacked = bind_stacked(report, first + name, second + name, shape);
+      auto stacked = bind_stacked_params<B, T>(report, {first + name, second + name}, shape);
       if (!stacked.empty()) ta = stacked[0], tb = stacked[1];
     };
     both("weight", {a.out, a.in}, a.weight, b.weight);
@@ -104,24 +102,6 @@ struct Linear {
   }
 
   double flops(std::int64_t tokens) const { return 2.0 * double(tokens) * double(in) * double(out); }
-
- private:
-  // Parameters `name0` and `name1` of `shape` stacked into one backend tensor (2, shape...);
-  // empty (problems recorded) when either is missing or mis-shaped.
-  static Tensor<T, B> bind_stacked(io::BindReport& report, const std::string& name0, const std::string& name1,
-                                   const Shape& shape) {
-    const io::RawTensor* raw0 = report.take(name0, shape);
-    const io::RawTensor* raw1 = report.take(name1, shape);
-    if (raw0 == nullptr || raw1 == nullptr) return {};
-    Shape stacked_shape = shape;
-    stacked_shape.insert(stacked_shape.begin(), 2);
-    Tensor<T, Cpu> host(stacked_shape);
-    for (const auto& [i, raw] : {std::pair{0, raw0}, std::pair{1, raw1}}) {
-      const auto part = io::to_tensor<T>(*raw);
-      std::copy_n(part.data(), part.numel(), host[i].data());
-    }
-    return BackendTraits<B>::upload(host);
-  }
 };
 
 }  // namespace epona::nn
