@@ -50,6 +50,16 @@ struct Options {
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
 };
 
+// For `ncu --profile-from-start off`: `fn` (already run once, so its plans and tables exist)
+// once more, alone inside cudaProfilerStart/Stop.
+void profile_once(cuda::Context& ctx, const std::function<void()>& fn) {
+  ctx.synchronize();
+  EPONA_CUDA_CHECK(cudaProfilerStart());
+  fn();
+  ctx.synchronize();
+  EPONA_CUDA_CHECK(cudaProfilerStop());
+}
+
 Options parse(int argc, char** argv) {
   Options o;
   for (int i = 1; i < argc; ++i) {
@@ -290,13 +300,7 @@ int run(const Options& o) {
     mst.evaluate(ctx, arena, latents, pose_idx, yaw_idx, stt, pose_emb);
   };
   mst_once();
-  if (o.profile && o.want("mst")) {  // for `ncu --profile-from-start off`: the kernels of one MST evaluation
-    ctx.synchronize();
-    EPONA_CUDA_CHECK(cudaProfilerStart());
-    mst_once();
-    ctx.synchronize();
-    EPONA_CUDA_CHECK(cudaProfilerStop());
-  }
+  if (o.profile && o.want("mst")) profile_once(ctx, mst_once);
   if (o.want("mst")) emit("mst", event_times_ms(ctx, R, 3, mst_once), mst_tflop);
 
   const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
@@ -313,24 +317,17 @@ int run(const Options& o) {
       Tensor<float, Cpu> t({1});
       t.data()[0] = 0.3f;
       const double eval_tflop = dit.forward_flops(rows, false).total() / 1e12;
-      // For `ncu --profile-from-start off`: the kernels of one evaluation, prepare included (each
-    // range starts with the conversion of the condition, a 515-block float -> bf16 map).
-    if (o.profile && suffix.empty()) {
-        arena.reset();
-        dit.forward(ctx, arena, x, target_ids, stt, ids.cond, t, pose_emb, v);  // plans made, outside the range
-        ctx.synchronize();
-        EPONA_CUDA_CHECK(cudaProfilerStart());
+      const auto eval_once = [&] {
         arena.reset();
         dit.forward(ctx, arena, x, target_ids, stt, ids.cond, t, pose_emb, v);
-        ctx.synchronize();
-        EPONA_CUDA_CHECK(cudaProfilerStop());
+      };
+      // The kernels of one evaluation, prepare included (each range starts with the conversion
+      // of the condition, a 515-block float -> bf16 map).
+      if (o.profile && suffix.empty()) {
+        eval_once();  // plans made, outside the range
+        profile_once(ctx, eval_once);
       }
-      if (o.want(name + "_eval"))
-        emit(name + "_eval" + suffix, event_times_ms(ctx, std::max(R, 20), 3, [&] {
-               arena.reset();
-               dit.forward(ctx, arena, x, target_ids, stt, ids.cond, t, pose_emb, v);
-             }),
-             eval_tflop);
+      if (o.want(name + "_eval")) emit(name + "_eval" + suffix, event_times_ms(ctx, std::max(R, 20), 3, eval_once), eval_tflop);
       const auto grid = flow::get_schedule(o.steps, rows.target);
       Tensor<float, Cuda> state(x.shape());
       const auto sample_once = [&] {

@@ -88,11 +88,9 @@ template <class T>
 bool small_linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bias, T* y, std::int64_t ldy,
                   std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi) {
   if (M > 0x7fffffff || N > 0x7fffffff || K > 0x7fffffff) return false;
-  const int m = static_cast<int>(M), n = static_cast<int>(N), k = static_cast<int>(K);
-  if (epi == Epilogue::None && few_outputs_linear(ctx, LinearArgs<T>{x, ldx, w, bias, y, ldy, m, n, k}))
-    return true;
-  return skinny_linear_flag() && skinny_wins(M, K) &&
-         skinny_linear(ctx, LinearArgs<T>{x, ldx, w, bias, y, ldy, m, n, k}, epi);
+  const LinearArgs<T> a{x, ldx, w, bias, y, ldy, static_cast<int>(M), static_cast<int>(N), static_cast<int>(K)};
+  if (epi == Epilogue::None && few_outputs_linear(ctx, a)) return true;
+  return skinny_linear_flag() && skinny_wins(M, K) && skinny_linear(ctx, a, epi);
 }
 
 }  // namespace detail
