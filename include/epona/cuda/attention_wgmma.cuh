@@ -16,6 +16,7 @@
 #include <string>
 
 #include "epona/cuda/attention.cuh"
+#include "epona/cuda/wgmma.cuh"
 
 namespace epona::cuda::detail {
 
@@ -57,72 +58,6 @@ __device__ __forceinline__ void load_swizzled(unsigned dst, const bf16* src, std
   }
 }
 
-// wgmma shared-memory matrix descriptor with the 128-byte swizzle. K-major operands (Q, K):
-// `lead` unused, `stride` = 1024 (from one 8-row atom to the next). N-major V: `lead` = the
-// distance between the two 64-channel halves, `stride` = 1024 (from one 8-key atom to the next).
-__device__ __forceinline__ std::uint64_t smem_desc(unsigned addr, unsigned lead, unsigned stride) {
-  return std::uint64_t{(addr & 0x3FFFFu) >> 4} | std::uint64_t{lead >> 4} << 16 | std::uint64_t{stride >> 4} << 32 |
-         std::uint64_t{1} << 62;
-}
-
-__device__ __forceinline__ void wgmma_fence() { asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory"); }
-__device__ __forceinline__ void wgmma_commit() { asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory"); }
-__device__ __forceinline__ void wgmma_wait_all() { asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory"); }
-// Makes the shared memory this thread's cp.async wrote visible to the tensor cores' (async) proxy.
-__device__ __forceinline__ void fence_proxy_async() { asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory"); }
-
-// Pins accumulator registers at this point of the program: the compiler sees the wgmma asm
-// write them when it is issued, so without this it could read them before wgmma_wait_all.
-template <int N>
-__device__ __forceinline__ void pin(float (&d)[N][4]) {
-#pragma unroll
-  for (int i = 0; i < N; ++i)
-#pragma unroll
-    for (int j = 0; j < 4; ++j) asm volatile("" : "+f"(d[i][j])::"memory");
-}
-
-// The accumulator operands of a wgmma (d[i][0..3] for each n8 block i), in PTX operand order.
-#define EPONA_WGMMA_BLOCK(d, i) "+f"(d[i][0]), "+f"(d[i][1]), "+f"(d[i][2]), "+f"(d[i][3])
-#define EPONA_WGMMA_ACCUMULATORS_4(d) \
-  EPONA_WGMMA_BLOCK(d, 0), EPONA_WGMMA_BLOCK(d, 1), EPONA_WGMMA_BLOCK(d, 2), EPONA_WGMMA_BLOCK(d, 3)
-#define EPONA_WGMMA_ACCUMULATORS_8(d) \
-  EPONA_WGMMA_ACCUMULATORS_4(d), EPONA_WGMMA_BLOCK(d, 4), EPONA_WGMMA_BLOCK(d, 5), EPONA_WGMMA_BLOCK(d, 6), \
-      EPONA_WGMMA_BLOCK(d, 7)
-#define EPONA_WGMMA_ACCUMULATORS_16(d)                                                                 \
-  EPONA_WGMMA_ACCUMULATORS_8(d), EPONA_WGMMA_BLOCK(d, 8), EPONA_WGMMA_BLOCK(d, 9), EPONA_WGMMA_BLOCK(d, 10), \
-      EPONA_WGMMA_BLOCK(d, 11), EPONA_WGMMA_BLOCK(d, 12), EPONA_WGMMA_BLOCK(d, 13), EPONA_WGMMA_BLOCK(d, 14), \
-      EPONA_WGMMA_BLOCK(d, 15)
-
-// d (64 x N float32 in the accumulator layout: per warp 16 rows, d[i] = the n8 block i as
-// mma.sync's C fragment) (+)= A (64 x 16, shared, descriptor a) B (16 x N, shared, descriptor b).
-// accumulate = 0: d = A B.
-__device__ __forceinline__ void wgmma_ss(float (&d)[4][4], std::uint64_t a, std::uint64_t b, int accumulate) {
-  asm volatile(
-      "{\n.reg .pred p;\nsetp.ne.b32 p, %18, 0;\n"
-      "wgmma.mma_async.sync.aligned.m64n32k16.f32.bf16.bf16 {%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15}, %16, %17, p, 1, 1, 0, 0;\n}\n"
-      :
-      EPONA_WGMMA_ACCUMULATORS_4(d)
-      : "l"(a), "l"(b), "r"(accumulate));
-}
-
-__device__ __forceinline__ void wgmma_ss(float (&d)[8][4], std::uint64_t a, std::uint64_t b, int accumulate) {
-  asm volatile(
-      "{\n.reg .pred p;\nsetp.ne.b32 p, %34, 0;\n"
-      "wgmma.mma_async.sync.aligned.m64n64k16.f32.bf16.bf16 {%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15, %16, %17, %18, %19, %20, %21, %22, %23, %24, %25, %26, %27, %28, %29, %30, %31}, %32, %33, p, 1, 1, 0, 0;\n}\n"
-      :
-      EPONA_WGMMA_ACCUMULATORS_8(d)
-      : "l"(a), "l"(b), "r"(accumulate));
-}
-
-__device__ __forceinline__ void wgmma_ss(float (&d)[16][4], std::uint64_t a, std::uint64_t b, int accumulate) {
-  asm volatile(
-      "{\n.reg .pred p;\nsetp.ne.b32 p, %66, 0;\n"
-      "wgmma.mma_async.sync.aligned.m64n128k16.f32.bf16.bf16 {%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15, %16, %17, %18, %19, %20, %21, %22, %23, %24, %25, %26, %27, %28, %29, %30, %31, %32, %33, %34, %35, %36, %37, %38, %39, %40, %41, %42, %43, %44, %45, %46, %47, %48, %49, %50, %51, %52, %53, %54, %55, %56, %57, %58, %59, %60, %61, %62, %63}, %64, %65, p, 1, 1, 0, 0;\n}\n"
-      :
-      EPONA_WGMMA_ACCUMULATORS_16(d)
-      : "l"(a), "l"(b), "r"(accumulate));
-}
-
 // d (64 x 128) += A (64 x 16 bf16 in registers, mma.sync's A fragment per warp) B (16 x 128,
 // shared, N-major: the transpose bit).
 __device__ __forceinline__ void wgmma_rs(float (&d)[16][4], const unsigned (&a)[4], std::uint64_t b) {
@@ -133,10 +68,6 @@ __device__ __forceinline__ void wgmma_rs(float (&d)[16][4], const unsigned (&a)[
       EPONA_WGMMA_ACCUMULATORS_16(d)
       : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "l"(b), "r"(1));
 }
-#undef EPONA_WGMMA_ACCUMULATORS_16
-#undef EPONA_WGMMA_ACCUMULATORS_8
-#undef EPONA_WGMMA_ACCUMULATORS_4
-#undef EPONA_WGMMA_BLOCK
 
 // A block: kGroups consumer warpgroups, each owning 64 query rows of one (sequence, head),
 // sharing key tiles of kKeys keys (K and V) that stream through two shared-memory stages.
@@ -151,17 +82,6 @@ struct WgmmaTiling {
   static_assert(kKeys % 16 == 0 && kKeys <= 256);
 };
 
-template <int kGroups>
-__device__ __forceinline__ void wgmma_wait() {
-  asm volatile("wgmma.wait_group.sync.aligned %0;\n" ::"n"(kGroups) : "memory");
-}
-template <int N>
-__device__ __forceinline__ void pin(unsigned (&a)[N][4]) {
-#pragma unroll
-  for (int i = 0; i < N; ++i)
-#pragma unroll
-    for (int j = 0; j < 4; ++j) asm volatile("" : "+r"(a[i][j])::"memory");
-}
 
 // Issues S = Q Kᵀ for the warpgroup's 64 rows and the first kKeys keys of a tile of kTileKeys
 // (kKeys < kTileKeys: the sequence's last, narrow tile): 8 steps of 16 channels; a step moves
@@ -283,28 +203,6 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
 // warpgroups 1..kConsumers each compute 64 query rows. TMA writes the same 128-byte swizzle the
 // descriptors read, and fills rows past the tensor's end with zeros. A consumer waits for K
 // (scores, softmax), then V (P V), then releases the stage to the producer.
-namespace mbar {
-__device__ __forceinline__ void init(unsigned bar, unsigned count) {
-  asm volatile("mbarrier.init.shared::cta.b64 [%0], %1;\n" ::"r"(bar), "r"(count) : "memory");
-}
-__device__ __forceinline__ void expect_bytes(unsigned bar, unsigned bytes) {
-  asm volatile("mbarrier.arrive.expect_tx.shared::cta.b64 _, [%0], %1;\n" ::"r"(bar), "r"(bytes) : "memory");
-}
-__device__ __forceinline__ void arrive(unsigned bar) {
-  asm volatile("mbarrier.arrive.shared::cta.b64 _, [%0];\n" ::"r"(bar) : "memory");
-}
-// Waits until the phase of parity `parity` has completed (on a fresh barrier, parity 1 has).
-__device__ __forceinline__ void wait(unsigned bar, unsigned parity) {
-  unsigned done = 0;
-  do {
-    asm volatile(
-        "{\n.reg .pred p;\nmbarrier.try_wait.parity.shared::cta.b64 p, [%1], %2;\nselp.u32 %0, 1, 0, p;\n}\n"
-        : "=r"(done)
-        : "r"(bar), "r"(parity)
-        : "memory");
-  } while (!done);
-}
-}  // namespace mbar
 
 // One box (64 channels x rows of one head) of a (channel, head, row, sequence) tensor map to dst.
 __device__ __forceinline__ void tma_load(unsigned dst, const CUtensorMap& map, int channel, int head, int row, int seq,
@@ -535,41 +433,10 @@ __global__ void __launch_bounds__(32 * kCombineWarps) combine_splits_kernel(cons
   *reinterpret_cast<uint2*>(out) = make_uint2(pack_bf16(acc.x * inv, acc.y * inv), pack_bf16(acc.z * inv, acc.w * inv));
 }
 
-// Marks sm_90a code (mark_build), which has the wgmma kernels.
-__global__ void wgmma_marker_kernel(int* flag) {
-#if defined(__CUDA_ARCH_FEAT_SM90_ALL)
-  mark_build(flag);
-#else
-  (void)flag;
-#endif
-}
 }  // namespace fa
 
-inline bool flash_wgmma_available(const Context& ctx) {
-  if (ctx.info().major != 9 || ctx.info().minor != 0) return false;  // sm_90a code runs on 9.0 only
-  static const bool built = build_marked(fa::wgmma_marker_kernel);
-  return built;
-}
+inline bool flash_wgmma_available(const Context& ctx) { return sm90a_available(ctx); }
 
-// The driver's cuTensorMapEncodeTiled, fetched once through the runtime (no libcuda link); null
-// where the driver lacks it.
-using TensorMapEncoder = CUresult (*)(CUtensorMap*, CUtensorMapDataType, cuuint32_t, void*, const cuuint64_t*,
-                                      const cuuint64_t*, const cuuint32_t*, const cuuint32_t*, CUtensorMapInterleave,
-                                      CUtensorMapSwizzle, CUtensorMapL2promotion, CUtensorMapFloatOOBfill);
-inline TensorMapEncoder tensor_map_encoder() {
-  static const TensorMapEncoder encode = [] {
-    void* fn = nullptr;
-    cudaDriverEntryPointQueryResult found{};
-    if (cudaGetDriverEntryPointByVersion("cuTensorMapEncodeTiled", &fn, 12000, cudaEnableDefault, &found) !=
-            cudaSuccess ||
-        found != cudaDriverEntryPointSuccess) {
-      (void)cudaGetLastError();
-      return TensorMapEncoder{};
-    }
-    return reinterpret_cast<TensorMapEncoder>(fn);
-  }();
-  return encode;
-}
 
 // One of q, k, v as a (channel, head, row, sequence) tensor of `rows` rows, read in boxes of 64
 // channels x box_rows rows of one head with the 128-byte swizzle; rows past the end read as
