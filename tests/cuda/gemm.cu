@@ -137,3 +137,90 @@ TEST_CASE("cuda linear rejects bad shapes with epona::Error") {
   CHECK_THROWS_WITH_AS(cuda::linear(ctx, x.data(), 7, w.data(), b.data(), y.data(), 6, 4, 6, 8),
                        doctest::Contains("row strides"), epona::Error);
 }
+
+// The own Hopper GEMM (gemm_wgmma.cuh) called directly, where cuda::linear would not pick it
+// too: partial row and column tiles, a depth that is no whole number of stages, row strides
+// with y a column block of a wider (poisoned) buffer, with and without bias, the erf GELU and
+// no activation. Bound as for linear (the pre-activation rounded to bf16 first).
+TEST_CASE("cuda own Hopper GEMM matches cpu::linear and writes only its block") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  if (!cuda::detail::sm90a_available(ctx)) {
+    MESSAGE("skipped: the own GEMM needs an sm_90a GPU and build");
+    return;
+  }
+  cpu::Context cctx;
+  struct OwnCase { std::int64_t M, N, K, ldx, ldy, col0; bool bias; cuda::Epilogue epi; };
+  const OwnCase cases[] = {
+      {300, 520, 200, 200, 520, 0, true, cuda::Epilogue::GeluErf},      // partial tiles everywhere
+      {515, 2048, 512, 512, 2048, 0, false, cuda::Epilogue::GeluErf},   // the DiTs' condition rows
+      {128, 256, 64, 64, 256, 0, false, cuda::Epilogue::None},          // exactly one tile, one stage
+      {1000, 4096, 1024, 1024, 4096, 0, true, cuda::Epilogue::None},    // several tiles per block
+      {200, 136, 72, 80, 160, 8, true, cuda::Epilogue::GeluErf},        // strided x, y a column block
+      {5150, 512, 128, 128, 512, 0, false, cuda::Epilogue::GeluErf},    // the MST's row count
+  };
+  std::uint32_t seed = 900;
+  for (const OwnCase& c : cases) {
+    HostF xw = random_tensor({c.M, c.ldx}, seed++, -2.f, 2.f);
+    HostF w = random_tensor({c.N, c.K}, seed++, -1.f / std::sqrt(float(c.K)), 1.f / std::sqrt(float(c.K)));
+    HostF b = c.bias ? random_tensor({c.N}, seed++) : HostF();
+    round_to<bf16>(xw), round_to<bf16>(w);
+    if (c.bias) round_to<bf16>(b);
+    HostF ref({c.M, c.ldy}), z({c.M, c.N}), y({c.M, c.N});
+    std::fill_n(ref.data(), ref.numel(), std::numeric_limits<float>::quiet_NaN());
+    const float* bias = c.bias ? b.data() : nullptr;
+    cpu::linear(cctx, xw.data(), c.ldx, w.data(), bias, ref.data() + c.col0, c.ldy, c.M, c.N, c.K, c.epi);
+    cpu::linear(cctx, xw.data(), c.ldx, w.data(), bias, z.data(), c.N, c.M, c.N, c.K, cpu::Epilogue::None);
+    cpu::linear(cctx, xw.data(), c.ldx, w.data(), bias, y.data(), c.N, c.M, c.N, c.K, c.epi);
+
+    auto dx = upload<bf16>(ctx, xw), dw = upload<bf16>(ctx, w);
+    auto db = c.bias ? upload<bf16>(ctx, b) : Dev<bf16>();
+    Dev<bf16> dy({c.M, c.ldy});
+    poison(ctx, dy);
+    bool ran = false;
+    const auto run = [&](auto op) {
+      ran = cuda::detail::own_gemm(ctx, dx.data(), c.ldx, dw.data(), c.bias ? db.data() : nullptr,
+                                   dy.data() + c.col0, c.ldy, c.M, c.N, c.K, op);
+    };
+    if (c.epi == cuda::Epilogue::GeluErf) run(cuda::detail::GeluErfOp{});
+    else run(cuda::detail::Identity{});
+    REQUIRE(ran);
+    const HostF out = download(ctx, dy);
+    const auto inside = [&](std::int64_t i) { return i % c.ldy >= c.col0 && i % c.ldy < c.col0 + c.N; };
+    const std::string what = "own GEMM M=" + std::to_string(c.M) + " N=" + std::to_string(c.N) + " K=" +
+                             std::to_string(c.K) + (c.bias ? " +bias " : " ") + epilogue_name(c.epi);
+    check_error(measure(out.data(), ref.data(), out.numel(), inside), linear_bound<bf16>(c.epi, z, y), what);
+    std::int64_t touched = 0;
+    for (std::int64_t i = 0; i < out.numel(); ++i) touched += !inside(i) && !std::isnan(out.data()[i]);
+    CHECK(touched == 0);
+  }
+}
+
+// With its switch on, cuda::linear sends bf16 products with the erf GELU (at least a tile of
+// rows) to the own GEMM; both paths (switch on and off) give the same values up to the
+// summation order: at most one bf16 step apart before the GELU, so within the linear bound.
+TEST_CASE("cuda linear with the erf GELU: own GEMM and cuBLASLt + pass agree") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  cpu::Context cctx;
+  const std::int64_t M = 640, N = 1024, K = 768;
+  HostF x = random_tensor({M, K}, 950, -2.f, 2.f), w = random_tensor({N, K}, 951, -0.04f, 0.04f);
+  round_to<bf16>(x), round_to<bf16>(w);
+  auto dx = upload<bf16>(ctx, x), dw = upload<bf16>(ctx, w);
+  Dev<bf16> none, on({M, N}), off({M, N});
+  auto& flag = cuda::detail::own_gemm_flag();
+  const bool saved = flag.load();
+  poison(ctx, on), poison(ctx, off);
+  flag.store(true);
+  cuda::linear(ctx, dx, dw, none, on, cuda::Epilogue::GeluErf);
+  flag.store(false);
+  cuda::linear(ctx, dx, dw, none, off, cuda::Epilogue::GeluErf);
+  flag.store(saved);
+  HostF z({M, N}), y({M, N});
+  cpu::linear(cctx, x, w, HostF(), z, cpu::Epilogue::None);
+  cpu::linear(cctx, x, w, HostF(), y, cpu::Epilogue::GeluErf);
+  const HostF a = download(ctx, on), b = download(ctx, off);
+  check_error(measure(a, y), linear_bound<bf16>(cuda::Epilogue::GeluErf, z, y), "linear gelu_erf, own GEMM on");
+  check_error(measure(b, y), linear_bound<bf16>(cuda::Epilogue::GeluErf, z, y), "linear gelu_erf, own GEMM off");
+  check_error(measure(a, b), linear_bound<bf16>(cuda::Epilogue::GeluErf, z, y), "own GEMM against cuBLASLt + pass");
+}

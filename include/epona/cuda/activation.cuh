@@ -29,6 +29,9 @@ struct GeluTanhOp {
     return 0.5f * v * (1.0f + tanhf(k * (v + 0.044715f * v * v * v)));
   }
 };
+struct Identity {
+  __device__ float operator()(float v) const { return v; }
+};
 struct SiluOp {
   static constexpr const char* table = "silu_bf16";
   __device__ float operator()(float v) const { return v / (1.0f + expf(-v)); }

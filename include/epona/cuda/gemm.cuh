@@ -16,6 +16,7 @@
 #include "epona/cuda/activation.cuh"
 #include "epona/core/kernel_options.hpp"
 #include "epona/cuda/memory.hpp"
+#include "epona/cuda/gemm_wgmma.cuh"
 #include "epona/cuda/small_linear.cuh"
 
 namespace epona::cuda {
@@ -216,10 +217,6 @@ struct BiasActivationEach {
   }
 };
 
-struct Identity {
-  __device__ float operator()(float v) const { return v; }
-};
-
 template <class T, class Op>
 void bias_activation(Context& ctx, T* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const T* bias, Op op) {
   const bool packed = packable(y, n, ldy) && packable(bias, n, 0);
@@ -311,6 +308,10 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
   // Shapes cuBLASLt's tiles fit badly (a few outputs per row, a tiny K): our own kernels, which
   // say which epilogues they take (small_linear.cuh).
   if (detail::small_linear_enabled() && detail::small_linear(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi)) return;
+  if constexpr (std::is_same_v<T, bf16>)  // the erf GELU fused (cuBLASLt would need a pass after)
+    if (epi == Epilogue::GeluErf && detail::own_gemm_wins(M, K) &&
+        detail::own_gemm(ctx, x, ldx, w, bias, y, ldy, M, N, K, detail::GeluErfOp{}))
+      return;
   const cublasLtEpilogue_t wanted = detail::wanted_epilogue(epi, bias != nullptr, detail::pointer_alignment(bias));
   const detail::LtPlanKey key{detail::dtype_tag<T>(), M, N, K, ldx, ldy, static_cast<std::int64_t>(wanted),
                               detail::pointer_alignment(x), detail::pointer_alignment(w),
