@@ -11,7 +11,9 @@
 #include <string>
 #include <vector>
 
+#include "epona/cuda/gemm_batched.cuh"
 #include "epona/cuda/ops.cuh"
+#include "epona/cuda/side_stream.hpp"
 
 using namespace epona;
 
@@ -253,12 +255,95 @@ void bench_temporal(cuda::Context& ctx, bool last_only, int reps) {
                           4.0 * spatial * heads * a.lq * frames * 128, bytes, reps);
 }
 
+// Products whose row count is a few past a multiple of 128 (the DiTs' 515 condition rows: 512
+// image tokens + 3 pose tokens; 1027 joint rows): M rows as one product, M - tail rows alone,
+// the tail alone, and the M - tail rows with the tail on a second stream (graph-timed, operand
+// sets rotating). paired: the double blocks' batch-2 product (both items M rows; the tail is
+// the first item's).
+void bench_row_tail(cuda::Context& ctx, cuda::SideStream& side, std::int64_t M, std::int64_t N, std::int64_t K,
+                    bool paired, cuda::Epilogue epi, const char* what, std::int64_t tail = 3) {
+  const int items = paired ? 2 : 1;
+  const double bytes_per_set = double(items) * (M * K + N * K + M * N) * 2;
+  const int sets = std::clamp(static_cast<int>(240e6 / bytes_per_set) + 1, 2, 8);
+  std::vector<Tensor<bf16, Cuda>> xs, ws, bs, ys;
+  for (int s = 0; s < sets; ++s) {
+    xs.push_back(random_device<bf16>(ctx, {items, M, K}, 10 * s + 1));
+    ws.push_back(random_device<bf16>(ctx, {items, N, K}, 10 * s + 2, -0.03f, 0.03f));
+    bs.push_back(random_device<bf16>(ctx, {items, N}, 10 * s + 3));
+    ys.push_back(Tensor<bf16, Cuda>({items, M, N}));
+  }
+  int call = 0;
+  const auto product = [&](cuda::Context& c, int s, std::int64_t first, std::int64_t rows, int count) {
+    const bf16 *x = xs[s].data() + first * K, *w = ws[s].data(), *b = bs[s].data();
+    bf16* y = ys[s].data() + first * N;
+    cuda::linear_batched(c, x, K, w, b, y, N, rows, N, K, cuda::GemmBatch{count, M * K, N * K, N, M * N}, epi);
+  };
+  const auto timed = [&](const char* how, const std::function<void(int)>& fn) {
+    const double ms = median_graph_ms(ctx, 15, [&] { fn(call++ % sets); });
+    char name[200];
+    std::snprintf(name, sizeof name, "%s %s M=%lld N=%lld K=%lld: %s", what, paired ? "pair" : "one",
+                  static_cast<long long>(M), static_cast<long long>(N), static_cast<long long>(K), how);
+    row(name, ms, 2.0 * items * M * N * K, 0);
+    return ms;
+  };
+  const double full = timed("all rows", [&](int s) { product(ctx, s, 0, M, items); });
+  const double body = timed("body rows only", [&](int s) { product(ctx, s, 0, M - tail, items); });
+  const double tl = timed("tail rows only", [&](int s) { product(ctx, s, M - tail, tail, 1); });
+  const double split = timed("body + tail on a side stream", [&](int s) {
+    side.fork(ctx);
+    product(side.side(ctx), s, M - tail, tail, 1);
+    product(ctx, s, 0, M - tail, items);
+    side.join(ctx);
+  });
+  std::printf("  -> all %.1f us, body %.1f, tail %.1f, body || tail %.1f (x%.2f)\n", 1e3 * full, 1e3 * body, 1e3 * tl,
+              1e3 * split, full / split);
+}
+
+// The own Hopper GEMM (gemm_wgmma.cuh) against cuBLASLt at one shape, side by side: with the
+// erf GELU through cuda::linear (switch on: fused; off: cuBLASLt + the table pass), and with
+// no activation calling both directly.
+void bench_own_gemm(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int64_t K, const char* what) {
+  auto& flag = cuda::detail::own_gemm_flag();
+  const bool saved = flag.load();
+  for (const bool on : {false, true, false, true}) {
+    flag.store(on);
+    bench_linear<bf16>(ctx, M, N, K, false, cuda::Epilogue::GeluErf, 30,
+                       (std::string(what) + (on ? " [own GEMM, GELU fused]" : " [cuBLASLt + GELU pass]")).c_str());
+  }
+  flag.store(saved);
+  const int sets = std::clamp(static_cast<int>(240e6 / double(2 * (M * K + N * K + M * N))) + 1, 1, 8);
+  std::vector<Tensor<bf16, Cuda>> xs, ws, ys;
+  for (int s = 0; s < sets; ++s) {
+    xs.push_back(random_device<bf16>(ctx, {M, K}, 10 * s + 1));
+    ws.push_back(random_device<bf16>(ctx, {N, K}, 10 * s + 2, -0.03f, 0.03f));
+    ys.push_back(Tensor<bf16, Cuda>({M, N}));
+  }
+  char name[200];
+  std::snprintf(name, sizeof name, "%s bf16 M=%lld N=%lld K=%lld no act", what, static_cast<long long>(M),
+                static_cast<long long>(N), static_cast<long long>(K));
+  for (int round = 0; round < 2; ++round) {
+    double ms = median_ms(ctx, 30, [&](int i) {
+      const int s = i % sets;
+      cuda::linear(ctx, xs[s].data(), K, ws[s].data(), static_cast<const bf16*>(nullptr), ys[s].data(), N, M, N, K);
+    });
+    row(std::string(name) + " [cuBLASLt]", ms, 2.0 * M * N * K, 0);
+    ms = median_ms(ctx, 30, [&](int i) {
+      const int s = i % sets;
+      cuda::detail::own_gemm(ctx, xs[s].data(), K, ws[s].data(), nullptr, ys[s].data(), N, M, N, K,
+                             cuda::detail::Identity{});
+    });
+    row(std::string(name) + " [own GEMM]", ms, 2.0 * M * N * K, 0);
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   const auto flag = [&](const char* name) { return std::find(argv + 1, argv + argc, std::string(name)) != argv + argc; };
   g_once = flag("--once");
   const bool attention_only = flag("--attention");  // only that section
+  const bool rows_only = flag("--rows");            // only the row-tail experiment
+  const bool own_only = flag("--own-gemm");         // only the own GEMM against cuBLASLt
   if (!cuda::has_gpu()) {
     std::printf("no CUDA device: skipping\n");
     return 0;
@@ -269,6 +354,35 @@ int main(int argc, char** argv) {
     std::printf("device: %s (sm_%d%d, %d SMs, %.1f GiB, L2 %.0f MiB)\n\n", d.name.c_str(), d.major, d.minor,
                 d.multiprocessors, d.global_bytes / 1073741824.0, d.l2_bytes / 1048576.0);
 
+    if (own_only) {
+      bench_own_gemm(ctx, 5150, 8192, 2048, "MST c_fc");
+      bench_own_gemm(ctx, 5150, 2048, 8192, "MST c_proj");
+      bench_own_gemm(ctx, 5150, 2048, 2048, "MST q/k/v/proj");
+      bench_own_gemm(ctx, 1027, 6144, 2048, "VisDiT qkv");
+      bench_own_gemm(ctx, 515, 3072, 1024, "TrajDiT qkv");
+      bench_own_gemm(ctx, 8192, 8192, 8192, "square");
+      ctx.synchronize();
+      return 0;
+    }
+    if (rows_only) {
+      cuda::SideStream side;
+      using E = cuda::Epilogue;
+      bench_row_tail(ctx, side, 515, 6144, 2048, true, E::None, "VisDiT double qkv");
+      bench_row_tail(ctx, side, 515, 2048, 2048, true, E::None, "VisDiT double proj");
+      bench_row_tail(ctx, side, 515, 8192, 2048, true, E::GeluTanh, "VisDiT double fc1");
+      bench_row_tail(ctx, side, 515, 2048, 8192, true, E::None, "VisDiT double fc2");
+      bench_row_tail(ctx, side, 1027, 6144, 2048, false, E::None, "VisDiT single q+kv");
+      bench_row_tail(ctx, side, 1027, 8192, 2048, false, E::GeluTanh, "VisDiT single mlp");
+      bench_row_tail(ctx, side, 1027, 2048, 10240, false, E::None, "VisDiT single linear2");
+      bench_row_tail(ctx, side, 515, 3072, 1024, false, E::None, "TrajDiT cond qkv");
+      bench_row_tail(ctx, side, 515, 4096, 1024, false, E::GeluTanh, "TrajDiT cond fc1");
+      bench_row_tail(ctx, side, 515, 1024, 4096, false, E::None, "TrajDiT cond fc2");
+      bench_row_tail(ctx, side, 515, 1024, 1024, false, E::None, "TrajDiT cond proj");
+      bench_row_tail(ctx, side, 515, 2048, 1024, false, E::None, "TrajDiT single kv");
+      bench_row_tail(ctx, side, 5150, 8192, 2048, false, E::None, "MST c_fc", 30);
+      ctx.synchronize();
+      return 0;
+    }
     if (!attention_only) {  // the ceilings and the model GEMMs
       {  // Ceiling 1: device-to-device copy of 2 GiB, bytes read + written.
         const std::int64_t n = std::int64_t{1} << 29;
