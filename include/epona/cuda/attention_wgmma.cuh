@@ -28,8 +28,6 @@ namespace fa {
 // of row r at position c ^ (r % 8) in its row: the canonical 128-byte swizzle that the
 // wgmma matrix descriptors name (both for K-major operands, Q and K, and for the N-major V).
 // Tiles start at 1024-byte boundaries, so the swizzle phase is the address's own.
-constexpr int kRowBytes = 128;        // one row of a column half
-constexpr int kAtomBytes = 8 * kRowBytes;
 
 __device__ __forceinline__ unsigned swizzled_offset(int row, int chunk, int rows) {
   return (chunk >> 3) * rows * kRowBytes + row * kRowBytes + (((chunk & 7) ^ (row & 7)) << 4);
@@ -149,7 +147,7 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
   constexpr int kKeys = Tile::keys, kThreads = Tile::threads;
   extern __shared__ __align__(16) unsigned char smem[];
-  const unsigned sQ = (smem_addr(smem) + kAtomBytes - 1) & ~unsigned{kAtomBytes - 1};
+  const unsigned sQ = first_atom(smem);
   const unsigned sKV = sQ + Tile::groups * Tile::q_bytes;
   const auto stage = [&](int t) { return sKV + (t & 1) * Tile::kv_bytes; };  // K, then V at + kv_bytes / 2
 
@@ -307,7 +305,7 @@ __global__ void __launch_bounds__(Tile::threads, 1)
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
   constexpr int kKeys = Tile::keys, kStages = Tile::stages;
   extern __shared__ __align__(16) unsigned char smem[];
-  const unsigned sQ = (smem_addr(smem) + kAtomBytes - 1) & ~unsigned{kAtomBytes - 1};
+  const unsigned sQ = first_atom(smem);
   const auto sK = [&](int stage) { return sQ + Tile::consumers * Tile::q_bytes + stage * 2 * Tile::k_bytes; };
   const auto sV = [&](int stage) { return sK(stage) + Tile::k_bytes; };
   const unsigned q_full = sQ + Tile::bars_offset;

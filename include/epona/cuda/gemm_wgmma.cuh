@@ -39,12 +39,12 @@ namespace hg {
 constexpr int kRows = 128, kCols = 256, kDepth = 64;  // output tile and the k-slice of a stage
 constexpr int kStages = 3, kConsumers = 2, kThreads = 128 * (1 + kConsumers);
 constexpr int kXBytes = kRows * kDepth * 2, kWBytes = kCols * kDepth * 2, kStageBytes = kXBytes + kWBytes;
-constexpr int kRowBytes = kDepth * 2;         // one swizzled row of a stage tile (and of an output box)
+static_assert(kDepth * 2 == kRowBytes, "a stage row (and an output box row) is one swizzled row");
 constexpr int kBoxBytes = 64 * kRowBytes;     // an output box: 64 rows x 64 columns
 constexpr int kOutBytes = kRows * kCols * 2;  // the output tile, as 2 x 4 boxes (row half, columns / 64)
 constexpr int kEpilogueThreads = 96;          // warps 1-3 of the producer warpgroup
 constexpr int kOutOffset = kStages * kStageBytes, kBarsOffset = kOutOffset + kOutBytes;
-constexpr int kSmemBytes = kBarsOffset + 8 * (2 * kStages + 2) + 1024;  // + slack to align to 1024
+constexpr int kSmemBytes = kBarsOffset + 8 * (2 * kStages + 2) + kAtomBytes;  // + slack for first_atom
 
 struct Args {
   const bf16* bias;  // (N) or null
@@ -114,7 +114,7 @@ __global__ void __launch_bounds__(kThreads, 1)
                 const __grid_constant__ CUtensorMap y_map, const Args g, Epi epi) {
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
   extern __shared__ __align__(16) unsigned char smem[];
-  const unsigned base = (smem_addr(smem) + 1023) & ~1023u;  // the swizzle's phase is the address's own
+  const unsigned base = first_atom(smem);
   const auto sx = [&](int st) { return base + st * kStageBytes; };
   const auto sw = [&](int st) { return sx(st) + kXBytes; };
   const auto full = [&](int st) { return base + kBarsOffset + 8 * st; };
@@ -159,8 +159,10 @@ __global__ void __launch_bounds__(kThreads, 1)
         // polling took shared-memory cycles from the consumers' wgmma: 258 against 236 µs).
         if (e == 0) mbar::wait(out_full, n & 1);
         named_barrier(1, kEpilogueThreads);
-        if constexpr (Epi::activates) activate_tile(epi, out, e);
-        if constexpr (Epi::activates) fence_proxy_async();  // likewise the activation's writes
+        if constexpr (Epi::activates) {
+          activate_tile(epi, out, e);
+          fence_proxy_async();  // likewise the activation's writes
+        }
         named_barrier(1, kEpilogueThreads);
         if (e == 0) {
           for (int half = 0; half < 2; ++half)
@@ -187,8 +189,8 @@ __global__ void __launch_bounds__(kThreads, 1)
         wgmma_fence();
 #pragma unroll
         for (int k = 0; k < kDepth / 16; ++k)  // 16 channels = 32 bytes along the swizzled rows
-          wgmma_ss(acc, smem_desc(sx(st) + c * 64 * kRowBytes + 32 * k, 16, 1024), smem_desc(sw(st) + 32 * k, 16, 1024),
-                   kt > 0 || k > 0);
+          wgmma_ss(acc, smem_desc(sx(st) + c * 64 * kRowBytes + 32 * k, 16, kAtomBytes),
+                   smem_desc(sw(st) + 32 * k, 16, kAtomBytes), kt > 0 || k > 0);
         wgmma_commit();
         wgmma_wait<1>();  // the previous slice's products are done: release its stage
         if (kt > 0 && lane == 0) mbar::arrive(empty((it - 1) % kStages));
@@ -207,11 +209,11 @@ __global__ void __launch_bounds__(kThreads, 1)
 #endif
 }
 
-// A row-major (rows, cols) bf16 matrix, rows ld elements apart, read in boxes of 64 columns x
-// box_rows rows with the 128-byte swizzle; out-of-range elements read as zeros.
+// A row-major (rows, cols) bf16 matrix, rows ld elements apart, in boxes of 64 columns x
+// box_rows rows with the 128-byte swizzle: loads read out-of-range elements as zeros, stores
+// skip them.
 inline bool matrix_tensor_map(CUtensorMap& map, const bf16* base, std::int64_t rows, std::int64_t cols,
                               std::int64_t ld, int box_rows) {
-  // (Stores use the same boxes: 64 columns of 64 rows.)
   const TensorMapEncoder encode = tensor_map_encoder();
   if (!encode) return false;
   const cuuint64_t dims[2] = {static_cast<cuuint64_t>(cols), static_cast<cuuint64_t>(rows)};

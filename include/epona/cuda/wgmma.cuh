@@ -11,6 +11,7 @@
 
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
+#include "epona/cuda/mma.cuh"
 
 namespace epona::cuda::detail {
 
@@ -28,6 +29,15 @@ inline bool sm90a_available(const Context& ctx) {
   if (ctx.info().major != 9 || ctx.info().minor != 0) return false;  // sm_90a code runs on 9.0 only
   static const bool built = build_marked(wgmma_marker_kernel);
   return built;
+}
+
+// The 128-byte swizzle's geometry: 128-byte rows in 8-row atoms of 1024 bytes; a swizzled tile
+// starts at an atom boundary, so the swizzle's phase is the address's own.
+constexpr int kRowBytes = 128;
+constexpr int kAtomBytes = 8 * kRowBytes;
+// The first atom boundary in a dynamic shared-memory buffer (kAtomBytes of slack reserved).
+__device__ __forceinline__ unsigned first_atom(const void* smem) {
+  return (smem_addr(smem) + kAtomBytes - 1) & ~unsigned{kAtomBytes - 1};
 }
 
 // wgmma shared-memory matrix descriptor with the 128-byte swizzle. K-major operands (Q, K):
