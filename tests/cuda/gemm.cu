@@ -63,6 +63,26 @@ void check_all_epilogues(cuda::Context& ctx, std::int64_t M, std::int64_t N, std
     for (bool bias : {false, true}) check_linear<T>(ctx, {M, N, K, bias, epi, misalign}, seed++);
 }
 
+// out: a (M, ldy) buffer, poisoned, into whose columns col0 .. col0 + N the product of xw (rows
+// ldx apart), w and bias was written. Checks that block against cpu::linear on the same
+// (rounded) operands within the linear bound, and that no other element was written.
+template <class T>
+void check_column_block(const HostF& out, const HostF& xw, std::int64_t ldx, const HostF& w, const float* bias,
+                        std::int64_t M, std::int64_t N, std::int64_t K, std::int64_t ldy, std::int64_t col0,
+                        cuda::Epilogue epi, const std::string& what) {
+  cpu::Context cctx;
+  HostF ref({M, ldy}), z({M, N}), y({M, N});  // z, y: the same product densely, for the bound
+  std::fill_n(ref.data(), ref.numel(), std::numeric_limits<float>::quiet_NaN());
+  cpu::linear(cctx, xw.data(), ldx, w.data(), bias, ref.data() + col0, ldy, M, N, K, epi);
+  cpu::linear(cctx, xw.data(), ldx, w.data(), bias, z.data(), N, M, N, K, cpu::Epilogue::None);
+  cpu::linear(cctx, xw.data(), ldx, w.data(), bias, y.data(), N, M, N, K, epi);
+  const auto inside = [&](std::int64_t i) { return i % ldy >= col0 && i % ldy < col0 + N; };
+  check_error(measure(out.data(), ref.data(), out.numel(), inside), linear_bound<T>(epi, z, y), what);
+  std::int64_t touched = 0;
+  for (std::int64_t i = 0; i < out.numel(); ++i) touched += !inside(i) && !std::isnan(out.data()[i]);
+  CHECK(touched == 0);
+}
+
 }  // namespace
 
 TEST_CASE_TEMPLATE("cuda linear matches cpu::linear on odd and small sizes", T, float, bf16) {
@@ -96,32 +116,19 @@ TEST_CASE_TEMPLATE("cuda linear at model-like sizes", T, float, bf16) {
 TEST_CASE_TEMPLATE("cuda linear with row strides writes only its column block", T, float, bf16) {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
-  cpu::Context cctx;
   const std::int64_t M = 45, N = 72, K = 40, ldx = 56, col0 = 16;
   // ldy 100: element-wise epilogue pass one element at a time; 104: in 16-byte packs.
   for (std::int64_t ldy : {100, 104})
   for (auto epi : {cuda::Epilogue::None, cuda::Epilogue::GeluErf, cuda::Epilogue::GeluTanh}) {
     HostF xw = random_tensor({M, ldx}, 800), w = random_tensor({N, K}, 801, -0.2f, 0.2f), b = random_tensor({N}, 802);
     round_to<T>(xw), round_to<T>(w), round_to<T>(b);
-    HostF ref({M, ldy});
-    std::fill_n(ref.data(), ref.numel(), std::numeric_limits<float>::quiet_NaN());
-    cpu::linear(cctx, xw.data(), ldx, w.data(), b.data(), ref.data() + col0, ldy, M, N, K,
-                epi);
     auto dx = upload<T>(ctx, xw), dw = upload<T>(ctx, w), db = upload<T>(ctx, b);
     Dev<T> dy({M, ldy});
     poison(ctx, dy);
     cuda::linear(ctx, dx.data(), ldx, dw.data(), db.data(), dy.data() + col0, ldy, M, N, K, epi);
-    const HostF out = download(ctx, dy);
-    const auto inside = [&](std::int64_t i) { return i % ldy >= col0 && i % ldy < col0 + N; };
-    const auto d = measure(out.data(), ref.data(), out.numel(), inside);
-    HostF z({M, N}), y({M, N});  // the same product densely, for the bound
-    cpu::linear(cctx, xw.data(), ldx, w.data(), b.data(), z.data(), N, M, N, K, cpu::Epilogue::None);
-    cpu::linear(cctx, xw.data(), ldx, w.data(), b.data(), y.data(), N, M, N, K, epi);
-    check_error(d, linear_bound<T>(epi, z, y), std::string("linear strided ") + type_name<T>() + " ldy " +
-                                                   std::to_string(ldy) + " " + epilogue_name(epi));
-    std::int64_t touched = 0;
-    for (std::int64_t i = 0; i < out.numel(); ++i) touched += !inside(i) && !std::isnan(out.data()[i]);
-    CHECK(touched == 0);
+    check_column_block<T>(download(ctx, dy), xw, ldx, w, b.data(), M, N, K, ldy, col0, epi,
+                          std::string("linear strided ") + type_name<T>() + " ldy " + std::to_string(ldy) + " " +
+                              epilogue_name(epi));
   }
 }
 
@@ -149,7 +156,6 @@ TEST_CASE("cuda own Hopper GEMM matches cpu::linear and writes only its block") 
     MESSAGE("skipped: the own GEMM needs an sm_90a GPU and build");
     return;
   }
-  cpu::Context cctx;
   struct OwnCase { std::int64_t M, N, K, ldx, ldy, col0; bool bias; cuda::Epilogue epi; };
   const OwnCase cases[] = {
       {300, 520, 200, 200, 520, 0, true, cuda::Epilogue::GeluErf},      // partial tiles everywhere
@@ -166,33 +172,19 @@ TEST_CASE("cuda own Hopper GEMM matches cpu::linear and writes only its block") 
     HostF b = c.bias ? random_tensor({c.N}, seed++) : HostF();
     round_to<bf16>(xw), round_to<bf16>(w);
     if (c.bias) round_to<bf16>(b);
-    HostF ref({c.M, c.ldy}), z({c.M, c.N}), y({c.M, c.N});
-    std::fill_n(ref.data(), ref.numel(), std::numeric_limits<float>::quiet_NaN());
-    const float* bias = c.bias ? b.data() : nullptr;
-    cpu::linear(cctx, xw.data(), c.ldx, w.data(), bias, ref.data() + c.col0, c.ldy, c.M, c.N, c.K, c.epi);
-    cpu::linear(cctx, xw.data(), c.ldx, w.data(), bias, z.data(), c.N, c.M, c.N, c.K, cpu::Epilogue::None);
-    cpu::linear(cctx, xw.data(), c.ldx, w.data(), bias, y.data(), c.N, c.M, c.N, c.K, c.epi);
-
     auto dx = upload<bf16>(ctx, xw), dw = upload<bf16>(ctx, w);
     auto db = c.bias ? upload<bf16>(ctx, b) : Dev<bf16>();
     Dev<bf16> dy({c.M, c.ldy});
     poison(ctx, dy);
-    bool ran = false;
     const auto run = [&](auto op) {
-      ran = cuda::detail::own_gemm(ctx, dx.data(), c.ldx, dw.data(), c.bias ? db.data() : nullptr,
-                                   dy.data() + c.col0, c.ldy, c.M, c.N, c.K, op);
+      return cuda::detail::own_gemm(ctx, dx.data(), c.ldx, dw.data(), c.bias ? db.data() : nullptr,
+                                    dy.data() + c.col0, c.ldy, c.M, c.N, c.K, op);
     };
-    if (c.epi == cuda::Epilogue::GeluErf) run(cuda::detail::GeluErfOp{});
-    else run(cuda::detail::Identity{});
-    REQUIRE(ran);
-    const HostF out = download(ctx, dy);
-    const auto inside = [&](std::int64_t i) { return i % c.ldy >= c.col0 && i % c.ldy < c.col0 + c.N; };
-    const std::string what = "own GEMM M=" + std::to_string(c.M) + " N=" + std::to_string(c.N) + " K=" +
-                             std::to_string(c.K) + (c.bias ? " +bias " : " ") + epilogue_name(c.epi);
-    check_error(measure(out.data(), ref.data(), out.numel(), inside), linear_bound<bf16>(c.epi, z, y), what);
-    std::int64_t touched = 0;
-    for (std::int64_t i = 0; i < out.numel(); ++i) touched += !inside(i) && !std::isnan(out.data()[i]);
-    CHECK(touched == 0);
+    REQUIRE((c.epi == cuda::Epilogue::GeluErf ? run(cuda::detail::GeluErfOp{}) : run(cuda::detail::Identity{})));
+    check_column_block<bf16>(download(ctx, dy), xw, c.ldx, w, c.bias ? b.data() : nullptr, c.M, c.N, c.K, c.ldy,
+                             c.col0, c.epi,
+                             "own GEMM M=" + std::to_string(c.M) + " N=" + std::to_string(c.N) + " K=" +
+                                 std::to_string(c.K) + (c.bias ? " +bias " : " ") + epilogue_name(c.epi));
   }
 }
 
