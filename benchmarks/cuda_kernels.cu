@@ -113,22 +113,41 @@ const char* epi_name(cuda::Epilogue e) {
   return "?";
 }
 
-// y = act(x wᵀ + b) with `sets` independent operand sets used round robin.
+// Operand sets of `items` products (x, w, bias and y each; items = 1: 2-d tensors) for use
+// round robin: as many as make ~240 MB (so that the 50-60 MB L2 cannot hold them), at least
+// `least`, at most 8. Without bias the bias tensors are empty.
+template <class T>
+struct OperandSets {
+  std::vector<Tensor<T, Cuda>> x, w, bias, y;
+  int count() const { return static_cast<int>(x.size()); }
+};
+template <class T>
+OperandSets<T> operand_sets(cuda::Context& ctx, std::int64_t items, std::int64_t M, std::int64_t N, std::int64_t K,
+                            bool bias, int least = 1) {
+  const auto shape = [&](std::int64_t rows, std::int64_t cols) {
+    return items == 1 ? Shape{rows, cols} : Shape{items, rows, cols};
+  };
+  const double bytes_per_set = double(items) * (M * K + N * K + M * N) * sizeof(T);
+  const int sets = std::clamp(static_cast<int>(240e6 / bytes_per_set) + 1, least, 8);
+  OperandSets<T> o;
+  for (int s = 0; s < sets; ++s) {
+    o.x.push_back(random_device<T>(ctx, shape(M, K), 10 * s + 1));
+    o.w.push_back(random_device<T>(ctx, shape(N, K), 10 * s + 2, -0.03f, 0.03f));
+    o.bias.push_back(bias ? random_device<T>(ctx, items == 1 ? Shape{N} : Shape{items, N}, 10 * s + 3)
+                          : Tensor<T, Cuda>());
+    o.y.push_back(Tensor<T, Cuda>(shape(M, N)));
+  }
+  return o;
+}
+
+// y = act(x wᵀ + b) over operand sets used round robin.
 template <class T>
 double bench_linear(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int64_t K, bool bias, cuda::Epilogue epi,
                     int reps, const char* label) {
-  const double bytes_per_set = double(M * K + N * K + M * N) * sizeof(T);
-  const int sets = std::clamp(static_cast<int>(240e6 / bytes_per_set) + 1, 1, 8);
-  std::vector<Tensor<T, Cuda>> xs, ws, bs, ys;
-  for (int s = 0; s < sets; ++s) {
-    xs.push_back(random_device<T>(ctx, {M, K}, 10 * s + 1));
-    ws.push_back(random_device<T>(ctx, {N, K}, 10 * s + 2, -0.03f, 0.03f));
-    bs.push_back(bias ? random_device<T>(ctx, {N}, 10 * s + 3) : Tensor<T, Cuda>());
-    ys.push_back(Tensor<T, Cuda>({M, N}));
-  }
+  auto o = operand_sets<T>(ctx, 1, M, N, K, bias);
   const double ms = median_ms(ctx, reps, [&](int i) {
-    const int s = i % sets;
-    cuda::linear(ctx, xs[s], ws[s], bs[s], ys[s], epi);
+    const int s = i % o.count();
+    cuda::linear(ctx, o.x[s], o.w[s], o.bias[s], o.y[s], epi);
   });
   char name[160];
   std::snprintf(name, sizeof name, "%s %s M=%lld N=%lld K=%lld %s", label,
@@ -263,23 +282,15 @@ void bench_temporal(cuda::Context& ctx, bool last_only, int reps) {
 void bench_row_tail(cuda::Context& ctx, cuda::SideStream& side, std::int64_t M, std::int64_t N, std::int64_t K,
                     bool paired, cuda::Epilogue epi, const char* what, std::int64_t tail = 3) {
   const int items = paired ? 2 : 1;
-  const double bytes_per_set = double(items) * (M * K + N * K + M * N) * 2;
-  const int sets = std::clamp(static_cast<int>(240e6 / bytes_per_set) + 1, 2, 8);
-  std::vector<Tensor<bf16, Cuda>> xs, ws, bs, ys;
-  for (int s = 0; s < sets; ++s) {
-    xs.push_back(random_device<bf16>(ctx, {items, M, K}, 10 * s + 1));
-    ws.push_back(random_device<bf16>(ctx, {items, N, K}, 10 * s + 2, -0.03f, 0.03f));
-    bs.push_back(random_device<bf16>(ctx, {items, N}, 10 * s + 3));
-    ys.push_back(Tensor<bf16, Cuda>({items, M, N}));
-  }
+  auto o = operand_sets<bf16>(ctx, items, M, N, K, true, 2);
   int call = 0;
   const auto product = [&](cuda::Context& c, int s, std::int64_t first, std::int64_t rows, int count) {
-    const bf16 *x = xs[s].data() + first * K, *w = ws[s].data(), *b = bs[s].data();
-    bf16* y = ys[s].data() + first * N;
+    const bf16 *x = o.x[s].data() + first * K, *w = o.w[s].data(), *b = o.bias[s].data();
+    bf16* y = o.y[s].data() + first * N;
     cuda::linear_batched(c, x, K, w, b, y, N, rows, N, K, cuda::GemmBatch{count, M * K, N * K, N, M * N}, epi);
   };
   const auto timed = [&](const char* how, const std::function<void(int)>& fn) {
-    const double ms = median_graph_ms(ctx, 15, [&] { fn(call++ % sets); });
+    const double ms = median_graph_ms(ctx, 15, [&] { fn(call++ % o.count()); });
     char name[200];
     std::snprintf(name, sizeof name, "%s %s M=%lld N=%lld K=%lld: %s", what, paired ? "pair" : "one",
                   static_cast<long long>(M), static_cast<long long>(N), static_cast<long long>(K), how);
@@ -311,25 +322,19 @@ void bench_own_gemm(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int
                        (std::string(what) + (on ? " [own GEMM, GELU fused]" : " [cuBLASLt + GELU pass]")).c_str());
   }
   flag.store(saved);
-  const int sets = std::clamp(static_cast<int>(240e6 / double(2 * (M * K + N * K + M * N))) + 1, 1, 8);
-  std::vector<Tensor<bf16, Cuda>> xs, ws, ys;
-  for (int s = 0; s < sets; ++s) {
-    xs.push_back(random_device<bf16>(ctx, {M, K}, 10 * s + 1));
-    ws.push_back(random_device<bf16>(ctx, {N, K}, 10 * s + 2, -0.03f, 0.03f));
-    ys.push_back(Tensor<bf16, Cuda>({M, N}));
-  }
+  auto o = operand_sets<bf16>(ctx, 1, M, N, K, false);
   char name[200];
   std::snprintf(name, sizeof name, "%s bf16 M=%lld N=%lld K=%lld no act", what, static_cast<long long>(M),
                 static_cast<long long>(N), static_cast<long long>(K));
   for (int round = 0; round < 2; ++round) {
     double ms = median_ms(ctx, 30, [&](int i) {
-      const int s = i % sets;
-      cuda::linear(ctx, xs[s].data(), K, ws[s].data(), static_cast<const bf16*>(nullptr), ys[s].data(), N, M, N, K);
+      const int s = i % o.count();
+      cuda::linear(ctx, o.x[s].data(), K, o.w[s].data(), static_cast<const bf16*>(nullptr), o.y[s].data(), N, M, N, K);
     });
     row(std::string(name) + " [cuBLASLt]", ms, 2.0 * M * N * K, 0);
     ms = median_ms(ctx, 30, [&](int i) {
-      const int s = i % sets;
-      cuda::detail::own_gemm(ctx, xs[s].data(), K, ws[s].data(), nullptr, ys[s].data(), N, M, N, K,
+      const int s = i % o.count();
+      cuda::detail::own_gemm(ctx, o.x[s].data(), K, o.w[s].data(), nullptr, o.y[s].data(), N, M, N, K,
                              cuda::detail::Identity{});
     });
     row(std::string(name) + " [own GEMM]", ms, 2.0 * M * N * K, 0);
