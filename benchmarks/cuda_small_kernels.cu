@@ -2,7 +2,7 @@
 // Benchmark): skinny-M products (at most 16 rows: the TrajDiT's trajectory stream, batch-1
 // modulation vectors) in cuBLASLt vs the skinny kernel (skinny_linear.cuh, several rounds of
 // loads in flight), and qk_norm_rope's head-per-warp vs row path (groups of 2, 4, 8 warp
-// accesses) at the VisDiT's and TrajDiT's sizes. Each row times a recorded graph of calls, each on its own copy of the weights (or qkv
+// accesses) at the VisDiT's and TrajDiT's sizes; the MST's QK LayerNorm + RoPE pass. Each row times a recorded graph of calls, each on its own copy of the weights (or qkv
 // buffer), at least 20 and 256 MB in all, so that the 50-60 MB L2 holds none of them (the
 // sampler's weights are cold too), and reports the median per call. --profile runs each variant once, eagerly,
 // inside cudaProfilerStart/Stop (for ncu; the order is printed).
@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "epona/cuda/ops.cuh"
+#include "epona/cuda/qk_layer_norm_rope.cuh"
 #include "epona/cuda/qk_norm_rope.cuh"
 #include "gpu_event_timer.cuh"
 
@@ -195,6 +196,46 @@ void time_qk(const Options& o, cuda::Context& ctx, const char* name, std::int64_
   cuda::detail::qk_rows_accesses() = default_accesses;
 }
 
+// The MST's QK LayerNorm (+ RoPE in the space layers) over q and k of ten frames (5150 x 2048
+// each): the fused kernel with the rotation, the same without it (the time layers: the norm's
+// pass alone, what the rotation should cost nothing over), and the unfused ops (two
+// layer_norm, two apply_rope launches).
+void time_mst_qk(const Options& o, cuda::Context& ctx) {
+  constexpr std::int64_t rows = 5150, n = 2048, heads = 16, head_dim = n / heads, per = rows * n;
+  const int calls = calls_for(2 * per * std::int64_t{sizeof(bf16)});
+  auto pool = random_device<bf16>(ctx, 2 * per * calls, 8);
+  const auto cos = random_device<float>(ctx, rows * head_dim / 2, 9), sin = random_device<float>(ctx, rows * head_dim / 2, 10);
+  const auto weight = random_device<float>(ctx, n, 11), bias = random_device<float>(ctx, n, 12);
+  const auto fused = [&](bool rope) {
+    return [&, rope](int i) {
+      bf16* q = pool.data() + 2 * i * per;
+      const bool ran = cuda::layer_norm_rope_qk(ctx, q, rows, q + per, rows, n, weight.data(), bias.data(), 1e-5f,
+                                                weight.data(), bias.data(), 1e-5f, head_dim,
+                                                rope ? cos.data() : nullptr, rope ? sin.data() : nullptr);
+      EPONA_CHECK(ran, "layer_norm_rope_qk declined the MST's rows");
+    };
+  };
+  const auto unfused = [&](int i) {
+    bf16* q = pool.data() + 2 * i * per;
+    for (bf16* x : {q, q + per}) {
+      cuda::layer_norm(ctx, x, x, rows, n, weight.data(), bias.data(), 1e-5f);
+      cuda::apply_rope(ctx, x, rows, n, heads, head_dim, cos.data(), sin.data());
+    }
+  };
+  const double moved = 4.0 * double(sizeof(bf16)) * per;  // q and k read and written once
+  const std::vector<std::pair<std::string, std::function<void(int)>>> variants{
+      {"fused_rope", fused(true)}, {"fused_norm_only", fused(false)}, {"unfused_rope", unfused}};
+  double base = 0;
+  for (const auto& [name, fn] : variants) {
+    const double us = graph_us(ctx, o.repeats, calls, fn);
+    if (base == 0) base = us;
+    report("mst_qk_layer_norm_" + name, us, moved);
+    std::printf("# mst qk layer norm %s: %.2f us (%.2fx fused_rope), %.0f GB/s at one read and write\n", name.c_str(),
+                us, us / base, moved / (us * 1e3));
+    profiled(o, ctx, "mst_qk_layer_norm_" + name, [&] { fn(0); });
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -223,6 +264,7 @@ int main(int argc, char** argv) {
     time_qk<bf16, 2>(o, ctx, "traj", 530, 8, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 530}});
     time_qk<bf16, 1>(o, ctx, "traj_pruned", 530, 8, std::array<R, 1>{R{0, 515, 530}});
     time_qk<float, 2>(o, ctx, "vis", 1027, 16, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 1027}});
+    time_mst_qk(o, ctx);
     return 0;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "bench_cuda_small_kernels: %s\n", e.what());

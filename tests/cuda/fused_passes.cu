@@ -145,30 +145,41 @@ TEST_CASE("linear's erf-GELU and SiLU epilogues take the table on large bf16 out
 
 namespace {
 
-// Float64 LayerNorm (affine) of each row, then the interleaved rotation with table row r.
+// Float64 LayerNorm (affine) of each row, then the interleaved rotation with table row r; no
+// rounding anywhere (the official recipe keeps q and k in float32 until the attention).
 HostF reference_norm_rope(const HostF& x, const HostF& w, const HostF& b, float eps, std::int64_t head_dim,
-                          const HostF* cos, const HostF* sin, bool round_between) {
+                          const HostF* cos, const HostF* sin) {
   const std::int64_t rows = x.size(0), n = x.size(1);
   HostF y({rows, n});
+  std::vector<double> row(n);
   for (std::int64_t r = 0; r < rows; ++r) {
     double mean = 0, var = 0;
     for (std::int64_t c = 0; c < n; ++c) mean += x.at(r, c);
     mean /= n;
     for (std::int64_t c = 0; c < n; ++c) var += (x.at(r, c) - mean) * (x.at(r, c) - mean);
     const double rstd = 1 / std::sqrt(var / n + eps);
-    for (std::int64_t c = 0; c < n; ++c) {
-      const double v = (x.at(r, c) - mean) * rstd * w.data()[c] + b.data()[c];
-      y.at(r, c) = round_between ? float(bf16(float(v))) : float(v);
-    }
-    if (!cos) continue;
+    for (std::int64_t c = 0; c < n; ++c) row[c] = (x.at(r, c) - mean) * rstd * w.data()[c] + b.data()[c];
     for (std::int64_t c = 0; c < n; c += 2) {
       const std::int64_t j = (c % head_dim) / 2;
-      const double cs = cos->at(r, j), sn = sin->at(r, j), a = y.at(r, c), bb = y.at(r, c + 1);
+      const bool rot = cos && sin;
+      const double cs = rot ? cos->at(r, j) : 1, sn = rot ? sin->at(r, j) : 0, a = row[c], bb = row[c + 1];
       y.at(r, c) = float(cs * a - sn * bb);
       y.at(r, c + 1) = float(sn * a + cs * bb);
     }
   }
   return y;
+}
+
+// Elements farther from the float64 value than one bf16 rounding (half a unit in the last
+// place of the value) plus `slack` (the float32 arithmetic before it): a result rounded twice,
+// norm then rotation, misses this bound on many elements.
+std::int64_t beyond_one_rounding(const HostF& out, const HostF& ref, double slack) {
+  std::int64_t bad = 0;
+  for (std::int64_t i = 0; i < ref.numel(); ++i) {
+    const double r = ref.data()[i], half_ulp = r == 0 ? 0 : std::ldexp(1.0, std::ilogb(r) - 8);
+    bad += std::abs(double(out.data()[i]) - r) > half_ulp + slack;
+  }
+  return bad;
 }
 
 template <class T>
@@ -203,28 +214,32 @@ void check_qk_norm_rope(cuda::Context& ctx, std::int64_t rows_q, std::int64_t ro
     cuda::apply_rope(ctx, uk.data(), rows_k, n, heads, head_dim, dcos.data(), dsin.data());
   }
   const HostF gq = download(ctx, fq), gk = download(ctx, fk);
-  const bool b16 = std::is_same_v<T, bf16>;
-  if (b16) {  // bf16: the same bits as the unfused ops
-    CHECK_MESSAGE(std::memcmp(gq.data(), download(ctx, uq).data(), gq.numel() * sizeof(float)) == 0, what,
-                  ": q differs from the unfused ops");
-    CHECK_MESSAGE(std::memcmp(gk.data(), download(ctx, uk).data(), gk.numel() * sizeof(float)) == 0, what,
-                  ": k differs from the unfused ops");
+  const HostF rq = reference_norm_rope(q, qw, qb, 1e-5f, head_dim, rotate ? &cos : nullptr, rotate ? &sin : nullptr);
+  const HostF rk = reference_norm_rope(k, kw, kb, 1e-6f, head_dim, rotate ? &cos : nullptr, rotate ? &sin : nullptr);
+  if constexpr (std::is_same_v<T, bf16>) {
+    // One rounding after the float32 norm and rotation (slack: float32 error of a 2048-wide row).
+    CHECK_MESSAGE(beyond_one_rounding(gq, rq, 1e-5 * max_abs(rq)) == 0, what, ": q is not rounded once");
+    CHECK_MESSAGE(beyond_one_rounding(gk, rk, 1e-5 * max_abs(rk)) == 0, what, ": k is not rounded once");
+    // The unfused ops round after the norm and again after the rotation: within two roundings.
+    check_error(measure(gq, download(ctx, uq)), {2 * kBf16Roundoff, 2 * kBf16Roundoff * max_abs(rq)},
+                "fused vs unfused q " + what);
+    check_error(measure(gk, download(ctx, uk)), {2 * kBf16Roundoff, 2 * kBf16Roundoff * max_abs(rk)},
+                "fused vs unfused k " + what);
+    if (!rotate) {  // without a rotation both round once: the same bits
+      CHECK_MESSAGE(bits_of(ctx, fq) == bits_of(ctx, uq), what, ": q differs from layer_norm");
+      CHECK_MESSAGE(bits_of(ctx, fk) == bits_of(ctx, uk), what, ": k differs from layer_norm");
+    }
   } else {  // float32: the rotation's multiply-adds may contract differently (a few ulp)
     check_error(measure(gq, download(ctx, uq)), {1e-6, 1e-6 * max_abs(gq)}, "fused vs unfused q " + what);
     check_error(measure(gk, download(ctx, uk)), {1e-6, 1e-6 * max_abs(gk)}, "fused vs unfused k " + what);
+    check_error(measure(gq, rq), {kF32Tol, kF32Tol * max_abs(rq)}, "qk_layer_norm_rope q " + what);
+    check_error(measure(gk, rk), {kF32Tol, kF32Tol * max_abs(rk)}, "qk_layer_norm_rope k " + what);
   }
-  const HostF rq = reference_norm_rope(q, qw, qb, 1e-5f, head_dim, rotate ? &cos : nullptr, &sin, b16);
-  const HostF rk = reference_norm_rope(k, kw, kb, 1e-6f, head_dim, rotate ? &cos : nullptr, &sin, b16);
-  // bf16: the norm's output and the rotation's are each rounded (two roundings of 2^-8 relative
-  // to the row's largest value); float32: 1e-5.
-  const double rel = b16 ? 2 * kBf16Roundoff : kF32Tol;
-  check_error(measure(gq, rq), {rel, rel * max_abs(rq)}, "qk_layer_norm_rope q " + what);
-  check_error(measure(gk, rk), {rel, rel * max_abs(rk)}, "qk_layer_norm_rope k " + what);
 }
 
 }  // namespace
 
-TEST_CASE("fused MST QK LayerNorm + RoPE: the unfused ops' bits, float64 within bounds") {
+TEST_CASE("fused MST QK LayerNorm + RoPE: rounded once, within one bf16 rounding of float64") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
   for (bool rotate : {true, false}) {

@@ -72,13 +72,21 @@ struct RowNormArgs {
   float eps;
 };
 
+// What norm_row does to a pack of its float32 results (channels c0..c0+7) before storing it:
+// nothing, unless a caller fuses a per-channel transform (the MST's RoPE) so the row is rounded
+// to its storage type once.
+struct KeepPack {
+  __device__ void operator()(float (&)[kPack], int) const {}
+};
+
 // One row by one worker (a warp or a block) of up to P packs per thread; `sum` reduces over the
 // worker. Affine LayerNorm when weight/bias are given; with Modulate, shift/scale take their
 // place as (1 + scale) * LN(x) + shift, 1 + scale rounded to the parameters' storage type as
-// PyTorch does for `1 + scale_tensor`.
-template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP, class Sum>
+// PyTorch does for `1 + scale_tensor`. `finish` transforms each pack before it is stored.
+template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP, class Sum,
+          class Finish = KeepPack>
 __device__ __forceinline__ void norm_row(const RowNormArgs<TX, TY, TG, TO, TP>& a, std::int64_t row, int first,
-                                         int step, Sum sum) {
+                                         int step, Sum sum, Finish finish = {}) {
   const int packs = static_cast<int>(a.n / kPack);
   const std::int64_t base = row * a.n;
   float v[P][kPack];
@@ -131,6 +139,7 @@ __device__ __forceinline__ void norm_row(const RowNormArgs<TX, TY, TG, TO, TP>& 
       }
       v[k][i] = o;
     }
+    finish(v[k], p * kPack);
     store8(a.out + base + p * kPack, v[k]);
   }
 }

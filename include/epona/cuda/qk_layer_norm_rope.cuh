@@ -1,8 +1,9 @@
 // epona/cuda/qk_layer_norm_rope.cuh — the MST attention's QK-norm (nn.LayerNorm over all
 // channels of q and of k, in place) and, in the space layers, the 2-D RoPE of q and k, in one
-// launch and one pass over each row instead of four launches and three passes. The same row
-// kernel (norm.cuh) and rotation as layer_norm + apply_rope: bf16 results are bit-identical,
-// float32 ones within a few ulp (the compiler may contract the rotation's multiply-adds differently).
+// launch and one read and one write of each row instead of four launches and three passes. The
+// same row kernel (norm.cuh) and rotation as layer_norm + apply_rope, but the rotation runs on
+// the norm's float32 results: bf16 rows are rounded once (the unfused ops round twice), float32
+// rows agree with the unfused ops within a few ulp.
 #pragma once
 
 #include <cstdint>
@@ -25,21 +26,26 @@ struct QkNormRopeArgs {
   const float *cos, *sin;      // (rows, head_dim / 2) for row r of q and of k; null: no rotation
 };
 
-// Interleaved pairs (2j, 2j+1) of 8 channels starting at channel c0 of a row, rotated by the
-// table row (cos, sin): float32 arithmetic on the stored values, as rope_kernel.
+// Interleaved pairs (2j, 2j+1) of the 8 channels starting at channel c0 of a row (a pack inside
+// one head), rotated by the table row (cos, sin): float32 arithmetic as rope_kernel. The pack's
+// four angles are consecutive in the table: one 16-byte load each of cos and sin.
 __device__ __forceinline__ void rotate_pack(float (&v)[kPack], int c0, int head_dim, const float* cos,
                                             const float* sin) {
+  const int j0 = (c0 % head_dim) / 2;
+  const float4 c4 = *reinterpret_cast<const float4*>(cos + j0), s4 = *reinterpret_cast<const float4*>(sin + j0);
+  const float cs[4] = {c4.x, c4.y, c4.z, c4.w}, sn[4] = {s4.x, s4.y, s4.z, s4.w};
 #pragma unroll
-  for (int i = 0; i < kPack; i += 2) {
-    const int j = ((c0 + i) % head_dim) / 2;
-    const float c = cos[j], s = sin[j], a = v[i], b = v[i + 1];
-    v[i] = c * a - s * b;
-    v[i + 1] = s * a + c * b;
+  for (int i = 0; i < kPack / 2; ++i) {
+    const float a = v[2 * i], b = v[2 * i + 1];
+    v[2 * i] = cs[i] * a - sn[i] * b;
+    v[2 * i + 1] = sn[i] * a + cs[i] * b;
   }
 }
 
 // One warp per row of q, then of k (warps past rows_q take k's rows). The norm is norm_row as
-// the warp-per-row LayerNorm runs it; each lane then rotates the packs it has just stored.
+// the warp-per-row LayerNorm runs it; each pack is rotated in registers before its one store,
+// so q and k are rounded once, after the rotation, as the official recipe (float32 norm and
+// rotation, bf16 for the attention) rounds them.
 template <class T, int P>
 __global__ void __launch_bounds__(32 * kNormWarps) qk_layer_norm_rope_kernel(QkNormRopeArgs<T> a) {
   const std::int64_t w = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
@@ -52,29 +58,21 @@ __global__ void __launch_bounds__(32 * kNormWarps) qk_layer_norm_rope_kernel(QkN
                                             is_q ? a.q_bias : a.k_bias, is_q ? a.rows_q : a.rows_k,
                                             a.n,        is_q ? a.q_eps : a.k_eps};
   const int lane = threadIdx.x & 31;
-  norm_row<P, false, false>(norm, row, lane, 32, [](float v) { return warp_sum(v); });
-  if (!a.cos) return;
-  const int pairs = a.head_dim / 2, packs = static_cast<int>(a.n / kPack);
+  const auto warp = [](float v) { return warp_sum(v); };
+  if (!a.cos) return norm_row<P, false, false>(norm, row, lane, 32, warp);
+  const int pairs = a.head_dim / 2;
   const float* cos = a.cos + row * pairs;
   const float* sin = a.sin + row * pairs;
-#pragma unroll
-  for (int k = 0; k < P; ++k) {
-    const int p = lane + 32 * k;
-    if (p >= packs) continue;
-    T* at = x + row * a.n + p * kPack;  // written by this lane just above
-    float v[kPack];
-    load8(at, v);
-    rotate_pack(v, p * kPack, a.head_dim, cos, sin);
-    store8(at, v);
-  }
+  norm_row<P, false, false>(norm, row, lane, 32, warp,
+                            [&](float (&v)[kPack], int c0) { rotate_pack(v, c0, a.head_dim, cos, sin); });
 }
 
 }  // namespace detail
 
 // q (rows_q, n) = LN_q(q), k (rows_k, n) = LN_k(k) in place (affine, float32 parameters), then,
-// with cos/sin, both rotated as apply_rope with table row r for row r. One launch when the rows
-// fit the warp-per-row LayerNorm that layer_norm itself would pick for each of q and k (so the
-// statistics are the unfused ops' to the bit); returns false, doing nothing, otherwise.
+// with cos/sin, both rotated as apply_rope with table row r for row r, rounded once. One launch
+// when the rows fit the warp-per-row LayerNorm that layer_norm itself would pick for each of q
+// and k (so the statistics are the unfused ops' to the bit); returns false, doing nothing, otherwise.
 template <class T>
 bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int64_t rows_k, std::int64_t n,
                         const float* q_weight, const float* q_bias, float q_eps, const float* k_weight,
@@ -85,7 +83,9 @@ bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int6
               head_dim, ")");
   EPONA_CHECK((cos == nullptr) == (sin == nullptr), "layer_norm_rope_qk: cos and sin must both be given or not");
   const std::int64_t warp_min = detail::warp_rows_min(ctx);
-  const bool fits = n <= detail::kWarpRowMax && rows_q >= warp_min && rows_k >= warp_min &&
+  // Packs of 8 channels inside one head and 16-byte table rows for rotate_pack's loads.
+  const bool table_ok = !cos || (head_dim % detail::kPack == 0 && detail::aligned16(cos) && detail::aligned16(sin));
+  const bool fits = table_ok && n <= detail::kWarpRowMax && rows_q >= warp_min && rows_k >= warp_min &&
                     detail::packable(q, n, n) && detail::packable(k, n, n) && detail::packable(q_weight, n, 0) &&
                     detail::packable(q_bias, n, 0) && detail::packable(k_weight, n, 0) &&
                     detail::packable(k_bias, n, 0);
