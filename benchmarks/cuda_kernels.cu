@@ -3,7 +3,8 @@
 // GEMM 8192³), cuBLASLt at the model's GEMM shapes with their epilogues, flash attention at
 // the MST-spatial and VisDiT-joint sizes, and the fused norm/RoPE/residual kernels. Medians of
 // event-timed repetitions after warm-up; GEMM inputs rotate over several buffer sets so that
-// the 50-60 MB L2 cannot hold them. Random (never zero) data.
+// the 50-60 MB L2 cannot hold them. Random (never zero) data. Sections alone: --attention,
+// --rows, --own-gemm, --mst-residual; --once runs each kernel once (for ncu).
 #include <algorithm>
 #include <cstdint>
 #include <cstdio>
@@ -341,6 +342,59 @@ void bench_own_gemm(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int
   }
 }
 
+// The MST's residual updates, side by side: the branch product written in bf16 and added by
+// the LayerNorm pass after it (add_layer_norm: float32 residual, bf16 normalised output), or
+// added by the product itself into the float32 residual (linear_accumulate) and normalised by a
+// plain LayerNorm pass; each step alone too. Then q, k, v as three products against one product
+// of the stacked weights (N = 3C) at the MST's 5150 rows.
+void bench_mst_residual(cuda::Context& ctx) {
+  constexpr std::int64_t M = 5150, C = 2048;
+  const auto residual = random_device<float>(ctx, {M, C}, 41), ln_w = random_device<float>(ctx, {C}, 42, 0.5f, 1.5f),
+             ln_b = random_device<float>(ctx, {C}, 43);
+  Tensor<bf16, Cuda> normed({M, C});
+  // The residual drifts over the timed calls (each adds a product); harmless for timing.
+  Tensor<float, Cuda> x({M, C});
+  cuda::copy(ctx, x, residual);
+  const auto norm_only = [&] { cuda::layer_norm(ctx, x.data(), normed.data(), M, C, ln_w.data(), ln_b.data(), 1e-5f); };
+  for (const std::int64_t K : {C, 4 * C}) {
+    auto o = operand_sets<bf16>(ctx, 1, M, C, K, false);
+    const std::string what = K == C ? "MST proj" : "MST c_proj";
+    const auto product = [&](int s) { cuda::linear(ctx, o.x[s], o.w[s], Tensor<bf16, Cuda>(), o.y[s]); };
+    const auto accumulate = [&](int s) {
+      cuda::linear_accumulate(ctx, o.x[s].data(), K, o.w[s].data(), x.data(), C, M, C, K);
+    };
+    const auto add_norm = [&](int s) {
+      cuda::add_layer_norm(ctx, x.data(), o.y[s].data(), normed.data(), M, C, ln_w.data(), ln_b.data(), 1e-5f);
+    };
+    const double flop = 2.0 * M * C * K;
+    for (int round = 0; round < 2; ++round) {
+      const auto timed = [&](const std::string& how, double f, const std::function<void(int)>& fn) {
+        row(what + " " + how + (round ? " (2)" : ""), median_ms(ctx, 30, [&](int i) { fn(i % o.count()); }), f, 0);
+      };
+      timed("bf16 product + add_layer_norm", flop, [&](int s) { product(s), add_norm(s); });
+      timed("linear_accumulate + layer_norm", flop, [&](int s) { accumulate(s), norm_only(); });
+      timed("  bf16 product alone", flop, product);
+      timed("  linear_accumulate alone", flop, accumulate);
+      timed("  add_layer_norm alone", 0, add_norm);
+      timed("  layer_norm alone", 0, [&](int) { norm_only(); });
+    }
+  }
+  auto three = operand_sets<bf16>(ctx, 1, M, C, C, false, 3);
+  auto stacked = operand_sets<bf16>(ctx, 1, M, 3 * C, C, false);
+  for (int round = 0; round < 2; ++round) {
+    row("MST q, k, v as three products", median_ms(ctx, 30, [&](int i) {
+          for (int j = 0; j < 3; ++j) {
+            const int s = (3 * i + j) % three.count();
+            cuda::linear(ctx, three.x[0], three.w[s], Tensor<bf16, Cuda>(), three.y[s]);
+          }
+        }), 3 * 2.0 * M * C * C, 0);
+    row("MST q, k, v as one stacked product (N = 3C)", median_ms(ctx, 30, [&](int i) {
+          const int s = i % stacked.count();
+          cuda::linear(ctx, stacked.x[s], stacked.w[s], Tensor<bf16, Cuda>(), stacked.y[s]);
+        }), 3 * 2.0 * M * C * C, 0);
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -349,6 +403,7 @@ int main(int argc, char** argv) {
   const bool attention_only = flag("--attention");  // only that section
   const bool rows_only = flag("--rows");            // only the row-tail experiment
   const bool own_only = flag("--own-gemm");         // only the own GEMM against cuBLASLt
+  const bool residual_only = flag("--mst-residual");  // only the MST's residual paths and stacked q/k/v
   if (!cuda::has_gpu()) {
     std::printf("no CUDA device: skipping\n");
     return 0;
@@ -359,6 +414,11 @@ int main(int argc, char** argv) {
     std::printf("device: %s (sm_%d%d, %d SMs, %.1f GiB, L2 %.0f MiB)\n\n", d.name.c_str(), d.major, d.minor,
                 d.multiprocessors, d.global_bytes / 1073741824.0, d.l2_bytes / 1048576.0);
 
+    if (residual_only) {
+      bench_mst_residual(ctx);
+      ctx.synchronize();
+      return 0;
+    }
     if (own_only) {
       bench_own_gemm(ctx, 5150, 8192, 2048, "MST c_fc");
       bench_own_gemm(ctx, 5150, 2048, 8192, "MST c_proj");

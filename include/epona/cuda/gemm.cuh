@@ -101,22 +101,22 @@ inline void apply_batch(LtPlan& plan, const GemmBatch& batch) {
 // yᵀ (N, M) = op_T(w stored K×N) · (x stored K×M). Returns null when cuBLASLt has no
 // algorithm for this epilogue. `candidates` (if given) receives the heuristic's first few
 // algorithms that reduce split-K partial sums in float32 or not at all (the first always).
-template <class T>
+template <class T, class TY = T>
 std::unique_ptr<LtPlan> try_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t epilogue, const GemmBatch& batch,
                                  std::vector<cublasLtMatmulAlgo_t>* candidates = nullptr) {
   const auto [dt, M, N, K, ldx, ldy, wanted, ax, aw, ay] = key;
   (void)dt, (void)wanted;
-  const cudaDataType_t type = cuda_dtype<T>();
+  const cudaDataType_t type = cuda_dtype<T>(), out_type = cuda_dtype<TY>();
   auto plan = std::make_unique<LtPlan>();
   plan->epilogue = epilogue;
   EPONA_CUBLAS_CHECK(cublasLtMatmulDescCreate(&plan->op, CUBLAS_COMPUTE_32F, CUDA_R_32F));
   set_desc(plan->op, CUBLASLT_MATMUL_DESC_TRANSA, CUBLAS_OP_T);
   set_desc(plan->op, CUBLASLT_MATMUL_DESC_TRANSB, CUBLAS_OP_N);
   set_desc(plan->op, CUBLASLT_MATMUL_DESC_EPILOGUE, epilogue);
-  if (plan->fuses_bias()) set_desc(plan->op, CUBLASLT_MATMUL_DESC_BIAS_DATA_TYPE, type);
+  if (plan->fuses_bias()) set_desc(plan->op, CUBLASLT_MATMUL_DESC_BIAS_DATA_TYPE, out_type);
   EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->a, type, K, N, K));
   EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->b, type, K, M, ldx));
-  EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->c, type, N, M, ldy));
+  EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutCreate(&plan->c, out_type, N, M, ldy));
   if (batch.count > 1) apply_batch(*plan, batch);
 
   cublasLtMatmulPreference_t pref = nullptr;
@@ -182,15 +182,15 @@ void tune_plan(Context& ctx, LtPlan& plan, const std::vector<cublasLtMatmulAlgo_
 
 // The wanted fused epilogue if cuBLASLt has it for this problem, else a plain product (the
 // caller then applies bias and activation itself).
-template <class T>
+template <class T, class TY = T>
 std::unique_ptr<LtPlan> make_plan(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted, const GemmBatch& batch,
                                   std::vector<cublasLtMatmulAlgo_t>* candidates = nullptr) {
-  auto plan = try_plan<T>(ctx, key, wanted, batch, candidates);
+  auto plan = try_plan<T, TY>(ctx, key, wanted, batch, candidates);
   if (!plan && wanted != CUBLASLT_EPILOGUE_DEFAULT)
-    plan = try_plan<T>(ctx, key, CUBLASLT_EPILOGUE_DEFAULT, batch, candidates);
+    plan = try_plan<T, TY>(ctx, key, CUBLASLT_EPILOGUE_DEFAULT, batch, candidates);
   EPONA_CHECK(plan != nullptr, "linear: cuBLASLt has no algorithm for M=", key[1], " N=", key[2], " K=", key[3],
               " ldx=", key[4], " ldy=", key[5], " batch ", batch.count, " (", std::is_same_v<T, float> ? "float32" : "bf16",
-              ", alignments x ", key[7], " w ", key[8], " y ", key[9], " bytes)");
+              std::is_same_v<T, TY> ? "" : " into float32", ", alignments x ", key[7], " w ", key[8], " y ", key[9], " bytes)");
   return plan;
 }
 
@@ -242,30 +242,32 @@ inline cublasLtEpilogue_t wanted_epilogue(Epilogue epi, bool has_bias, std::int6
 }
 
 // The cached plan of `key` (made, and with tuning on timed on this call's operands, when new).
-template <class T>
+// A call that accumulates into y is never timed (`accumulates`: the timing runs would add to y).
+template <class T, class TY = T>
 LtPlan& plan_for(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted, const GemmBatch& batch, const T* x,
-                 const T* w, const T* bias, T* y) {
+                 const T* w, const T* bias, TY* y, bool accumulates = false) {
   auto& plans = ctx.gemm_plans();
-  const bool tuning = gemm_tuning();
+  const bool tuning = gemm_tuning() && !accumulates;
   if (auto it = plans.find(key); tuning && it != plans.end()) return *it->second;
   if (!tuning || capturing(ctx.stream())) {
     auto untuned = key;
     untuned[6] |= kUntunedPlan;
     auto& p = plans[untuned];
-    if (!p) p = make_plan<T>(ctx, untuned, wanted, batch);
+    if (!p) p = make_plan<T, TY>(ctx, untuned, wanted, batch);
     return *p;
   }
   std::vector<cublasLtMatmulAlgo_t> candidates;
-  auto p = make_plan<T>(ctx, key, wanted, batch, &candidates);
-  tune_plan(ctx, *p, candidates, x, w, bias, y);
+  auto p = make_plan<T, TY>(ctx, key, wanted, batch, &candidates);
+  if constexpr (std::is_same_v<T, TY>) tune_plan(ctx, *p, candidates, x, w, bias, y);
   return *(plans[key] = std::move(p));
 }
 
-// The product itself (every batch item the plan's layouts name), asynchronous on ctx's stream.
-template <class T>
-void run_plan(Context& ctx, const LtPlan& plan, const T* x, const T* w, const T* bias, T* y) {
+// The product itself (every batch item the plan's layouts name), asynchronous on ctx's stream;
+// beta 1 adds it to y.
+template <class T, class TY>
+void run_plan(Context& ctx, const LtPlan& plan, const T* x, const T* w, const T* bias, TY* y, float beta = 0.0f) {
   if (plan.fuses_bias()) set_desc(plan.op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
-  const float alpha = 1.0f, beta = 0.0f;
+  const float alpha = 1.0f;
   EPONA_CUBLAS_CHECK(cublasLtMatmul(ctx.lt(), plan.op, &alpha, w, plan.a, x, plan.b, &beta, y, plan.c, y, plan.c,
                                     &plan.algo, ctx.workspace(), ctx.workspace_bytes(), ctx.stream()));
 }
@@ -288,12 +290,27 @@ void finish_epilogue(Context& ctx, const LtPlan& plan, Epilogue epi, T* y, std::
   }
 }
 
-template <class T> constexpr std::int64_t dtype_tag() { return std::is_same_v<T, float> ? 0 : 1; }
+// The operand and output types of a plan: float32, bf16, or bf16 operands into a float32 output.
+template <class T, class TY = T> constexpr std::int64_t dtype_tag() {
+  return std::is_same_v<T, float> ? 0 : std::is_same_v<TY, float> ? 2 : 1;
+}
+
+// EPONA_CUDA_RESIDUAL_GEMM=0 keeps pre-LN blocks' residual adds in the norm pass after a
+// product that writes its own output (side-by-side runs); on by default.
+inline bool& residual_gemm_flag() {
+  static bool on = env_flag("EPONA_CUDA_RESIDUAL_GEMM", true);
+  return on;
+}
 
 }  // namespace detail
 
 // Turns the timing of cuBLASLt's candidates for new plans on or off (see detail::gemm_tuning).
 inline void set_gemm_tuning(bool on) { detail::gemm_tuning_flag() = on; }
+
+// Whether models add residual branches inside the product (linear_accumulate) rather than in
+// the norm pass after it; set_residual_gemm switches it at run time (benchmarks compare both).
+inline bool residual_gemm_enabled(const Context&) { return detail::residual_gemm_flag(); }
+inline void set_residual_gemm(bool on) { detail::residual_gemm_flag() = on; }
 
 // Pointer form with row strides (x rows ldx apart, y rows ldy apart, so y can be a column
 // block of a wider buffer): y[M, N] = act(x[M, K] · w[N, K]ᵀ + bias[N]); bias may be null.
@@ -319,6 +336,40 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
   const detail::LtPlan& plan = detail::plan_for(ctx, key, wanted, GemmBatch{}, x, w, bias, y);
   detail::run_plan(ctx, plan, x, w, bias, y);
   detail::finish_epilogue(ctx, plan, epi, y, ldy, M, N, bias);
+}
+
+// y[M, N] += x[M, K] · w[N, K]ᵀ into a float32 y (rows ldy apart; x rows ldx apart): a residual
+// stream updated by the product itself (cuBLASLt's C = D with beta 1), float32 accumulation and
+// no rounding of the product to T on the way (under autocast PyTorch rounds the branch to bf16
+// before the float32 add: this is the same sum, rounded once instead of twice). No bias.
+// Asynchronous on ctx's stream.
+template <class T>
+void linear_accumulate(Context& ctx, const T* x, std::int64_t ldx, const T* w, float* y, std::int64_t ldy,
+                       std::int64_t M, std::int64_t N, std::int64_t K) {
+  static_assert(is_device_float<T>, "linear_accumulate takes float or bf16 operands");
+  EPONA_CHECK(M >= 0 && N > 0 && K > 0, "linear_accumulate: bad extent (M ", M, ", N ", N, ", K ", K, ")");
+  EPONA_CHECK(ldx >= K && ldy >= N, "linear_accumulate: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K,
+              ", N ", N);
+  if (M == 0) return;
+  const detail::LtPlanKey key{detail::dtype_tag<T, float>(), M, N, K, ldx, ldy,
+                              static_cast<std::int64_t>(CUBLASLT_EPILOGUE_DEFAULT), detail::pointer_alignment(x),
+                              detail::pointer_alignment(w), detail::pointer_alignment(y)};
+  const detail::LtPlan& plan =
+      detail::plan_for<T, float>(ctx, key, CUBLASLT_EPILOGUE_DEFAULT, GemmBatch{}, x, w, nullptr, y, true);
+  detail::run_plan(ctx, plan, x, w, static_cast<const T*>(nullptr), y, 1.0f);
+}
+
+// x: (..., K); w: (N, K); y: (..., N) float32, preallocated: y += x · wᵀ.
+template <class T>
+void linear_accumulate(Context& ctx, const Tensor<T, Cuda>& x, const Tensor<T, Cuda>& w, Tensor<float, Cuda>& y) {
+  EPONA_CHECK(w.dim() == 2, "linear_accumulate: weight must be 2-d, got ", shape_str(w.shape()));
+  const std::int64_t N = w.size(0), K = w.size(1);
+  EPONA_CHECK(x.dim() >= 1 && x.size(-1) == K, "linear_accumulate: input ", shape_str(x.shape()),
+              " does not end in K=", K);
+  const std::int64_t M = x.numel() / K;
+  EPONA_CHECK(y.numel() == M * N && y.size(-1) == N, "linear_accumulate: output ", shape_str(y.shape()),
+              " is not (", M, ", ", N, ")");
+  linear_accumulate(ctx, x.data(), K, w.data(), y.data(), N, M, N, K);
 }
 
 // x: (..., K); w: (N, K); bias: (N) or empty; y: (..., N) preallocated. Same dtype throughout.

@@ -153,16 +153,33 @@ struct MstLayer {
     value(ctx, u, v);
     query(ctx, u.slice(first, first + count), q);
     normalize_qk(ctx, q, k, rope, heads);
-    attend(q, k, v, o);  // the attention output reuses u
-    proj(ctx, o, q);         // ... and the projection reuses q
-    ln2.add_and_normalize(ctx, rows, q, o);  // float32 residual += projection; o = ln2(x)
-    mlp(ctx, o, hidden, q);
-    if (next) next->ln1.add_and_normalize(ctx, rows, q, o);
-    else add_inplace(ctx, rows.data(), q.data(), rows.numel());
+    attend(q, k, v, o);                          // the attention output reuses u
+    add_branch(ctx, proj, o, rows, q, &ln2, o);  // float32 residual += projection; o = ln2(x)
+    mlp.fc1(ctx, o, hidden, mlp.fc1_epilogue());
+    add_branch(ctx, mlp.fc2, hidden, rows, q, next ? &next->ln1 : nullptr, o);
+  }
+
+  // rows (float32) += layer(in), then out = norm(rows) unless norm is null. The product adds to
+  // the residual itself where the backend can (linear_accumulate: the branch is not rounded to
+  // the activation type, and the norm pass reads the residual alone); otherwise the branch is
+  // written to the scratch `branch` and added by the norm's pass.
+  void add_branch(Context& ctx, const nn::Linear<B, W>& layer, const Tensor<A, B>& in, Tensor<float, B>& rows,
+                  Tensor<A, B>& branch, const nn::LayerNorm<B>* norm, Tensor<A, B>& out) const {
+    if constexpr (requires { linear_accumulate(ctx, in, layer.weight, rows); }) {
+      if (residual_gemm_enabled(ctx)) {
+        linear_accumulate(ctx, in, layer.weight, rows);
+        if (norm) (*norm)(ctx, rows, out);
+        return;
+      }
+    }
+    layer(ctx, in, branch);
+    if (norm) norm->add_and_normalize(ctx, rows, branch, out);
+    else add_inplace(ctx, rows.data(), branch.data(), rows.numel());
   }
 
   // q = q_norm(q), k = k_norm(k), then the rotation: one launch on the GPU where its fused
-  // kernel applies (layer_norm_rope_qk; same bits in bf16), the ops in turn otherwise.
+  // kernel applies (layer_norm_rope_qk: bf16 rounded once, after the rotation, as the official
+  // float32 q/k are rounded by the attention), the ops in turn otherwise (rounding twice in bf16).
   void normalize_qk(Context& ctx, Tensor<A, B>& q, Tensor<A, B>& k, const nn::RopeTable<B>* rope,
                     std::int64_t heads) const {
     const std::int64_t C = q.size(-1), head_dim = C / heads;
