@@ -15,8 +15,7 @@
 // --profile: one eager evaluation of each DiT (and, with mst wanted, one MST evaluation)
 // between cudaProfilerStart/Stop, for ncu;
 // --tune-compare: the DiT rows again with the cuBLASLt candidate timing switched, suffixed;
-// --mst-compare: the MST again with each of its switches (residual add in the GEMM, stacked
-// q/k/v product) off and on, two rounds).
+// --residual-compare: the MST again with the residual add in its GEMMs off and on, two rounds).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -49,7 +48,7 @@ struct Options {
   bool fp32 = false;
   bool profile = false;  // one eager evaluation of each DiT inside cudaProfilerStart/Stop
   bool tune_compare = false;  // the DiT rows again with the GEMM tuning switched
-  bool mst_compare = false;  // the MST with each of its switches off and on, two rounds
+  bool residual_compare = false;  // the MST with the residual add in the GEMM off and on, two rounds
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
 };
 
@@ -76,12 +75,12 @@ Options parse(int argc, char** argv) {
     else if (a == "--fp32") o.fp32 = true;
     else if (a == "--profile") o.profile = true;
     else if (a == "--tune-compare") o.tune_compare = true;
-    else if (a == "--mst-compare") o.mst_compare = true;
+    else if (a == "--residual-compare") o.residual_compare = true;
     else if (a == "--only") {
       std::stringstream ss(next());
       for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
     } else fail("unknown option ", a,
-                " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --mst-compare)");
+                " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare)");
   }
   return o;
 }
@@ -307,25 +306,16 @@ int run(const Options& o) {
   mst_once();
   if (o.profile && o.want("mst")) profile_once(ctx, mst_once);
   if (o.want("mst")) emit("mst", event_times_ms(ctx, R, 3, mst_once), mst_tflop);
-  if (o.mst_compare && o.want("mst")) {  // per switch off, on, off, on: drift shows as a round difference
-    struct Switch {
-      const char* name;
-      bool (*get)(const cuda::Context&);
-      void (*set)(bool);
-    };
-    const Switch switches[] = {{"residual_gemm", cuda::residual_gemm_enabled, cuda::set_residual_gemm},
-                               {"stacked_qkv", cuda::stacked_qkv_enabled, cuda::set_stacked_qkv}};
-    for (const auto& [name, get, set] : switches) {
-      const bool saved = get(ctx);
-      for (const char* round : {"_r1", "_r2"})
-        for (const bool on : {false, true}) {
-          set(on);
-          mst_once();
-          emit(std::string("mst_") + name + (on ? "_on" : "_off") + round, event_times_ms(ctx, R, 3, mst_once),
-               mst_tflop);
-        }
-      set(saved);
-    }
+  if (o.residual_compare && o.want("mst")) {  // off, on, off, on: drift shows as a round difference
+    const bool default_on = cuda::residual_gemm_enabled(ctx);
+    for (const char* round : {"_r1", "_r2"})
+      for (const bool on : {false, true}) {
+        cuda::set_residual_gemm(on);
+        mst_once();
+        emit(std::string("mst_residual_gemm_") + (on ? "on" : "off") + round, event_times_ms(ctx, R, 3, mst_once),
+             mst_tflop);
+      }
+    cuda::set_residual_gemm(default_on);
   }
 
   const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };

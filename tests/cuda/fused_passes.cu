@@ -249,38 +249,3 @@ TEST_CASE("fused MST QK LayerNorm + RoPE: rounded once, within one bf16 rounding
   check_qk_norm_rope<bf16>(ctx, 1300, 5150, false);  // the time layer: fewer queries than keys
   check_qk_norm_rope<bf16>(ctx, 515, 5150, false);   // the pruned block: declined (block-per-row norm)
 }
-
-// q and k as column blocks of a stacked q/k/v product's rows (3n apart): the same bits as the
-// contiguous call on the same values, v's block and nothing else touched.
-TEST_CASE("fused MST QK LayerNorm + RoPE on the rows of a stacked q/k/v buffer") {
-  EPONA_REQUIRE_GPU();
-  cuda::Context ctx;
-  const std::int64_t rows = 5150, n = 2048, head_dim = 128, ld = 3 * n;
-  HostF qkv = random_tensor({rows, ld}, 31, -3.f, 3.f);
-  round_to<bf16>(qkv);
-  HostF q({rows, n}), k({rows, n});
-  for (std::int64_t r = 0; r < rows; ++r)
-    for (std::int64_t c = 0; c < n; ++c) q.at(r, c) = qkv.at(r, c), k.at(r, c) = qkv.at(r, n + c);
-  const HostF w = random_tensor({n}, 32, 0.5f, 1.5f), b = random_tensor({n}, 33);
-  const HostF angle = random_tensor({rows, head_dim / 2}, 34, -3.2f, 3.2f);
-  HostF cos({rows, head_dim / 2}), sin({rows, head_dim / 2});
-  for (std::int64_t i = 0; i < angle.numel(); ++i) cos.data()[i] = std::cos(angle.data()[i]), sin.data()[i] = std::sin(angle.data()[i]);
-  const auto dw = upload<float>(ctx, w), db = upload<float>(ctx, b), dcos = upload<float>(ctx, cos),
-             dsin = upload<float>(ctx, sin);
-  auto dqkv = upload<bf16>(ctx, qkv), dq = upload<bf16>(ctx, q), dk = upload<bf16>(ctx, k);
-  CHECK(cuda::layer_norm_rope_qk_fits(ctx, dqkv.data(), ld, rows, dqkv.data() + n, ld, rows, n, dw.data(), db.data(),
-                                      dw.data(), db.data(), head_dim, dcos.data(), dsin.data()));
-  REQUIRE(cuda::layer_norm_rope_qk(ctx, dqkv.data(), ld, rows, dqkv.data() + n, ld, rows, n, dw.data(), db.data(),
-                                   1e-5f, dw.data(), db.data(), 1e-5f, head_dim, dcos.data(), dsin.data()));
-  REQUIRE(cuda::layer_norm_rope_qk(ctx, dq.data(), rows, dk.data(), rows, n, dw.data(), db.data(), 1e-5f, dw.data(),
-                                   db.data(), 1e-5f, head_dim, dcos.data(), dsin.data()));
-  const HostF out = download(ctx, dqkv), gq = download(ctx, dq), gk = download(ctx, dk);
-  std::int64_t differ = 0;
-  for (std::int64_t r = 0; r < rows; ++r)
-    for (std::int64_t c = 0; c < n; ++c)
-      differ += out.at(r, c) != gq.at(r, c) || out.at(r, n + c) != gk.at(r, c) || out.at(r, 2 * n + c) != qkv.at(r, 2 * n + c);
-  CHECK(differ == 0);
-  // Rows not 16-byte aligned apart are declined (the caller then keeps three products).
-  CHECK_FALSE(cuda::layer_norm_rope_qk_fits(ctx, dqkv.data(), ld - 4, rows, dqkv.data() + n, ld, rows, n, dw.data(),
-                                            db.data(), dw.data(), db.data(), head_dim, dcos.data(), dsin.data()));
-}

@@ -8,7 +8,6 @@
 
 #include <cstdint>
 
-#include "epona/core/env.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
 #include "epona/cuda/norm.cuh"
@@ -19,8 +18,8 @@ namespace detail {
 
 template <class T>
 struct QkNormRopeArgs {
-  T *q, *k;                    // rows_q and rows_k rows of n, ldq / ldk apart, normalised and rotated in place
-  std::int64_t rows_q, rows_k, n, ldq, ldk;
+  T *q, *k;                    // (rows_q, n) and (rows_k, n), normalised and rotated in place
+  std::int64_t rows_q, rows_k, n;
   const float *q_weight, *q_bias, *k_weight, *k_bias;
   float q_eps, k_eps;
   int head_dim;                // heads side by side along n
@@ -53,57 +52,46 @@ __global__ void __launch_bounds__(32 * kNormWarps) qk_layer_norm_rope_kernel(QkN
   if (w >= a.rows_q + a.rows_k) return;
   const bool is_q = w < a.rows_q;
   const std::int64_t row = is_q ? w : w - a.rows_q;
-  T* x = is_q ? a.q + row * a.ldq : a.k + row * a.ldk;  // the row, as row 0 of a one-row norm
-  const RowNormArgs<T, T, T, T, float> norm{x,   nullptr, nullptr, nullptr, x, is_q ? a.q_weight : a.k_weight,
-                                            is_q ? a.q_bias : a.k_bias, 1, a.n, is_q ? a.q_eps : a.k_eps};
+  T* x = is_q ? a.q : a.k;
+  const RowNormArgs<T, T, T, T, float> norm{x,          nullptr, nullptr, nullptr,
+                                            x,          is_q ? a.q_weight : a.k_weight,
+                                            is_q ? a.q_bias : a.k_bias, is_q ? a.rows_q : a.rows_k,
+                                            a.n,        is_q ? a.q_eps : a.k_eps};
   const int lane = threadIdx.x & 31;
   const auto warp = [](float v) { return warp_sum(v); };
-  if (!a.cos) return norm_row<P, false, false>(norm, 0, lane, 32, warp);
+  if (!a.cos) return norm_row<P, false, false>(norm, row, lane, 32, warp);
   const int pairs = a.head_dim / 2;
   const float* cos = a.cos + row * pairs;
   const float* sin = a.sin + row * pairs;
-  norm_row<P, false, false>(norm, 0, lane, 32, warp,
+  norm_row<P, false, false>(norm, row, lane, 32, warp,
                             [&](float (&v)[kPack], int c0) { rotate_pack(v, c0, a.head_dim, cos, sin); });
 }
 
 }  // namespace detail
 
-// Whether layer_norm_rope_qk runs these rows in its one launch (callers may pick a layout by
-// it): rows that fit the warp-per-row LayerNorm that layer_norm itself would pick for each of q
-// and k (so the statistics are the unfused ops' to the bit), 16-byte aligned rows, parameters
-// and table rows, packs of 8 channels inside one head.
+// q (rows_q, n) = LN_q(q), k (rows_k, n) = LN_k(k) in place (affine, float32 parameters), then,
+// with cos/sin, both rotated as apply_rope with table row r for row r, rounded once. One launch
+// when the rows fit the warp-per-row LayerNorm that layer_norm itself would pick for each of q
+// and k (so the statistics are the unfused ops' to the bit); returns false, doing nothing, otherwise.
 template <class T>
-bool layer_norm_rope_qk_fits(const Context& ctx, const T* q, std::int64_t ldq, std::int64_t rows_q, const T* k,
-                             std::int64_t ldk, std::int64_t rows_k, std::int64_t n, const float* q_weight,
-                             const float* q_bias, const float* k_weight, const float* k_bias, std::int64_t head_dim,
-                             const float* cos, const float* sin) {
-  const std::int64_t warp_min = detail::warp_rows_min(ctx);
-  const bool table_ok = !cos || (head_dim % detail::kPack == 0 && detail::aligned16(cos) && detail::aligned16(sin));
-  return table_ok && n <= detail::kWarpRowMax && rows_q >= warp_min && rows_k >= warp_min && ldq >= n && ldk >= n &&
-         detail::packable(q, n, ldq) && detail::packable(k, n, ldk) && detail::packable(q_weight, n, 0) &&
-         detail::packable(q_bias, n, 0) && detail::packable(k_weight, n, 0) && detail::packable(k_bias, n, 0);
-}
-
-// q (rows_q rows of n, ldq apart) = LN_q(q), k (rows_k rows, ldk apart) = LN_k(k) in place
-// (affine, float32 parameters), then, with cos/sin, both rotated as apply_rope with table row r
-// for row r, rounded once. One launch where layer_norm_rope_qk_fits; returns false, doing
-// nothing, otherwise. q and k may be column blocks of one wider buffer (a stacked q/k/v product).
-template <class T>
-bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t ldq, std::int64_t rows_q, T* k, std::int64_t ldk,
-                        std::int64_t rows_k, std::int64_t n, const float* q_weight, const float* q_bias, float q_eps,
-                        const float* k_weight, const float* k_bias, float k_eps, std::int64_t head_dim,
-                        const float* cos, const float* sin) {
+bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int64_t rows_k, std::int64_t n,
+                        const float* q_weight, const float* q_bias, float q_eps, const float* k_weight,
+                        const float* k_bias, float k_eps, std::int64_t head_dim, const float* cos, const float* sin) {
   static_assert(is_device_float<T>, "layer_norm_rope_qk takes float or bf16");
   EPONA_CHECK(rows_q >= 0 && rows_k >= 0 && n > 0 && head_dim > 0 && head_dim % 2 == 0 && n % head_dim == 0,
               "layer_norm_rope_qk: bad extent (rows ", rows_q, " and ", rows_k, ", width ", n, ", head_dim ",
               head_dim, ")");
   EPONA_CHECK((cos == nullptr) == (sin == nullptr), "layer_norm_rope_qk: cos and sin must both be given or not");
-  if (!layer_norm_rope_qk_fits(ctx, q, ldq, rows_q, k, ldk, rows_k, n, q_weight, q_bias, k_weight, k_bias, head_dim,
-                               cos, sin))
-    return false;
-  const detail::QkNormRopeArgs<T> a{q,      k,        rows_q, rows_k,   n,      ldq,   ldk,
-                                    q_weight, q_bias, k_weight, k_bias, q_eps, k_eps, static_cast<int>(head_dim),
-                                    cos,    sin};
+  const std::int64_t warp_min = detail::warp_rows_min(ctx);
+  // Packs of 8 channels inside one head and 16-byte table rows for rotate_pack's loads.
+  const bool table_ok = !cos || (head_dim % detail::kPack == 0 && detail::aligned16(cos) && detail::aligned16(sin));
+  const bool fits = table_ok && n <= detail::kWarpRowMax && rows_q >= warp_min && rows_k >= warp_min &&
+                    detail::packable(q, n, n) && detail::packable(k, n, n) && detail::packable(q_weight, n, 0) &&
+                    detail::packable(q_bias, n, 0) && detail::packable(k_weight, n, 0) &&
+                    detail::packable(k_bias, n, 0);
+  if (!fits) return false;
+  const detail::QkNormRopeArgs<T> a{q,      k,     rows_q, rows_k,  n,   q_weight, q_bias, k_weight, k_bias,
+                                    q_eps,  k_eps, static_cast<int>(head_dim), cos, sin};
   const auto blocks = static_cast<unsigned>((rows_q + rows_k + detail::kNormWarps - 1) / detail::kNormWarps);
   detail::with_warp_row_packs(n, [&](auto packs_per_lane) {  // the choice layer_norm makes
     detail::qk_layer_norm_rope_kernel<T, decltype(packs_per_lane)::value>
@@ -112,25 +100,5 @@ bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t ldq, std::int64_t rows_
   EPONA_CUDA_CHECK_LAUNCH();
   return true;
 }
-
-// Contiguous q (rows_q, n) and k (rows_k, n).
-template <class T>
-bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int64_t rows_k, std::int64_t n,
-                        const float* q_weight, const float* q_bias, float q_eps, const float* k_weight,
-                        const float* k_bias, float k_eps, std::int64_t head_dim, const float* cos, const float* sin) {
-  return layer_norm_rope_qk(ctx, q, n, rows_q, k, n, rows_k, n, q_weight, q_bias, q_eps, k_weight, k_bias, k_eps,
-                            head_dim, cos, sin);
-}
-
-// EPONA_CUDA_STACKED_QKV=0 keeps the MST's q, k and v as three products (side-by-side runs);
-// on by default: one product of the stacked weights where the fused norm takes its strided rows.
-namespace detail {
-inline bool& stacked_qkv_flag() {
-  static bool on = env_flag("EPONA_CUDA_STACKED_QKV", true);
-  return on;
-}
-}  // namespace detail
-inline bool stacked_qkv_enabled(const Context&) { return detail::stacked_qkv_flag(); }
-inline void set_stacked_qkv(bool on) { detail::stacked_qkv_flag() = on; }
 
 }  // namespace epona::cuda

@@ -100,50 +100,42 @@ struct MstLayer {
   using A = Activation<B, W>;
   nn::LayerNorm<B> ln1, ln2, q_norm, k_norm;
   nn::Linear<B, W> query, key, value, proj;
-  nn::Linear<B, W> qkv;  // (3C, C): query, key, value stacked in one allocation, whose views they are
   nn::SequentialMlp<B, W> mlp;
 
   MstLayer() = default;
   explicit MstLayer(const MstConfig& c)
       : ln1(c.n_embd, c.ln_eps, true), ln2(c.n_embd, c.ln_eps, true), q_norm(c.n_embd, c.ln_eps, true),
         k_norm(c.n_embd, c.ln_eps, true), query(c.n_embd, c.n_embd, false), key(c.n_embd, c.n_embd, false),
-        value(c.n_embd, c.n_embd, false), proj(c.n_embd, c.n_embd, false), qkv(c.n_embd, 3 * c.n_embd, false),
+        value(c.n_embd, c.n_embd, false), proj(c.n_embd, c.n_embd, false),
         mlp(c.n_embd, c.mlp_hidden(), c.n_embd, false, nn::Gelu::Erf) {}
 
   void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
     ln1.bind(w, p + "ln1.", r);
     ln2.bind(w, p + "ln2.", r);
-    const std::int64_t C = query.in;
-    const auto stacked = nn::bind_stacked_params<B, W>(
-        r, {p + "attn.query.weight", p + "attn.key.weight", p + "attn.value.weight"}, {C, C});
-    if (!stacked.empty()) {
-      qkv.weight = stacked.reshape({3 * C, C});
-      query.weight = stacked[0], key.weight = stacked[1], value.weight = stacked[2];
-    }
+    query.bind(w, p + "attn.query.", r);
+    key.bind(w, p + "attn.key.", r);
+    value.bind(w, p + "attn.value.", r);
     proj.bind(w, p + "attn.proj.", r);
     q_norm.bind(w, p + "attn.q_norm.", r);
     k_norm.bind(w, p + "attn.k_norm.", r);
     mlp.bind(w, p + "mlp.", r);
   }
 
-  // Scratch of one layer over n tokens of width C. qkv holds q, k, v either as rows of one
-  // stacked product (n, 3C) or as three (n, C) blocks one after another.
+  // Scratch of one layer over n tokens of width C.
   struct Scratch {
-    Tensor<A, B> u;       // (n, C)
-    Tensor<A, B> qkv;     // (n, 3C)
-    Tensor<A, B> hidden;  // (n, 4C)
+    Tensor<A, B> u, q, k, v;  // (n, C)
+    Tensor<A, B> hidden;      // (n, 4C)
   };
   template <class Alloc>
   static Scratch plan(Alloc& a, std::int64_t n, const MstConfig& c) {
-    return {a.template take<A>({n, c.n_embd}), a.template take<A>({n, 3 * c.n_embd}),
-            a.template take<A>({n, c.mlp_hidden()})};
+    return {a.template take<A>({n, c.n_embd}), a.template take<A>({n, c.n_embd}), a.template take<A>({n, c.n_embd}),
+            a.template take<A>({n, c.n_embd}), a.template take<A>({n, c.mlp_hidden()})};
   }
 
   // x (n, C) += attn(ln1 x); x += mlp(ln2 x) on rows [first, first + count) of x, the queries
   // (keys and values come from all n rows; the pruned last block updates a subset).
   // `rope` (or null) rotates q and k after their norms, table row r for row r (the space layers,
-  // where q and k cover the same rows); `attend(q, k, v, o, spread)` arranges the tokens into
-  // sequences, q/k/v rows `spread` times as far apart as o's (3 for the stacked product).
+  // where q and k cover the same rows); `attend(q, k, v, o)` arranges the tokens into sequences.
   // Each residual add runs with the LayerNorm after it:
   // with `normed`, s.u already holds ln1(x) (written by the previous layer's last add); with
   // `next` (the following layer, whose x is exactly the rows updated here), the last add also
@@ -152,19 +144,16 @@ struct MstLayer {
   void operator()(Context& ctx, Tensor<float, B>& x, Scratch& s, std::int64_t first, std::int64_t count,
                   const nn::RopeTable<B>* rope, std::int64_t heads, Attend&& attend, bool normed = false,
                   const MstLayer* next = nullptr) const {
-    const std::int64_t n = x.size(0), C = query.in;
+    const std::int64_t n = x.size(0);
     auto rows = x.slice(first, first + count);
-    auto u = s.u.slice(0, n), o = s.u.slice(0, count), hidden = s.hidden.slice(0, count);
-    auto blocks = s.qkv.reshape({3, s.qkv.size(0), C});  // the unstacked layout
-    auto q = blocks[0].slice(0, count), k = blocks[1].slice(0, n), v = blocks[2].slice(0, n);
+    auto u = s.u.slice(0, n), k = s.k.slice(0, n), v = s.v.slice(0, n);
+    auto q = s.q.slice(0, count), o = s.u.slice(0, count), hidden = s.hidden.slice(0, count);
     if (!normed) ln1(ctx, x, u);
-    if (!attend_stacked(ctx, u, s.qkv, count, rope, heads, attend, o)) {
-      key(ctx, u, k);
-      value(ctx, u, v);
-      query(ctx, u.slice(first, first + count), q);
-      normalize_qk(ctx, q, k, rope, heads);
-      attend(q.data(), k.data(), v.data(), o.data(), 1);  // the attention output reuses u
-    }
+    key(ctx, u, k);
+    value(ctx, u, v);
+    query(ctx, u.slice(first, first + count), q);
+    normalize_qk(ctx, q, k, rope, heads);
+    attend(q, k, v, o);                          // the attention output reuses u
     add_branch(ctx, proj, o, rows, q, &ln2, o);  // float32 residual += projection; o = ln2(x)
     mlp.fc1(ctx, o, hidden, mlp.fc1_epilogue());
     add_branch(ctx, mlp.fc2, hidden, rows, q, next ? &next->ln1 : nullptr, o);
@@ -186,33 +175,6 @@ struct MstLayer {
     layer(ctx, in, branch);
     if (norm) norm->add_and_normalize(ctx, rows, branch, out);
     else add_inplace(ctx, rows.data(), branch.data(), rows.numel());
-  }
-
-  // o = attention of u's rows through one product of the stacked q/k/v weights into `buffer`
-  // (rows 3C apart) and the fused QK norm on its strided rows: on the GPU (unless switched off)
-  // where every row is a query and that norm takes such rows. False, doing nothing, elsewhere.
-  template <class Attend>
-  bool attend_stacked(Context& ctx, const Tensor<A, B>& u, Tensor<A, B>& buffer, std::int64_t count,
-                      const nn::RopeTable<B>* rope, std::int64_t heads, Attend& attend, Tensor<A, B>& o) const {
-    if constexpr (requires { stacked_qkv_enabled(ctx); }) {
-      const std::int64_t n = u.size(0), C = query.in, ld = 3 * C;
-      const float* cos = rope ? rope->cos.data() : nullptr;
-      const float* sin = rope ? rope->sin.data() : nullptr;
-      A* rows = buffer.data();
-      if (!stacked_qkv_enabled(ctx) || count != n || qkv.weight.empty() ||
-          !layer_norm_rope_qk_fits(ctx, rows, ld, n, rows + C, ld, n, C, q_norm.weight.data(), q_norm.bias.data(),
-                                   k_norm.weight.data(), k_norm.bias.data(), C / heads, cos, sin))
-        return false;
-      qkv.strided(ctx, u.data(), C, n, rows, ld);
-      const bool fused = layer_norm_rope_qk(ctx, rows, ld, n, rows + C, ld, n, C, q_norm.weight.data(),
-                                            q_norm.bias.data(), q_norm.eps, k_norm.weight.data(), k_norm.bias.data(),
-                                            k_norm.eps, C / heads, cos, sin);
-      EPONA_CHECK(fused, "MST: the fused QK norm declined the rows it said it takes");
-      attend(rows, rows + C, rows + 2 * C, o.data(), 3);
-      return true;
-    } else {
-      return false;
-    }
   }
 
   // q = q_norm(q), k = k_norm(k), then the rotation: one launch on the GPU where its fused
@@ -521,13 +483,9 @@ class SpatialTemporalTransformer {
     return t;
   }
 
-  // The attention over sequences p describes, q/k/v rows `spread` times as far apart as p says
-  // (3: the rows of a stacked q/k/v product).
   static auto attention_with(Context& ctx, const nn::PackedAttention& p) {
-    return [&ctx, p](const auto* q, const auto* k, const auto* v, auto* o, std::int64_t spread) {
-      nn::PackedAttention a = p;
-      a.in_seq_stride *= spread, a.in_token_stride *= spread, a.q_seq_stride *= spread, a.q_token_stride *= spread;
-      nn::packed_attention(ctx, q, k, v, o, a);
+    return [&ctx, p](const auto& q, const auto& k, const auto& v, auto& o) {
+      nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), p);
     };
   }
 
