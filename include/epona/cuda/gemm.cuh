@@ -290,6 +290,26 @@ void finish_epilogue(Context& ctx, const LtPlan& plan, Epilogue epi, T* y, std::
   }
 }
 
+// The extent and row-stride checks every product's pointer form makes (`what` names it).
+inline void check_product_extent(const char* what, std::int64_t M, std::int64_t N, std::int64_t K, std::int64_t ldx,
+                                 std::int64_t ldy) {
+  EPONA_CHECK(M >= 0 && N > 0 && K > 0, what, ": bad extent (M ", M, ", N ", N, ", K ", K, ")");
+  EPONA_CHECK(ldx >= K && ldy >= N, what, ": row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K, ", N ", N);
+}
+
+// M of a Tensor-form product x (..., K) · w (N, K)ᵀ -> y (..., N), the shapes checked.
+template <class TX, class TW, class TY>
+std::int64_t product_rows(const char* what, const Tensor<TX, Cuda>& x, const Tensor<TW, Cuda>& w,
+                          const Tensor<TY, Cuda>& y) {
+  EPONA_CHECK(w.dim() == 2, what, ": weight must be 2-d, got ", shape_str(w.shape()));
+  const std::int64_t N = w.size(0), K = w.size(1);
+  EPONA_CHECK(x.dim() >= 1 && x.size(-1) == K, what, ": input ", shape_str(x.shape()), " does not end in K=", K);
+  const std::int64_t M = x.numel() / K;
+  EPONA_CHECK(y.numel() == M * N && y.size(-1) == N, what, ": output ", shape_str(y.shape()), " is not (", M, ", ", N,
+              ")");
+  return M;
+}
+
 // The operand and output types of a plan: float32, bf16, or bf16 operands into a float32 output.
 template <class T, class TY = T> constexpr std::int64_t dtype_tag() {
   return std::is_same_v<T, float> ? 0 : std::is_same_v<TY, float> ? 2 : 1;
@@ -319,8 +339,7 @@ template <class T>
 void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bias, T* y, std::int64_t ldy,
             std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi = Epilogue::None) {
   static_assert(is_device_float<T>, "linear takes float or bf16");
-  EPONA_CHECK(M >= 0 && N > 0 && K > 0, "linear: bad extent (M ", M, ", N ", N, ", K ", K, ")");
-  EPONA_CHECK(ldx >= K && ldy >= N, "linear: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K, ", N ", N);
+  detail::check_product_extent("linear", M, N, K, ldx, ldy);
   if (M == 0) return;
   // Shapes cuBLASLt's tiles fit badly (a few outputs per row, a tiny K): our own kernels, which
   // say which epilogues they take (small_linear.cuh).
@@ -347,9 +366,7 @@ template <class T>
 void linear_accumulate(Context& ctx, const T* x, std::int64_t ldx, const T* w, float* y, std::int64_t ldy,
                        std::int64_t M, std::int64_t N, std::int64_t K) {
   static_assert(is_device_float<T>, "linear_accumulate takes float or bf16 operands");
-  EPONA_CHECK(M >= 0 && N > 0 && K > 0, "linear_accumulate: bad extent (M ", M, ", N ", N, ", K ", K, ")");
-  EPONA_CHECK(ldx >= K && ldy >= N, "linear_accumulate: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K,
-              ", N ", N);
+  detail::check_product_extent("linear_accumulate", M, N, K, ldx, ldy);
   if (M == 0) return;
   const detail::LtPlanKey key{detail::dtype_tag<T, float>(), M, N, K, ldx, ldy,
                               static_cast<std::int64_t>(CUBLASLT_EPILOGUE_DEFAULT), detail::pointer_alignment(x),
@@ -362,13 +379,7 @@ void linear_accumulate(Context& ctx, const T* x, std::int64_t ldx, const T* w, f
 // x: (..., K); w: (N, K); y: (..., N) float32, preallocated: y += x · wᵀ.
 template <class T>
 void linear_accumulate(Context& ctx, const Tensor<T, Cuda>& x, const Tensor<T, Cuda>& w, Tensor<float, Cuda>& y) {
-  EPONA_CHECK(w.dim() == 2, "linear_accumulate: weight must be 2-d, got ", shape_str(w.shape()));
-  const std::int64_t N = w.size(0), K = w.size(1);
-  EPONA_CHECK(x.dim() >= 1 && x.size(-1) == K, "linear_accumulate: input ", shape_str(x.shape()),
-              " does not end in K=", K);
-  const std::int64_t M = x.numel() / K;
-  EPONA_CHECK(y.numel() == M * N && y.size(-1) == N, "linear_accumulate: output ", shape_str(y.shape()),
-              " is not (", M, ", ", N, ")");
+  const std::int64_t M = detail::product_rows("linear_accumulate", x, w, y), N = w.size(0), K = w.size(1);
   linear_accumulate(ctx, x.data(), K, w.data(), y.data(), N, M, N, K);
 }
 
@@ -376,12 +387,7 @@ void linear_accumulate(Context& ctx, const Tensor<T, Cuda>& x, const Tensor<T, C
 template <class T>
 void linear(Context& ctx, const Tensor<T, Cuda>& x, const Tensor<T, Cuda>& w, const Tensor<T, Cuda>& bias,
             Tensor<T, Cuda>& y, Epilogue epi = Epilogue::None) {
-  EPONA_CHECK(w.dim() == 2, "linear: weight must be 2-d, got ", shape_str(w.shape()));
-  const std::int64_t N = w.size(0), K = w.size(1);
-  EPONA_CHECK(x.dim() >= 1 && x.size(-1) == K, "linear: input ", shape_str(x.shape()), " does not end in K=", K);
-  const std::int64_t M = x.numel() / K;
-  EPONA_CHECK(y.numel() == M * N && y.size(-1) == N, "linear: output ", shape_str(y.shape()), " is not (", M, ", ",
-              N, ")");
+  const std::int64_t M = detail::product_rows("linear", x, w, y), N = w.size(0), K = w.size(1);
   EPONA_CHECK(bias.empty() || bias.numel() == N, "linear: bias ", shape_str(bias.shape()), " is not (", N, ")");
   linear(ctx, x.data(), K, w.data(), bias.empty() ? nullptr : bias.data(), y.data(), N, M, N, K, epi);
 }

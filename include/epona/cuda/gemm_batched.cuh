@@ -85,9 +85,7 @@ void linear_batched(Context& ctx, const T* x, std::int64_t ldx, const T* w, cons
   static_assert(is_device_float<T>, "linear_batched takes float or bf16");
   EPONA_CHECK(batch.count >= 1, "linear_batched: batch count ", batch.count);
   if (batch.count == 1) return linear(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi);
-  EPONA_CHECK(M >= 0 && N > 0 && K > 0, "linear_batched: bad extent (M ", M, ", N ", N, ", K ", K, ")");
-  EPONA_CHECK(ldx >= K && ldy >= N, "linear_batched: row strides ldx ", ldx, ", ldy ", ldy, " smaller than K ", K,
-              ", N ", N);
+  detail::check_product_extent("linear_batched", M, N, K, ldx, ldy);
   if (M == 0) return;
   // Items writing the same elements would race inside the one launch.
   EPONA_CHECK(std::llabs(batch.y) >= (M - 1) * ldy + N, "linear_batched: output items ", batch.y,
