@@ -63,6 +63,19 @@ void check_all_epilogues(cuda::Context& ctx, std::int64_t M, std::int64_t N, std
     for (bool bias : {false, true}) check_linear<T>(ctx, {M, N, K, bias, epi, misalign}, seed++);
 }
 
+// Columns col0 .. col0 + N of rows ldy wide, as a predicate on flat indices.
+struct ColumnBlock {
+  std::int64_t ldy, col0, N;
+  bool operator()(std::int64_t i) const { return i % ldy >= col0 && i % ldy < col0 + N; }
+};
+
+// Elements of a NaN-poisoned buffer outside `block` that were written (are no longer NaN).
+std::int64_t written_outside(const HostF& out, const ColumnBlock& block) {
+  std::int64_t touched = 0;
+  for (std::int64_t i = 0; i < out.numel(); ++i) touched += !block(i) && !std::isnan(out.data()[i]);
+  return touched;
+}
+
 // out: a (M, ldy) buffer, poisoned, into whose columns col0 .. col0 + N the product of xw (rows
 // ldx apart), w and bias was written. Checks that block against cpu::linear on the same
 // (rounded) operands within the linear bound, and that no other element was written.
@@ -76,11 +89,9 @@ void check_column_block(const HostF& out, const HostF& xw, std::int64_t ldx, con
   cpu::linear(cctx, xw.data(), ldx, w.data(), bias, ref.data() + col0, ldy, M, N, K, epi);
   cpu::linear(cctx, xw.data(), ldx, w.data(), bias, z.data(), N, M, N, K, cpu::Epilogue::None);
   cpu::linear(cctx, xw.data(), ldx, w.data(), bias, y.data(), N, M, N, K, epi);
-  const auto inside = [&](std::int64_t i) { return i % ldy >= col0 && i % ldy < col0 + N; };
+  const ColumnBlock inside{ldy, col0, N};
   check_error(measure(out.data(), ref.data(), out.numel(), inside), linear_bound<T>(epi, z, y), what);
-  std::int64_t touched = 0;
-  for (std::int64_t i = 0; i < out.numel(); ++i) touched += !inside(i) && !std::isnan(out.data()[i]);
-  CHECK(touched == 0);
+  CHECK(written_outside(out, inside) == 0);
 }
 
 }  // namespace
@@ -134,7 +145,7 @@ TEST_CASE_TEMPLATE("cuda linear with row strides writes only its column block", 
 
 // linear_accumulate: y (float32) += x wᵀ, y a column block of a wider NaN-filled buffer, x read
 // with a row stride. The sum is not rounded to T on the way: within float32 accumulation error
-// of the float64-free reference (y0 + cpu::linear), far inside one bf16 rounding.
+// of the float32 reference y0 + cpu::linear, far inside one bf16 rounding.
 TEST_CASE_TEMPLATE("cuda linear_accumulate adds the unrounded product to float32 y, only in its block", T, float,
                    bf16) {
   EPONA_REQUIRE_GPU();
@@ -159,13 +170,11 @@ TEST_CASE_TEMPLATE("cuda linear_accumulate adds the unrounded product to float32
     auto dy = upload<float>(ctx, start);
     cuda::linear_accumulate(ctx, dx.data(), c.ldx, dw.data(), dy.data() + c.col0, c.ldy, c.M, c.N, c.K);
     const HostF out = download(ctx, dy);
-    const auto inside = [&](std::int64_t i) { return i % c.ldy >= c.col0 && i % c.ldy < c.col0 + c.N; };
+    const ColumnBlock inside{c.ldy, c.col0, c.N};
     const std::string what = std::string("linear_accumulate ") + type_name<T>() + " M=" + std::to_string(c.M) +
                              " N=" + std::to_string(c.N) + " K=" + std::to_string(c.K);
     check_error(measure(out.data(), ref.data(), out.numel(), inside), {kF32Tol, kF32Tol * max_abs(y0)}, what);
-    std::int64_t touched = 0;
-    for (std::int64_t i = 0; i < out.numel(); ++i) touched += !inside(i) && !std::isnan(out.data()[i]);
-    CHECK_MESSAGE(touched == 0, what);
+    CHECK_MESSAGE(written_outside(out, inside) == 0, what);
   }
   Dev<T> x({4, 8}), w({6, 8}), w_bad({6, 7});
   Dev<float> y({4, 6}), y_bad({4, 5});
