@@ -98,6 +98,23 @@ void report(const std::string& name, double us, double bytes) {
   std::fflush(stdout);
 }
 
+using Variants = std::vector<std::pair<std::string, std::function<void(int)>>>;
+
+// Each variant timed as `calls` recorded calls and reported as tag_name with its speed-up over
+// the first variant (`first_label`) and the bandwidth of `bytes` per call.
+void time_variants(const Options& o, cuda::Context& ctx, const std::string& tag, int calls, double bytes,
+                   const Variants& variants, const char* first_label) {
+  double base = 0;
+  for (const auto& [name, fn] : variants) {
+    const double us = graph_us(ctx, o.repeats, calls, fn);
+    if (base == 0) base = us;
+    report(tag + "_" + name, us, bytes);
+    std::printf("# %s %s: %.2f us (%.2fx %s), %.0f GB/s\n", tag.c_str(), name.c_str(), us, base / us, first_label,
+                bytes / (us * 1e3));
+    profiled(o, ctx, tag + "_" + name, [&] { fn(0); });
+  }
+}
+
 // The skinny kernel called directly with `Unroll` chunks per round of loads.
 template <int Unroll, class T>
 std::function<void(int)> skinny_with(cuda::Context& ctx, std::function<cuda::detail::LinearArgs<T>(int)> args,
@@ -136,19 +153,11 @@ void time_product(const Options& o, cuda::Context& ctx, const ProductShape& s) {
   };
   const std::string tag = std::string("linear_") + (std::is_same_v<T, float> ? "f32_" : "bf16_") + s.name;
   const double bytes = double(sizeof(T)) * (wn + s.M * s.K + s.M * s.N);
-  const std::vector<std::pair<std::string, std::function<void(int)>>> variants{
-      {"cublaslt", via_linear(false)}, {"skinny", via_linear(true)}, {"skinny_u1", skinny_with<1, T>(ctx, args, epi)},
-      {"skinny_u4", skinny_with<4, T>(ctx, args, epi)}};
-  double base = 0;
-  for (const auto& [name, fn] : variants) {
-    if (std::is_same_v<T, float> && name.rfind("skinny_u", 0) == 0) continue;
-    const double us = graph_us(ctx, o.repeats, calls, fn);
-    if (name == "cublaslt") base = us;
-    report(tag + "_" + name, us, bytes);
-    std::printf("# %s %s: %.2f us (%.2fx cuBLASLt), %.0f GB/s\n", tag.c_str(), name.c_str(), us, base / us,
-                bytes / (us * 1e3));
-    profiled(o, ctx, tag + "_" + name, [&] { fn(0); });
-  }
+  Variants variants{{"cublaslt", via_linear(false)}, {"skinny", via_linear(true)}};
+  if constexpr (!std::is_same_v<T, float>)
+    variants.insert(variants.end(), {{"skinny_u1", skinny_with<1, T>(ctx, args, epi)},
+                                     {"skinny_u4", skinny_with<4, T>(ctx, args, epi)}});
+  time_variants(o, ctx, tag, calls, bytes, variants, "cuBLASLt");
   cuda::set_skinny_linear(true);
 }
 
@@ -173,24 +182,17 @@ void time_qk(const Options& o, cuda::Context& ctx, const char* name, std::int64_
     moved += 2.0 * double(sizeof(T)) * width * double((ranges[i][2] - ranges[i][0]) + (ranges[i][2] - ranges[i][1]));
   }
   const std::string tag = std::string("qk_norm_rope_") + (std::is_same_v<T, float> ? "f32_" : "bf16_") + name;
-  double base = 0;
   const int default_accesses = cuda::detail::qk_rows_accesses();
-  for (const int accesses : {0, 2, 4, 8}) {  // 0: the head-per-warp kernel
-    const auto fn = [&, accesses](int i) {
+  Variants variants;
+  for (const int accesses : {0, 2, 4, 8})  // 0: the head-per-warp kernel
+    variants.emplace_back(accesses ? "rows_a" + std::to_string(accesses) : "heads", [&, accesses](int i) {
       cuda::set_qk_norm_rope_rows(accesses > 0);
       cuda::detail::qk_rows_forced() = accesses > 0;  // timed where it does not pay too
       cuda::detail::qk_rows_accesses() = accesses > 0 ? accesses : default_accesses;
       cuda::qk_norm_rope(ctx, pool.data() + i * n, stride, width, heads, 128, 1e-6f, cos.data(), sin.data(),
                          segs);
-    };
-    const double us = graph_us(ctx, o.repeats, calls, fn);
-    if (accesses == 0) base = us;
-    const std::string variant = accesses ? "rows_a" + std::to_string(accesses) : "heads";
-    report(tag + "_" + variant, us, moved);
-    std::printf("# %s %s: %.2f us (%.2fx head-per-warp), %.0f GB/s\n", tag.c_str(), variant.c_str(), us, base / us,
-                moved / (us * 1e3));
-    profiled(o, ctx, tag + "_" + variant, [&] { fn(0); });
-  }
+    });
+  time_variants(o, ctx, tag, calls, moved, variants, "head-per-warp");
   cuda::set_qk_norm_rope_rows(true);
   cuda::detail::qk_rows_forced() = false;
   cuda::detail::qk_rows_accesses() = default_accesses;
@@ -223,17 +225,9 @@ void time_mst_qk(const Options& o, cuda::Context& ctx) {
     }
   };
   const double moved = 4.0 * double(sizeof(bf16)) * per;  // q and k read and written once
-  const std::vector<std::pair<std::string, std::function<void(int)>>> variants{
-      {"fused_rope", fused(true)}, {"fused_norm_only", fused(false)}, {"unfused_rope", unfused}};
-  double base = 0;
-  for (const auto& [name, fn] : variants) {
-    const double us = graph_us(ctx, o.repeats, calls, fn);
-    if (base == 0) base = us;
-    report("mst_qk_layer_norm_" + name, us, moved);
-    std::printf("# mst qk layer norm %s: %.2f us (%.2fx fused_rope), %.0f GB/s at one read and write\n", name.c_str(),
-                us, us / base, moved / (us * 1e3));
-    profiled(o, ctx, "mst_qk_layer_norm_" + name, [&] { fn(0); });
-  }
+  time_variants(o, ctx, "mst_qk_layer_norm", calls, moved,
+                {{"fused_rope", fused(true)}, {"fused_norm_only", fused(false)}, {"unfused_rope", unfused}},
+                "fused_rope");
 }
 
 }  // namespace
