@@ -152,6 +152,7 @@ HostF reference_norm_rope(const HostF& x, const HostF& w, const HostF& b, float 
   const std::int64_t rows = x.size(0), n = x.size(1);
   HostF y({rows, n});
   std::vector<double> row(n);
+  const bool rot = cos && sin;
   for (std::int64_t r = 0; r < rows; ++r) {
     double mean = 0, var = 0;
     for (std::int64_t c = 0; c < n; ++c) mean += x.at(r, c);
@@ -161,7 +162,6 @@ HostF reference_norm_rope(const HostF& x, const HostF& w, const HostF& b, float 
     for (std::int64_t c = 0; c < n; ++c) row[c] = (x.at(r, c) - mean) * rstd * w.data()[c] + b.data()[c];
     for (std::int64_t c = 0; c < n; c += 2) {
       const std::int64_t j = (c % head_dim) / 2;
-      const bool rot = cos && sin;
       const double cs = rot ? cos->at(r, j) : 1, sn = rot ? sin->at(r, j) : 0, a = row[c], bb = row[c + 1];
       y.at(r, c) = float(cs * a - sn * bb);
       y.at(r, c + 1) = float(sn * a + cs * bb);
