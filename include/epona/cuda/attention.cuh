@@ -134,11 +134,6 @@ __device__ __forceinline__ void load_tile(bf16* dst, const bf16* src, std::int64
   }
 }
 
-// Barrier `id` (1..15; 0 is __syncthreads) over `threads` threads: one warp group's own.
-__device__ __forceinline__ void group_barrier(int id, int threads) {
-  asm volatile("bar.sync %0, %1;\n" ::"r"(id), "r"(threads) : "memory");
-}
-
 // S = Q K(t)ᵀ for one warp's kM x 16 query rows (sQ: its first row) and kKeys keys.
 template <bool kExactDim, int kM, int kKeys>
 __device__ __forceinline__ void warp_scores(float (&sc)[kM][kKeys / 8][4], const bf16* sQ, const bf16* sK, int lane,
@@ -439,7 +434,7 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
       if constexpr (kGroups == 1)
         __syncthreads();
       else
-        group_barrier(1 + group, kGroupThreads);
+        named_barrier(1 + group, kGroupThreads);
     }
     if (i + 1 < steps) {
       load_own_tile(i + 1);

@@ -388,10 +388,10 @@ __global__ void __launch_bounds__(Tile::threads, 1)
       float* stash = reinterpret_cast<float*>(smem + (sK(0) - smem_addr(smem)));
       const int thread = threadIdx.x % 128;
       constexpr int kConsumerThreads = 128 * Tile::consumers;
-      group_barrier(1, kConsumerThreads);
+      named_barrier(1, kConsumerThreads);
       if (group > 0)
         stash_partial(o, m, l, [&](int v) -> float& { return stash[((group - 1) * kPartialValues + v) * 128 + thread]; });
-      group_barrier(1, kConsumerThreads);
+      named_barrier(1, kConsumerThreads);
       if (group > 0) return;
       for (int c = 1; c < Tile::consumers; ++c)
         fold_partial(o, m, l, [&](int v) -> float& { return stash[((c - 1) * kPartialValues + v) * 128 + thread]; });

@@ -177,6 +177,12 @@ void for_each(cudaStream_t stream, std::int64_t rows, std::int64_t n, bool packe
   EPONA_CUDA_CHECK_LAUNCH();
 }
 
+// Named barrier `id` (1..15; 0 is __syncthreads) over `threads` threads of the block (a
+// multiple of 32), e.g. one warp group's own.
+__device__ __forceinline__ void named_barrier(int id, int threads) {
+  asm volatile("bar.sync %0, %1;\n" ::"r"(id), "r"(threads) : "memory");
+}
+
 // Lets `Kernel` use `bytes` (> 48 KiB) of dynamic shared memory; set once per kernel.
 template <auto Kernel>
 void allow_dynamic_smem(int bytes) {

@@ -185,10 +185,6 @@ __device__ __forceinline__ void bulk_wait_all() {
   if constexpr (Read) asm volatile("cp.async.bulk.wait_group.read 0;\n" ::: "memory");
   else asm volatile("cp.async.bulk.wait_group 0;\n" ::: "memory");
 }
-// Barrier `id` (1..15) over `threads` threads of the block (named barriers; 0 is __syncthreads).
-__device__ __forceinline__ void named_barrier(int id, int threads) {
-  asm volatile("bar.sync %0, %1;\n" ::"r"(id), "r"(threads) : "memory");
-}
 
 // The driver's cuTensorMapEncodeTiled, fetched once through the runtime (no libcuda link); null
 // where the driver lacks it.
