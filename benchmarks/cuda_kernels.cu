@@ -4,7 +4,8 @@
 // the MST-spatial and VisDiT-joint sizes, and the fused norm/RoPE/residual kernels. Medians of
 // event-timed repetitions after warm-up; GEMM inputs rotate over several buffer sets so that
 // the 50-60 MB L2 cannot hold them. Random (never zero) data. Sections alone: --attention,
-// --rows, --own-gemm, --mst-residual; --once runs each kernel once (for ncu).
+// --rows, --own-gemm, --mst-residual, --passes (the memory-bound kernels); --once runs each
+// kernel once (for ncu).
 #include <algorithm>
 #include <cstdint>
 #include <cstdio>
