@@ -11,7 +11,8 @@
 // side-by-side harness reads them), then a readable table.
 // Usage: bench_gpu_world [--repeats N] [--steps S] [--only a,b,...] [--fp32] [--profile]
 // (--only names: gemm, passes, dit_gemms, mst, traj_eval, traj_sample, vis_eval, vis_sample, step;
-// dit_gemms: the double blocks' per-stream products serial, on two streams, and batched;
+// dit_gemms: the double blocks' per-stream products serial, on two streams, and batched, and for
+// the VisDiT the batched product over the target's 512 rows with the condition's 3 more apart;
 // --profile: one eager evaluation of each DiT (and, with mst wanted, one MST evaluation)
 // between cudaProfilerStart/Stop, for ncu;
 // --tune-compare: the DiT rows again with the cuBLASLt candidate timing switched, suffixed;
@@ -215,27 +216,46 @@ void time_stream_gemms(cuda::Context& ctx, int repeats) {
                      y.data() + s * Mc * sh.N, sh.N, M, sh.N, sh.K, epi);
       };
       const std::string tag = std::string("dit_gemm_") + (vis ? "vis_" : "traj_") + sh.name;
-      const double tflop = 2.0 * (Mc + Mt) * sh.N * sh.K / 1e12;
-      const auto report = [&](const std::string& how, const std::function<void()>& fn) {
+      // `rows`: the useful rows of each of the two streams the timed work covers
+      const auto report_rows = [&](const std::string& how, std::int64_t rows_c, std::int64_t rows_t,
+                                   const std::function<void()>& fn) {
+        const double work = 2.0 * (rows_c + rows_t) * sh.N * sh.K / 1e12;
         const auto runs = event_times_ms(ctx, repeats, 3, fn);
-        emit(tag + "_" + how, runs, tflop);
+        emit(tag + "_" + how, runs, work);
         std::printf("# %s_%s: %.1f us, %.0f TFLOP/s (useful rows %lld + %lld)\n", tag.c_str(), how.c_str(),
-                    1e3 * median(runs), tflop / (median(runs) * 1e-3), static_cast<long long>(Mc),
-                    static_cast<long long>(Mt));
+                    1e3 * median(runs), work / (median(runs) * 1e-3), static_cast<long long>(rows_c),
+                    static_cast<long long>(rows_t));
       };
+      const auto report = [&](const std::string& how, const std::function<void()>& fn) { report_rows(how, Mc, Mt, fn); };
       report("serial", [&] { one(ctx, 0, Mc), one(ctx, 1, Mt); });
-      report("two_streams", [&] {
+      // on_side on the side stream beside on_main on ctx's, both inside the timed span
+      const auto beside = [&](const std::function<void()>& on_side, const std::function<void()>& on_main) {
         EPONA_CUDA_CHECK(cudaEventRecord(fork, ctx.stream()));
         EPONA_CUDA_CHECK(cudaStreamWaitEvent(side.stream(), fork, 0));
-        one(side, 0, Mc);
-        one(ctx, 1, Mt);
+        on_side();
+        on_main();
         EPONA_CUDA_CHECK(cudaEventRecord(join, side.stream()));
         EPONA_CUDA_CHECK(cudaStreamWaitEvent(ctx.stream(), join, 0));
-      });
-      report("batched", [&] {
-        cuda::linear_batched(ctx, x.data(), sh.K, w.data(), bias.data(), y.data(), sh.N, Mc, sh.N, sh.K,
+      };
+      report("two_streams", [&] { beside([&] { one(side, 0, Mc); }, [&] { one(ctx, 1, Mt); }); });
+      const auto batched = [&](std::int64_t rows) {
+        cuda::linear_batched(ctx, x.data(), sh.K, w.data(), bias.data(), y.data(), sh.N, rows, sh.N, sh.K,
                              cuda::GemmBatch{2, Mc * sh.K, sh.N * sh.K, sh.N, Mc * sh.N}, epi);
-      });
+      };
+      report("batched", [&] { batched(Mc); });
+      if (vis) {
+        // Whether the condition stream's rows past the target's (515 - 512 = 3) cost more as the
+        // batched product's fifth row tile than as a product of their own.
+        const std::int64_t tail = Mc - Mt;
+        const auto tail_rows = [&](cuda::Context& c) {
+          cuda::linear(c, x.data() + Mt * sh.K, sh.K, w.data(), bias.data(), y.data() + Mt * sh.N, sh.N, tail, sh.N,
+                       sh.K, epi);
+        };
+        report_rows("batched_target_rows", Mt, Mt, [&] { batched(Mt); });
+        report_rows("tail_rows", tail, 0, [&] { tail_rows(ctx); });
+        report("batched_target_rows_then_tail", [&] { batched(Mt), tail_rows(ctx); });
+        report("batched_target_rows_tail_beside", [&] { beside([&] { tail_rows(side); }, [&] { batched(Mt); }); });
+      }
     }
   }
   EPONA_CUDA_CHECK(cudaEventDestroy(fork));
