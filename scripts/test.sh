@@ -3,7 +3,7 @@
 # GPU tests are compiled when nvcc is present and skip with a message when no GPU is present.
 #   scripts/test.sh [--sanitize] [extra CMake arguments]
 # --sanitize: the same build and suite with AddressSanitizer + UBSan + LeakSanitizer in every C++
-# program (-O1, build dir build-sanitize); CI runs this (.ci/run). The CUDA kernels themselves are
+# program (C++ at -Og, build dir build-sanitize); CI runs this (.ci/run). The CUDA kernels themselves are
 # checked with compute-sanitizer on a GPU (tests/cuda/sanitize_all.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
