@@ -96,7 +96,7 @@ void check_product(const Product& p, Route route, std::uint32_t seed) {
 // The skinny kernel needs thread-block clusters: a GPU of compute capability 9.0 or newer
 // running code built for one (elsewhere cuda::linear never takes it).
 bool skinny_here() {
-  const bool here = cuda::detail::skinny_available(gpu());
+  const bool here = cuda::detail::clusters_available(gpu());
   if (!here) MESSAGE("no thread-block clusters on this GPU / in this build: skinny kernel not checked directly");
   return here;
 }

@@ -15,6 +15,7 @@
 #include "epona/core/env.hpp"
 #include "epona/core/kernel_options.hpp"
 #include "epona/cuda/activation.cuh"  // GeluTanhOp: the same function as the other GEMM epilogues
+#include "epona/cuda/cluster.cuh"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
 #include "epona/cuda/mma.cuh"
@@ -149,23 +150,6 @@ __device__ __forceinline__ ChunkRun warp_chunks(std::int64_t chunks, int split, 
   return {chunks * slot / slots, chunks * (slot + 1) / slots};
 }
 
-// Thread-block clusters exist from sm_90 on: device code built for older targets leaves the
-// cluster parts out (the host never launches the kernel there: skinny_available).
-#if !defined(__CUDA_ARCH__) || __CUDA_ARCH__ >= 900
-#define EPONA_SKINNY_CLUSTERS 1
-#else
-#define EPONA_SKINNY_CLUSTERS 0
-#endif
-
-// Both halves of a cluster-wide barrier (the sm_90 runtime intrinsics: cooperative_groups.h
-// would bring a namespace `cuda` that clashes with epona::cuda under `using namespace epona`).
-__device__ __forceinline__ void cluster_sync() {
-#if EPONA_SKINNY_CLUSTERS
-  __cluster_barrier_arrive();
-  __cluster_barrier_wait();
-#endif
-}
-
 // Sums the cluster's partial tiles for this CTA's share of the band's outputs, adds the bias,
 // applies the activation and stores. Each CTA first adds its warps' tiles into tile 0 (local,
 // fixed order); then a rank reads the `split` CTA totals of an output with all remote loads
@@ -181,7 +165,7 @@ __device__ void skinny_finish(const LinearArgs<T>& a, float (*part)[kSkinnyRows]
     part[0][0][e] = sum;
   }
   cluster_sync();  // every rank's total written
-#if EPONA_SKINNY_CLUSTERS
+#if EPONA_CUDA_CLUSTERS
   const int n0 = blockIdx.y * kSkinnyBand;
   for (int e = static_cast<int>(__clusterRelativeBlockRank()) * kSkinnyThreads + threadIdx.x; e < a.M * kSkinnyBand;
        e += split * kSkinnyThreads) {
@@ -275,44 +259,12 @@ inline int skinny_split(int multiprocessors, std::int64_t bands, std::int64_t ch
 // (1 x 6144 x 1024: 5.78 -> 7.11 us; 1 x 12288 x 2048: 15.25 -> 23.7; cuBLASLt's GEMV).
 inline bool skinny_wins(std::int64_t M, std::int64_t K) { return M >= 2 && K >= 4096; }
 
-// Marks device code with clusters (mark_build), which has the skinny kernel's cluster parts.
-__global__ void skinny_marker_kernel(int* flag) {
-#if EPONA_SKINNY_CLUSTERS
-  mark_build(flag);
-#else
-  (void)flag;
-#endif
-}
-// A GPU with clusters (compute capability 9.0 or newer) running code built with them.
-inline bool skinny_available(const Context& ctx) {
-  if (ctx.info().major < 9) return false;
-  static const bool built = build_marked(skinny_marker_kernel);
-  return built;
-}
-
-// Kernel launched on grid (x, y) in clusters of (x, 1, 1) with `smem` bytes of dynamic shared memory.
-template <class... Params, class... Args>
-void launch_in_clusters(void (*kernel)(Params...), dim3 grid, int threads, int smem, cudaStream_t stream,
-                        Args... args) {
-  cudaLaunchConfig_t cfg{};
-  cfg.gridDim = grid;
-  cfg.blockDim = dim3(static_cast<unsigned>(threads));
-  cfg.dynamicSmemBytes = static_cast<std::size_t>(smem);
-  cfg.stream = stream;
-  cudaLaunchAttribute cluster{};
-  cluster.id = cudaLaunchAttributeClusterDimension;
-  cluster.val.clusterDim.x = grid.x, cluster.val.clusterDim.y = 1, cluster.val.clusterDim.z = 1;
-  cfg.attrs = &cluster;
-  cfg.numAttrs = 1;
-  EPONA_CUDA_CHECK(cudaLaunchKernelEx(&cfg, kernel, args...));
-}
-
 template <class T, bool Gelu, int Unroll>
 void launch_skinny(Context& ctx, const LinearArgs<T>& a, int split, std::int64_t bands) {
   constexpr int smem = skinny_smem_bytes<T, Unroll>();
   allow_dynamic_smem<skinny_linear_kernel<T, Gelu, Unroll>>(smem);
   launch_in_clusters(skinny_linear_kernel<T, Gelu, Unroll>, dim3(static_cast<unsigned>(split), static_cast<unsigned>(bands)),
-                     kSkinnyThreads, smem, ctx.stream(), a, split);
+                     static_cast<unsigned>(split), kSkinnyThreads, smem, ctx.stream(), a, split);
 }
 
 // Runs the product when it is skinny (M <= 16), K a multiple of 8 with 16-byte aligned rows,
@@ -321,7 +273,7 @@ void launch_skinny(Context& ctx, const LinearArgs<T>& a, int split, std::int64_t
 // Unroll: chunks per round of loads (benchmarks compare others).
 template <class T, int Unroll = kSkinnyUnroll<T>>
 bool skinny_linear(Context& ctx, const LinearArgs<T>& a, Epilogue epi) {
-  if (!skinny_available(ctx)) return false;
+  if (!clusters_available(ctx)) return false;
   if (a.M < 1 || a.M > kSkinnyRows || (epi != Epilogue::None && epi != Epilogue::GeluTanh)) return false;
   if (!packable(a.x, a.K, a.ldx) || !packable(a.w, a.K, a.K)) return false;
   const std::int64_t bands = (std::int64_t{a.N} + kSkinnyBand - 1) / kSkinnyBand;
