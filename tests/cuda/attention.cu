@@ -626,3 +626,150 @@ TEST_CASE("cuda attention bf16: planned TMA kernel in a CUDA graph, bad plans re
   CHECK(input_elems(big) <= din.numel());
   CHECK_THROWS_WITH_AS(run_plan(big, TmaPlan{64, 16}), doctest::Contains("partial results"), epona::Error);
 }
+
+namespace {
+
+// LayerNorm parameters of q and of k over a token's heads x dim channels.
+struct QkNormParams {
+  HostF q_weight, q_bias, k_weight, k_bias;
+  float q_eps = 1e-5f, k_eps = 1e-6f;  // different, so that a swap shows
+};
+
+// Row r of q (or k) in float64 through its LayerNorm, rounded to bf16 in place.
+void layer_norm_row_f64(float* x, std::int64_t n, const HostF& w, const HostF& b, float eps) {
+  double mean = 0, var = 0;
+  for (std::int64_t c = 0; c < n; ++c) mean += x[c];
+  mean /= double(n);
+  for (std::int64_t c = 0; c < n; ++c) var += (x[c] - mean) * (x[c] - mean);
+  const double rstd = 1.0 / std::sqrt(var / double(n) + eps);
+  for (std::int64_t c = 0; c < n; ++c) x[c] = float(bf16(float((x[c] - mean) * rstd * w.data()[c] + b.data()[c])));
+}
+
+// A copy of `in` with every q and every k row of the layout normalised as the model's q_norm /
+// k_norm.
+HostF normalise_qk_f64(const Layout& l, const HostF& raw, const QkNormParams& n) {
+  HostF in = raw.clone();  // tensors share their storage when copied
+  const std::int64_t c = l.heads * l.dim;
+  for (std::int64_t s = 0; s < l.seqs; ++s) {
+    for (std::int64_t i = 0; i < l.lq; ++i)
+      layer_norm_row_f64(in.data() + l.q_off + s * l.q_seq + i * l.q_row, c, n.q_weight, n.q_bias, n.q_eps);
+    for (std::int64_t j = 0; j < l.lk; ++j)
+      layer_norm_row_f64(in.data() + l.k_off + s * l.k_seq + j * l.k_row, c, n.k_weight, n.k_bias, n.k_eps);
+  }
+  return in;
+}
+
+// attention_qk_layer_norm on `l` (q, k offset from zero mean, so that the mean matters) against
+// float64 LayerNorms rounded to bf16 and float64 attention, within the bf16 attention bound;
+// q and k unchanged; elements outside the output untouched; and against the separate pass
+// (layer_norm in place, then attention) where q and k are dense row blocks.
+void check_attention_qk_norm(cuda::Context& ctx, const Layout& l, std::uint32_t seed, const std::string& name) {
+  const std::int64_t c = l.heads * l.dim;
+  HostF in = random_tensor({input_elems(l)}, seed, -1.f, 3.f);
+  round_to<bf16>(in);
+  QkNormParams n{random_tensor({c}, seed + 1, 0.5f, 1.5f), random_tensor({c}, seed + 2),
+                 random_tensor({c}, seed + 3, 0.5f, 1.5f), random_tensor({c}, seed + 4)};
+  const HostF ref = reference_f64(l, normalise_qk_f64(l, in, n));
+  const auto qw = upload<float>(ctx, n.q_weight), qb = upload<float>(ctx, n.q_bias);
+  const auto kw = upload<float>(ctx, n.k_weight), kb = upload<float>(ctx, n.k_bias);
+  auto din = upload<bf16>(ctx, in);
+  Dev<bf16> dout({output_elems(l)});
+  poison(ctx, dout);
+  const cuda::AttentionShape ga = device_shape(l, nullptr);
+  const bool ran = cuda::attention_qk_layer_norm(ctx, din.data() + l.q_off, din.data() + l.k_off, din.data() + l.v_off,
+                                                 dout.data(), ga, qw.data(), qb.data(), n.q_eps, kw.data(), kb.data(),
+                                                 n.k_eps);
+  REQUIRE_MESSAGE(ran, name);
+  const HostF out = download(ctx, dout);
+  const auto written = [&](std::int64_t i) { return !std::isnan(ref.data()[i]); };
+  std::int64_t stray = 0;
+  for (std::int64_t i = 0; i < out.numel(); ++i) stray += !written(i) && !std::isnan(out.data()[i]);
+  const Bound bound{1e-2, 2 * kBf16Roundoff * 3.0};  // |v| < 3
+  check_error(measure(out.data(), ref.data(), out.numel(), written), bound, "attention + QK LayerNorm " + name);
+  CHECK_MESSAGE(stray == 0, name);
+  const HostF after = download(ctx, din);
+  CHECK_MESSAGE(std::equal(in.data(), in.data() + in.numel(), after.data()), name, ": q or k was written");
+
+  // The separate pass (layer_norm_rope_qk over q's and k's rows, in place), then the attention:
+  // where q and k are dense row blocks (not packed QKV).
+  if (l.q_row != c && l.q_row != 0 && l.q_seq != c) return;
+  auto sep = upload<bf16>(ctx, in);
+  Dev<bf16> sout({output_elems(l)});
+  poison(ctx, sout);
+  const std::int64_t rows_q = l.q_row == 0 ? l.seqs : l.seqs * l.lq, rows_k = l.seqs * l.lk;
+  cuda::layer_norm(ctx, sep.data() + l.q_off, sep.data() + l.q_off, rows_q, c, qw.data(), qb.data(), n.q_eps);
+  cuda::layer_norm(ctx, sep.data() + l.k_off, sep.data() + l.k_off, rows_k, c, kw.data(), kb.data(), n.k_eps);
+  cuda::attention(ctx, sep.data() + l.q_off, sep.data() + l.k_off, sep.data() + l.v_off, sout.data(), ga);
+  const HostF sref = download(ctx, sout);
+  check_error(measure(sref.data(), ref.data(), out.numel(), written), bound, "separate norm + attention " + name);
+  // The two differ only where a row's statistics, summed in another order, round an element
+  // of q or k the other way: rare, so the L2 bound is tighter.
+  check_error(measure(out.data(), sref.data(), out.numel(), written), Bound{1e-3, bound.abs},
+              "inside vs separate " + name);
+
+}
+
+}  // namespace
+
+TEST_CASE("cuda attention bf16: the QK LayerNorm inside the short kernel (MST time layers)") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  if (!cuda::detail::clusters_available(ctx)) {
+    MESSAGE("no thread-block clusters in this build or on this GPU (needs sm_90): skipping");
+    return;
+  }
+  std::uint32_t seed = 700;
+  cuda::detail::attention_qk_norm_forced() = true;  // also where it does not pay (lq != lk)
+  // Heads 16 = clusters of 4 CTAs (the MST), and 4 / 8 / 12 / 32: clusters of 1, 2, 3, 8.
+  check_attention_qk_norm(ctx, mst_temporal(10, 37, 16, 128, false), seed += 8, "MST time layer 37 x 16 x 10");
+  check_attention_qk_norm(ctx, mst_temporal(10, 37, 16, 128, true), seed += 8, "MST last block (one query)");
+  for (std::int64_t heads : {4, 8, 12, 32})
+    check_attention_qk_norm(ctx, mst_temporal(10, 9, heads, 128, false), seed += 8,
+                            std::to_string(heads) + " heads");
+  check_attention_qk_norm(ctx, temporal(16, 11, 4, 128), seed += 8, "16 frames, packed");
+  check_attention_qk_norm(ctx, temporal(1, 5, 8, 128), seed += 8, "1 frame");
+  check_attention_qk_norm(ctx, dense(3, 8, 13, 16, 128), seed += 8, "cross lq<lk");
+  check_attention_qk_norm(ctx, dense(3, 4, 16, 7, 128), seed += 8, "cross lq>lk");
+  Layout causal = dense(2, 8, 11, 11, 128);
+  causal.causal = true;
+  check_attention_qk_norm(ctx, causal, seed += 8, "causal");
+
+  // Declined (false, nothing run) where the kernel does not apply; the caller then norms and
+  // attends separately.
+  Dev<bf16> buf({64 * 4096}), out({64 * 4096});
+  Dev<float> par({4096});
+  cuda::fill_bytes(ctx, buf, 0);
+  cuda::fill_bytes(ctx, par, 0);
+  const auto runs = [&](const cuda::AttentionShape& a, const float* w = nullptr) {
+    if (!w) w = par.data();
+    return cuda::attention_qk_layer_norm(ctx, buf.data(), buf.data(), buf.data(), out.data(), a, w, w, 1e-5f, w, w,
+                                         1e-5f);
+  };
+  cuda::AttentionShape a = device_shape(dense(2, 16, 10, 10, 128), nullptr);
+  CHECK(runs(a));
+  cuda::detail::attention_qk_norm_forced() = false;
+  cuda::AttentionShape last = device_shape(mst_temporal(10, 4, 16, 128, true), nullptr);
+  CHECK_FALSE(runs(last));  // one query over 10 keys: the separate pass is faster
+  CHECK(runs(a));
+  cuda::AttentionShape b = a;
+  b.lk = 17;
+  CHECK_FALSE(runs(b));
+  b = a, b.heads = 6;  // not a multiple of the 4 heads a CTA takes
+  CHECK_FALSE(runs(b));
+  b = a, b.heads = 36;  // clusters of 9: past the portable 8
+  CHECK_FALSE(runs(b));
+  b = a, b.head_dim = 64;
+  CHECK_FALSE(runs(b));
+  b = a, b.additive_mask = par.data();
+  CHECK_FALSE(runs(b));
+  CHECK_FALSE(runs(a, par.data() + 1));  // parameters not 16-byte aligned
+  Dev<float> f32({64 * 4096});
+  CHECK_FALSE(cuda::attention_qk_layer_norm(ctx, f32.data(), f32.data(), f32.data(), f32.data(), a, par.data(),
+                                            par.data(), 1e-5f, par.data(), par.data(), 1e-5f));
+  cuda::set_attention_qk_norm(false);
+  CHECK_FALSE(runs(a));
+  cuda::set_attention_qk_norm(true);
+  a.seqs = -1;
+  CHECK_THROWS_WITH_AS(runs(a), doctest::Contains("negative extent"), epona::Error);
+  EPONA_CUDA_CHECK(cudaStreamSynchronize(ctx.stream()));
+}

@@ -464,7 +464,7 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
 // stored), K's rows past lk are V's (their scores are replaced by -inf), and V's rows past
 // lk are zeros (P = 0 there; 0 times garbage could be NaN).
 constexpr int kShortWarps = 4, kShortThreads = 32 * kShortWarps, kShortLen = 16;
-inline int short_smem_bytes(int lq, int lk) { return kShortWarps * (lq + lk + kShortLen) * kStride * 2; }
+__host__ __device__ inline int short_smem_bytes(int lq, int lk) { return kShortWarps * (lq + lk + kShortLen) * kStride * 2; }
 
 template <bool kExactDim>
 __global__ void __launch_bounds__(kShortThreads) flash_short_kernel(const FlashParams<bf16> p, int heads,

@@ -4,6 +4,7 @@
 
 #include "epona/cuda/activation.cuh"
 #include "epona/cuda/attention.cuh"
+#include "epona/cuda/attention_qk_norm.cuh"
 #include "epona/cuda/check.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/elementwise.cuh"

@@ -135,14 +135,13 @@ struct MstLayer {
   // x (n, C) += attn(ln1 x); x += mlp(ln2 x) on rows [first, first + count) of x, the queries
   // (keys and values come from all n rows; the pruned last block updates a subset).
   // `rope` (or null) rotates q and k after their norms, table row r for row r (the space layers,
-  // where q and k cover the same rows); `attend(q, k, v, o)` arranges the tokens into sequences.
+  // where q and k cover the same rows); `shape` arranges the tokens into sequences.
   // Each residual add runs with the LayerNorm after it:
   // with `normed`, s.u already holds ln1(x) (written by the previous layer's last add); with
   // `next` (the following layer, whose x is exactly the rows updated here), the last add also
   // writes next->ln1 of those rows into s.u.
-  template <class Attend>
   void operator()(Context& ctx, Tensor<float, B>& x, Scratch& s, std::int64_t first, std::int64_t count,
-                  const nn::RopeTable<B>* rope, std::int64_t heads, Attend&& attend, bool normed = false,
+                  const nn::RopeTable<B>* rope, const nn::PackedAttention& shape, bool normed = false,
                   const MstLayer* next = nullptr) const {
     const std::int64_t n = x.size(0);
     auto rows = x.slice(first, first + count);
@@ -152,8 +151,10 @@ struct MstLayer {
     key(ctx, u, k);
     value(ctx, u, v);
     query(ctx, u.slice(first, first + count), q);
-    normalize_qk(ctx, q, k, rope, heads);
-    attend(q, k, v, o);                          // the attention output reuses u
+    if (rope || !attend_normalized(ctx, q, k, v, o, shape)) {
+      normalize_qk(ctx, q, k, rope, shape.heads);
+      nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), shape);  // the output reuses u
+    }
     add_branch(ctx, proj, o, rows, q, &ln2, o);  // float32 residual += projection; o = ln2(x)
     mlp.fc1(ctx, o, hidden, mlp.fc1_epilogue());
     add_branch(ctx, mlp.fc2, hidden, rows, q, next ? &next->ln1 : nullptr, o);
@@ -175,6 +176,23 @@ struct MstLayer {
     layer(ctx, in, branch);
     if (norm) norm->add_and_normalize(ctx, rows, branch, out);
     else add_inplace(ctx, rows.data(), branch.data(), rows.numel());
+  }
+
+  // o = attention(q_norm(q), k_norm(k), v) in one kernel where the backend has one for this shape
+  // (CUDA: the time layers' sequences of <= 16 frames, attention_qk_layer_norm); q and k are then
+  // left as the products. False: nothing done.
+  bool attend_normalized(Context& ctx, const Tensor<A, B>& q, const Tensor<A, B>& k, const Tensor<A, B>& v,
+                         Tensor<A, B>& o, const nn::PackedAttention& shape) const {
+    if constexpr (requires { attention_qk_layer_norm(ctx, q.data(), k.data(), v.data(), o.data(),
+                                                     nn::attention_shape<B>(shape), q_norm.weight.data(),
+                                                     q_norm.bias.data(), q_norm.eps, k_norm.weight.data(),
+                                                     k_norm.bias.data(), k_norm.eps); }) {
+      return attention_qk_layer_norm(ctx, q.data(), k.data(), v.data(), o.data(), nn::attention_shape<B>(shape),
+                                     q_norm.weight.data(), q_norm.bias.data(), q_norm.eps, k_norm.weight.data(),
+                                     k_norm.bias.data(), k_norm.eps);
+    } else {
+      return false;
+    }
   }
 
   // q = q_norm(q), k = k_norm(k), then the rotation: one launch on the GPU where its fused
@@ -436,8 +454,7 @@ class SpatialTemporalTransformer {
     auto x = s.x.reshape({F * T, C});
     // (a) time: each of the T token positions is a causal sequence over the F frames; no RoPE.
     const nn::PackedAttention time{T, F, H, d, C, T * C, C, T * C, true};
-    block.causal_time_block(ctx, x, s.layer, 0, F * T, nullptr, H, attention_with(ctx, time), normed,
-                            &block.space_block);
+    block.causal_time_block(ctx, x, s.layer, 0, F * T, nullptr, time, normed, &block.space_block);
     // (b) space: each frame is one unmasked sequence of T tokens; RoPE on the image tokens only.
     run_space(ctx, block.space_block, x, s.layer, F, next);
   }
@@ -452,8 +469,7 @@ class SpatialTemporalTransformer {
     time.q_len = 1;
     time.q_seq_stride = C;
     // The time layer updates the last frame's rows: the space layer's whole input.
-    block.causal_time_block(ctx, x, s.layer, (F - 1) * T, T, nullptr, H, attention_with(ctx, time), normed,
-                            &block.space_block);
+    block.causal_time_block(ctx, x, s.layer, (F - 1) * T, T, nullptr, time, normed, &block.space_block);
     auto last = s.x[F - 1];
     run_space(ctx, block.space_block, last, s.layer, 1, nullptr);
   }
@@ -466,7 +482,7 @@ class SpatialTemporalTransformer {
     const nn::PackedAttention space{frames, T, H, d, T * C, C, T * C, C, false};
     // One pass over all frames' tokens: the table leaves the action tokens unrotated
     // (cos 1, sin 0 rotate exactly to themselves).
-    layer(ctx, x, s, 0, frames * T, &rope_, H, attention_with(ctx, space), true, next);
+    layer(ctx, x, s, 0, frames * T, &rope_, space, true, next);
   }
 
   // compute_axial_cis for the image tokens of every frame of the window, identity rows
@@ -481,12 +497,6 @@ class SpatialTemporalTransformer {
       std::copy_n(image.sin.data(), image.sin.numel(), t.sin.data() + first);
     }
     return t;
-  }
-
-  static auto attention_with(Context& ctx, const nn::PackedAttention& p) {
-    return [&ctx, p](const auto& q, const auto& k, const auto& v, auto& o) {
-      nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), p);
-    };
   }
 
   MstConfig cfg_;

@@ -30,9 +30,9 @@ struct PackedAttention {
   std::int64_t queries() const { return q_len < 0 ? len : q_len; }
 };
 
-template <class Context, class T>
-void packed_attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const PackedAttention& p) {
-  using B = typename BackendOf<Context>::type;
+// The backend's description of a PackedAttention call.
+template <class B>
+typename BackendTraits<B>::AttentionShape attention_shape(const PackedAttention& p) {
   EPONA_CHECK(p.q_len < 0 || !p.causal, "attention: a causal mask needs as many queries as keys");
   typename BackendTraits<B>::AttentionShape a;
   a.seqs = p.seqs;
@@ -48,7 +48,12 @@ void packed_attention(Context& ctx, const T* q, const T* k, const T* v, T* o, co
   a.o_row = p.out_token_stride;
   using Mask = typename BackendTraits<B>::Mask;
   a.mask = p.causal ? Mask::Causal : Mask::None;
-  attention(ctx, q, k, v, o, a);
+  return a;
+}
+
+template <class Context, class T>
+void packed_attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const PackedAttention& p) {
+  attention(ctx, q, k, v, o, attention_shape<typename BackendOf<Context>::type>(p));
 }
 
 // FLOPs of attention as compute-budget.md counts them (4·H·Lq·Lk·d per sequence).
