@@ -272,8 +272,36 @@ void bench_temporal(cuda::Context& ctx, bool last_only, int reps) {
   char name[160];
   std::snprintf(name, sizeof name, "attention MST temporal bf16 515 x 16 heads x %lld x 10 x 128%s",
                 static_cast<long long>(a.lq), last_only ? "" : " causal");
-  bench_attention_kernels(ctx, name, q, qkv.data() + plane, qkv.data() + 2 * plane, out.data(), a,
-                          4.0 * spatial * heads * a.lq * frames * 128, bytes, reps);
+  const double flop = 4.0 * spatial * heads * a.lq * frames * 128;
+  bench_attention_kernels(ctx, name, q, qkv.data() + plane, qkv.data() + 2 * plane, out.data(), a, flop, bytes, reps);
+
+  // With the time layer's QK LayerNorm: the separate pass over q and k (in place on a copy,
+  // as mst.hpp ran it before) then the attention, against the norm inside the attention
+  // (attention_qk_layer_norm). Graph-timed; bytes: the attention's alone.
+  auto qk = random_device<bf16>(ctx, {2, frames, spatial, c}, 80, -2.f, 2.f);
+  auto params = random_device<float>(ctx, {4, c}, 81, 0.5f, 1.5f);
+  bf16 *qn = qk.data() + (q - qkv.data()), *kn = qk.data() + plane;
+  const float *w = params.data(), *b = params.data() + c;
+  const std::int64_t rows_q = a.lq * spatial, rows_k = frames * spatial;
+  const auto separate = [&] {  // as MstLayer::normalize_qk: one launch where it fits, else two
+    if (!cuda::layer_norm_rope_qk(ctx, qn, rows_q, kn, rows_k, c, w, b, 1e-5f, w + 2 * c, b + 2 * c, 1e-5f, 128,
+                                  nullptr, nullptr)) {
+      cuda::layer_norm(ctx, qn, qn, rows_q, c, w, b, 1e-5f);
+      cuda::layer_norm(ctx, kn, kn, rows_k, c, w + 2 * c, b + 2 * c, 1e-5f);
+    }
+    cuda::attention(ctx, qn, kn, qkv.data() + 2 * plane, out.data(), a);
+  };
+  const auto fused = [&] {
+    cuda::attention_qk_layer_norm(ctx, q, qkv.data() + plane, qkv.data() + 2 * plane, out.data(), a, w, b, 1e-5f,
+                                  w + 2 * c, b + 2 * c, 1e-5f);
+  };
+  cuda::detail::attention_qk_norm_forced() = true;  // timed also where Auto declines it (lq != lk)
+  const double separate_ms = median_graph_ms(ctx, reps, separate), fused_ms = median_graph_ms(ctx, reps, fused);
+  cuda::detail::attention_qk_norm_forced() = false;
+  row(std::string(name) + " [QK LayerNorm pass + attention] in a graph", separate_ms, flop, bytes);
+  row(std::string(name) + " [QK LayerNorm inside] in a graph", fused_ms, flop, bytes);
+  std::printf("  -> QK LayerNorm inside the attention: %.1f -> %.1f us (x%.2f)\n", 1e3 * separate_ms, 1e3 * fused_ms,
+              separate_ms / fused_ms);
 }
 
 // Products whose row count is a few past a multiple of 128 (the DiTs' 515 condition rows: 512

@@ -16,7 +16,8 @@
 // --profile: one eager evaluation of each DiT (and, with mst wanted, one MST evaluation)
 // between cudaProfilerStart/Stop, for ncu;
 // --tune-compare: the DiT rows again with the cuBLASLt candidate timing switched, suffixed;
-// --residual-compare: the MST again with the residual add in its GEMMs off and on, two rounds).
+// --residual-compare: the MST again with the residual add in its GEMMs off and on, two rounds;
+// --qk-norm-compare: the same with the time layers' QK LayerNorm inside their attention).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -50,6 +51,7 @@ struct Options {
   bool profile = false;  // one eager evaluation of each DiT inside cudaProfilerStart/Stop
   bool tune_compare = false;  // the DiT rows again with the GEMM tuning switched
   bool residual_compare = false;  // the MST with the residual add in the GEMM off and on, two rounds
+  bool qk_norm_compare = false;   // the MST with the time layers' QK LayerNorm inside the attention off and on
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
 };
 
@@ -77,11 +79,13 @@ Options parse(int argc, char** argv) {
     else if (a == "--profile") o.profile = true;
     else if (a == "--tune-compare") o.tune_compare = true;
     else if (a == "--residual-compare") o.residual_compare = true;
+    else if (a == "--qk-norm-compare") o.qk_norm_compare = true;
     else if (a == "--only") {
       std::stringstream ss(next());
       for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
     } else fail("unknown option ", a,
-                " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare)");
+                " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare, "
+                "--qk-norm-compare)");
   }
   return o;
 }
@@ -326,17 +330,21 @@ int run(const Options& o) {
   mst_once();
   if (o.profile && o.want("mst")) profile_once(ctx, mst_once);
   if (o.want("mst")) emit("mst", event_times_ms(ctx, R, 3, mst_once), mst_tflop);
-  if (o.residual_compare && o.want("mst")) {  // off, on, off, on: drift shows as a round difference
-    const bool default_on = cuda::residual_gemm_enabled(ctx);
+  // The MST again with one switch off and on, twice (off, on, off, on: drift shows as a round
+  // difference), then the switch as it was.
+  const auto mst_switch_rounds = [&](const std::string& what, bool was_on, const auto& set) {
     for (const char* round : {"_r1", "_r2"})
       for (const bool on : {false, true}) {
-        cuda::set_residual_gemm(on);
+        set(on);
         mst_once();
-        emit(std::string("mst_residual_gemm_") + (on ? "on" : "off") + round, event_times_ms(ctx, R, 3, mst_once),
-             mst_tflop);
+        emit("mst_" + what + (on ? "_on" : "_off") + round, event_times_ms(ctx, R, 3, mst_once), mst_tflop);
       }
-    cuda::set_residual_gemm(default_on);
-  }
+    set(was_on);
+  };
+  if (o.residual_compare && o.want("mst"))
+    mst_switch_rounds("residual_gemm", cuda::residual_gemm_enabled(ctx), cuda::set_residual_gemm);
+  if (o.qk_norm_compare && o.want("mst"))
+    mst_switch_rounds("qk_norm_attention", cuda::detail::attention_qk_norm_flag(), cuda::set_attention_qk_norm);
 
   const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
   // The DiT rows; `suffix` names a second pass with the GEMM tuning switched (--tune-compare).
