@@ -466,6 +466,34 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
 constexpr int kShortWarps = 4, kShortThreads = 32 * kShortWarps, kShortLen = 16;
 __host__ __device__ inline int short_smem_bytes(int lq, int lk) { return kShortWarps * (lq + lk + kShortLen) * kStride * 2; }
 
+// A warp's overlapping Q, K and V tiles of (sequence s, head h) in shared memory, their loads
+// issued and committed (the caller waits).
+struct ShortTiles {
+  bf16 *q, *k, *v;
+};
+template <bool kExactDim>
+__device__ __forceinline__ ShortTiles load_short_tiles(unsigned char* smem, const FlashParams<bf16>& p,
+                                                       std::int64_t s, int h, int warp, int lane, int D) {
+  bf16* sQ = reinterpret_cast<bf16*>(smem) + warp * (p.lq + p.lk + kShortLen) * kStride;
+  bf16* sK = sQ + p.lq * kStride;
+  bf16* sV = sK + p.lk * kStride;
+  load_tile<kExactDim>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, 0, p.lq, p.lq, D, lane, 32);
+  load_tile<kExactDim>(sK, p.k + s * p.k_seq + std::int64_t{h} * D, p.k_row, 0, p.lk, p.lk, D, lane, 32);
+  load_tile<kExactDim>(sV, p.v + s * p.v_seq + std::int64_t{h} * D, p.v_row, 0, kShortLen, p.lk, D, lane, 32);
+  cp_async_commit();
+  return {sQ, sK, sV};
+}
+// The warp's 16 x 16 scores, softmax and P V over its loaded tiles, stored.
+template <bool kExactDim>
+__device__ __forceinline__ void short_attend(const FlashParams<bf16>& p, const ShortTiles& t, std::int64_t s, int h,
+                                             int lane, int D) {
+  float o[1][kDimTiles][4] = {};
+  float m[1][2] = {{-INFINITY, -INFINITY}}, l[1][2] = {{0.f, 0.f}};
+  const int rows[1][2] = {{lane / 4, lane / 4 + 8}};
+  if (p.lk > 0) warp_tile<kExactDim, 1, kShortLen>(o, m, l, p, t.q, t.k, t.v, 0, rows, 0, lane, D);
+  store_rows<kExactDim>(o[0], l[0], p, rows[0], s, h, D, lane % 4);
+}
+
 template <bool kExactDim>
 __global__ void __launch_bounds__(kShortThreads) flash_short_kernel(const FlashParams<bf16> p, int heads,
                                                                      std::int64_t pairs) {
@@ -476,21 +504,10 @@ __global__ void __launch_bounds__(kShortThreads) flash_short_kernel(const FlashP
   const std::int64_t s = pair / heads;
   const int h = static_cast<int>(pair % heads);
   const int D = kExactDim ? kMaxHeadDim : p.head_dim;
-  bf16* sQ = reinterpret_cast<bf16*>(smem) + warp * (p.lq + p.lk + kShortLen) * kStride;
-  bf16* sK = sQ + p.lq * kStride;
-  bf16* sV = sK + p.lk * kStride;
-  load_tile<kExactDim>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, 0, p.lq, p.lq, D, lane, 32);
-  load_tile<kExactDim>(sK, p.k + s * p.k_seq + std::int64_t{h} * D, p.k_row, 0, p.lk, p.lk, D, lane, 32);
-  load_tile<kExactDim>(sV, p.v + s * p.v_seq + std::int64_t{h} * D, p.v_row, 0, kShortLen, p.lk, D, lane, 32);
-  cp_async_commit();
+  const ShortTiles tiles = load_short_tiles<kExactDim>(smem, p, s, h, warp, lane, D);
   cp_async_wait_all();
   __syncwarp();  // the warp's tiles are complete and visible to all its lanes
-
-  float o[1][kDimTiles][4] = {};
-  float m[1][2] = {{-INFINITY, -INFINITY}}, l[1][2] = {{0.f, 0.f}};
-  const int rows[1][2] = {{lane / 4, lane / 4 + 8}};
-  if (p.lk > 0) warp_tile<kExactDim, 1, kShortLen>(o, m, l, p, sQ, sK, sV, 0, rows, 0, lane, D);
-  store_rows<kExactDim>(o[0], l[0], p, rows[0], s, h, D, lane % 4);
+  short_attend<kExactDim>(p, tiles, s, h, lane, D);
 }
 }  // namespace fa
 

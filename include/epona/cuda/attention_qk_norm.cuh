@@ -85,24 +85,18 @@ __device__ __forceinline__ void row_statistics(RowStats& st, const bf16* sQ, int
   if (t < rows) st.local_m2[t] = m2;
   cluster_sync();  // every CTA's means and deviations written
   if (t < rows) {
-    float means[kMaxCluster], total = 0;
-#if EPONA_CUDA_CLUSTERS
+    float means[kMaxCluster], m2s[kMaxCluster], total = 0;
+#pragma unroll
+    for (int r = 0; r < kMaxCluster; ++r)  // all remote loads issued together
+      if (r < groups) means[r] = cluster_peer(st.local_mean, r)[t], m2s[r] = cluster_peer(st.local_m2, r)[t];
 #pragma unroll
     for (int r = 0; r < kMaxCluster; ++r)
-      if (r < groups) total += means[r] = static_cast<const float*>(__cluster_map_shared_rank(st.local_mean, unsigned(r)))[t];
-#else
-    __trap();  // unreachable: no cluster launch on a pre-sm_90 build
-#endif
+      if (r < groups) total += means[r];
     const float mean = total / static_cast<float>(groups);
     float m2_total = 0;
-#if EPONA_CUDA_CLUSTERS
 #pragma unroll
     for (int r = 0; r < kMaxCluster; ++r)
-      if (r < groups) {
-        const float d = means[r] - mean;
-        m2_total += static_cast<const float*>(__cluster_map_shared_rank(st.local_m2, unsigned(r)))[t] + kPart * d * d;
-      }
-#endif
+      if (r < groups) m2_total += m2s[r] + kPart * (means[r] - mean) * (means[r] - mean);
     st.mean[t] = mean;
     st.rstd[t] = 1.0f / sqrtf(m2_total / (kPart * static_cast<float>(groups)) + (t < lq ? n.q_eps : n.k_eps));
   }
@@ -120,14 +114,9 @@ __global__ void __launch_bounds__(kShortThreads) flash_short_qk_norm_kernel(cons
   const std::int64_t s = blockIdx.x / groups;
   const int h = static_cast<int>(blockIdx.x % groups) * kShortWarps + warp, D = kMaxHeadDim;
   const int rows = p.lq + p.lk;
-  bf16* sQ = reinterpret_cast<bf16*>(smem) + warp * (rows + kShortLen) * kStride;
-  bf16* sK = sQ + p.lq * kStride;
-  bf16* sV = sK + p.lk * kStride;
+  const ShortTiles tiles = load_short_tiles<true>(smem, p, s, h, warp, lane, D);
+  bf16* sQ = tiles.q;  // q's rows, then k's
   auto& st = *reinterpret_cast<RowStats*>(smem + short_smem_bytes(p.lq, p.lk));
-  load_tile<true>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, 0, p.lq, p.lq, D, lane, 32);
-  load_tile<true>(sK, p.k + s * p.k_seq + std::int64_t{h} * D, p.k_row, 0, p.lk, p.lk, D, lane, 32);
-  load_tile<true>(sV, p.v + s * p.v_seq + std::int64_t{h} * D, p.v_row, 0, kShortLen, p.lk, D, lane, 32);
-  cp_async_commit();
   // A lane normalises one pack of channels (8) of every other row: its parameters, read while
   // the tiles load.
   constexpr int kPacks = kMaxHeadDim / kPack;  // 16: two rows per warp access
@@ -150,11 +139,7 @@ __global__ void __launch_bounds__(kShortThreads) flash_short_qk_norm_kernel(cons
   }
   __syncwarp();
 
-  float o[1][kDimTiles][4] = {};
-  float m[1][2] = {{-INFINITY, -INFINITY}}, l[1][2] = {{0.f, 0.f}};
-  const int out_rows[1][2] = {{lane / 4, lane / 4 + 8}};
-  if (p.lk > 0) warp_tile<true, 1, kShortLen>(o, m, l, p, sQ, sK, sV, 0, out_rows, 0, lane, D);
-  store_rows<true>(o[0], l[0], p, out_rows[0], s, h, D, lane % 4);
+  short_attend<true>(p, tiles, s, h, lane, D);
   cluster_wait();  // no CTA frees its statistics while another may still read them
 }
 }  // namespace fa

@@ -1,6 +1,6 @@
 // epona/cuda/cluster.cuh — thread-block clusters (sm_90 on): whether this build and GPU have
 // them, a cluster-wide barrier, and a launch in clusters. Kernels whose CTAs share partial
-// results through distributed shared memory (skinny_linear.cuh, time_attention.cuh) use these.
+// results through distributed shared memory (skinny_linear.cuh, attention_qk_norm.cuh) use these.
 #pragma once
 
 #include <cuda_runtime.h>
@@ -36,6 +36,18 @@ __device__ __forceinline__ void cluster_wait() {
 __device__ __forceinline__ void cluster_sync() {
   cluster_arrive();
   cluster_wait();
+}
+
+// The same shared-memory object in the cluster's CTA `rank` (distributed shared memory).
+template <class T>
+__device__ __forceinline__ const T* cluster_peer(T* local, int rank) {
+#if EPONA_CUDA_CLUSTERS
+  return static_cast<const T*>(__cluster_map_shared_rank(local, static_cast<unsigned>(rank)));
+#else
+  (void)rank;
+  __trap();  // unreachable: no cluster launch on a pre-sm_90 build
+  return local;
+#endif
 }
 
 // Marks device code with clusters (mark_build).
