@@ -17,7 +17,9 @@
 // between cudaProfilerStart/Stop, for ncu;
 // --tune-compare: the DiT rows again with the cuBLASLt candidate timing switched, suffixed;
 // --residual-compare: the MST again with the residual add in its GEMMs off and on, two rounds;
-// --qk-norm-compare: the same with the time layers' QK LayerNorm inside their attention).
+// --qk-norm-compare: the same with the time layers' QK LayerNorm inside their attention;
+// --pdl-compare: the MST and the DiT rows with programmatic dependent launches off and on, two
+// rounds).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -52,6 +54,7 @@ struct Options {
   bool tune_compare = false;  // the DiT rows again with the GEMM tuning switched
   bool residual_compare = false;  // the MST with the residual add in the GEMM off and on, two rounds
   bool qk_norm_compare = false;   // the MST with the time layers' QK LayerNorm inside the attention off and on
+  bool pdl_compare = false;       // the MST and the DiTs with programmatic dependent launches off and on
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
 };
 
@@ -80,12 +83,13 @@ Options parse(int argc, char** argv) {
     else if (a == "--tune-compare") o.tune_compare = true;
     else if (a == "--residual-compare") o.residual_compare = true;
     else if (a == "--qk-norm-compare") o.qk_norm_compare = true;
+    else if (a == "--pdl-compare") o.pdl_compare = true;
     else if (a == "--only") {
       std::stringstream ss(next());
       for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
     } else fail("unknown option ", a,
                 " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare, "
-                "--qk-norm-compare)");
+                "--qk-norm-compare, --pdl-compare)");
   }
   return o;
 }
@@ -345,6 +349,8 @@ int run(const Options& o) {
     mst_switch_rounds("residual_gemm", cuda::residual_gemm_enabled(ctx), cuda::set_residual_gemm);
   if (o.qk_norm_compare && o.want("mst"))
     mst_switch_rounds("qk_norm_attention", cuda::detail::attention_qk_norm_flag(), cuda::set_attention_qk_norm);
+  if (o.pdl_compare && o.want("mst"))
+    mst_switch_rounds("pdl", cuda::detail::programmatic_launch_flag(), cuda::set_programmatic_launch);
 
   const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
   // The DiT rows; `suffix` names a second pass with the GEMM tuning switched (--tune-compare).
@@ -391,6 +397,19 @@ int run(const Options& o) {
     }
   };
   time_dits("");
+  if (o.pdl_compare) {  // off, on, off, on (drift shows as a round difference), then as it was
+    const bool was_on = cuda::detail::programmatic_launch_flag();
+    for (const char* round : {"_r1", "_r2"})
+      for (const bool on : {false, true}) {
+        cuda::set_programmatic_launch(on);
+        traj.reset_sampler_graph();  // the recorded loops hold the launches of the switch's old state
+        vis.reset_sampler_graph();
+        time_dits(std::string("_pdl") + (on ? "_on" : "_off") + round);
+      }
+    cuda::set_programmatic_launch(was_on);
+    traj.reset_sampler_graph();
+    vis.reset_sampler_graph();
+  }
   const auto time_step = [&](const std::string& suffix) {
     if (!o.want("step")) return;
     SampleOptions opt;

@@ -8,8 +8,11 @@
 // to bf16 (8 significant bits), counting the intermediate roundings the kernels share with
 // PyTorch: 1 + scale in bf16 (modulate), (x · rrms) before · scale (QK-norm), and
 // gate ⊙ y in bf16 before the residual add.
+// Programmatic dependent launches: a chain of dependent kernels gives the host's bits exactly,
+// eagerly and in a graph, with the launches on and off.
 #include "cuda_test_util.cuh"
 #include "epona/cuda/qk_norm_rope.cuh"
+#include "epona/cuda/world_ops.cuh"
 
 #include <array>
 #include <cstring>
@@ -453,4 +456,59 @@ TEST_CASE("cuda pointwise kernels reject bad arguments with epona::Error") {
                        doctest::Contains("null gate"), epona::Error);
   CHECK_THROWS_AS(cuda::add_layer_norm(ctx, x.data(), x.data(), t.data(), 1, 0, t.data(), t.data(), 1e-5f),
                   epona::Error);
+}
+
+// Programmatic dependent launch (detail::launch_after): a kernel may be scheduled while the one
+// before it in the stream still runs, and must wait for it before reading. A chain of 80
+// dependent kernels (x -> bf16 copy -> x += round(a · copy), 40 times; 4M elements, so each kernel
+// spans several waves and a consumer that did not wait would read stale values) must give the
+// host's bits exactly, eagerly and recorded in a graph, with the launches on and off.
+TEST_CASE("cuda programmatic dependent launches: each kernel of a chain sees what the one before wrote") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  const std::int64_t n = std::int64_t{1} << 22;
+  constexpr int kSteps = 40;
+  constexpr float kA = 0.25f;
+  const HostF x0 = random_tensor({n}, 991, -1.f, 1.f);
+  HostF ref = x0.clone();
+  for (int k = 0; k < kSteps; ++k)
+    for (std::int64_t i = 0; i < n; ++i) {
+      const float v = float(bf16(ref.data()[i]));
+      ref.data()[i] = ref.data()[i] + float(bf16(kA * v));
+    }
+  const auto run = [&](bool programmatic, bool graph) {
+    cuda::set_programmatic_launch(programmatic);
+    auto x = upload<float>(ctx, x0);
+    Dev<bf16> xb({n});
+    const auto chain = [&] {
+      for (int k = 0; k < kSteps; ++k) {
+        cuda::convert(ctx, x.data(), xb.data(), n);
+        cuda::axpy(ctx, x.data(), xb.data(), kA, n);
+      }
+    };
+    if (graph) {
+      cudaGraph_t g = nullptr;
+      cudaGraphExec_t exec = nullptr;
+      EPONA_CUDA_CHECK(cudaStreamBeginCapture(ctx.stream(), cudaStreamCaptureModeThreadLocal));
+      chain();
+      EPONA_CUDA_CHECK(cudaStreamEndCapture(ctx.stream(), &g));
+      EPONA_CUDA_CHECK(cudaGraphInstantiate(&exec, g, 0));
+      EPONA_CUDA_CHECK(cudaGraphLaunch(exec, ctx.stream()));
+      EPONA_CUDA_CHECK(cudaStreamSynchronize(ctx.stream()));
+      EPONA_CUDA_CHECK(cudaGraphExecDestroy(exec));
+      EPONA_CUDA_CHECK(cudaGraphDestroy(g));
+    } else {
+      chain();
+    }
+    return download(ctx, x);
+  };
+  for (const bool graph : {false, true})
+    for (const bool programmatic : {true, false}) {
+      const HostF out = run(programmatic, graph);
+      std::int64_t differ = 0;
+      for (std::int64_t i = 0; i < n; ++i) differ += std::memcmp(out.data() + i, ref.data() + i, sizeof(float)) != 0;
+      CHECK_MESSAGE(differ == 0, (graph ? "graph" : "eager"), (programmatic ? ", programmatic" : ", plain"), ": ",
+                    differ, " of ", n, " elements differ from the host");
+    }
+  cuda::set_programmatic_launch(true);
 }

@@ -109,6 +109,7 @@ __device__ __forceinline__ void row_statistics(RowStats& st, const bf16* sQ, int
 // rows (cp.async loads).
 __global__ void __launch_bounds__(kShortThreads) flash_short_qk_norm_kernel(const FlashParams<bf16> p,
                                                                              const QkLayerNorm n, int groups) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   extern __shared__ __align__(16) unsigned char smem[];
   const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
   const std::int64_t s = blockIdx.x / groups;

@@ -144,6 +144,7 @@ __device__ __forceinline__ void wg_accumulate_pv(float (&o)[kDimTiles][4], const
 template <class Tile>
 __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
     flash_wgmma_kernel(const FlashParams<bf16> p, int heads, int seqs) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
   constexpr int kKeys = Tile::keys, kThreads = Tile::threads;
   extern __shared__ __align__(16) unsigned char smem[];
@@ -302,6 +303,7 @@ template <class Tile>
 __global__ void __launch_bounds__(Tile::threads, 1)
     flash_tma_kernel(const __grid_constant__ CUtensorMap q_map, const __grid_constant__ CUtensorMap k_map,
                      const __grid_constant__ CUtensorMap v_map, const FlashParams<bf16> p, const TmaGrid g) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
   constexpr int kKeys = Tile::keys, kStages = Tile::stages;
   extern __shared__ __align__(16) unsigned char smem[];
@@ -409,6 +411,7 @@ __global__ void __launch_bounds__(Tile::threads, 1)
 // (as online softmax would) and stores the normalised output, rounded to bf16 once.
 constexpr int kCombineWarps = 4;
 __global__ void __launch_bounds__(32 * kCombineWarps) combine_splits_kernel(const FlashParams<bf16> p, const TmaGrid g) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const int lane = threadIdx.x % 32;
   const std::int64_t split_rows = p.lq - g.split_row0;
   const std::int64_t r = std::int64_t{blockIdx.x} * kCombineWarps + threadIdx.x / 32;  // (pair, row)
@@ -459,8 +462,8 @@ template <class Tile>
 void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
   const std::int64_t blocks = (p.lq + Tile::rows - 1) / Tile::rows * heads * seqs;
   allow_dynamic_smem<fa::flash_wgmma_kernel<Tile>>(Tile::smem_bytes);
-  fa::flash_wgmma_kernel<Tile><<<static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream()>>>(
-      p, static_cast<int>(heads), static_cast<int>(seqs));
+  launch_after(fa::flash_wgmma_kernel<Tile>, static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream(),
+               p, static_cast<int>(heads), static_cast<int>(seqs));
 }
 
 inline std::int64_t tma_partial_bytes(const fa::TmaGrid& g, const FlashParams<bf16>& p) {
@@ -545,13 +548,12 @@ bool launch_flash_tma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seq
   }
   const std::int64_t blocks = heads * seqs * (std::int64_t{g.full_row_blocks} * g.full_splits + g.tail_splits);
   allow_dynamic_smem<fa::flash_tma_kernel<Tile>>(Tile::smem_bytes);
-  fa::flash_tma_kernel<Tile><<<static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream()>>>(
-      q_map, k_map, v_map, p, g);
+  launch_after(fa::flash_tma_kernel<Tile>, static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream(),
+               q_map, k_map, v_map, p, g);
   if (bytes > 0) {
-    EPONA_CUDA_CHECK_LAUNCH();
     const std::int64_t rows = heads * seqs * (p.lq - g.split_row0);
-    fa::combine_splits_kernel<<<static_cast<unsigned>((rows + fa::kCombineWarps - 1) / fa::kCombineWarps),
-                                32 * fa::kCombineWarps, 0, ctx.stream()>>>(p, g);
+    launch_after(fa::combine_splits_kernel, static_cast<unsigned>((rows + fa::kCombineWarps - 1) / fa::kCombineWarps),
+                 32 * fa::kCombineWarps, 0, ctx.stream(), p, g);
   }
   return true;
 }

@@ -66,7 +66,8 @@ inline bool clusters_available(const Context& ctx) {
 }
 
 // Kernel launched on grid (x, y) in clusters of (cluster_x, 1, 1) with `smem` bytes of dynamic
-// shared memory.
+// shared memory, as a programmatic dependent launch where on (launch_after: the kernel begins
+// with wait_for_producer).
 template <class... Params, class... Args>
 void launch_in_clusters(void (*kernel)(Params...), dim3 grid, unsigned cluster_x, int threads, int smem,
                         cudaStream_t stream, Args... args) {
@@ -75,11 +76,13 @@ void launch_in_clusters(void (*kernel)(Params...), dim3 grid, unsigned cluster_x
   cfg.blockDim = dim3(static_cast<unsigned>(threads));
   cfg.dynamicSmemBytes = static_cast<std::size_t>(smem);
   cfg.stream = stream;
-  cudaLaunchAttribute cluster{};
-  cluster.id = cudaLaunchAttributeClusterDimension;
-  cluster.val.clusterDim.x = cluster_x, cluster.val.clusterDim.y = 1, cluster.val.clusterDim.z = 1;
-  cfg.attrs = &cluster;
-  cfg.numAttrs = 1;
+  cudaLaunchAttribute attrs[2]{};
+  attrs[0].id = cudaLaunchAttributeClusterDimension;
+  attrs[0].val.clusterDim.x = cluster_x, attrs[0].val.clusterDim.y = 1, attrs[0].val.clusterDim.z = 1;
+  unsigned programmatic = 0;  // as launch_after: cluster kernels begin with wait_for_producer
+  attrs[1] = programmatic_launch_attribute(programmatic);
+  cfg.attrs = attrs;
+  cfg.numAttrs = 1 + programmatic;
   EPONA_CUDA_CHECK(cudaLaunchKernelEx(&cfg, kernel, args...));
 }
 

@@ -11,6 +11,7 @@
 #include <type_traits>
 
 #include "epona/core/dtype.hpp"
+#include "epona/core/env.hpp"
 #include "epona/core/error.hpp"
 #include "epona/cuda/check.hpp"
 
@@ -144,10 +145,62 @@ inline unsigned grid_for(std::int64_t n, int threads) {
   return static_cast<unsigned>(std::clamp<std::int64_t>(blocks, 1, 65535L * 8));
 }
 
+// Programmatic dependent launch (sm_90 on). A kernel started by launch_after may be scheduled
+// while the kernel before it in the stream is still running, which hides most of the launch
+// latency between dependent kernels (the DiT samplers' steps are chains of small kernels). It
+// calls wait_for_producer() before touching global memory: that waits until the earlier kernel
+// has finished and its writes are visible, then lets the next kernel in the stream be scheduled
+// (its blocks wait in their own wait_for_producer until this grid has finished). Without a
+// programmatic dependency both instructions return at once. EPONA_CUDA_PDL=0 (or
+// set_programmatic_launch(false)) launches plainly.
+__device__ __forceinline__ void wait_for_producer() {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  asm volatile("griddepcontrol.wait;\n" ::: "memory");
+  asm volatile("griddepcontrol.launch_dependents;\n" ::: "memory");
+#endif
+}
+inline bool& programmatic_launch_flag() {
+  static bool on = env_flag("EPONA_CUDA_PDL", true);
+  return on;
+}
+// Whether the current device takes the launch attribute (compute capability 9.0 or newer).
+inline bool programmatic_launch_available() {
+  int device = 0, major = 0;
+  EPONA_CUDA_CHECK(cudaGetDevice(&device));
+  EPONA_CUDA_CHECK(cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, device));
+  return major >= 9;
+}
+// The launch attribute for launch_after and cluster launches: `count` is 1 where it applies, else 0.
+inline cudaLaunchAttribute programmatic_launch_attribute(unsigned& count) {
+  static const bool available = programmatic_launch_available();
+  cudaLaunchAttribute a{};
+  a.id = cudaLaunchAttributeProgrammaticStreamSerialization;
+  a.val.programmaticStreamSerializationAllowed = 1;
+  count = programmatic_launch_flag() && available ? 1 : 0;
+  return a;
+}
+// kernel<<<grid, block, smem, stream>>>(args...) as a programmatic dependent launch where on;
+// the kernel must begin with wait_for_producer().
+template <class... Params, class... Args>
+void launch_after(void (*kernel)(Params...), dim3 grid, dim3 block, std::size_t smem, cudaStream_t stream,
+                  const Args&... args) {
+  cudaLaunchConfig_t cfg{};
+  cfg.gridDim = grid;
+  cfg.blockDim = block;
+  cfg.dynamicSmemBytes = smem;
+  cfg.stream = stream;
+  unsigned count = 0;
+  cudaLaunchAttribute attr = programmatic_launch_attribute(count);
+  cfg.attrs = &attr;
+  cfg.numAttrs = count;
+  EPONA_CUDA_CHECK(cudaLaunchKernelEx(&cfg, kernel, static_cast<Params>(args)...));
+}
+
 // Element-wise work over rows x n: f.pack(r, c) handles columns [c, c + 8) of row r with
 // 16-byte accesses, f.one(r, c) a single element. One thread per pack (or element), grid-stride.
 template <class F>
 __global__ void for_each_pack_kernel(std::int64_t rows, std::int64_t n, F f) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t per_row = n / kPack, total = rows * per_row;
   for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
        i += std::int64_t{gridDim.x} * blockDim.x) {
@@ -157,6 +210,7 @@ __global__ void for_each_pack_kernel(std::int64_t rows, std::int64_t n, F f) {
 }
 template <class F>
 __global__ void for_each_one_kernel(std::int64_t rows, std::int64_t n, F f) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t total = rows * n;
   for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < total;
        i += std::int64_t{gridDim.x} * blockDim.x) {
@@ -171,10 +225,9 @@ void for_each(cudaStream_t stream, std::int64_t rows, std::int64_t n, bool packe
   if (rows <= 0 || n <= 0) return;
   constexpr int threads = 256;
   if (packed)
-    for_each_pack_kernel<<<grid_for(rows * (n / kPack), threads), threads, 0, stream>>>(rows, n, f);
+    launch_after(for_each_pack_kernel<F>, grid_for(rows * (n / kPack), threads), threads, 0, stream, rows, n, f);
   else
-    for_each_one_kernel<<<grid_for(rows * n, threads), threads, 0, stream>>>(rows, n, f);
-  EPONA_CUDA_CHECK_LAUNCH();
+    launch_after(for_each_one_kernel<F>, grid_for(rows * n, threads), threads, 0, stream, rows, n, f);
 }
 
 // Named barrier `id` (1..15; 0 is __syncthreads) over `threads` threads of the block (a
@@ -194,4 +247,9 @@ void allow_dynamic_smem(int bytes) {
 }
 
 }  // namespace detail
+
+// Programmatic dependent launches of the kernels that take them (detail::launch_after) on or off
+// (EPONA_CUDA_PDL=0 starts with them off); graphs recorded before keep what they recorded.
+inline void set_programmatic_launch(bool on) { detail::programmatic_launch_flag() = on; }
+
 }  // namespace epona::cuda

@@ -38,6 +38,7 @@ __device__ void row_moments(const TX* x, std::int64_t n, float eps, float& mean,
 // storage type as PyTorch does for `1 + scale_tensor`.
 template <class TX, class TY, class TP, bool Modulate>
 __global__ void layer_norm_kernel(const TX* x, TY* y, std::int64_t n, const TP* mul, const TP* add, float eps) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   __shared__ float scratch[32];
   const TX* xr = x + blockIdx.x * n;
   TY* yr = y + blockIdx.x * n;
@@ -149,6 +150,7 @@ __device__ __forceinline__ void norm_row(const RowNormArgs<TX, TY, TG, TO, TP>& 
 constexpr int kRowPacks = 4;
 template <class TX, class TY, class TG, class TO, class TP, bool Modulate, bool Residual>
 __global__ void row_norm_block_kernel(RowNormArgs<TX, TY, TG, TO, TP> a) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   __shared__ float scratch[32];
   norm_row<kRowPacks, Modulate, Residual>(a, blockIdx.x, threadIdx.x, blockDim.x,
                                           [&](float v) { return block_sum(v, scratch); });
@@ -159,6 +161,7 @@ __global__ void row_norm_block_kernel(RowNormArgs<TX, TY, TG, TO, TP> a) {
 constexpr int kNormWarps = 4;
 template <class TX, class TY, class TG, class TO, class TP, int P, bool Modulate, bool Residual>
 __global__ void __launch_bounds__(32 * kNormWarps) row_norm_warp_kernel(RowNormArgs<TX, TY, TG, TO, TP> a) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t row = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
   if (row >= a.rows) return;
   norm_row<P, Modulate, Residual>(a, row, threadIdx.x & 31, 32, [](float v) { return warp_sum(v); });
@@ -183,7 +186,8 @@ void with_warp_row_packs(std::int64_t n, F&& f) {
 template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP>
 void launch_row_norm_warp(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a) {
   const auto blocks = static_cast<unsigned>((a.rows + kNormWarps - 1) / kNormWarps);
-  row_norm_warp_kernel<TX, TY, TG, TO, TP, P, Modulate, Residual><<<blocks, 32 * kNormWarps, 0, ctx.stream()>>>(a);
+  launch_after(row_norm_warp_kernel<TX, TY, TG, TO, TP, P, Modulate, Residual>, blocks, 32 * kNormWarps, 0, ctx.stream(),
+               a);
 }
 
 // The register-resident kernels (warp or block per row) when the rows are packable and fit;
@@ -200,8 +204,8 @@ bool try_row_norm_packed(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a)
     });
   } else if (packs <= 256 * kRowPacks) {
     const int threads = static_cast<int>(std::min<std::int64_t>(256, (packs + 31) / 32 * 32));
-    row_norm_block_kernel<TX, TY, TG, TO, TP, Modulate, Residual>
-        <<<static_cast<unsigned>(a.rows), threads, 0, ctx.stream()>>>(a);
+    launch_after(row_norm_block_kernel<TX, TY, TG, TO, TP, Modulate, Residual>, static_cast<unsigned>(a.rows), threads,
+                 0, ctx.stream(), a);
   } else {
     return false;
   }
@@ -213,6 +217,7 @@ bool try_row_norm_packed(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a)
 template <class T, class TP>
 __global__ void rms_norm_heads_kernel(T* x, std::int64_t rows, std::int64_t row_stride, int heads, int head_dim,
                                       const TP* scale, float eps) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
   if (item >= rows * heads) return;
   const int lane = threadIdx.x & 31;
@@ -238,9 +243,8 @@ void launch_layer_norm(Context& ctx, const TX* x, TY* y, std::int64_t rows, std:
   if (rows == 0) return;
   const RowNormArgs<TX, TX, TX, TY, TP> args{x, nullptr, nullptr, nullptr, y, mul, add, rows, n, eps};
   if (try_row_norm_packed<Modulate, false>(ctx, args)) return;
-  layer_norm_kernel<TX, TY, TP, Modulate>
-      <<<static_cast<unsigned>(rows), norm_threads(n), 0, ctx.stream()>>>(x, y, n, mul, add, eps);
-  EPONA_CUDA_CHECK_LAUNCH();
+  launch_after(layer_norm_kernel<TX, TY, TP, Modulate>, static_cast<unsigned>(rows), norm_threads(n), 0, ctx.stream(), x,
+               y, n, mul, add, eps);
 }
 
 // x_out = x + [gate ⊙] y, then out = LN(x_out) (affine or modulated): one pass where a
@@ -330,9 +334,8 @@ void rms_norm_heads(Context& ctx, T* x, std::int64_t rows, std::int64_t row_stri
   constexpr int threads = 256, warps = threads / 32;
   const std::int64_t blocks = (rows * heads + warps - 1) / warps;
   EPONA_CHECK(blocks <= 0x7fffffff, "rms_norm_heads: ", rows * heads, " heads exceed one launch");
-  detail::rms_norm_heads_kernel<<<static_cast<unsigned>(blocks), threads, 0, ctx.stream()>>>(
-      x, rows, row_stride, static_cast<int>(heads), static_cast<int>(head_dim), scale, eps);
-  EPONA_CUDA_CHECK_LAUNCH();
+  detail::launch_after(detail::rms_norm_heads_kernel<T, TP>, static_cast<unsigned>(blocks), threads, 0, ctx.stream(), x, rows,
+                       row_stride, static_cast<int>(heads), static_cast<int>(head_dim), scale, eps);
 }
 
 }  // namespace epona::cuda

@@ -92,6 +92,7 @@ __device__ __forceinline__ void norm_rope_any(T* p, int lane, int head_dim, cons
 template <bool Vec, class T>
 __global__ void rms_norm_rope_kernel(T* x, std::int64_t rows, std::int64_t row_stride, int heads, int head_dim,
                                      const float* scale, float eps, const float* cos, const float* sin) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
   if (item >= rows * heads) return;
   const std::int64_t r = item / heads;
@@ -124,6 +125,7 @@ struct QkRopeParts {
 
 template <bool Vec, class T>
 __global__ void qk_norm_rope_kernel(QkRopeParts<T> a) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
   if (item >= a.start[a.parts]) return;
   int p = 0;
@@ -183,6 +185,7 @@ __device__ __forceinline__ void norm_rope_lane(float (&v)[RowLanes<T>::kElems], 
 // Accesses: warp accesses per group (bf16: 2 heads each, float: 1).
 template <class T, int Accesses>
 __global__ void qk_norm_rope_rows_kernel(QkRopeParts<T> a) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   using L = RowLanes<T>;
   constexpr int E = L::kElems, group_heads = Accesses * L::kHeads;
   const int groups = (a.heads + group_heads - 1) / group_heads;
@@ -252,7 +255,7 @@ void launch_qk_rows(Context& ctx, const QkRopeParts<T>& a) {
   const std::int64_t warps = a.start[a.parts] / a.heads * ((a.heads + group_heads - 1) / group_heads);
   const std::int64_t blocks = (warps + threads / 32 - 1) / (threads / 32);
   EPONA_CHECK(blocks <= 0x7fffffff, "qk_norm_rope: ", warps, " head groups exceed one launch");
-  qk_norm_rope_rows_kernel<T, Accesses><<<static_cast<unsigned>(blocks), threads, 0, ctx.stream()>>>(a);
+  launch_after(qk_norm_rope_rows_kernel<T, Accesses>, static_cast<unsigned>(blocks), threads, 0, ctx.stream(), a);
 }
 template <class T>
 void launch_qk_rows(Context& ctx, const QkRopeParts<T>& a) {
@@ -294,9 +297,8 @@ void rms_norm_rope_heads(Context& ctx, T* x, std::int64_t rows, std::int64_t row
   const unsigned blocks = detail::norm_rope_blocks(rows * heads, "rms_norm_rope_heads");
   const auto kernel = detail::vector_heads(x, row_stride, head_dim) ? detail::rms_norm_rope_kernel<true, T>
                                                                     : detail::rms_norm_rope_kernel<false, T>;
-  kernel<<<blocks, detail::kNormRopeThreads, 0, ctx.stream()>>>(x, rows, row_stride, static_cast<int>(heads),
-                                                               static_cast<int>(head_dim), scale, eps, cos, sin);
-  EPONA_CUDA_CHECK_LAUNCH();
+  detail::launch_after(kernel, blocks, detail::kNormRopeThreads, 0, ctx.stream(), x, rows, row_stride,
+                       static_cast<int>(heads), static_cast<int>(head_dim), scale, eps, cos, sin);
 }
 
 // Queries and keys of several row ranges of one packed buffer in one launch: token r's query
@@ -336,9 +338,9 @@ void qk_norm_rope(Context& ctx, T* qkv, std::int64_t row_stride, std::int64_t k_
   } else {
     const auto kernel = detail::vector_heads(qkv, row_stride, head_dim, k_offset) ? detail::qk_norm_rope_kernel<true, T>
                                                                                 : detail::qk_norm_rope_kernel<false, T>;
-    kernel<<<detail::norm_rope_blocks(a.start[a.parts], "qk_norm_rope"), detail::kNormRopeThreads, 0, ctx.stream()>>>(a);
+    detail::launch_after(kernel, detail::norm_rope_blocks(a.start[a.parts], "qk_norm_rope"), detail::kNormRopeThreads, 0,
+                         ctx.stream(), a);
   }
-  EPONA_CUDA_CHECK_LAUNCH();
 }
 
 // Turns qk_norm_rope's row path on or off at run time (see detail::qk_rows_flag).

@@ -202,6 +202,7 @@ constexpr int skinny_smem_bytes() {
 // Grid (split, bands), clusters of (split, 1, 1): cluster y owns columns [32y, 32y + 32).
 template <class T, bool Gelu, int Unroll>
 __global__ void __launch_bounds__(kSkinnyThreads) skinny_linear_kernel(LinearArgs<T> a, int split) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   extern __shared__ uint4 skinny_smem[];
   constexpr int S = kSkinnySlots<T, Unroll>, E = kSkinnyElems<T>, C = kSkinnyChunk<T>;
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, g = lane >> 2, q = lane & 3;

@@ -21,6 +21,7 @@ namespace detail {
 // rows 16-byte aligned), else single elements.
 template <class T, bool Packed>
 __global__ void small_linear_warp_kernel(LinearArgs<T> a) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
   if (item >= std::int64_t{a.M} * a.N) return;
   const int lane = threadIdx.x & 31, m = static_cast<int>(item / a.N), n = static_cast<int>(item % a.N);
@@ -45,6 +46,7 @@ __global__ void small_linear_warp_kernel(LinearArgs<T> a) {
 // One thread per output, for a tiny K.
 template <class T>
 __global__ void small_linear_thread_kernel(LinearArgs<T> a) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x;
   if (item >= std::int64_t{a.M} * a.N) return;
   const int m = static_cast<int>(item / a.N), n = static_cast<int>(item % a.N);
@@ -67,13 +69,14 @@ bool few_outputs_linear(Context& ctx, const LinearArgs<T>& a) {
   const std::int64_t items = std::int64_t{a.M} * a.N;
   constexpr int threads = 256;
   if (a.K <= kSmallKMax && items <= kTinyKItems) {
-    small_linear_thread_kernel<T><<<static_cast<unsigned>((items + threads - 1) / threads), threads, 0, ctx.stream()>>>(a);
+    launch_after(small_linear_thread_kernel<T>, static_cast<unsigned>((items + threads - 1) / threads), threads, 0,
+                 ctx.stream(), a);
   } else if (a.N <= kFewOutputsMax && items <= kFewOutputsItems) {
     const unsigned blocks = static_cast<unsigned>((items + threads / 32 - 1) / (threads / 32));
     if (packable(a.x, a.K, a.ldx) && packable(a.w, a.K, a.K))
-      small_linear_warp_kernel<T, true><<<blocks, threads, 0, ctx.stream()>>>(a);
+      launch_after(small_linear_warp_kernel<T, true>, blocks, threads, 0, ctx.stream(), a);
     else
-      small_linear_warp_kernel<T, false><<<blocks, threads, 0, ctx.stream()>>>(a);
+      launch_after(small_linear_warp_kernel<T, false>, blocks, threads, 0, ctx.stream(), a);
   } else {
     return false;
   }
