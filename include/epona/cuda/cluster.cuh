@@ -76,14 +76,12 @@ void launch_in_clusters(void (*kernel)(Params...), dim3 grid, unsigned cluster_x
   cfg.blockDim = dim3(static_cast<unsigned>(threads));
   cfg.dynamicSmemBytes = static_cast<std::size_t>(smem);
   cfg.stream = stream;
-  cudaLaunchAttribute attrs[2]{};
-  attrs[0].id = cudaLaunchAttributeClusterDimension;
-  attrs[0].val.clusterDim.x = cluster_x, attrs[0].val.clusterDim.y = 1, attrs[0].val.clusterDim.z = 1;
-  unsigned programmatic = 0;  // as launch_after: cluster kernels begin with wait_for_producer
-  attrs[1] = programmatic_launch_attribute(programmatic);
-  cfg.attrs = attrs;
-  cfg.numAttrs = 1 + programmatic;
-  EPONA_CUDA_CHECK(cudaLaunchKernelEx(&cfg, kernel, args...));
+  cudaLaunchAttribute cluster{};
+  cluster.id = cudaLaunchAttributeClusterDimension;
+  cluster.val.clusterDim.x = cluster_x, cluster.val.clusterDim.y = 1, cluster.val.clusterDim.z = 1;
+  cfg.attrs = &cluster;
+  cfg.numAttrs = 1;
+  launch_programmatic(cfg, kernel, args...);
 }
 
 }  // namespace epona::cuda::detail

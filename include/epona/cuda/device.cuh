@@ -170,14 +170,19 @@ inline bool programmatic_launch_available() {
   EPONA_CUDA_CHECK(cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, device));
   return major >= 9;
 }
-// The launch attribute for launch_after and cluster launches: `count` is 1 where it applies, else 0.
-inline cudaLaunchAttribute programmatic_launch_attribute(unsigned& count) {
+// Launches kernel with cfg, its own attributes (at most one, e.g. a cluster shape) plus the
+// programmatic-serialisation one where on; the kernel must begin with wait_for_producer().
+// launch_after and launch_in_clusters (cluster.cuh) both launch through it.
+template <class... Params, class... Args>
+void launch_programmatic(cudaLaunchConfig_t cfg, void (*kernel)(Params...), const Args&... args) {
   static const bool available = programmatic_launch_available();
-  cudaLaunchAttribute a{};
-  a.id = cudaLaunchAttributeProgrammaticStreamSerialization;
-  a.val.programmaticStreamSerializationAllowed = 1;
-  count = programmatic_launch_flag() && available ? 1 : 0;
-  return a;
+  cudaLaunchAttribute attrs[2]{};
+  if (cfg.numAttrs == 1) attrs[0] = cfg.attrs[0];
+  attrs[cfg.numAttrs].id = cudaLaunchAttributeProgrammaticStreamSerialization;
+  attrs[cfg.numAttrs].val.programmaticStreamSerializationAllowed = 1;
+  cfg.attrs = attrs;
+  cfg.numAttrs += programmatic_launch_flag() && available ? 1 : 0;
+  EPONA_CUDA_CHECK(cudaLaunchKernelEx(&cfg, kernel, static_cast<Params>(args)...));
 }
 // kernel<<<grid, block, smem, stream>>>(args...) as a programmatic dependent launch where on;
 // the kernel must begin with wait_for_producer().
@@ -189,11 +194,7 @@ void launch_after(void (*kernel)(Params...), dim3 grid, dim3 block, std::size_t 
   cfg.blockDim = block;
   cfg.dynamicSmemBytes = smem;
   cfg.stream = stream;
-  unsigned count = 0;
-  cudaLaunchAttribute attr = programmatic_launch_attribute(count);
-  cfg.attrs = &attr;
-  cfg.numAttrs = count;
-  EPONA_CUDA_CHECK(cudaLaunchKernelEx(&cfg, kernel, static_cast<Params>(args)...));
+  launch_programmatic(cfg, kernel, args...);
 }
 
 // Element-wise work over rows x n: f.pack(r, c) handles columns [c, c + 8) of row r with
