@@ -464,18 +464,31 @@ void dit_network(bool vis) {
     CHECK(exact.high_water() == gpu_dit.forward_bytes(kBatch, rows));
   }
   expect_close(name + " DiT forward, batch 2" + tag, download(v), v_cpu, bound<W>(name + ".velocity"));
-  for (int run = 0; run < 2; ++run) {  // the second run replays the recorded graph
+  const auto sample_gpu = [&] {
     poison_arena(arena);
     auto state = upload<float>(x);
-    {
-      ArenaScope<Cuda> scope(arena);
-      const auto gc = gpu_dit.prepare(gpu(), arena, dcond, ids.cond, target_ids, dy);
-      gpu_dit.sample(gpu(), arena, gc, grid, state);
-    }
-    expect_close(name + " DiT 10-step sample, batch 2, run " + std::to_string(run) + tag, download(state), sample_cpu,
+    ArenaScope<Cuda> scope(arena);
+    const auto gc = gpu_dit.prepare(gpu(), arena, dcond, ids.cond, target_ids, dy);
+    gpu_dit.sample(gpu(), arena, gc, grid, state);
+    return download(state);
+  };
+  Tensor<float, Cpu> sampled;
+  for (int run = 0; run < 2; ++run) {  // the second run replays the recorded graph
+    sampled = sample_gpu();
+    expect_close(name + " DiT 10-step sample, batch 2, run " + std::to_string(run) + tag, sampled, sample_cpu,
                  bound<W>(name + ".sample.out", 1e-4));
   }
   if (cuda::graphs_enabled()) CHECK(gpu_dit.sampler_graph().captures() == 1);
+  // The sampler's pipelined condition front changes no bit of the sample: off against on.
+  gpu_dit.set_sampler_options({false});
+  const auto unpipelined = sample_gpu();
+  int differ = 0;
+  for (std::int64_t i = 0; i < unpipelined.numel(); ++i)
+    differ += std::memcmp(&unpipelined.data()[i], &sampled.data()[i], sizeof(float)) != 0;
+  MESSAGE(name, " sample without the pipelined condition front", tag, ": ", differ, " of ", unpipelined.numel(),
+          " values differ from the default's");
+  CHECK(differ == 0);
+  gpu_dit.set_sampler_options({});
 }
 
 }  // namespace

@@ -257,9 +257,9 @@ struct PairBlockCase {
     model::SideQueue<B> queue;
     CHECK(model::detail::StreamPair<B, W>::pairs(ctx, s, rows) == expect_paired);
     if (first)
-      block(ctx, queue, s, rows, r, dm.data(), false, dn.data(), dn.data() + 2 * D, dsrc.data());
+      block(ctx, queue, s, rows, r, dm.data(), {}, dn.data(), dn.data() + 2 * D, dsrc.data());
     else
-      block(ctx, queue, s, rows, r, dm.data(), true);
+      block(ctx, queue, s, rows, r, dm.data(), model::DoubleBlockEntry::normed());
     if constexpr (std::is_same_v<B, Cuda>) {
       const auto bytes = cuda::to_host(ctx, canary);
       CHECK(std::count(bytes.data(), bytes.data() + bytes.numel(), 0xFF) == bytes.numel());

@@ -249,6 +249,8 @@ class StreamPair {
     if (!paired_) queue_.join(main_);
   }
 
+  const Part& condition() const { return cond_; }
+
   // f(context, part) for the condition stream, then the target stream.
   template <class F>
   void each(F&& f) {
@@ -279,6 +281,15 @@ class StreamPair {
 };
 }  // namespace detail
 
+// What the caller of a double block did already for its first sublayer.
+struct DoubleBlockEntry {
+  bool cond_normed = false, target_normed = false;  // s.modulated holds that stream's first modulated norm
+  // The condition rows of s.qkv hold their q and k (QK-normed, rotated) and v: the sampler
+  // ran the condition front ahead (condition_front; unpaired streams only).
+  bool cond_qkv = false;
+  static DoubleBlockEntry normed() { return {true, true, false}; }
+};
+
 template <class B, class W>
 struct DoubleStreamBlock {
   using Context = BackendContext<B>;
@@ -303,33 +314,52 @@ struct DoubleStreamBlock {
     cond.mod.rows(ctx, silu_vecs, n, table + 6 * widths.hidden, ld);
   }
 
+  // The condition stream's first sublayer up to the attention, for a caller that runs it
+  // ahead (the sampler's pipelined front, DoubleBlockEntry::cond_qkv): modulated = the
+  // condition rows' modulated norm of src (their residual input), then rows [0, cond) of the
+  // qkv table `qkv` (3D wide) = qkv(modulated) with their QK RMSNorm + RoPE.
+  void condition_front(Context& ctx, const A* src, Tensor<A, B>& modulated, A* qkv, const JointRows& rows,
+                       const nn::RopeTable<B>& rope, const A* mods) const {
+    stream_front(ctx, cond, 0, rows.cond, modulated, src, modulated, qkv, mods + 6 * widths.hidden, rope, false);
+  }
+
   // The two streams touch disjoint rows until the joint attention: their products run paired
-  // or on two queues (detail::StreamPair). `normed`: s.modulated holds both streams' first
-  // modulated norm already; next_img / next_cond: (shift, scale) of the next block's first norm
-  // for each stream's rows (null: none); cond_src: the condition rows' residual input when s.z
-  // does not hold it yet (the first block; s.z gets the updated rows). Each gated residual add
-  // is fused with the modulated norm after it.
+  // or on two queues (detail::StreamPair). `entry`: what the caller did already (the streams'
+  // first modulated norms in s.modulated, the condition rows of s.qkv); next_img / next_cond:
+  // (shift, scale) of the next block's first norm for each stream's rows (null: none);
+  // cond_src: the condition rows' residual input when s.z does not hold it yet (the first
+  // block; s.z gets the updated rows). Each gated residual add is fused with the modulated
+  // norm after it.
   void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
-                  const nn::RopeTable<B>& rope, const A* mods, bool normed = false, const A* next_img = nullptr,
-                  const A* next_cond = nullptr, const A* cond_src = nullptr) const {
+                  const nn::RopeTable<B>& rope, const A* mods, DoubleBlockEntry entry = {},
+                  const A* next_img = nullptr, const A* next_cond = nullptr, const A* cond_src = nullptr) const {
     using Pair = detail::StreamPair<B, W>;
     using Part = typename Pair::Part;
     using Stream = DoubleStream<B, W>;
     const std::int64_t D = widths.hidden;
     const float eps = widths.ln_eps;
-    Pair pair(ctx, queue, Pair::pairs(ctx, s, rows), Part{&cond, 0, rows.cond, mods + 6 * D, next_cond, cond_src},
+    const bool paired = Pair::pairs(ctx, s, rows);
+    EPONA_CHECK(!(paired && entry.cond_qkv), "DoubleStreamBlock: a condition front run ahead needs unpaired streams");
+    Pair pair(ctx, queue, paired, Part{&cond, 0, rows.cond, mods + 6 * D, next_cond, cond_src},
               Part{&img, rows.cond, rows.target, mods, next_img, nullptr});
     const auto at = [](auto& t, const Part& p) { return t.data() + p.first * t.size(-1); };  // p's first row of t
-    pair.fork();
-    if (!normed)
+    if (entry.cond_qkv) {
+      // Only the target rows' front here; the join waits for the condition's on the side queue.
+      stream_front(ctx, img, rows.cond, rows.target, s.z, nullptr, s.modulated, s.qkv.data(), mods, rope,
+                   entry.target_normed);
+      queue.join(ctx);
+    } else {
+      pair.fork();
       pair.each([&](Context& c, const Part& p) {
-        detail::modulate_rows(c, s.z, s.modulated, p.first, p.rows, p.mv, p.mv + D, eps, p.src);
+        if (!(&p == &pair.condition() ? entry.cond_normed : entry.target_normed))
+          detail::modulate_rows(c, s.z, s.modulated, p.first, p.rows, p.mv, p.mv + D, eps, p.src);
       });
-    pair.linear(Stream::qkv_of, s.modulated, s.qkv);
-    pair.join();
-    detail::qk_norm_rope_rows<B>(ctx, s.qkv.data(), widths, rope,
-                                 std::array{detail::QkRows<B>(0, 0, rows.cond, cond.norm),
-                                            detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)});
+      pair.linear(Stream::qkv_of, s.modulated, s.qkv);
+      pair.join();
+      detail::qk_norm_rope_rows<B>(ctx, s.qkv.data(), widths, rope,
+                                   std::array{detail::QkRows<B>(0, 0, rows.cond, cond.norm),
+                                              detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)});
+    }
     detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D);
     pair.fork();
     pair.linear(Stream::proj_of, s.attn, s.sub);
@@ -352,6 +382,20 @@ struct DoubleStreamBlock {
   nn::Flops flops(const JointRows& rows) const {
     return {img.mod.flops() + cond.mod.flops() + img.flops(rows.target) + cond.flops(rows.cond),
             detail::joint_attention_flops(widths, rows.total(), rows.total())};
+  }
+
+ private:
+  // One stream's first sublayer up to the attention over its rows [first, first + count):
+  // the modulated norm of z's rows (or of src's) into `modulated` unless `normed`, the qkv
+  // product into those rows of `qkv`, their QK RMSNorm + RoPE.
+  void stream_front(Context& ctx, const DoubleStream<B, W>& st, std::int64_t first, std::int64_t count,
+                    const Tensor<A, B>& z, const A* src, Tensor<A, B>& modulated, A* qkv, const A* mv,
+                    const nn::RopeTable<B>& rope, bool normed) const {
+    const std::int64_t D = widths.hidden;
+    if (!normed) detail::modulate_rows(ctx, z, modulated, first, count, mv, mv + D, widths.ln_eps, src);
+    st.qkv.strided(ctx, modulated.data() + first * D, D, count, qkv + first * 3 * D, 3 * D);
+    detail::qk_norm_rope_rows<B>(ctx, qkv, widths, rope,
+                                 std::array{detail::QkRows<B>(first, first, first + count, st.norm)});
   }
 };
 

@@ -5,7 +5,8 @@
 // sampler. Step-invariant work is hoisted out of the sampling loop (compute-budget.md §5): cond_in,
 // vector_in and the RoPE table once per sample, and every block's modulation for all steps at
 // once (time_in and the modulation Linears as GEMMs over the steps); the loop itself is replayed
-// as one CUDA graph on the GPU.
+// as one CUDA graph on the GPU, and with unpaired streams (the TrajDiT) each step's first
+// condition-stream work runs ahead, beside the previous step's few-row tail (SamplerOptions).
 #pragma once
 
 #include <algorithm>
@@ -18,6 +19,7 @@
 #include <vector>
 
 #include "epona/core/arena.hpp"
+#include "epona/core/env.hpp"
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/flow/euler.hpp"
@@ -97,6 +99,16 @@ class FluxDiT {
     const A* row(std::int64_t b, std::int64_t i) const { return table.data() + (b * times + i) * width; }
   };
 
+  // How sample() runs the steps (on by default, off with EPONA_DIT_PIPELINE=0; it changes no
+  // result bit, and benchmarks compare both). It applies where the model's shapes allow it.
+  struct SamplerOptions {
+    // With unpaired streams (the TrajDiT's 515 / 15 rows), step i + 1's condition front of the
+    // first double block (modulated norm, qkv, QK-norm + RoPE: step-invariant but for its
+    // modulation) runs on the side queue during step i's few-row tail, into the other of two
+    // qkv tables.
+    bool pipelined_condition = env_flag("EPONA_DIT_PIPELINE", true);
+  };
+
   FluxDiT() = default;
   explicit FluxDiT(const FluxDitConfig& c)
       : cfg_(c), widths_(c.widths()), input_(c.in_channels, c.hidden_size, true),
@@ -142,6 +154,7 @@ class FluxDiT {
     ArenaCounter<B> v;
     v.template take<A>({batch, rows.target, cfg_.out_channels});
     if (kConvertInputs) v.template take<A>({batch, rows.target, cfg_.in_channels});
+    plan_front(v, batch, rows);
     const auto m = modulation_sizes(batch, steps);
     return m.kept + std::max(m.scratch, v.bytes() + velocity_bytes(rows));
   }
@@ -238,19 +251,29 @@ class FluxDiT {
     auto v = arena.template take<A>({c.batch, c.rows.target, cfg_.out_channels});
     Tensor<A, B> x_cast;  // the state rounded to the GEMM type, updated by each Euler step
     if constexpr (kConvertInputs) x_cast = arena.template take<A>(x.shape());
+    ConditionFront front = plan_front(arena, c.batch, c.rows);
     GraphKey key{address(this), address(x.data()), address(v.data()), address(c.cond.data()), address(m.table.data()),
                  arena.mark(), static_cast<std::uint64_t>(c.batch), static_cast<std::uint64_t>(c.rows.cond),
                  static_cast<std::uint64_t>(c.rows.target)};
     for (float g : grid) key.push_back(std::bit_cast<std::uint32_t>(g));
     graph_.run(ctx, key, [&] {
+      front.issued = -1;
       const auto step = [&](std::int64_t i, float, const auto& state, Tensor<A, B>& vel) {
-        evaluate(ctx, arena, c, m, i, state, vel);
+        evaluate(ctx, arena, c, m, i, state, vel, front.qkv[0].empty() ? nullptr : &front);
       };
       if constexpr (kConvertInputs)
         euler.sample_cast(ctx, x, x_cast, v, step);
       else
         euler.sample(ctx, x, v, step);
     });
+  }
+
+  const SamplerOptions& sampler_options() const { return options_; }
+  // Takes effect at the next sample (the recorded loop is dropped); a run-time switch, as the
+  // recorded loop itself, so a const model takes it.
+  void set_sampler_options(const SamplerOptions& o) const {
+    options_ = o;
+    reset_sampler_graph();
   }
 
   // The recorded sampling loop (on the GPU: how often it was captured, how long that took).
@@ -287,6 +310,18 @@ class FluxDiT {
   struct ModulationScratch {
     Tensor<A, B> temb;              // (n, time_dim)
     Tensor<A, B> hidden, vec, silu; // (n, D)
+  };
+  // The sampler's pipelined condition front (SamplerOptions::pipelined_condition): the first
+  // double block's qkv tables by step parity (step i's attention reads one while step i + 1's
+  // condition rows are written into the other) and the front's own norm output.
+  struct ConditionFront {
+    Tensor<A, B> qkv[2];    // (batch, rows + pad, 3D) each
+    Tensor<A, B> modulated; // (cond rows, D)
+    std::int64_t issued = -1;  // the last step whose front is enqueued
+    A* table(std::int64_t step, std::int64_t b) const {
+      const auto& t = qkv[step % 2];
+      return t.data() + b * t.size(1) * t.size(2);
+    }
   };
 
   static std::uint64_t address(const void* p) { return static_cast<std::uint64_t>(reinterpret_cast<std::uintptr_t>(p)); }
@@ -364,6 +399,35 @@ class FluxDiT {
     return {kept.bytes(), scratch.bytes()};
   }
 
+  // Whether the sampler runs the condition front ahead (SamplerOptions::pipelined_condition).
+  bool pipelines_condition(const JointRows& rows) const {
+    return options_.pipelined_condition && !double_blocks_.empty() && !streams_pairable(rows);
+  }
+  template <class Alloc>
+  ConditionFront plan_front(Alloc& a, std::int64_t batch, const JointRows& rows) const {
+    ConditionFront f;
+    if (!pipelines_condition(rows)) return f;
+    const std::int64_t D = cfg_.hidden_size, table_rows = rows.total() + paired_padding(rows);
+    for (auto& t : f.qkv) t = a.template take<A>({batch, table_rows, 3 * D});
+    f.modulated = a.template take<A>({rows.cond, D});
+    return f;
+  }
+  // Enqueues step `time`'s condition front for every batch item on the side queue (after a
+  // fork when the side queue has not yet seen this step's inputs).
+  void issue_front(Context& ctx, const Conditioning& c, const Modulations& m, std::int64_t time, ConditionFront& f,
+                   bool fork) const {
+    if (fork) side_.fork(ctx);
+    Context& side = side_.side(ctx);
+    for (std::int64_t b = 0; b < c.batch; ++b)
+      double_blocks_[0].condition_front(side, c.cond[b].data(), f.modulated, f.table(time, b), c.rows,
+                                        item_rope(c, b), m.row(b, time));
+    f.issued = time;
+  }
+  nn::RopeTable<B> item_rope(const Conditioning& c, std::int64_t b) const {
+    const std::int64_t n = c.rows.total();
+    return {c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
+  }
+
   // One batch item's block scratch (padded for the double blocks' paired products), and its
   // input x as a GEMM operand (empty when A is float).
   template <class Alloc>
@@ -415,28 +479,34 @@ class FluxDiT {
 
   // velocity() for an input x of type X: float32 (converted per batch item when the GEMMs take
   // another type) or already the GEMM type A (the sampler keeps its state rounded for them).
+  // From the sampler, `front`: the pipelined condition front (this step's issued ahead if it
+  // is not yet, the next step's issued at the end).
   template <class X>
   void evaluate(Context& ctx, Arena<B>& arena, const Conditioning& c, const Modulations& m, std::int64_t time,
-                const Tensor<X, B>& x, Tensor<A, B>& out) const {
+                const Tensor<X, B>& x, Tensor<A, B>& out, ConditionFront* front = nullptr) const {
     check_shape(x, {c.batch, c.rows.target, cfg_.in_channels}, "DiT input x");
     check_shape(out, {c.batch, c.rows.target, cfg_.out_channels}, "DiT velocity output");
     EPONA_CHECK(time >= 0 && time < m.times, "DiT: timestep index ", time, " outside the ", m.times, " prepared");
-    const std::int64_t n = c.rows.total(), D = cfg_.hidden_size;
+    const std::int64_t D = cfg_.hidden_size;
+    if (front && front->issued != time) issue_front(ctx, c, m, time, *front, true);
     for (std::int64_t b = 0; b < c.batch; ++b) {
       ArenaScope<B> scope(arena);
       auto [s, x_in] = plan_velocity(arena, c.rows);
+      const nn::RopeTable<B> rope = item_rope(c, b);
+      const A* mods = m.row(b, time);
       embed_inputs(ctx, s, c, b, x[b], x_in);
-      const nn::RopeTable<B> rope{c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
       // Each block's last residual add also writes the next block's first modulated norm
       // (`next`: its (shift, scale), the first entries of its table columns), so every block
       // after the first finds its input normed. The first block reads the condition rows from
       // cond_in's output (step-invariant) and writes their update into s.z: no per-step copy.
-      const A* mods = m.row(b, time);
       for (std::size_t j = 0; j < double_blocks_.size(); ++j) {
         const A* next = mods + double_blocks_[j].modulation_width();
         const bool next_double = j + 1 < double_blocks_.size();  // per-stream (shift, scale)
-        double_blocks_[j](ctx, side_, s, c.rows, rope, mods, j > 0, next, next + (next_double ? 6 * D : 0),
-                          j == 0 ? c.cond[b].data() : nullptr);
+        const bool ahead = j == 0 && front;  // this step's condition front ran on the side queue
+        DitScratch<B, A> sj = s;
+        if (ahead) sj.qkv = Tensor<A, B>::view(front->table(time, b), s.qkv.shape(), front->qkv[0].storage());
+        double_blocks_[j](ctx, side_, sj, c.rows, rope, mods, DoubleBlockEntry{j > 0, j > 0, ahead}, next,
+                          next + (next_double ? 6 * D : 0), j == 0 ? c.cond[b].data() : nullptr);
         mods = next;
       }
       for (std::size_t j = 0; j < single_blocks_.size(); ++j) {
@@ -448,6 +518,7 @@ class FluxDiT {
       auto o = out[b];
       final_layer_(ctx, s, c.rows, mods, o, !double_blocks_.empty() || !single_blocks_.empty());
     }
+    if (front && time + 1 < m.times) issue_front(ctx, c, m, time + 1, *front, false);
   }
 
   FluxDitConfig cfg_;
@@ -466,6 +537,7 @@ class FluxDiT {
   };
   mutable RopeCache rope_cache_;
   mutable SideQueue<B> side_;  // the second queue of the blocks (a second stream on the GPU)
+  mutable SamplerOptions options_{};
 };
 
 }  // namespace epona::model
