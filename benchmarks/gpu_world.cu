@@ -19,7 +19,8 @@
 // --residual-compare: the MST again with the residual add in its GEMMs off and on, two rounds;
 // --qk-norm-compare: the same with the time layers' QK LayerNorm inside their attention;
 // --pdl-compare: the MST and the DiT rows with programmatic dependent launches off and on, two
-// rounds).
+// rounds; --front-compare: the TrajDiT sample with its pipelined condition front off and on,
+// FluxDiT::SamplerOptions, two rounds).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -55,6 +56,7 @@ struct Options {
   bool residual_compare = false;  // the MST with the residual add in the GEMM off and on, two rounds
   bool qk_norm_compare = false;   // the MST with the time layers' QK LayerNorm inside the attention off and on
   bool pdl_compare = false;       // the MST and the DiTs with programmatic dependent launches off and on
+  bool front_compare = false;     // the TrajDiT sample with its pipelined condition front off and on
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
 };
 
@@ -84,12 +86,13 @@ Options parse(int argc, char** argv) {
     else if (a == "--residual-compare") o.residual_compare = true;
     else if (a == "--qk-norm-compare") o.qk_norm_compare = true;
     else if (a == "--pdl-compare") o.pdl_compare = true;
+    else if (a == "--front-compare") o.front_compare = true;
     else if (a == "--only") {
       std::stringstream ss(next());
       for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
     } else fail("unknown option ", a,
                 " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare, "
-                "--qk-norm-compare, --pdl-compare)");
+                "--qk-norm-compare, --pdl-compare, --front-compare)");
   }
   return o;
 }
@@ -354,8 +357,10 @@ int run(const Options& o) {
 
   const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
   // The DiT rows; `suffix` names a second pass with the GEMM tuning switched (--tune-compare).
-  const auto time_dits = [&](const std::string& suffix) {
+  // traj_sample_only: the TrajDiT sample row alone (--front-compare).
+  const auto time_dits = [&](const std::string& suffix, bool traj_sample_only = false) {
     for (const bool is_vis : {false, true}) {
+      if (traj_sample_only && is_vis) continue;
       const auto& dit = is_vis ? vis : traj;
       const std::string name = std::string(is_vis ? "vis" : "traj");
       const auto& rows = dit_rows(is_vis);
@@ -376,7 +381,7 @@ int run(const Options& o) {
         eval_once();  // plans made, outside the range
         profile_once(ctx, eval_once);
       }
-      if (o.want(name + "_eval")) emit(name + "_eval" + suffix, event_times_ms(ctx, std::max(R, 20), 3, eval_once), eval_tflop);
+      if (o.want(name + "_eval") && !traj_sample_only) emit(name + "_eval" + suffix, event_times_ms(ctx, std::max(R, 20), 3, eval_once), eval_tflop);
       const auto grid = flow::get_schedule(o.steps, rows.target);
       Tensor<float, Cuda> state(x.shape());
       const auto sample_once = [&] {
@@ -409,6 +414,15 @@ int run(const Options& o) {
     cuda::set_programmatic_launch(was_on);
     traj.reset_sampler_graph();
     vis.reset_sampler_graph();
+  }
+  if (o.front_compare) {  // off, on, off, on (drift shows as a round difference), then as it was
+    const auto was = traj.sampler_options();
+    for (const char* round : {"_r1", "_r2"})
+      for (const bool on : {false, true}) {
+        traj.set_sampler_options({on});
+        time_dits(std::string("_pipelined_") + (on ? "on" : "off") + round, true);
+      }
+    traj.set_sampler_options(was);
   }
   const auto time_step = [&](const std::string& suffix) {
     if (!o.want("step")) return;
