@@ -259,7 +259,7 @@ struct PairBlockCase {
     if (first)
       block(ctx, queue, s, rows, r, dm.data(), {}, dn.data(), dn.data() + 2 * D, dsrc.data());
     else
-      block(ctx, queue, s, rows, r, dm.data(), model::DoubleBlockEntry::normed());
+      block(ctx, queue, s, rows, r, dm.data(), model::DoubleBlockEntry::already_normed());
     if constexpr (std::is_same_v<B, Cuda>) {
       const auto bytes = cuda::to_host(ctx, canary);
       CHECK(std::count(bytes.data(), bytes.data() + bytes.numel(), 0xFF) == bytes.numel());

@@ -249,8 +249,6 @@ class StreamPair {
     if (!paired_) queue_.join(main_);
   }
 
-  const Part& condition() const { return cond_; }
-
   // f(context, part) for the condition stream, then the target stream.
   template <class F>
   void each(F&& f) {
@@ -283,11 +281,11 @@ class StreamPair {
 
 // What the caller of a double block did already for its first sublayer.
 struct DoubleBlockEntry {
-  bool cond_normed = false, target_normed = false;  // s.modulated holds that stream's first modulated norm
+  bool normed = false;  // s.modulated holds both streams' first modulated norm
   // The condition rows of s.qkv hold their q and k (QK-normed, rotated) and v: the sampler
   // ran the condition front ahead (condition_front; unpaired streams only).
   bool cond_qkv = false;
-  static DoubleBlockEntry normed() { return {true, true, false}; }
+  static DoubleBlockEntry already_normed() { return {true, false}; }
 };
 
 template <class B, class W>
@@ -346,14 +344,14 @@ struct DoubleStreamBlock {
     if (entry.cond_qkv) {
       // Only the target rows' front here; the join waits for the condition's on the side queue.
       stream_front(ctx, img, rows.cond, rows.target, s.z, nullptr, s.modulated, s.qkv.data(), mods, rope,
-                   entry.target_normed);
+                   entry.normed);
       queue.join(ctx);
     } else {
       pair.fork();
-      pair.each([&](Context& c, const Part& p) {
-        if (!(&p == &pair.condition() ? entry.cond_normed : entry.target_normed))
+      if (!entry.normed)
+        pair.each([&](Context& c, const Part& p) {
           detail::modulate_rows(c, s.z, s.modulated, p.first, p.rows, p.mv, p.mv + D, eps, p.src);
-      });
+        });
       pair.linear(Stream::qkv_of, s.modulated, s.qkv);
       pair.join();
       detail::qk_norm_rope_rows<B>(ctx, s.qkv.data(), widths, rope,

@@ -104,8 +104,7 @@ class FluxDiT {
   struct SamplerOptions {
     // With unpaired streams (the TrajDiT's 515 / 15 rows), step i + 1's condition front of the
     // first double block (modulated norm, qkv, QK-norm + RoPE: step-invariant but for its
-    // modulation) runs on the side queue during step i's few-row tail, into the other of two
-    // qkv tables.
+    // modulation) runs on the side queue during step i's few-row tail.
     bool pipelined_condition = env_flag("EPONA_DIT_PIPELINE", true);
   };
 
@@ -259,7 +258,7 @@ class FluxDiT {
     graph_.run(ctx, key, [&] {
       front.issued = -1;
       const auto step = [&](std::int64_t i, float, const auto& state, Tensor<A, B>& vel) {
-        evaluate(ctx, arena, c, m, i, state, vel, front.qkv[0].empty() ? nullptr : &front);
+        evaluate(ctx, arena, c, m, i, state, vel, front.qkv.empty() ? nullptr : &front);
       };
       if constexpr (kConvertInputs)
         euler.sample_cast(ctx, x, x_cast, v, step);
@@ -312,16 +311,15 @@ class FluxDiT {
     Tensor<A, B> hidden, vec, silu; // (n, D)
   };
   // The sampler's pipelined condition front (SamplerOptions::pipelined_condition): the first
-  // double block's qkv tables by step parity (step i's attention reads one while step i + 1's
-  // condition rows are written into the other) and the front's own norm output.
+  // double block's qkv table and the front's own norm output. One table serves every step:
+  // step i + 1's front is enqueued on the side queue at the end of step i, and the first
+  // double block's fork after its joint attention (the table's only reader) has put the side
+  // queue behind that read already.
   struct ConditionFront {
-    Tensor<A, B> qkv[2];    // (batch, rows + pad, 3D) each
+    Tensor<A, B> qkv;       // (batch, rows + pad, 3D)
     Tensor<A, B> modulated; // (cond rows, D)
     std::int64_t issued = -1;  // the last step whose front is enqueued
-    A* table(std::int64_t step, std::int64_t b) const {
-      const auto& t = qkv[step % 2];
-      return t.data() + b * t.size(1) * t.size(2);
-    }
+    A* table(std::int64_t b) const { return qkv.data() + b * qkv.size(1) * qkv.size(2); }
   };
 
   static std::uint64_t address(const void* p) { return static_cast<std::uint64_t>(reinterpret_cast<std::uintptr_t>(p)); }
@@ -408,7 +406,7 @@ class FluxDiT {
     ConditionFront f;
     if (!pipelines_condition(rows)) return f;
     const std::int64_t D = cfg_.hidden_size, table_rows = rows.total() + paired_padding(rows);
-    for (auto& t : f.qkv) t = a.template take<A>({batch, table_rows, 3 * D});
+    f.qkv = a.template take<A>({batch, table_rows, 3 * D});
     f.modulated = a.template take<A>({rows.cond, D});
     return f;
   }
@@ -419,7 +417,7 @@ class FluxDiT {
     if (fork) side_.fork(ctx);
     Context& side = side_.side(ctx);
     for (std::int64_t b = 0; b < c.batch; ++b)
-      double_blocks_[0].condition_front(side, c.cond[b].data(), f.modulated, f.table(time, b), c.rows,
+      double_blocks_[0].condition_front(side, c.cond[b].data(), f.modulated, f.table(b), c.rows,
                                         item_rope(c, b), m.row(b, time));
     f.issued = time;
   }
@@ -504,8 +502,8 @@ class FluxDiT {
         const bool next_double = j + 1 < double_blocks_.size();  // per-stream (shift, scale)
         const bool ahead = j == 0 && front;  // this step's condition front ran on the side queue
         DitScratch<B, A> sj = s;
-        if (ahead) sj.qkv = Tensor<A, B>::view(front->table(time, b), s.qkv.shape(), front->qkv[0].storage());
-        double_blocks_[j](ctx, side_, sj, c.rows, rope, mods, DoubleBlockEntry{j > 0, j > 0, ahead}, next,
+        if (ahead) sj.qkv = Tensor<A, B>::view(front->table(b), s.qkv.shape(), front->qkv.storage());
+        double_blocks_[j](ctx, side_, sj, c.rows, rope, mods, DoubleBlockEntry{j > 0, ahead}, next,
                           next + (next_double ? 6 * D : 0), j == 0 ? c.cond[b].data() : nullptr);
         mods = next;
       }
