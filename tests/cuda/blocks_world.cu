@@ -13,7 +13,6 @@
 
 #include <array>
 #include <cmath>
-#include <cstring>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -225,11 +224,10 @@ void check_qk_rows(std::int64_t heads, std::int64_t rows, std::uint32_t seed, st
   for (const int accesses : {2, 4, 8}) {  // heads per warp: 2, 4, 8 times the heads of one access
     cuda::detail::qk_rows_accesses() = accesses;
     const auto rows_out = run(true);
-    std::int64_t differ = 0, changed = 0;
-    for (std::int64_t i = 0; i < x.numel(); ++i) {
-      differ += std::memcmp(&rows_out.data()[i], &heads_out.data()[i], sizeof(float)) != 0;
-      changed += i % stride >= 2 * width && std::memcmp(&rows_out.data()[i], &x.data()[i], sizeof(float)) != 0;
-    }
+    const std::int64_t differ = test::count_bit_differences(rows_out, heads_out);
+    const std::int64_t changed = test::count_bit_differences(rows_out.data(), x.data(), x.numel(), [&](std::int64_t i) {
+      return i % stride >= 2 * width;
+    });
     MESSAGE(("qk_norm_rope row path " + std::string(test::type_name<T>())), " accesses ", accesses, " heads ", heads,
             " rows ", rows, " misaligned by ", misalign, ": ", differ, " values differ from the head-per-warp path, ",
             changed, " untouched changed");
@@ -482,9 +480,7 @@ void dit_network(bool vis) {
   // The sampler's pipelined condition front changes no bit of the sample: off against on.
   gpu_dit.set_sampler_options({false});
   const auto unpipelined = sample_gpu();
-  int differ = 0;
-  for (std::int64_t i = 0; i < unpipelined.numel(); ++i)
-    differ += std::memcmp(&unpipelined.data()[i], &sampled.data()[i], sizeof(float)) != 0;
+  const std::int64_t differ = test::count_bit_differences(unpipelined, sampled);
   MESSAGE(name, " sample without the pipelined condition front", tag, ": ", differ, " of ", unpipelined.numel(),
           " values differ from the default's");
   CHECK(differ == 0);

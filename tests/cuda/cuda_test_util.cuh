@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <cstring>
 #include <random>
 #include <string>
 #include <type_traits>
@@ -107,6 +108,19 @@ Diff measure(const float* out, const float* ref, std::int64_t n, Keep keep) {
 inline Diff measure(const HostF& out, const HostF& ref) {
   REQUIRE(out.numel() == ref.numel());
   return measure(out.data(), ref.data(), out.numel(), [](std::int64_t) { return true; });
+}
+
+// How many of the elements where `keep(i)` (default: all) differ between a and b bit for bit
+// (the checks of paths that must round exactly alike).
+template <class Keep>
+std::int64_t count_bit_differences(const float* a, const float* b, std::int64_t n, Keep keep) {
+  std::int64_t differ = 0;
+  for (std::int64_t i = 0; i < n; ++i) differ += keep(i) && std::memcmp(a + i, b + i, sizeof(float)) != 0;
+  return differ;
+}
+inline std::int64_t count_bit_differences(const HostF& a, const HostF& b) {
+  REQUIRE(a.numel() == b.numel());
+  return count_bit_differences(a.data(), b.data(), a.numel(), [](std::int64_t) { return true; });
 }
 
 // bf16 keeps 8 significant bits: rounding to it moves a value by at most 2^-8 of itself.

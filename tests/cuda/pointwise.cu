@@ -88,9 +88,8 @@ void check_heads_inplace(cuda::Context& ctx, std::int64_t rows, std::int64_t str
   check_error(measure(out.data(), ref.data(), out.numel(), in_heads), b,
               name + " " + type_name<T>() + " rows " + std::to_string(rows) + " heads " + std::to_string(heads) +
                   " x " + std::to_string(head_dim) + " stride " + std::to_string(stride));
-  std::int64_t changed = 0;
-  for (std::int64_t i = 0; i < out.numel(); ++i)
-    changed += !in_heads(i) && std::memcmp(&out.data()[i], &x.data()[i], sizeof(float)) != 0;
+  const std::int64_t changed =
+      count_bit_differences(out.data(), x.data(), out.numel(), [&](std::int64_t i) { return !in_heads(i); });
   CHECK(changed == 0);
 }
 
@@ -178,11 +177,9 @@ void check_qk_norm_rope(cuda::Context& ctx, std::vector<QkSegment> segs, std::in
   Bound b = one_rounding<T>(max_abs(ref));
   b.rel *= 3, b.abs *= 3;
   check_error(measure(out.data(), ref.data(), out.numel(), [&](std::int64_t i) { return touched[i] != 0; }), b, what);
-  std::int64_t differ = 0, changed = 0;
-  for (std::int64_t i = 0; i < out.numel(); ++i) {
-    differ += std::memcmp(&out.data()[i], &per_range.data()[i], sizeof(float)) != 0;
-    changed += !touched[i] && std::memcmp(&out.data()[i], &x.data()[i], sizeof(float)) != 0;
-  }
+  const std::int64_t differ = count_bit_differences(out, per_range);
+  const std::int64_t changed =
+      count_bit_differences(out.data(), x.data(), out.numel(), [&](std::int64_t i) { return !touched[i]; });
   MESSAGE(what, ": ", differ, " values differ from rms_norm_rope_heads per range, ", changed, " untouched changed");
   CHECK(differ == 0);
   CHECK(changed == 0);
@@ -499,8 +496,7 @@ TEST_CASE("cuda programmatic dependent launches: each kernel of a chain sees wha
   for (const bool graph : {false, true})
     for (const bool programmatic : {true, false}) {
       const HostF out = run(programmatic, graph);
-      std::int64_t differ = 0;
-      for (std::int64_t i = 0; i < n; ++i) differ += std::memcmp(out.data() + i, ref.data() + i, sizeof(float)) != 0;
+      const std::int64_t differ = count_bit_differences(out, ref);
       CHECK_MESSAGE(differ == 0, (graph ? "graph" : "eager"), (programmatic ? ", programmatic" : ", plain"), ": ",
                     differ, " of ", n, " elements differ from the host");
     }
