@@ -25,13 +25,12 @@
 #include <thread>
 #include <vector>
 
+#include "bench_mid_world.hpp"
 #include "epona/core/arena.hpp"
 #include "epona/cpu/conv.hpp"
 #include "epona/cpu/cpu_features.hpp"
 #include "epona/cpu/gemm.hpp"
 #include "epona/model/dcae.hpp"
-#include "epona/model/pose_tokenizer.hpp"
-#include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
 
 using namespace epona;
@@ -156,63 +155,24 @@ std::string cpu_model_name() {
 
 // ---- the bench-mid models -------------------------------------------------------------
 
-WorldModelConfig bench_mid() {
-  WorldModelConfig c;
-  c.image_h = 256;
-  c.image_w = 512;
-  c.condition_frames = 10;
-  c.n_embd = 1024;
-  c.n_head = 8;
-  c.n_layer = {4, 2, 2};
-  c.n_embd_dit = 1024;
-  c.n_head_dit = 8;
-  c.axes_dim_dit = {16, 56, 56};
-  c.n_layer_traj = {1, 1};
-  c.n_embd_dit_traj = 512;
-  c.n_head_dit_traj = 4;
-  c.axes_dim_dit_traj = {16, 56, 56};
-  c.traj_len = 15;
-  return c;
-}
-
-Tensor<float, Cpu> randn(Shape shape, std::uint64_t seed, float scale = 1.0f) {
-  TorchGenerator gen(seed);
-  auto t = gen.randn(std::move(shape));
-  for (std::int64_t i = 0; i < t.numel(); ++i) t.data()[i] *= scale;
-  return t;
-}
+using bench::randn;
 
 // The world model with its inputs, the MST outputs the DiTs condition on, and arenas.
 template <class W>
-struct World {
-  WorldModelConfig cfg = bench_mid();
-  WorldModel<Cpu, W> wm = WorldModel<Cpu, W>::load(model::random_world_weights(cfg, 7), cfg);
-  Tensor<float, Cpu> latents = randn({1, cfg.condition_frames, cfg.img_tokens(), cfg.token_dim()}, 1);
-  Tensor<float, Cpu> pose_idx =
-      model::PoseTokenizer::from(cfg).poses_to_indices(randn({1, cfg.condition_frames + 1, 2}, 2, 0.5f));
-  Tensor<float, Cpu> yaw_idx =
-      model::PoseTokenizer::from(cfg).yaws_to_indices(randn({1, cfg.condition_frames + 1, 1}, 3));
-  Tensor<float, Cpu> stt{1, cfg.tokens_per_frame(), cfg.n_embd}, pose_emb{1, cfg.pose_emb_dim()};
-  model::DitIds ids = model::prepare_ids(1, cfg.latent_h(), cfg.latent_w(), cfg.tokens_per_frame(), cfg.traj_len);
-  Arena<Cpu> mst_arena{wm.mst().evaluate_workspace_bytes()};
-
-  void evaluate_mst() {
-    mst_arena.reset();
-    wm.mst().evaluate(wm.context(), mst_arena, latents, pose_idx, yaw_idx, stt, pose_emb);
-  }
-
+struct World : bench::BenchMidWorld<W> {
   // One DiT evaluation (cond_in included, as the official forward) as a callable.
   std::function<void()> dit_call(bool vis, double& gflop) {
-    const auto& dit = vis ? wm.vis_dit() : wm.traj_dit();
-    const auto& x_ids = vis ? ids.img : ids.traj;
-    const model::JointRows rows{cfg.tokens_per_frame(), x_ids.size(1)};
+    auto& self = *this;  // the base's members by name
+    const auto& dit = vis ? self.wm.vis_dit() : self.wm.traj_dit();
+    const auto& x_ids = vis ? self.ids.img : self.ids.traj;
+    const model::JointRows rows{self.cfg.tokens_per_frame(), x_ids.size(1)};
     gflop = dit.forward_flops(rows, false).total() / 1e9;
-    auto x = std::make_shared<Tensor<float, Cpu>>(randn({1, x_ids.size(1), dit.config().in_channels}, 4));
+    auto x = std::make_shared<Tensor<float, Cpu>>(self.dit_input(vis));
     auto v = std::make_shared<Tensor<float, Cpu>>(x->shape());
     auto t = std::make_shared<Tensor<float, Cpu>>(Tensor<float, Cpu>::full({1}, 0.37f));
     auto arena = std::make_shared<Arena<Cpu>>(dit.forward_bytes(1, rows));
-    return [this, &dit, &x_ids, x, v, t, arena] {
-      dit.forward(wm.context(), *arena, *x, x_ids, stt, ids.cond, *t, pose_emb, *v);
+    return [&self, &dit, &x_ids, x, v, t, arena] {
+      dit.forward(self.wm.context(), *arena, *x, x_ids, self.stt, self.ids.cond, *t, self.pose_emb, *v);
     };
   }
 };

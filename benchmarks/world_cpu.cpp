@@ -10,55 +10,17 @@
 
 #include <memory>
 
+#include "bench_mid_world.hpp"
 #include "epona/core/arena.hpp"
-#include "epona/model/pose_tokenizer.hpp"
-#include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
 
 using namespace epona;
 
 namespace {
 
-WorldModelConfig bench_mid() {
-  WorldModelConfig c;
-  c.image_h = 256;
-  c.image_w = 512;
-  c.condition_frames = 10;
-  c.n_embd = 1024;
-  c.n_head = 8;
-  c.n_layer = {4, 2, 2};
-  c.n_embd_dit = 1024;
-  c.n_head_dit = 8;
-  c.axes_dim_dit = {16, 56, 56};
-  c.n_layer_traj = {1, 1};
-  c.n_embd_dit_traj = 512;
-  c.n_head_dit_traj = 4;
-  c.axes_dim_dit_traj = {16, 56, 56};
-  c.traj_len = 15;
-  return c;
-}
-
-Tensor<float, Cpu> random(Shape shape, std::uint64_t seed, float scale = 1.0f) {
-  TorchGenerator gen(seed);
-  auto t = gen.randn(std::move(shape));
-  for (std::int64_t i = 0; i < t.numel(); ++i) t.data()[i] *= scale;
-  return t;
-}
-
 template <class W>
-struct Bench {
-  WorldModelConfig cfg = bench_mid();
-  WorldModel<Cpu, W> wm = WorldModel<Cpu, W>::load(model::random_world_weights(cfg, 7), cfg);
-  Tensor<float, Cpu> latents = random({1, cfg.condition_frames, cfg.img_tokens(), cfg.token_dim()}, 1);
-  Tensor<float, Cpu> pose_idx = model::PoseTokenizer::from(cfg).poses_to_indices(random({1, cfg.condition_frames + 1, 2}, 2, 0.5f));
-  Tensor<float, Cpu> yaw_idx = model::PoseTokenizer::from(cfg).yaws_to_indices(random({1, cfg.condition_frames + 1, 1}, 3));
-  Tensor<float, Cpu> stt{1, cfg.tokens_per_frame(), cfg.n_embd}, pose_emb{1, cfg.pose_emb_dim()};
-  model::DitIds ids = model::prepare_ids(1, cfg.latent_h(), cfg.latent_w(), cfg.tokens_per_frame(), cfg.traj_len);
-
-  Bench() {
-    Arena<Cpu> arena(wm.mst().evaluate_workspace_bytes());
-    wm.mst().evaluate(wm.context(), arena, latents, pose_idx, yaw_idx, stt, pose_emb);
-  }
+struct Bench : bench::BenchMidWorld<W> {
+  Bench() { this->evaluate_mst(); }
   static Bench& get() {
     static Bench b;
     return b;
@@ -90,7 +52,7 @@ void dit_forward(benchmark::State& state, bool vis) {
   auto& b = Bench<W>::get();
   const auto& dit = vis ? b.wm.vis_dit() : b.wm.traj_dit();
   const auto& x_ids = vis ? b.ids.img : b.ids.traj;
-  const auto x = random({1, x_ids.size(1), dit.config().in_channels}, 4);
+  const auto x = b.dit_input(vis);
   Tensor<float, Cpu> v(x.shape()), t = Tensor<float, Cpu>::full({1}, 0.37f);
   const model::JointRows rows{b.cfg.tokens_per_frame(), x_ids.size(1)};
   Arena<Cpu> arena(dit.forward_bytes(1, rows));
