@@ -9,6 +9,7 @@
 #include <cstdlib>
 #include <string>
 
+#include "../metrics.hpp"
 #include "../../apps/epona/cuda_engine.cuh"
 #include "../../apps/epona/engine.hpp"
 #include "../../apps/epona/frames.hpp"
@@ -18,6 +19,7 @@
 #include "epona/model/rollout.hpp"
 
 using namespace epona;
+using epona::test::rel_max;
 
 namespace {
 
@@ -33,18 +35,6 @@ app::ModelFiles golden_files() {
   f.configs = io::load_configs(golden_dir() + "/configs.json");
   f.config_source = golden_dir() + "/configs.json";
   return f;
-}
-
-// max |a - b| / max |b|; infinite when a has a non-finite value.
-double rel_max(const Tensor<float>& a, const Tensor<float>& b) {
-  REQUIRE(a.shape() == b.shape());
-  double d = 0, m = 0;
-  for (std::int64_t i = 0; i < a.numel(); ++i) {
-    if (!std::isfinite(a.data()[i])) return INFINITY;
-    d = std::max(d, std::abs(double(a.data()[i]) - double(b.data()[i])));
-    m = std::max(m, std::abs(double(b.data()[i])));
-  }
-  return d / std::max(m, 1e-30);
 }
 
 bool all_finite(const Tensor<float>& t) {

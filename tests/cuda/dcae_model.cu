@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "dcae_testing.cuh"
+#include "../metrics.hpp"
 #include "epona/cuda/backend.cuh"
 #include "epona/io/config_json.hpp"
 #include "epona/io/safetensors.hpp"
@@ -50,17 +51,6 @@ struct Golden {
 const Golden& golden() {
   static const Golden g;
   return g;
-}
-
-double rel_max(const HostF& ours, const HostF& ref) {
-  double diff = 0, scale = 0;
-  for (std::int64_t i = 0; i < ref.numel(); ++i) {
-    const double a = ours.data()[i], b = ref.data()[i];
-    if (!std::isfinite(a)) return INFINITY;
-    diff = std::max(diff, std::abs(a - b));
-    scale = std::max(scale, std::abs(b));
-  }
-  return scale > 0 ? diff / scale : diff;
 }
 
 std::string golden_name(const std::string& side, DcaePoint p, int stage) {

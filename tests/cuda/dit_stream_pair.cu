@@ -17,6 +17,7 @@
 #include <algorithm>
 #include <limits>
 
+#include "../metrics.hpp"
 #include "epona/cuda/backend.cuh"
 #include "epona/model/dit_blocks.hpp"
 #include "epona/model/random_weights.hpp"
@@ -307,18 +308,6 @@ struct PairBlockCase {
     }
   }
 };
-
-// max |a - b| / max |b| (NaN counts as failure).
-double rel_max(const HostF& a, const HostF& b) {
-  REQUIRE(a.shape() == b.shape());
-  double worst = 0, scale = 0;
-  for (std::int64_t i = 0; i < a.numel(); ++i) {
-    const double d = std::abs(double(a.data()[i]) - double(b.data()[i]));
-    worst = std::isnan(d) ? std::numeric_limits<double>::infinity() : std::max(worst, d);
-    scale = std::max(scale, double(std::abs(b.data()[i])));
-  }
-  return worst / scale;
-}
 
 template <class W>
 void paired_block(bool first) {

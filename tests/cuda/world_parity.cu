@@ -21,6 +21,8 @@
 #include "epona/model/world_model.hpp"
 
 using namespace epona;
+using epona::test::first_entries;
+using epona::test::Stack;
 using epona::test::world_golden;
 
 namespace {
@@ -138,26 +140,6 @@ std::pair<Tensor<float, Cpu>, Tensor<float, Cpu>> run_dit(bool vis) {
   CHECK(arena.high_water() <= arena.capacity());
   return {velocity, host(ctx, state)};
 }
-
-// The first `n` entries along dim 1 of a (B, N, k) tensor.
-Tensor<float, Cpu> first_entries(const Tensor<float, Cpu>& t, std::int64_t n) {
-  Tensor<float, Cpu> out({t.size(0), n, t.size(2)});
-  for (std::int64_t b = 0; b < t.size(0); ++b) std::copy_n(t[b].data(), n * t.size(2), out[b].data());
-  return out;
-}
-
-// Per-step tensors stacked into (S, ...).
-struct Stack {
-  Tensor<float, Cpu> t;
-  Stack(std::int64_t steps, Shape shape) {
-    shape.insert(shape.begin(), steps);
-    t = Tensor<float, Cpu>(shape);
-  }
-  void put(std::int64_t s, const Tensor<float, Cpu>& x) {
-    REQUIRE(x.numel() == t[s].numel());
-    std::copy_n(x.data(), x.numel(), t[s].data());
-  }
-};
 
 const char* const kRolloutTensors[] = {"rollout.stt_features", "rollout.pred_pose_idx", "rollout.pred_yaw_idx",
                                        "rollout.pose_emb",     "rollout.predict_traj",  "rollout.predict_latents",

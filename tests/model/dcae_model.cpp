@@ -9,6 +9,7 @@
 #include <cstdlib>
 #include <vector>
 
+#include "../metrics.hpp"
 #include "epona/cpu/context.hpp"
 #include "epona/io/config_json.hpp"
 #include "epona/io/safetensors.hpp"
@@ -16,6 +17,7 @@
 #include "epona/model/latent_layout.hpp"
 
 using namespace epona;
+using epona::test::rel_max;
 using HostTensor = Tensor<float, Cpu>;
 using Model = Dcae<Cpu, float>;
 
@@ -47,16 +49,6 @@ HostTensor random_latents(std::int64_t n, std::uint64_t seed) {
     t.data()[i] = static_cast<float>(static_cast<double>(s >> 11) / 9007199254740992.0 * 4.0 - 2.0);
   }
   return t;
-}
-
-double rel_max(const HostTensor& a, const HostTensor& b) {
-  double d = 0, s = 0;
-  for (std::int64_t i = 0; i < b.numel(); ++i) {
-    if (!std::isfinite(a.data()[i])) return INFINITY;
-    d = std::max(d, std::abs(double(a.data()[i]) - b.data()[i]));
-    s = std::max(s, std::abs(double(b.data()[i])));
-  }
-  return d / s;
 }
 
 // A copy of the golden weight map with `drop` left out and `extra` entries added.

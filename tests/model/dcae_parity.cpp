@@ -12,6 +12,7 @@
 #include <set>
 #include <string>
 
+#include "../metrics.hpp"
 #include "epona/cpu/context.hpp"
 #include "epona/io/config_json.hpp"
 #include "epona/io/load_weights.hpp"
@@ -19,6 +20,7 @@
 #include "epona/model/dcae.hpp"
 
 using namespace epona;
+using epona::test::rel_max;
 using HostTensor = Tensor<float, Cpu>;
 
 namespace {
@@ -62,18 +64,6 @@ cpu::Context& context() {
 std::set<std::string>& checked() {
   static std::set<std::string> s;
   return s;
-}
-
-// max|ours - golden| / max|golden|; infinite when a NaN or Inf appears on our side.
-double rel_max(const HostTensor& ours, const HostTensor& ref) {
-  double diff = 0, scale = 0;
-  for (std::int64_t i = 0; i < ref.numel(); ++i) {
-    const double a = ours.data()[i], b = ref.data()[i];
-    if (!std::isfinite(a)) return INFINITY;
-    diff = std::max(diff, std::abs(a - b));
-    scale = std::max(scale, std::abs(b));
-  }
-  return scale > 0 ? diff / scale : diff;
 }
 
 void compare(const std::string& name, const HostTensor& ours) {

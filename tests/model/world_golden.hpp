@@ -7,10 +7,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <cstdlib>
 #include <limits>
 #include <string>
 
+#include "../metrics.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/io/config_json.hpp"
 #include "epona/io/load_weights.hpp"
@@ -48,16 +50,7 @@ inline const WorldGolden& world_golden() {
 }
 
 // max|ours - golden| / max|golden|; NaN anywhere in ours gives NaN (which fails every bound).
-inline double rel_error(const Tensor<float, Cpu>& ours, const Tensor<float, Cpu>& golden) {
-  double err = 0, scale = 0;
-  for (std::int64_t i = 0; i < golden.numel(); ++i) {
-    const double o = ours.data()[i], g = golden.data()[i];
-    if (std::isnan(o) || std::isnan(g)) return std::numeric_limits<double>::quiet_NaN();
-    err = std::max(err, std::abs(o - g));
-    scale = std::max(scale, std::abs(g));
-  }
-  return scale > 0 ? err / scale : err;
-}
+inline double rel_error(const Tensor<float, Cpu>& ours, const Tensor<float, Cpu>& golden) { return rel_max(ours, golden); }
 
 // Tolerances of the golden README for the float32 path.
 inline double golden_tolerance(const std::string& name) {
@@ -77,5 +70,25 @@ inline void expect_golden(const std::string& name, const Tensor<float, Cpu>& our
   MESSAGE(name, note, ": rel ", rel, " (limit ", tol, ")");
   CHECK_MESSAGE(rel <= tol, name, ": rel ", rel, " exceeds ", tol);
 }
+
+// The first `n` entries along dim 1 of a (B, N, k) tensor.
+inline Tensor<float, Cpu> first_entries(const Tensor<float, Cpu>& t, std::int64_t n) {
+  Tensor<float, Cpu> out({t.size(0), n, t.size(2)});
+  for (std::int64_t b = 0; b < t.size(0); ++b) std::copy_n(t[b].data(), n * t.size(2), out[b].data());
+  return out;
+}
+
+// Per-step tensors stacked into (S, ...), `shape` per step.
+struct Stack {
+  Tensor<float, Cpu> t;
+  Stack(std::int64_t steps, Shape shape) {
+    shape.insert(shape.begin(), steps);
+    t = Tensor<float, Cpu>(shape);
+  }
+  void put(std::int64_t s, const Tensor<float, Cpu>& x) {
+    REQUIRE(x.numel() == t[s].numel());
+    std::copy_n(x.data(), x.numel(), t[s].data());
+  }
+};
 
 }  // namespace epona::test

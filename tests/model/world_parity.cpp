@@ -18,6 +18,8 @@
 
 using namespace epona;
 using epona::test::expect_golden;
+using epona::test::first_entries;
+using epona::test::Stack;
 using epona::test::world_golden;
 
 namespace {
@@ -184,26 +186,6 @@ TEST_CASE("TrajDiT and VisDiT: one velocity and a full sample (traj.*, vis.*)") 
   }
 }
 
-namespace {
-// The first `n` entries along dim 1 of a (B, N, k) tensor.
-Tensor<float, Cpu> first_entries(const Tensor<float, Cpu>& t, std::int64_t n) {
-  Tensor<float, Cpu> out({t.size(0), n, t.size(2)});
-  for (std::int64_t b = 0; b < t.size(0); ++b) std::copy_n(t[b].data(), n * t.size(2), out[b].data());
-  return out;
-}
-// Stacks per-step tensors into (S, ...) with `shape` per step.
-struct Stack {
-  Tensor<float, Cpu> t;
-  Stack(std::int64_t steps, Shape shape) {
-    shape.insert(shape.begin(), steps);
-    t = Tensor<float, Cpu>(shape);
-  }
-  void put(std::int64_t s, const Tensor<float, Cpu>& x) {
-    REQUIRE(x.numel() == t[s].numel());
-    std::copy_n(x.data(), x.numel(), t[s].data());
-  }
-};
-}  // namespace
 
 TEST_CASE("autoregressive rollout with self-predicted actions (rollout.*)") {
   const auto& g = world_golden();

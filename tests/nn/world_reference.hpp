@@ -13,13 +13,12 @@
 #include <vector>
 
 #include "epona/core/tensor.hpp"
+#include "reference_common.hpp"
 #include "epona/io/tensor_map.hpp"
 
 namespace world_ref {
 
-using Vec = std::vector<double>;
-using i64 = std::int64_t;
-using HostTensor = epona::Tensor<float, epona::Cpu>;
+using namespace reference_common;  // Vec, i64, HostTensor, random_tensor, to_vec, rel_max
 
 // Random float32 parameters under official names, readable back as float64.
 class RandomWeights {
@@ -71,26 +70,6 @@ class RandomWeights {
   bool bf16_ = false;
   std::map<std::string, Vec> values_;
 };
-
-inline HostTensor random_tensor(const epona::Shape& shape, std::uint64_t seed, float lo = -1.f, float hi = 1.f) {
-  HostTensor t(shape);
-  std::mt19937_64 rng(seed);
-  std::uniform_real_distribution<float> u(lo, hi);
-  for (i64 i = 0; i < t.numel(); ++i) t.data()[i] = u(rng);
-  return t;
-}
-inline Vec to_vec(const HostTensor& t) { return Vec(t.data(), t.data() + t.numel()); }
-
-// max|a - b| / max|b| (b the reference); infinite on a non-finite value of a.
-inline double rel_max(const HostTensor& a, const Vec& b) {
-  double d = 0, s = 0;
-  for (std::size_t i = 0; i < b.size(); ++i) {
-    if (!std::isfinite(a.data()[i])) return INFINITY;
-    d = std::max(d, std::abs(double(a.data()[i]) - b[i]));
-    s = std::max(s, std::abs(b[i]));
-  }
-  return s > 0 ? d / s : d;
-}
 
 // ---- layers (rows of a row-major (n, width) matrix) ----
 inline Vec linear(const Vec& x, i64 n, const Vec& w, const Vec* b, i64 in, i64 out) {

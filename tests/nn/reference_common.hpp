@@ -1,0 +1,40 @@
+// What the float64 reference headers (dcae_reference.hpp, world_reference.hpp) share: host
+// tensors of uniform random values, their float64 copies, and the comparison metric.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <random>
+#include <vector>
+
+#include "epona/core/tensor.hpp"
+
+namespace reference_common {
+
+using Vec = std::vector<double>;
+using i64 = std::int64_t;
+using HostTensor = epona::Tensor<float, epona::Cpu>;
+
+inline HostTensor random_tensor(const epona::Shape& shape, std::uint64_t seed, float lo = -1.f, float hi = 1.f) {
+  HostTensor t(shape);
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<float> u(lo, hi);
+  for (i64 i = 0; i < t.numel(); ++i) t.data()[i] = u(rng);
+  return t;
+}
+
+inline Vec to_vec(const HostTensor& t) { return Vec(t.data(), t.data() + t.numel()); }
+
+// max|a - b| / max|b| (b the reference); infinite on a non-finite value of a.
+inline double rel_max(const HostTensor& a, const Vec& b) {
+  double d = 0, s = 0;
+  for (std::size_t i = 0; i < b.size(); ++i) {
+    if (!std::isfinite(a.data()[i])) return INFINITY;
+    d = std::max(d, std::abs(double(a.data()[i]) - b[i]));
+    s = std::max(s, std::abs(b[i]));
+  }
+  return s > 0 ? d / s : d;
+}
+
+}  // namespace reference_common
