@@ -120,7 +120,7 @@ TEST_CASE("config files asking for absurd sizes are refused by name before any l
       {"terabytes of activations", [](json& w) { w["image_size"] = {1 << 20, 1 << 20}; }, "of activations; the limit is"},
       {"a 10^12-wide MST", [](json& w) { w["n_embd"] = std::int64_t{1} << 40; }, "n_embd must be in [1, 16777216]"},
       {"10^11 parameters", [](json& w) { w["n_layer"] = {4000000, 1, 1}, w["n_embd"] = 8192, w["n_head"] = 64; },
-       "parameters"},
+       "the world model would have "},
       {"an int64-overflowing size", [](json& w) { w["n_embd_dit"] = 9223372036854775807.0 * 4; }, "n_embd_dit must be an integer"},
       {"a size past int64", [](json& w) { w["traj_len"] = std::uint64_t{1} << 63; }, "traj_len is out of range"},
       {"zero sampling steps", [](json& w) { w["num_sampling_steps"] = 0; }, "num_sampling_steps must be in [1,"},
@@ -156,14 +156,16 @@ TEST_CASE("a DC-AE section asking for absurd sizes is refused before any large a
   enc["width_list"] = {1 << 20, 1 << 20, 1 << 20, 1 << 20, 1 << 20, 1 << 20};
   std::size_t largest = 0;
   std::string msg = error_of([&] { (void)io::parse_configs(j.dump(), "bad.json"); }, largest);
-  CHECK_MESSAGE(msg.find("parameters") != std::string::npos, msg);
+  CHECK_MESSAGE(msg.find("the DC-AE would have ") != std::string::npos, msg);
+  CHECK_MESSAGE(msg.find(" in fp32); the limit is ") != std::string::npos, msg);
   CHECK(largest < kSmallAllocation);
 
   j["dcae"] = golden_configs()["dcae"];  // the world model stays small: the DC-AE's own estimate refuses
   j["dcae"]["image_size"] = {1 << 18, 1 << 18};
   j["dcae"]["config"]["token_size"] = (1 << 13) * (1 << 13);
   msg = error_of([&] { (void)io::parse_configs(j.dump(), "bad.json"); }, largest);
-  CHECK_MESSAGE(msg.find("of activations") != std::string::npos, msg);
+  CHECK_MESSAGE(msg.find("one decode would need about ") != std::string::npos, msg);
+  CHECK_MESSAGE(msg.find(" of activations; the limit is ") != std::string::npos, msg);
   CHECK(largest < kSmallAllocation);
 }
 

@@ -113,6 +113,17 @@ inline std::string human_count(double n) {
   os << n;
   return os.str();
 }
+
+// The limits every model configuration shares: `params` parameters (stored at `weight_bytes`
+// each, `weight_type` named in the message) and `activations` bytes for one `call`.
+inline void check_model_size(ConfigProblems& p, const char* model, double params, double weight_bytes,
+                             const char* weight_type, const char* call, double activations) {
+  p.check(params <= constants::max_parameters, model, " would have ", human_count(params), " parameters (",
+          human_bytes(weight_bytes * params), " in ", weight_type, "); the limit is ",
+          human_count(constants::max_parameters));
+  p.check(activations <= constants::max_activation_bytes, call, " would need about ", human_bytes(activations),
+          " of activations; the limit is ", human_bytes(constants::max_activation_bytes));
+}
 }  // namespace detail
 
 // ------------------------------------------------------------------------------------------
@@ -247,13 +258,8 @@ struct WorldModelConfig {
       check_axes(p, axes_dim_dit_traj, traj_head_dim(), "axes_dim_dit_traj", "n_embd_dit_traj/n_head_dit_traj");
     }
     if (p.ok()) {
-      const double n = parameter_count();
-      p.check(n <= constants::max_parameters, "the world model would have ", detail::human_count(n),
-              " parameters (", detail::human_bytes(2 * n), " in bf16); the limit is ",
-              detail::human_count(constants::max_parameters));
-      const double a = activation_bytes_estimate();
-      p.check(a <= constants::max_activation_bytes, "one step would need about ", detail::human_bytes(a),
-              " of activations; the limit is ", detail::human_bytes(constants::max_activation_bytes));
+      detail::check_model_size(p, "the world model", parameter_count(), 2, "bf16", "one step",
+                               activation_bytes_estimate());
     }
     p.throw_if_any();
   }
@@ -483,13 +489,7 @@ struct DcaeConfig {
       p.check(std::isfinite(temporal_rope_theta) && temporal_rope_theta > 0, "temporal rope_theta must be > 0");
     }
     if (p.ok()) {
-      const double n = parameter_count();
-      p.check(n <= constants::max_parameters, "the DC-AE would have ", detail::human_count(n),
-              " parameters (", detail::human_bytes(4 * n), " in fp32); the limit is ",
-              detail::human_count(constants::max_parameters));
-      const double a = activation_bytes_estimate();
-      p.check(a <= constants::max_activation_bytes, "one decode would need about ", detail::human_bytes(a),
-              " of activations; the limit is ", detail::human_bytes(constants::max_activation_bytes));
+      detail::check_model_size(p, "the DC-AE", parameter_count(), 4, "fp32", "one decode", activation_bytes_estimate());
     }
     p.throw_if_any();
   }
