@@ -467,11 +467,11 @@ TEST_CASE("cuda attention bf16: Auto takes the wgmma kernel where it applies, th
   CHECK(cuda::detail::is_wgmma(pick(d)) == wgmma);
   if (wgmma) {
     const bool saved = cuda::detail::attention_split_setting().load();
-    cuda::detail::attention_split_setting().store(false);
+    cuda::set_attention_split(false);
     CHECK(pick(d) == FlashKernel::Tma64);  // 9 blocks of 64 rows: one wave
     a.heads = 4, a.seqs = 40;              // 1440 blocks of 64 rows, more than a wave: 128-row blocks
     CHECK(pick(d) == FlashKernel::Tma128);
-    cuda::detail::attention_split_setting().store(true);
+    cuda::set_attention_split(true);
     CHECK(pick(d) == FlashKernel::TmaPlanned);
     // Auto's plans: 128-row blocks over many waves; the short last row blocks cut into key ranges
     // where they alone would make a second wave; 64-row blocks within a wave, keys cut into
@@ -492,7 +492,7 @@ TEST_CASE("cuda attention bf16: Auto takes the wgmma kernel where it applies, th
     CHECK(plan().rows == 64);
     CHECK(plan().splits > 1);  // 8 blocks of 15 rows: the keys are cut into ranges
     a.lq = 530;
-    cuda::detail::attention_split_setting().store(saved);
+    cuda::set_attention_split(saved);
     a.heads = 1, a.seqs = 1;
   }
   CHECK(!cuda::detail::is_wgmma(pick(d + 1)));  // rows not 16-byte aligned: the generic path
@@ -583,7 +583,7 @@ TEST_CASE("cuda attention bf16 model shapes: the planned TMA kernel") {
     check_attention<bf16>(ctx, packed(1, 8, 530, 128), seed++, "TrajDiT joint 8 x 530" + name);
     check_attention<bf16>(ctx, packed_tail(1, 8, 530, 515, 128), seed++, "TrajDiT last single 15 of 530" + name);
   }
-  cuda::detail::attention_split_setting().store(saved);
+  cuda::set_attention_split(saved);
 }
 
 TEST_CASE("cuda attention bf16: planned TMA kernel in a CUDA graph, bad plans rejected") {

@@ -834,6 +834,10 @@ void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const Att
   detail::attention(ctx, q, k, v, o, a, detail::FlashKernel::Auto);
 }
 
+// Whether Auto takes the planned TMA kernel (EPONA_CUDA_ATTN_SPLIT; tests and benchmarks
+// compare it with the unplanned kernels in one process).
+inline void set_attention_split(bool on) { detail::attention_split_setting().store(on); }
+
 }  // namespace epona::cuda
 
 #include "epona/cuda/attention_wgmma.cuh"  // the Hopper kernel declared above
