@@ -514,6 +514,9 @@ int main(int argc, char** argv) {
       bench_attention<bf16>(ctx, 1, 16, 515, false, 30, "MST spatial, last block");
       bench_attention<bf16>(ctx, 1, 16, 1027, false, 30, "VisDiT joint");
       bench_attention<bf16>(ctx, 1, 16, 1027, false, 30, "VisDiT last single", 515);
+      // What the 3 rows past the last full 128-row block cost: the same keys, those rows not queried.
+      bench_attention<bf16>(ctx, 1, 16, 1027, false, 30, "VisDiT joint, 1024 queries", 3);
+      bench_attention<bf16>(ctx, 10, 16, 515, false, 30, "MST spatial, 512 queries", 3);
       bench_attention<bf16>(ctx, 1, 8, 530, false, 30, "TrajDiT joint");
       bench_attention<bf16>(ctx, 1, 8, 530, false, 30, "TrajDiT last single", 515);
       bench_attention<bf16>(ctx, 1, 16, 4096, false, 10, "long (fill check)");
