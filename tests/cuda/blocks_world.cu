@@ -84,7 +84,7 @@ double bound(const std::string& stage, double f32_bound = 1e-5) {
 void expect_close(const std::string& what, const Tensor<float, Cpu>& gpu_out, const Tensor<float, Cpu>& cpu_out,
                   double limit) {
   REQUIRE(gpu_out.shape() == cpu_out.shape());
-  const double rel = test::rel_error(gpu_out, cpu_out);
+  const double rel = test::rel_max(gpu_out, cpu_out);
   MESSAGE(what, ": rel ", rel, " (limit ", limit, ")");
   CHECK(rel <= limit);
 }
@@ -123,7 +123,7 @@ TEST_CASE("world-model kernels: copy, strided copy, conversion, Euler update (fl
   const auto src = test::random_tensor({37, 53}, 1);
   auto dst = test::upload<float>(ctx, test::random_tensor({37, 53}, 2));
   cuda::copy(ctx, upload<float>(src).data(), dst.data(), src.numel());
-  CHECK(test::rel_error(download(dst), src) == 0);
+  CHECK(test::rel_max(download(dst), src) == 0);
   // Strided: columns [5, 5 + 17) of 11 rows of src into columns [3, 20) of rows 64 apart.
   auto wide = upload<float>(test::random_tensor({11, 64}, 3));
   const auto before = download(wide);

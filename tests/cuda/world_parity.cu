@@ -66,7 +66,7 @@ double official_bf16_error(const std::string& name) {
 void expect_bf16(const std::string& name, const Tensor<float, Cpu>& ours, const Tensor<float, Cpu>& golden,
                  const std::string& recipe_name) {
   REQUIRE(ours.shape() == golden.shape());
-  const double rel = test::rel_error(ours, golden), limit = 2 * official_bf16_error(recipe_name);
+  const double rel = test::rel_max(ours, golden), limit = 2 * official_bf16_error(recipe_name);
   MESSAGE(name, " (GPU bf16): rel ", rel, " (official bf16 recipe ", limit / 2, ", limit ", limit, ")");
   CHECK(rel <= limit);
 }
@@ -127,7 +127,7 @@ std::pair<Tensor<float, Cpu>, Tensor<float, Cpu>> run_dit(bool vis) {
     auto v2 = poisoned<W>(ctx, x.shape());
     d.forward(ctx, exact, x, target_ids, cond, ids.cond, g.tensor(name + ".t"), y, v2);
     CHECK(exact.high_water() == d.forward_bytes(B, rows));
-    CHECK(test::rel_error(host(ctx, v2), velocity) == 0);
+    CHECK(test::rel_max(host(ctx, v2), velocity) == 0);
   }
 
   poison_arena(ctx, arena);
@@ -200,7 +200,7 @@ TEST_CASE("GPU float32: MST evaluate (mst.*), every block's output, pruned and f
   const auto [stt_full, emb_full] = run_mst<float>([&](std::int64_t b, const std::string& stage, const Tensor<float, Cuda>& x) {
     const std::string name = "mst." + stage;
     if (!g.has(name)) return;
-    const double rel = test::rel_error(host(ctx, x), g.tensor(name)[b]);
+    const double rel = test::rel_max(host(ctx, x), g.tensor(name)[b]);
     MESSAGE(name, "[", b, "] (GPU f32): rel ", rel, " (limit 1e-4)");
     CHECK(rel <= 1e-4);
     observed_blocks += stage.rfind("block", 0) == 0;
@@ -242,7 +242,7 @@ TEST_CASE("GPU float32: autoregressive rollout with self-predicted actions (roll
   // A second rollout replays the recorded sampler graphs (same arena layout) and is identical.
   const int traj_captures = gpu_model<float>().traj_dit().sampler_graph().captures();
   const auto again = run_rollout<float>();
-  for (const char* name : kRolloutTensors) CHECK_MESSAGE(test::rel_error(again.at(name), out.at(name)) == 0, std::string(name));
+  for (const char* name : kRolloutTensors) CHECK_MESSAGE(test::rel_max(again.at(name), out.at(name)) == 0, std::string(name));
   CHECK(gpu_model<float>().traj_dit().sampler_graph().captures() == traj_captures);
 }
 
@@ -268,7 +268,7 @@ TEST_CASE("GPU bf16: rollout — first step within twice the official bf16 recip
     CHECK_MESSAGE(all_finite(ours), std::string(name), " has non-finite values");
     const auto golden = world_golden().tensor(name);
     expect_bf16(std::string(name) + "[step 0]", ours[0], golden[0], name);
-    MESSAGE(std::string(name), " (GPU bf16, all steps): rel vs golden ", test::rel_error(ours, golden), ", vs the GPU float32 run ",
-            test::rel_error(ours, reference.at(name)), " (official bf16 recipe ", official_bf16_error(name), ")");
+    MESSAGE(std::string(name), " (GPU bf16, all steps): rel vs golden ", test::rel_max(ours, golden), ", vs the GPU float32 run ",
+            test::rel_max(ours, reference.at(name)), " (official bf16 recipe ", official_bf16_error(name), ")");
   }
 }

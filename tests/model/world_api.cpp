@@ -15,7 +15,7 @@
 #include "world_golden.hpp"
 
 using namespace epona;
-using epona::test::rel_error;
+using epona::test::rel_max;
 using epona::test::world_golden;
 
 namespace {
@@ -62,7 +62,7 @@ TEST_CASE("plan() reproduces the golden first planned trajectory") {
   opt.noise = NoiseSource::supplied(step0("rollout.noise_traj"), {});
   const auto traj = world().plan(golden_history(), opt);
   const auto golden = world_golden().tensor("rollout.predict_traj")[0];
-  const double rel = rel_error(traj, golden);
+  const double rel = rel_max(traj, golden);
   MESSAGE("plan vs rollout.predict_traj[0]: rel ", rel);
   CHECK(rel <= 1e-4);
 }
@@ -82,7 +82,7 @@ TEST_CASE("predict_next() with the action given equals the self-predicted step")
   const auto r = world().predict_next(golden_history(), action, opt);
   CHECK(r.trajectory.empty());
   const auto golden = world_golden().tensor("rollout.predict_latents")[0];
-  const double rel = rel_error(r.latent, golden.reshape(r.latent.shape()));
+  const double rel = rel_max(r.latent, golden.reshape(r.latent.shape()));
   MESSAGE("predict_next(action) vs rollout.predict_latents[0]: rel ", rel);
   CHECK(rel <= 1e-4);
 }
@@ -96,7 +96,7 @@ TEST_CASE("seeded noise: trajectory noise then latent noise from one torch gener
   seeded.steps = 3;
   const auto a = world().predict_next(h, std::nullopt, seeded);
   const auto b = world().predict_next(h, std::nullopt, seeded);
-  CHECK(rel_error(a.latent, b.latent) == 0);
+  CHECK(rel_max(a.latent, b.latent) == 0);
   TorchGenerator gen(1234);
   auto traj_noise = gen.randn({1, B, w.traj_len, 3});
   auto latent_noise = gen.randn({1, B, w.img_tokens(), w.token_dim()});
@@ -104,8 +104,8 @@ TEST_CASE("seeded noise: trajectory noise then latent noise from one torch gener
   supplied.steps = 3;
   supplied.noise = NoiseSource::supplied(traj_noise, latent_noise);
   const auto c = world().predict_next(h, std::nullopt, supplied);
-  CHECK(rel_error(a.trajectory, c.trajectory) == 0);
-  CHECK(rel_error(a.latent, c.latent) == 0);
+  CHECK(rel_max(a.trajectory, c.trajectory) == 0);
+  CHECK(rel_max(a.latent, c.latent) == 0);
 }
 
 TEST_CASE("batch items are independent") {
@@ -134,12 +134,12 @@ TEST_CASE("batch items are independent") {
   const auto two = world().predict_next(h2, std::nullopt, o2);
   const auto one = world().predict_next(h1, std::nullopt, o1);
   // Equal up to GEMM accumulation order (batched projections see more rows).
-  const double rel_traj = rel_error(two.trajectory.slice(0, 1), one.trajectory);
-  const double rel_latent = rel_error(two.latent.slice(0, 1), one.latent);
+  const double rel_traj = rel_max(two.trajectory.slice(0, 1), one.trajectory);
+  const double rel_latent = rel_max(two.latent.slice(0, 1), one.latent);
   MESSAGE("batch of 2 vs 1, item 0: trajectory rel ", rel_traj, ", latent rel ", rel_latent);
   CHECK(rel_traj <= 1e-5);
   CHECK(rel_latent <= 1e-5);
-  const double rel_other = rel_error(two.latent.slice(1, 2), one.latent);  // infinite on a NaN or Inf
+  const double rel_other = rel_max(two.latent.slice(1, 2), one.latent);  // infinite on a NaN or Inf
   CHECK(std::isfinite(rel_other));
   CHECK(rel_other > 0);
 }

@@ -1,6 +1,6 @@
 // Shared by the world-model golden tests: the golden set (EPONA_GOLDEN_DIR, default the copy
-// in tests/data/golden) loaded once — world weights, cases, configs.json — and the metric
-// every comparison states its tolerance in: rel = max|ours - golden| / max|golden| (NaN fails).
+// in tests/data/golden) loaded once — world weights, cases, configs.json — and the checks
+// against it, in the metric of tests/metrics.hpp (rel_max).
 #pragma once
 
 #include <doctest/doctest.h>
@@ -49,8 +49,6 @@ inline const WorldGolden& world_golden() {
   return g;
 }
 
-// max|ours - golden| / max|golden|; NaN anywhere in ours gives NaN (which fails every bound).
-inline double rel_error(const Tensor<float, Cpu>& ours, const Tensor<float, Cpu>& golden) { return rel_max(ours, golden); }
 
 // Tolerances of the golden README for the float32 path.
 inline double golden_tolerance(const std::string& name) {
@@ -66,7 +64,7 @@ inline void expect_golden(const std::string& name, const Tensor<float, Cpu>& our
   const auto golden = world_golden().tensor(name);
   REQUIRE_MESSAGE(ours.shape() == golden.shape(), name, ": ours ", shape_str(ours.shape()), ", golden ",
                   shape_str(golden.shape()));
-  const double rel = rel_error(ours, golden), tol = golden_tolerance(name);
+  const double rel = rel_max(ours, golden), tol = golden_tolerance(name);
   MESSAGE(name, note, ": rel ", rel, " (limit ", tol, ")");
   CHECK_MESSAGE(rel <= tol, name, ": rel ", rel, " exceeds ", tol);
 }
