@@ -68,7 +68,7 @@ struct Contiguous {
   double run() {
     cpu::Context ctx;
     cpu::attention(ctx, q.data(), k.data(), v.data(), o.data(), a);
-    return test::max_rel_error(o, attention_ref(q.data(), k.data(), v.data(), a, o.size()));
+    return test::rel_max(o, attention_ref(q.data(), k.data(), v.data(), a, o.size()));
   }
 };
 }  // namespace
@@ -144,7 +144,7 @@ TEST_CASE("attention straight out of a packed QKV buffer") {
     cpu::Context ctx;
     cpu::attention(ctx, qkv.data(), qkv.data() + C, qkv.data() + 2 * C, o.data(), a);
     CAPTURE(D);
-    CHECK(test::max_rel_error(o, attention_ref(qkv.data(), qkv.data() + C, qkv.data() + 2 * C, a, o.size())) <= 1e-5);
+    CHECK(test::rel_max(o, attention_ref(qkv.data(), qkv.data() + C, qkv.data() + 2 * C, a, o.size())) <= 1e-5);
   }
 }
 
@@ -169,7 +169,7 @@ TEST_CASE("attention with the MST time-attention strides (sequences are tokens, 
     cpu::Context ctx;
     cpu::attention(ctx, q.data(), k.data(), v.data(), o.data(), a);
     CAPTURE(additive);
-    CHECK(test::max_rel_error(o, attention_ref(q.data(), k.data(), v.data(), a, o.size())) <= 1e-5);
+    CHECK(test::rel_max(o, attention_ref(q.data(), k.data(), v.data(), a, o.size())) <= 1e-5);
   }
 }
 
@@ -188,7 +188,7 @@ TEST_CASE("attention writes only its own heads of a wider output, and rejects ba
       CHECK(o[i * ow + x] == 5.f);
       o[i * ow + x] = 0.f;  // the reference leaves these 0
     }
-  CHECK(test::max_rel_error(o.data(), ref.data(), o.size()) <= 1e-5);
+  CHECK(test::rel_max(o.data(), ref.data(), o.size()) <= 1e-5);
   c.a.head_dim = 0;
   CHECK_THROWS_WITH_AS(cpu::attention(ctx, c.q.data(), c.k.data(), c.v.data(), o.data(), c.a),
                        doctest::Contains("head_dim"), Error);

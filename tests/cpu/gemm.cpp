@@ -67,7 +67,7 @@ void check_linear(std::int64_t M, std::int64_t N, std::int64_t K) {
       CAPTURE(K);
       CAPTURE(with_bias);
       CAPTURE(static_cast<int>(e));
-      CHECK(test::max_rel_error(y.data(), linear_ref(xv, w, bias, M, e).data(), static_cast<std::size_t>(M * N)) <=
+      CHECK(test::rel_max(y.data(), linear_ref(xv, w, bias, M, e).data(), static_cast<std::size_t>(M * N)) <=
             1e-5);
     }
 }
@@ -117,7 +117,7 @@ TEST_CASE("linear pointer form with row strides writes a column block of a wider
       got.push_back(y[m * ldy + c]);
       ref.push_back(activate(acc, Epilogue::GeluTanh));
     }
-  CHECK(test::max_rel_error(got, ref) <= 1e-5);
+  CHECK(test::rel_max(got, ref) <= 1e-5);
 }
 
 TEST_CASE("linear rejects mismatched shapes with a message") {

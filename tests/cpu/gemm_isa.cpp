@@ -54,7 +54,7 @@ void check_linear_matches_float64(double tol) {
     CAPTURE(M);
     CAPTURE(N);
     CAPTURE(K);
-    CHECK(test::max_rel_error(y, ref) <= tol);
+    CHECK(test::rel_max(y, ref) <= tol);
   }
 }
 

@@ -34,7 +34,7 @@ TEST_CASE("apply_rope rotates interleaved pairs with a per-token table shared by
     auto y = x;
     cpu::apply_rope(ctx, y.data(), rows, row_stride, heads, head_dim, c.data(), s.data());
     CAPTURE(head_dim);
-    CHECK(test::max_rel_error(y, ref) <= 1e-6);
+    CHECK(test::rel_max(y, ref) <= 1e-6);
     for (std::int64_t r = 0; r < rows; ++r)
       for (std::int64_t i = heads * head_dim; i < row_stride; ++i) CHECK(y[r * row_stride + i] == x[r * row_stride + i]);
   }

@@ -8,6 +8,8 @@
 #include <random>
 #include <vector>
 
+#include "../metrics.hpp"  // rel_max, the error measure
+
 namespace epona::test {
 
 inline std::vector<float> random_floats(std::size_t n, std::uint32_t seed, float lo = -1.f, float hi = 1.f) {
@@ -16,19 +18,6 @@ inline std::vector<float> random_floats(std::size_t n, std::uint32_t seed, float
   std::vector<float> v(n);
   for (auto& x : v) x = dist(gen);
   return v;
-}
-
-// max |got - ref| / max |ref| over n elements (0 when both are all zero).
-inline double max_rel_error(const float* got, const double* ref, std::size_t n) {
-  double err = 0, scale = 0;
-  for (std::size_t i = 0; i < n; ++i) {
-    err = std::max(err, std::abs(static_cast<double>(got[i]) - ref[i]));
-    scale = std::max(scale, std::abs(ref[i]));
-  }
-  return scale > 0 ? err / scale : err;
-}
-inline double max_rel_error(const std::vector<float>& got, const std::vector<double>& ref) {
-  return max_rel_error(got.data(), ref.data(), std::min(got.size(), ref.size()));
 }
 
 // Sizes around the SIMD widths (4, 8, 16 floats) and their tails.

@@ -1,5 +1,6 @@
 // What the float64 reference headers (dcae_reference.hpp, world_reference.hpp) share: host
-// tensors of uniform random values, their float64 copies, and the comparison metric.
+// tensors of uniform random values, their float64 copies, and the comparison metric
+// (tests/metrics.hpp).
 #pragma once
 
 #include <algorithm>
@@ -8,6 +9,7 @@
 #include <random>
 #include <vector>
 
+#include "../metrics.hpp"
 #include "epona/core/tensor.hpp"
 
 namespace reference_common {
@@ -26,15 +28,6 @@ inline HostTensor random_tensor(const epona::Shape& shape, std::uint64_t seed, f
 
 inline Vec to_vec(const HostTensor& t) { return Vec(t.data(), t.data() + t.numel()); }
 
-// max|a - b| / max|b| (b the reference); infinite on a non-finite value of a.
-inline double rel_max(const HostTensor& a, const Vec& b) {
-  double d = 0, s = 0;
-  for (std::size_t i = 0; i < b.size(); ++i) {
-    if (!std::isfinite(a.data()[i])) return INFINITY;
-    d = std::max(d, std::abs(double(a.data()[i]) - b[i]));
-    s = std::max(s, std::abs(b[i]));
-  }
-  return s > 0 ? d / s : d;
-}
+using epona::test::rel_max;  // tests/metrics.hpp: against a float64 reference too
 
 }  // namespace reference_common
