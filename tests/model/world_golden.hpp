@@ -6,10 +6,8 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
-#include <cmath>
 #include <cstdint>
 #include <cstdlib>
-#include <limits>
 #include <string>
 
 #include "../metrics.hpp"
@@ -48,7 +46,6 @@ inline const WorldGolden& world_golden() {
                              io::load_configs(golden_dir() + "/configs.json")};
   return g;
 }
-
 
 // Tolerances of the golden README for the float32 path.
 inline double golden_tolerance(const std::string& name) {

@@ -13,8 +13,8 @@
 #include <vector>
 
 #include "epona/core/tensor.hpp"
-#include "reference_common.hpp"
 #include "epona/io/tensor_map.hpp"
+#include "reference_common.hpp"
 
 namespace world_ref {
 
