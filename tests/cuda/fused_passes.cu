@@ -4,7 +4,9 @@
 //   included), a float64 reference within one bf16 rounding, every element written (poisoned
 //   output), a ragged tail of packs, no table created while a stream is captured into a graph;
 // * the MST's fused QK LayerNorm + RoPE (cuda/qk_layer_norm_rope.cuh): the same bits as
-//   layer_norm then apply_rope on q and k, and a float64 reference within the bf16 bounds.
+//   layer_norm then apply_rope on q and k, and a float64 reference within the bf16 bounds;
+// * the large row passes in either row order (cuda::set_reversed_passes): the same bits, every
+//   element written (poisoned outputs).
 #include "cuda_test_util.cuh"
 
 #include <cstring>
@@ -248,4 +250,50 @@ TEST_CASE("fused MST QK LayerNorm + RoPE: rounded once, within one bf16 rounding
   }
   check_qk_norm_rope<bf16>(ctx, 1300, 5150, false);  // the time layer: fewer queries than keys
   check_qk_norm_rope<bf16>(ctx, 515, 5150, false);   // the pruned block: declined (block-per-row norm)
+}
+
+TEST_CASE("the large row passes give the same bits walking the rows first to last and last to first") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  const bool saved = cuda::detail::reversed_passes_flag();
+  const std::int64_t rows = 8 * ctx.info().multiprocessors + 37, n = 2048, heads = 16;  // the warp-per-row kernels
+  const HostF x = random_tensor({rows, n}, 31, -3.f, 4.f), y = random_tensor({rows, n}, 32, -1.f, 1.f);
+  const HostF w = random_tensor({n}, 33, 0.5f, 1.5f), b = random_tensor({n}, 34);
+  const HostF angle = random_tensor({rows, 64}, 35, -3.f, 3.f);
+  HostF cos(angle.shape()), sin(angle.shape());
+  for (std::int64_t i = 0; i < angle.numel(); ++i) cos.data()[i] = std::cos(angle.data()[i]), sin.data()[i] = std::sin(angle.data()[i]);
+  const auto dx = upload<float>(ctx, x), dy = upload<float>(ctx, y), dw = upload<float>(ctx, w), db = upload<float>(ctx, b);
+  const auto dcos = upload<float>(ctx, cos), dsin = upload<float>(ctx, sin);
+  const auto gelu_in = upload<bf16>(ctx, random_tensor({kLarge}, 36, -8.f, 8.f));  // finite: no NaN out
+  // Every pass's outputs in one order, as bits.
+  const auto run = [&](bool reverse) {
+    cuda::set_reversed_passes(reverse);
+    Dev<bf16> normed({rows * n}), gelu({kLarge});
+    Dev<float> resid({rows * n});
+    poison(ctx, normed), poison(ctx, gelu);
+    EPONA_CUDA_CHECK(cudaMemcpyAsync(resid.data(), dx.data(), rows * n * 4, cudaMemcpyDeviceToDevice, ctx.stream()));
+    cuda::add_layer_norm(ctx, resid.data(), dy.data(), normed.data(), rows, n, dw.data(), db.data(), 1e-5f);
+    auto q = upload<bf16>(ctx, x), k = upload<bf16>(ctx, y);
+    CHECK(cuda::layer_norm_rope_qk(ctx, q.data(), rows, k.data(), rows, n, dw.data(), db.data(), 1e-5f, dw.data(),
+                                   db.data(), 1e-6f, n / heads, dcos.data(), dsin.data()));
+    cuda::detail::map_bf16(ctx, gelu_in.data(), gelu.data(), kLarge, cuda::detail::GeluErfOp{});
+    std::vector<std::vector<std::uint16_t>> bits{bits_of(ctx, normed), bits_of(ctx, q), bits_of(ctx, k), bits_of(ctx, gelu)};
+    const HostF r = download(ctx, resid);
+    bits.emplace_back(reinterpret_cast<const std::uint16_t*>(r.data()),
+                      reinterpret_cast<const std::uint16_t*>(r.data() + r.numel()));
+    return bits;
+  };
+  const auto forward = run(false), reverse = run(true);
+  cuda::set_reversed_passes(saved);
+  const char* names[] = {"residual + LayerNorm output", "QK LayerNorm + RoPE q", "QK LayerNorm + RoPE k",
+                         "erf-GELU table pass", "updated residual"};
+  for (std::size_t i = 0; i < forward.size(); ++i) {
+    std::int64_t differ = 0, poisoned = 0;
+    for (std::size_t j = 0; j < forward[i].size(); ++j) {
+      differ += forward[i][j] != reverse[i][j];
+      poisoned += i != 4 && forward[i][j] == 0xFFFFu;  // poison's bits (bf16 NaN) never come out of these passes
+    }
+    CHECK_MESSAGE(differ == 0, names[i], ": ", differ, " of ", forward[i].size(), " values differ between the orders");
+    CHECK_MESSAGE(poisoned == 0, names[i], ": ", poisoned, " values left unwritten");
+  }
 }

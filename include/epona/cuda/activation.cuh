@@ -80,9 +80,10 @@ __device__ __forceinline__ unsigned look_up_pair(const std::uint16_t* lut, unsig
 // grid-stride walk issues the next kTableUnroll loads of each thread before it looks up and
 // stores the current ones (loading after the stores took 55 µs for the MST's 5150 x 8192 on
 // the H200, this 50-52; a copy of the same bytes takes 46.5). x and y may be the same buffer:
-// a pack is read before it is written, by the same thread.
+// a pack is read before it is written, by the same thread. reverse: pack i is pack
+// packs - 1 - i (reversed_passes_flag).
 __global__ void __launch_bounds__(kTableThreads, 1)
-    table_map_kernel(const uint4* __restrict__ table, const uint4* x, uint4* y, std::int64_t packs) {
+    table_map_kernel(const uint4* __restrict__ table, const uint4* x, uint4* y, std::int64_t packs, bool reverse) {
   extern __shared__ uint4 lut_packs[];
   const std::int64_t stride = std::int64_t{gridDim.x} * blockDim.x;
   std::int64_t base = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x;
@@ -90,7 +91,7 @@ __global__ void __launch_bounds__(kTableThreads, 1)
   const auto load = [&](uint4(&v)[kTableUnroll], std::int64_t from) {
 #pragma unroll
     for (int u = 0; u < kTableUnroll; ++u)
-      if (from + u * stride < packs) v[u] = x[from + u * stride];
+      if (from + u * stride < packs) v[u] = x[pass_index(from + u * stride, packs, reverse)];
   };
   load(now, base);
   for (int i = threadIdx.x; i < kTableBytes / 16; i += blockDim.x) lut_packs[i] = table[i];
@@ -101,8 +102,9 @@ __global__ void __launch_bounds__(kTableThreads, 1)
 #pragma unroll
     for (int u = 0; u < kTableUnroll; ++u) {
       if (base + u * stride < packs)
-        y[base + u * stride] = make_uint4(look_up_pair(lut, now[u].x), look_up_pair(lut, now[u].y),
-                                          look_up_pair(lut, now[u].z), look_up_pair(lut, now[u].w));
+        y[pass_index(base + u * stride, packs, reverse)] =
+            make_uint4(look_up_pair(lut, now[u].x), look_up_pair(lut, now[u].y), look_up_pair(lut, now[u].z),
+                       look_up_pair(lut, now[u].w));
       now[u] = next[u];
     }
   }
@@ -153,7 +155,8 @@ void map_bf16(Context& ctx, const bf16* x, bf16* y, std::int64_t n, Op op) {
   const std::int64_t packs = n / kPack;
   const auto blocks = std::min<std::int64_t>(ctx.info().multiprocessors, (packs + kTableThreads - 1) / kTableThreads);
   table_map_kernel<<<static_cast<unsigned>(blocks), kTableThreads, kTableBytes, ctx.stream()>>>(
-      reinterpret_cast<const uint4*>(table), reinterpret_cast<const uint4*>(x), reinterpret_cast<uint4*>(y), packs);
+      reinterpret_cast<const uint4*>(table), reinterpret_cast<const uint4*>(x), reinterpret_cast<uint4*>(y), packs,
+      reversed_passes_flag());
   EPONA_CUDA_CHECK_LAUNCH();
 }
 

@@ -163,6 +163,20 @@ inline bool& programmatic_launch_flag() {
   static bool on = env_flag("EPONA_CUDA_PDL", true);
   return on;
 }
+// Whether the large row passes (the MST's warp-per-row LayerNorms and QK LayerNorm + RoPE, the
+// bf16 table pass) walk their rows last to first (EPONA_CUDA_REVERSE_PASSES=0: first to last).
+// The product before a pass writes its last rows last, so those are still in L2 when the pass
+// starts, and the pass's first rows, written last, are in L2 for the next product. Measured on
+// the H200 (MST, medians, docs/gpu-log.md "Session 16"): 0.16–0.3 ms faster, up to 1.1 ms once
+// the board has been at its power limit for a while; the DC-AE decode unchanged.
+inline bool& reversed_passes_flag() {
+  static bool on = env_flag("EPONA_CUDA_REVERSE_PASSES", true);
+  return on;
+}
+// Index i of n items in the pass order.
+__device__ __forceinline__ std::int64_t pass_index(std::int64_t i, std::int64_t n, bool reverse) {
+  return reverse ? n - 1 - i : i;
+}
 // Whether the current device takes the launch attribute (compute capability 9.0 or newer).
 inline bool programmatic_launch_available() {
   int device = 0, major = 0;
@@ -252,5 +266,8 @@ void allow_dynamic_smem(int bytes) {
 // Programmatic dependent launches of the kernels that take them (detail::launch_after) on or off
 // (EPONA_CUDA_PDL=0 starts with them off); graphs recorded before keep what they recorded.
 inline void set_programmatic_launch(bool on) { detail::programmatic_launch_flag() = on; }
+// The large row passes' order, last row first or not (EPONA_CUDA_REVERSE_PASSES); graphs
+// recorded before keep what they recorded.
+inline void set_reversed_passes(bool on) { detail::reversed_passes_flag() = on; }
 
 }  // namespace epona::cuda

@@ -71,6 +71,7 @@ struct RowNormArgs {
   const TP* add;   // bias, or shift with Modulate
   std::int64_t rows, n;
   float eps;
+  bool reverse = false;  // the warp-per-row kernel walks the rows last to first
 };
 
 // What norm_row does to a pack of its float32 results (channels c0..c0+7) before storing it:
@@ -164,7 +165,8 @@ __global__ void __launch_bounds__(32 * kNormWarps) row_norm_warp_kernel(RowNormA
   wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t row = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
   if (row >= a.rows) return;
-  norm_row<P, Modulate, Residual>(a, row, threadIdx.x & 31, 32, [](float v) { return warp_sum(v); });
+  norm_row<P, Modulate, Residual>(a, pass_index(row, a.rows, a.reverse), threadIdx.x & 31, 32,
+                                  [](float v) { return warp_sum(v); });
 }
 
 // Widest row the warp kernel holds (8 packs of 8 per lane), and the fewest rows for which it
@@ -184,8 +186,9 @@ void with_warp_row_packs(std::int64_t n, F&& f) {
 }
 
 template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP>
-void launch_row_norm_warp(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a) {
+void launch_row_norm_warp(Context& ctx, RowNormArgs<TX, TY, TG, TO, TP> a) {
   const auto blocks = static_cast<unsigned>((a.rows + kNormWarps - 1) / kNormWarps);
+  a.reverse = reversed_passes_flag();
   launch_after(row_norm_warp_kernel<TX, TY, TG, TO, TP, P, Modulate, Residual>, blocks, 32 * kNormWarps, 0, ctx.stream(),
                a);
 }

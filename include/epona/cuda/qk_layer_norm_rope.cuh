@@ -24,6 +24,7 @@ struct QkNormRopeArgs {
   float q_eps, k_eps;
   int head_dim;                // heads side by side along n
   const float *cos, *sin;      // (rows, head_dim / 2) for row r of q and of k; null: no rotation
+  bool reverse;                // warps take the rows last to first
 };
 
 // Interleaved pairs (2j, 2j+1) of the 8 channels starting at channel c0 of a row (a pack inside
@@ -48,8 +49,9 @@ __device__ __forceinline__ void rotate_pack(float (&v)[kPack], int c0, int head_
 // rotation, bf16 for the attention) rounds them.
 template <class T, int P>
 __global__ void __launch_bounds__(32 * kNormWarps) qk_layer_norm_rope_kernel(QkNormRopeArgs<T> a) {
-  const std::int64_t w = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
-  if (w >= a.rows_q + a.rows_k) return;
+  const std::int64_t item = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
+  if (item >= a.rows_q + a.rows_k) return;
+  const std::int64_t w = pass_index(item, a.rows_q + a.rows_k, a.reverse);
   const bool is_q = w < a.rows_q;
   const std::int64_t row = is_q ? w : w - a.rows_q;
   T* x = is_q ? a.q : a.k;
@@ -91,7 +93,7 @@ bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int6
                     detail::packable(k_bias, n, 0);
   if (!fits) return false;
   const detail::QkNormRopeArgs<T> a{q,      k,     rows_q, rows_k,  n,   q_weight, q_bias, k_weight, k_bias,
-                                    q_eps,  k_eps, static_cast<int>(head_dim), cos, sin};
+                                    q_eps,  k_eps, static_cast<int>(head_dim), cos, sin, detail::reversed_passes_flag()};
   const auto blocks = static_cast<unsigned>((rows_q + rows_k + detail::kNormWarps - 1) / detail::kNormWarps);
   detail::with_warp_row_packs(n, [&](auto packs_per_lane) {  // the choice layer_norm makes
     detail::qk_layer_norm_rope_kernel<T, decltype(packs_per_lane)::value>
