@@ -9,7 +9,10 @@
 //   element written (poisoned outputs).
 #include "cuda_test_util.cuh"
 
+#include <cmath>
 #include <cstring>
+#include <utility>
+#include <vector>
 
 using namespace epona;
 using namespace epona::test;
@@ -184,6 +187,17 @@ std::int64_t beyond_one_rounding(const HostF& out, const HostF& ref, double slac
   return bad;
 }
 
+// A RoPE table (rows, pairs) of random angles: cos and sin.
+std::pair<HostF, HostF> random_rope_table(std::int64_t rows, std::int64_t pairs, std::uint32_t seed, float max_angle) {
+  const HostF angle = random_tensor({rows, pairs}, seed, -max_angle, max_angle);
+  HostF cos(angle.shape()), sin(angle.shape());
+  for (std::int64_t i = 0; i < angle.numel(); ++i) {
+    cos.data()[i] = std::cos(angle.data()[i]);
+    sin.data()[i] = std::sin(angle.data()[i]);
+  }
+  return {cos, sin};
+}
+
 template <class T>
 void check_qk_norm_rope(cuda::Context& ctx, std::int64_t rows_q, std::int64_t rows_k, bool rotate) {
   const std::int64_t n = 2048, heads = 16, head_dim = n / heads, rows = std::max(rows_q, rows_k);
@@ -191,9 +205,7 @@ void check_qk_norm_rope(cuda::Context& ctx, std::int64_t rows_q, std::int64_t ro
   round_to<T>(q), round_to<T>(k);
   const HostF qw = random_tensor({n}, 23, 0.5f, 1.5f), qb = random_tensor({n}, 24), kw = random_tensor({n}, 25, 0.5f, 1.5f),
               kb = random_tensor({n}, 26);
-  HostF cos({rows, head_dim / 2}), sin({rows, head_dim / 2});
-  const HostF angle = random_tensor({rows, head_dim / 2}, 27, -3.2f, 3.2f);
-  for (std::int64_t i = 0; i < angle.numel(); ++i) cos.data()[i] = std::cos(angle.data()[i]), sin.data()[i] = std::sin(angle.data()[i]);
+  const auto [cos, sin] = random_rope_table(rows, head_dim / 2, 27, 3.2f);
   const auto dqw = upload<float>(ctx, qw), dqb = upload<float>(ctx, qb), dkw = upload<float>(ctx, kw), dkb = upload<float>(ctx, kb);
   const auto dcos = upload<float>(ctx, cos), dsin = upload<float>(ctx, sin);
   const float* c = rotate ? dcos.data() : nullptr;
@@ -256,16 +268,20 @@ TEST_CASE("the large row passes give the same bits walking the rows first to las
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
   const bool saved = cuda::detail::reversed_passes_flag();
-  const std::int64_t rows = 8 * ctx.info().multiprocessors + 37, n = 2048, heads = 16;  // the warp-per-row kernels
+  const std::int64_t rows = cuda::detail::warp_rows_min(ctx) + 37, n = 2048, heads = 16;  // the warp-per-row kernels
   const HostF x = random_tensor({rows, n}, 31, -3.f, 4.f), y = random_tensor({rows, n}, 32, -1.f, 1.f);
   const HostF w = random_tensor({n}, 33, 0.5f, 1.5f), b = random_tensor({n}, 34);
-  const HostF angle = random_tensor({rows, 64}, 35, -3.f, 3.f);
-  HostF cos(angle.shape()), sin(angle.shape());
-  for (std::int64_t i = 0; i < angle.numel(); ++i) cos.data()[i] = std::cos(angle.data()[i]), sin.data()[i] = std::sin(angle.data()[i]);
+  const auto [cos, sin] = random_rope_table(rows, n / heads / 2, 35, 3.f);
   const auto dx = upload<float>(ctx, x), dy = upload<float>(ctx, y), dw = upload<float>(ctx, w), db = upload<float>(ctx, b);
   const auto dcos = upload<float>(ctx, cos), dsin = upload<float>(ctx, sin);
   const auto gelu_in = upload<bf16>(ctx, random_tensor({kLarge}, 36, -8.f, 8.f));  // finite: no NaN out
-  // Every pass's outputs in one order, as bits.
+  // One pass's output as bits (bf16: one value each; the float32 residual: two halves each).
+  struct Output {
+    const char* name;
+    std::vector<std::uint16_t> bits;
+    bool bf16;
+  };
+  // Every pass's outputs in one order.
   const auto run = [&](bool reverse) {
     cuda::set_reversed_passes(reverse);
     Dev<bf16> normed({rows * n}), gelu({kLarge});
@@ -277,23 +293,24 @@ TEST_CASE("the large row passes give the same bits walking the rows first to las
     CHECK(cuda::layer_norm_rope_qk(ctx, q.data(), rows, k.data(), rows, n, dw.data(), db.data(), 1e-5f, dw.data(),
                                    db.data(), 1e-6f, n / heads, dcos.data(), dsin.data()));
     cuda::detail::map_bf16(ctx, gelu_in.data(), gelu.data(), kLarge, cuda::detail::GeluErfOp{});
-    std::vector<std::vector<std::uint16_t>> bits{bits_of(ctx, normed), bits_of(ctx, q), bits_of(ctx, k), bits_of(ctx, gelu)};
     const HostF r = download(ctx, resid);
-    bits.emplace_back(reinterpret_cast<const std::uint16_t*>(r.data()),
-                      reinterpret_cast<const std::uint16_t*>(r.data() + r.numel()));
-    return bits;
+    const auto* r16 = reinterpret_cast<const std::uint16_t*>(r.data());
+    return std::vector<Output>{{"residual + LayerNorm output", bits_of(ctx, normed), true},
+                               {"QK LayerNorm + RoPE q", bits_of(ctx, q), true},
+                               {"QK LayerNorm + RoPE k", bits_of(ctx, k), true},
+                               {"erf-GELU table pass", bits_of(ctx, gelu), true},
+                               {"updated residual", std::vector<std::uint16_t>(r16, r16 + 2 * r.numel()), false}};
   };
   const auto forward = run(false), reverse = run(true);
   cuda::set_reversed_passes(saved);
-  const char* names[] = {"residual + LayerNorm output", "QK LayerNorm + RoPE q", "QK LayerNorm + RoPE k",
-                         "erf-GELU table pass", "updated residual"};
   for (std::size_t i = 0; i < forward.size(); ++i) {
-    std::int64_t differ = 0, poisoned = 0;
-    for (std::size_t j = 0; j < forward[i].size(); ++j) {
-      differ += forward[i][j] != reverse[i][j];
-      poisoned += i != 4 && forward[i][j] == 0xFFFFu;  // poison's bits (bf16 NaN) never come out of these passes
+    const Output& f = forward[i];
+    std::int64_t differ = 0, unwritten = 0;
+    for (std::size_t j = 0; j < f.bits.size(); ++j) {
+      differ += f.bits[j] != reverse[i].bits[j];
+      unwritten += f.bf16 && f.bits[j] == 0xFFFFu;  // poison's bits (bf16 NaN) never come out of these passes
     }
-    CHECK_MESSAGE(differ == 0, names[i], ": ", differ, " of ", forward[i].size(), " values differ between the orders");
-    CHECK_MESSAGE(poisoned == 0, names[i], ": ", poisoned, " values left unwritten");
+    CHECK_MESSAGE(differ == 0, f.name, ": ", differ, " of ", f.bits.size(), " values differ between the orders");
+    CHECK_MESSAGE(unwritten == 0, f.name, ": ", unwritten, " values left unwritten");
   }
 }
