@@ -21,7 +21,8 @@
 // --pdl-compare: the MST and the DiT rows with programmatic dependent launches off and on, two
 // rounds; --front-compare: the TrajDiT sample with its pipelined condition front off and on,
 // FluxDiT::SamplerOptions, two rounds; --order-compare: the MST with its large row passes
-// walking the rows first to last and last to first, two rounds).
+// walking the rows first to last and last to first, two rounds; --group-compare: the MST with
+// its key, value and query products one grouped product or three (set_pair_gemm), two rounds).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -59,6 +60,7 @@ struct Options {
   bool pdl_compare = false;       // the MST and the DiTs with programmatic dependent launches off and on
   bool front_compare = false;     // the TrajDiT sample with its pipelined condition front off and on
   bool order_compare = false;     // the MST with its large row passes in forward and reverse row order
+  bool group_compare = false;     // the MST with its key, value and query products grouped or not
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
 };
 
@@ -90,12 +92,13 @@ Options parse(int argc, char** argv) {
     else if (a == "--pdl-compare") o.pdl_compare = true;
     else if (a == "--front-compare") o.front_compare = true;
     else if (a == "--order-compare") o.order_compare = true;
+    else if (a == "--group-compare") o.group_compare = true;
     else if (a == "--only") {
       std::stringstream ss(next());
       for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
     } else fail("unknown option ", a,
                 " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare, "
-                "--qk-norm-compare, --pdl-compare, --front-compare, --order-compare)");
+                "--qk-norm-compare, --pdl-compare, --front-compare, --order-compare, --group-compare)");
   }
   return o;
 }
@@ -359,6 +362,8 @@ int run(const Options& o) {
     mst_switch_rounds("pdl", cuda::detail::programmatic_launch_flag(), cuda::set_programmatic_launch);
   if (o.order_compare && o.want("mst"))
     mst_switch_rounds("reverse_passes", cuda::detail::reversed_passes_flag(), cuda::set_reversed_passes);
+  if (o.group_compare && o.want("mst"))
+    mst_switch_rounds("grouped_kvq", cuda::detail::pair_gemm_flag(), cuda::set_pair_gemm);
 
   const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
   // The DiT rows; `suffix` names a second pass with the GEMM tuning switched (--tune-compare).

@@ -4,7 +4,8 @@
 // cache shows which ran), misaligned items, row strides, bias or none, no activation / tanh
 // GELU (fused) / erf GELU (extra pass per item), float32 and bf16, outputs and the gaps between
 // them poisoned (NaN) so unwritten and stray elements show; cuda::linear_pair on two separate
-// allocations in both orders, and with only one bias. Per element |err| <= u (1.13 |z| + |ref|)
+// allocations in both orders, and with only one bias; cuda::linear_group on three layers of one
+// input, stacked (one product) or not equally far apart (one per layer). Per element |err| <= u (1.13 |z| + |ref|)
 // + 1e-5 max|ref| (z the pre-activation; u = 2^-8 for bf16: one rounding of the product, one of
 // the activation; 0 for float32), plus u |x·wᵀ| where the bias is added apart (misaligned items:
 // the product is rounded before the bias, as cuda::linear does).
@@ -181,6 +182,42 @@ void check_pair(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int64_t
   }
 }
 
+// linear_group: three layers on one input (x stride 0), their weights one matrix apart in one
+// buffer (one batched product) or not equally far apart (one product per layer); bias on all or none.
+template <class T>
+void check_group(std::int64_t M, std::int64_t N, std::int64_t K, cuda::Epilogue epi, bool bias, bool stacked,
+                 std::uint32_t seed) {
+  cuda::Context ctx;  // its own plan cache: the path taken shows in it
+  Items x(1, M, K, K, 0, 0), w(3, N, K, K, 1, 0), b(3, 1, N, N, 1, 0), y(3, M, N, N, 1, 5 * N);
+  x.fill<T>(1, seed, -2.f, 2.f);
+  w.fill<T>(3, seed + 1, -0.2f, 0.2f);
+  b.fill<T>(3, seed + 2, -1.f, 1.f);
+  // Layer i's weight (bias) at offsets[i] matrices (rows) into one buffer.
+  const std::vector<std::int64_t> offsets =
+      stacked ? std::vector<std::int64_t>{0, 1, 2} : std::vector<std::int64_t>{0, 1, 3};
+  HostF wbuf({4 * N * K}), bbuf({4 * N});
+  std::fill_n(wbuf.data(), wbuf.numel(), kNaN);
+  std::fill_n(bbuf.data(), bbuf.numel(), kNaN);
+  for (int i = 0; i < 3; ++i) {
+    std::copy_n(w.data.data() + i * N * K, N * K, wbuf.data() + offsets[i] * N * K);
+    std::copy_n(b.data.data() + i * N, N, bbuf.data() + offsets[i] * N);
+  }
+  const auto dx = upload<T>(ctx, x.data), dw = upload<T>(ctx, wbuf), db = upload<T>(ctx, bbuf);
+  auto dy = upload<T>(ctx, y.data);
+  poison(ctx, dy);
+  std::vector<const T*> ws, bs;
+  for (int i = 0; i < 3; ++i) {
+    ws.push_back(dw.data() + offsets[i] * N * K);
+    bs.push_back(bias ? db.data() + offsets[i] * N : nullptr);
+  }
+  cuda::linear_group(ctx, dx.data(), K, 0, ws, bs, dy.data(), N, y.stride, M, N, K, epi);
+  const std::string what = std::string("linear_group ") + type_name<T>() + " x3 " + std::to_string(M) + "x" +
+                           std::to_string(N) + "x" + std::to_string(K) + (bias ? " +bias " : " ") + epilogue_name(epi) +
+                           (stacked ? " stacked" : " weights unequally apart");
+  check_items<T>(what, 3, x, w, bias ? &b : nullptr, y, download(ctx, dy), epi);
+  CHECK(batch_plans(ctx, 3) == (stacked ? 1u : 0u));
+}
+
 template <class T>
 void batched_cases(cuda::Context& ctx) {
   std::uint32_t seed = 900;
@@ -197,12 +234,15 @@ void batched_cases(cuda::Context& ctx) {
   check_batched<T>({2, 515, 256, 128, true, cuda::Epilogue::GeluTanh, 1, 1, 1, 1}, seed++);  // many rows
   for (const auto epi : {cuda::Epilogue::None, cuda::Epilogue::GeluTanh})
     for (const bool bias1 : {true, false}) check_pair<T>(ctx, 37, 64, 48, epi, bias1, seed++ * 7);
+  for (const auto epi : {cuda::Epilogue::None, cuda::Epilogue::GeluErf})
+    for (const bool bias : {true, false})
+      for (const bool stacked : {true, false}) check_group<T>(37, 64, 48, epi, bias, stacked, seed++);
 }
 
 }  // namespace
 
-TEST_CASE_TEMPLATE("linear_batched and linear_pair match a float64 loop (strides of either sign, epilogues)", T, float,
-                   bf16) {
+TEST_CASE_TEMPLATE("linear_batched, linear_pair and linear_group match a float64 loop (strides of either sign, "
+                   "epilogues)", T, float, bf16) {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
   batched_cases<T>(ctx);

@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <cstdlib>
 #include <optional>
+#include <vector>
 
 #include "epona/core/env.hpp"
 #include "epona/cuda/gemm.cuh"
@@ -114,21 +115,42 @@ void linear_batched(Context& ctx, const T* x, std::int64_t ldx, const T* w, cons
                             bias ? detail::advance(bias, i * b.bias) : bias);
 }
 
-// Two layers of one shape on M rows each: y_i = act(x_i · w_iᵀ + b_i), x_1 = x + x_stride and
-// y_1 = y + y_stride (elements), as one batch-2 product whose weight (bias) stride is the
-// distance w1 - w0 (b1 - b0). Two products where that distance is no whole number of elements,
-// only one layer has a bias, or the strides' signs differ (Linear::bind_pair keeps w1 after w0).
+// Layers of one shape on M rows each: y_i = act(x_i · w_iᵀ + b_i), x_i = x + i·x_stride and
+// y_i = y + i·y_stride (elements; x_stride 0: one input for all), as one batched product whose
+// weight (bias) stride is the distance w_1 - w_0 (b_1 - b_0). One product per layer where the
+// weights (biases) do not lie equally far apart, in whole elements, or only some layers have a
+// bias (Linear::bind_stacked keeps them in order, one matrix apart).
+template <class T>
+void linear_group(Context& ctx, const T* x, std::int64_t ldx, std::int64_t x_stride, const std::vector<const T*>& w,
+                  const std::vector<const T*>& b, T* y, std::int64_t ldy, std::int64_t y_stride, std::int64_t M,
+                  std::int64_t N, std::int64_t K, Epilogue epi = Epilogue::None) {
+  const std::size_t count = w.size();
+  EPONA_CHECK(count >= 1 && b.size() == count, "linear_group: ", count, " weights and ", b.size(), " biases");
+  const auto equally_apart = [count](const std::vector<const T*>& p) -> std::optional<std::int64_t> {
+    if (count == 1 || p[0] == nullptr) return std::int64_t{0};
+    const auto step = detail::element_distance(p[0], p[1]);
+    for (std::size_t i = 1; step && i < count; ++i)
+      if (p[i] == nullptr || detail::element_distance(p[i - 1], p[i]) != step) return std::nullopt;
+    return step;
+  };
+  const bool biases_alike =
+      std::all_of(b.begin(), b.end(), [&](const T* p) { return (p == nullptr) == (b[0] == nullptr); });
+  const auto w_stride = equally_apart(w), b_stride = equally_apart(b);
+  if (count > 1 && w_stride && b_stride && biases_alike)
+    return linear_batched(ctx, x, ldx, w[0], b[0], y, ldy, M, N, K,
+                          GemmBatch{static_cast<std::int32_t>(count), x_stride, *w_stride, *b_stride, y_stride}, epi);
+  for (std::size_t i = 0; i < count; ++i) {
+    const auto at = static_cast<std::int64_t>(i);
+    linear(ctx, x + at * x_stride, ldx, w[i], b[i], y + at * y_stride, ldy, M, N, K, epi);
+  }
+}
+
+// Two layers of one shape: linear_group over the pair.
 template <class T>
 void linear_pair(Context& ctx, const T* x, std::int64_t ldx, std::int64_t x_stride, const T* w0, const T* b0,
                  const T* w1, const T* b1, T* y, std::int64_t ldy, std::int64_t y_stride, std::int64_t M,
                  std::int64_t N, std::int64_t K, Epilogue epi = Epilogue::None) {
-  const auto w_stride = detail::element_distance(w0, w1);
-  const auto b_stride = b0 && b1 ? detail::element_distance(b0, b1) : std::optional<std::int64_t>(0);
-  if (w_stride && b_stride && (b0 == nullptr) == (b1 == nullptr))
-    return linear_batched(ctx, x, ldx, w0, b0, y, ldy, M, N, K, GemmBatch{2, x_stride, *w_stride, *b_stride, y_stride},
-                          epi);
-  linear(ctx, x, ldx, w0, b0, y, ldy, M, N, K, epi);
-  linear(ctx, x + x_stride, ldx, w1, b1, y + y_stride, ldy, M, N, K, epi);
+  linear_group(ctx, x, ldx, x_stride, {w0, w1}, {b0, b1}, y, ldy, y_stride, M, N, K, epi);
 }
 
 }  // namespace epona::cuda

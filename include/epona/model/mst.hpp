@@ -112,9 +112,9 @@ struct MstLayer {
   void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
     ln1.bind(w, p + "ln1.", r);
     ln2.bind(w, p + "ln2.", r);
-    query.bind(w, p + "attn.query.", r);
-    key.bind(w, p + "attn.key.", r);
-    value.bind(w, p + "attn.value.", r);
+    // key, value, query stacked in that order: one grouped product where all rows are queries.
+    nn::Linear<B, W>::bind_stacked(r,
+                                   {{&key, p + "attn.key."}, {&value, p + "attn.value."}, {&query, p + "attn.query."}});
     proj.bind(w, p + "attn.proj.", r);
     q_norm.bind(w, p + "attn.q_norm.", r);
     k_norm.bind(w, p + "attn.k_norm.", r);
@@ -123,13 +123,14 @@ struct MstLayer {
 
   // Scratch of one layer over n tokens of width C.
   struct Scratch {
-    Tensor<A, B> u, q, k, v;  // (n, C)
+    Tensor<A, B> u, q, k, v;  // (n, C); k, v, q one (3, n, C) block in that order (grouped product)
     Tensor<A, B> hidden;      // (n, 4C)
   };
   template <class Alloc>
   static Scratch plan(Alloc& a, std::int64_t n, const MstConfig& c) {
-    return {a.template take<A>({n, c.n_embd}), a.template take<A>({n, c.n_embd}), a.template take<A>({n, c.n_embd}),
-            a.template take<A>({n, c.n_embd}), a.template take<A>({n, c.mlp_hidden()})};
+    auto u = a.template take<A>({n, c.n_embd});
+    auto kvq = a.template take<A>({3, n, c.n_embd});
+    return {u, kvq[2], kvq[0], kvq[1], a.template take<A>({n, c.mlp_hidden()})};
   }
 
   // x (n, C) += attn(ln1 x); x += mlp(ln2 x) on rows [first, first + count) of x, the queries
@@ -148,9 +149,7 @@ struct MstLayer {
     auto u = s.u.slice(0, n), k = s.k.slice(0, n), v = s.v.slice(0, n);
     auto q = s.q.slice(0, count), o = s.u.slice(0, count), hidden = s.hidden.slice(0, count);
     if (!normed) ln1(ctx, x, u);
-    key(ctx, u, k);
-    value(ctx, u, v);
-    query(ctx, u.slice(first, first + count), q);
+    project_kvq(ctx, u, s, first, count);
     if (rope || !attend_normalized(ctx, q, k, v, o, shape)) {
       normalize_qk(ctx, q, k, rope, shape.heads);
       nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), shape);  // the output reuses u
@@ -158,6 +157,26 @@ struct MstLayer {
     add_branch(ctx, proj, o, rows, q, &ln2, o);  // float32 residual += projection; o = ln2(x)
     mlp.fc1(ctx, o, hidden, mlp.fc1_epilogue());
     add_branch(ctx, mlp.fc2, hidden, rows, q, next ? &next->ln1 : nullptr, o);
+  }
+
+  // s.k, s.v = key, value of all rows of u; s.q = query of rows [first, first + count). One
+  // grouped product where the backend has it (the query joins it where all rows are queries).
+  void project_kvq(Context& ctx, const Tensor<A, B>& u, Scratch& s, std::int64_t first, std::int64_t count) const {
+    const std::int64_t n = u.size(0), C = u.size(-1);
+    auto q = s.q.slice(0, count);
+    if (!nn::Linear<B, W>::pair_available(ctx)) {
+      auto k = s.k.slice(0, n), v = s.v.slice(0, n);
+      key(ctx, u, k);
+      value(ctx, u, v);
+    } else {
+      const std::int64_t apart = s.v.data() - s.k.data();  // plan: one block, k, v, q in that order
+      EPONA_CHECK(s.q.data() - s.v.data() == apart, "MST layer scratch: k, v, q are not equally far apart");
+      std::vector<const nn::Linear<B, W>*> layers{&key, &value};
+      if (count == n) layers.push_back(&query);
+      nn::Linear<B, W>::group(ctx, layers, u.data(), C, 0, n, s.k.data(), C, apart);
+      if (count == n) return;
+    }
+    query(ctx, u.slice(first, first + count), q);
   }
 
   // rows (float32) += layer(in), then out = norm(rows) unless norm is null. The product adds to

@@ -1,12 +1,15 @@
 // epona/nn/linear.hpp — nn.Linear: y = x·Wᵀ (+ b) with PyTorch's weight layout W (out, in),
 // optionally followed by an activation fused into the GEMM epilogue. Weights in T (float or
 // bf16); activations in Activation<B, T> (float on the CPU, T on the GPU). Mirrors
-// torch.nn.Linear (keys `<prefix>weight`, `<prefix>bias`). Two layers of one shape can run as one
-// batched product where the backend has it (pair: the DiT double blocks' two streams).
+// torch.nn.Linear (keys `<prefix>weight`, `<prefix>bias`). Layers of one shape can run as one
+// batched product where the backend has it (group: the DiT double blocks' two streams, the
+// MST's key, value and query on one input).
 #pragma once
 
 #include <cstdint>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
@@ -42,20 +45,28 @@ struct Linear {
     linear(ctx, x, weight, bias, y, epilogue);
   }
 
-  // Binds two layers of one shape (`first`, `second`: their prefixes) with their weights in one
-  // allocation (2, out, in) and their biases in another (2, out), a's at index 0: a paired
+  // Binds layers of one shape (each with its prefix) with their weights in one allocation
+  // (count, out, in) and their biases in another (count, out), in the order given: a grouped
   // product's weight stride is then one matrix, positive and small (cuBLASLt's bf16 batched
-  // kernels take no negative strides, and two allocations may lie either way round).
+  // kernels take no negative strides, and separate allocations may lie either way round).
+  static void bind_stacked(io::BindReport& report, const std::vector<std::pair<Linear*, std::string>>& layers) {
+    const Linear& a = *layers.front().first;
+    for (const auto& [l, prefix] : layers)
+      EPONA_CHECK(l->in == a.in && l->out == a.out && l->has_bias == a.has_bias, "Linear::bind_stacked: ", prefix,
+                  " (", l->in, " -> ", l->out, ") with (", a.in, " -> ", a.out, ")");
+    const auto stack = [&](const std::string& name, const Shape& shape, Tensor<T, B> Linear::*member) {
+      std::vector<std::string> names;
+      for (const auto& layer : layers) names.push_back(layer.second + name);
+      auto stacked = bind_stacked_params<B, T>(report, names, shape);
+      if (stacked.empty()) return;
+      for (std::size_t i = 0; i < layers.size(); ++i) layers[i].first->*member = stacked[static_cast<std::int64_t>(i)];
+    };
+    stack("weight", {a.out, a.in}, &Linear::weight);
+    if (a.has_bias) stack("bias", {a.out}, &Linear::bias);
+  }
   static void bind_pair(Linear& a, const std::string& first, Linear& b, const std::string& second,
                         io::BindReport& report) {
-    EPONA_CHECK(a.in == b.in && a.out == b.out && a.has_bias == b.has_bias, "Linear::bind_pair: (", a.in, " -> ", a.out,
-                ") with (", b.in, " -> ", b.out, ")");
-    const auto both = [&](const std::string& name, const Shape& shape, Tensor<T, B>& ta, Tensor<T, B>& tb) {
-      auto stacked = bind_stacked_params<B, T>(report, {first + name, second + name}, shape);
-      if (!stacked.empty()) ta = stacked[0], tb = stacked[1];
-    };
-    both("weight", {a.out, a.in}, a.weight, b.weight);
-    if (a.has_bias) both("bias", {a.out}, a.bias, b.bias);
+    bind_stacked(report, {{&a, first}, {&b, second}});
   }
 
   // The layer restricted to output features [begin, end): the rows of W and b (contiguous),
@@ -75,8 +86,8 @@ struct Linear {
            epilogue);
   }
 
-  // Whether `pair` runs as one product on this backend (the GPU's strided-batched cuBLASLt
-  // product, unless switched off), rather than as two.
+  // Whether `group` runs as one product on this backend (the GPU's strided-batched cuBLASLt
+  // product, unless switched off), rather than one per layer.
   static bool pair_available(Context& ctx) {
     if constexpr (requires { pair_gemm_enabled(ctx); })
       return pair_gemm_enabled(ctx);
@@ -84,21 +95,34 @@ struct Linear {
       return false;
   }
 
-  // This layer and `second` (same shape) on `rows` rows each: y = layer(x) and
-  // y + y_stride = second(x + x_stride) (strides in elements, rows ldx / ldy apart inside each).
+  // Layers of one shape on `rows` rows each: y + i·y_stride = layers[i](x + i·x_stride) (strides
+  // in elements, rows ldx / ldy apart inside each; x_stride 0: all on the same input). One
+  // product where the backend has it and the weights lie equally far apart (bind_stacked).
+  static void group(Context& ctx, const std::vector<const Linear*>& layers, const A* x, std::int64_t ldx,
+                    std::int64_t x_stride, std::int64_t rows, A* y, std::int64_t ldy, std::int64_t y_stride,
+                    Epilogue epilogue = Epilogue::None) {
+    const Linear& a = *layers.front();
+    std::vector<const T*> weights, biases;
+    for (const Linear* l : layers) {
+      EPONA_CHECK(l->in == a.in && l->out == a.out && l->has_bias == a.has_bias, "Linear::group: (", l->in, " -> ",
+                  l->out, ") with (", a.in, " -> ", a.out, ")");
+      weights.push_back(l->weight.data());
+      biases.push_back(l->has_bias ? l->bias.data() : nullptr);
+    }
+    if constexpr (requires { linear_group(ctx, x, ldx, x_stride, weights, biases, y, ldy, y_stride, rows, a.out, a.in,
+                                          epilogue); }) {
+      linear_group(ctx, x, ldx, x_stride, weights, biases, y, ldy, y_stride, rows, a.out, a.in, epilogue);
+    } else {
+      for (std::size_t i = 0; i < layers.size(); ++i) {
+        const auto at = static_cast<std::int64_t>(i);
+        layers[i]->strided(ctx, x + at * x_stride, ldx, rows, y + at * y_stride, ldy, epilogue);
+      }
+    }
+  }
+  // This layer and `second` (same shape): group over the two.
   void pair(Context& ctx, const Linear& second, const A* x, std::int64_t ldx, std::int64_t x_stride, std::int64_t rows,
             A* y, std::int64_t ldy, std::int64_t y_stride, Epilogue epilogue = Epilogue::None) const {
-    EPONA_CHECK(second.in == in && second.out == out && second.has_bias == has_bias, "Linear::pair: (", in, " -> ",
-                out, ") with (", second.in, " -> ", second.out, ")");
-    const auto bias_of = [](const Linear& l) { return l.has_bias ? l.bias.data() : static_cast<const T*>(nullptr); };
-    if constexpr (requires { linear_pair(ctx, x, ldx, x_stride, weight.data(), bias_of(*this), second.weight.data(),
-                                         bias_of(second), y, ldy, y_stride, rows, out, in, epilogue); }) {
-      linear_pair(ctx, x, ldx, x_stride, weight.data(), bias_of(*this), second.weight.data(), bias_of(second), y, ldy,
-                  y_stride, rows, out, in, epilogue);
-    } else {
-      strided(ctx, x, ldx, rows, y, ldy, epilogue);
-      second.strided(ctx, x + x_stride, ldx, rows, y + y_stride, ldy, epilogue);
-    }
+    group(ctx, {this, &second}, x, ldx, x_stride, rows, y, ldy, y_stride, epilogue);
   }
 
   double flops(std::int64_t tokens) const { return 2.0 * double(tokens) * double(in) * double(out); }

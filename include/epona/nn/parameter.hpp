@@ -6,7 +6,6 @@
 
 #include <algorithm>
 #include <cstdint>
-#include <initializer_list>
 #include <string>
 #include <vector>
 
@@ -29,7 +28,7 @@ Tensor<T, B> bind_param(io::BindReport& report, const std::string& name, const S
 // one allocation, so layers that run as one batched product lie a constant stride apart.
 // Empty (a problem recorded for each missing or mis-shaped name) when any of them is.
 template <class B, class T>
-Tensor<T, B> bind_stacked_params(io::BindReport& report, std::initializer_list<std::string> names, const Shape& shape) {
+Tensor<T, B> bind_stacked_params(io::BindReport& report, const std::vector<std::string>& names, const Shape& shape) {
   std::vector<const io::RawTensor*> raws;
   for (const auto& name : names) raws.push_back(report.take(name, shape));
   if (std::find(raws.begin(), raws.end(), nullptr) != raws.end()) return {};
