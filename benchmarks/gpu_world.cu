@@ -22,7 +22,8 @@
 // rounds; --front-compare: the TrajDiT sample with its pipelined condition front off and on,
 // FluxDiT::SamplerOptions, two rounds; --order-compare: the MST with its large row passes
 // walking the rows first to last and last to first, two rounds; --group-compare: the MST with
-// its key, value and query products one grouped product or three (set_pair_gemm), two rounds).
+// its key, value and query products one grouped product or three (set_pair_gemm), two rounds;
+// --mst-tune-compare: the MST with its large products' cuBLASLt candidates timed or not).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -61,6 +62,7 @@ struct Options {
   bool front_compare = false;     // the TrajDiT sample with its pipelined condition front off and on
   bool order_compare = false;     // the MST with its large row passes in forward and reverse row order
   bool group_compare = false;     // the MST with its key, value and query products grouped or not
+  bool mst_tune_compare = false;  // the MST with its large products' cuBLASLt candidates timed or not
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
 };
 
@@ -93,12 +95,13 @@ Options parse(int argc, char** argv) {
     else if (a == "--front-compare") o.front_compare = true;
     else if (a == "--order-compare") o.order_compare = true;
     else if (a == "--group-compare") o.group_compare = true;
+    else if (a == "--mst-tune-compare") o.mst_tune_compare = true;
     else if (a == "--only") {
       std::stringstream ss(next());
       for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
     } else fail("unknown option ", a,
                 " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare, "
-                "--qk-norm-compare, --pdl-compare, --front-compare, --order-compare, --group-compare)");
+                "--qk-norm-compare, --pdl-compare, --front-compare, --order-compare, --group-compare, --mst-tune-compare)");
   }
   return o;
 }
@@ -364,6 +367,13 @@ int run(const Options& o) {
     mst_switch_rounds("reverse_passes", cuda::detail::reversed_passes_flag(), cuda::set_reversed_passes);
   if (o.group_compare && o.want("mst"))
     mst_switch_rounds("grouped_kvq", cuda::detail::pair_gemm_flag(), cuda::set_pair_gemm);
+  if (o.mst_tune_compare && o.want("mst")) {
+    const auto was = cuda::gemm_tuning();
+    mst_switch_rounds("gemm_tuning", was != cuda::GemmTuning::Off, [](bool on) {
+      cuda::set_gemm_tuning(on ? cuda::GemmTuning::Large : cuda::GemmTuning::Off);
+    });
+    cuda::set_gemm_tuning(was);
+  }
 
   const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
   // The DiT rows; `suffix` names a second pass with the GEMM tuning switched (--tune-compare).
@@ -448,14 +458,16 @@ int run(const Options& o) {
     time_step("");
   } else {  // the component arena stays (the memory row then counts it too)
     time_step("");
-    const bool tuned = !cuda::detail::gemm_tuning();
-    cuda::set_gemm_tuning(tuned);
+    const auto was = cuda::gemm_tuning();
+    const bool tuned = was != cuda::GemmTuning::All;  // every product timed, or none
+    cuda::set_gemm_tuning(tuned ? cuda::GemmTuning::All : cuda::GemmTuning::Off);
     traj.reset_sampler_graph();
     vis.reset_sampler_graph();
     std::printf("# GEMM tuning %s for the rows suffixed _%s\n", tuned ? "on" : "off", tuned ? "tuned" : "untuned");
     const std::string suffix = tuned ? "_tuned" : "_untuned";
     time_dits(suffix);
     time_step(suffix);
+    cuda::set_gemm_tuning(was);
     arena = Arena<Cuda>();
   }
   emit_value("device_memory_gib", double(used_device_bytes() - base_bytes) / 1073741824.0);

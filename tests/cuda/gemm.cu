@@ -122,6 +122,54 @@ TEST_CASE_TEMPLATE("cuda linear at model-like sizes", T, float, bf16) {
   check_linear<T>(ctx, {530, 3072, 1024, true, cuda::Epilogue::GeluTanh}, 703);
 }
 
+namespace {
+
+// The context's cached plans of M rows, tuned (timed candidates) or not.
+std::size_t plans_of(cuda::Context& ctx, std::int64_t M, bool tuned) {
+  std::size_t n = 0;
+  for (const auto& [key, plan] : ctx.gemm_plans())
+    n += key[1] == M && ((key[6] & cuda::detail::kUntunedPlan) == 0) == tuned;
+  return n;
+}
+
+// Sets the tuning for a scope, then restores what it was.
+struct TuningScope {
+  cuda::GemmTuning was = cuda::gemm_tuning();
+  explicit TuningScope(cuda::GemmTuning t) { cuda::set_gemm_tuning(t); }
+  ~TuningScope() { cuda::set_gemm_tuning(was); }
+};
+
+}  // namespace
+
+// Timed candidates (the default for products of >= kTuneRowsMin rows, every product with
+// EPONA_CUDA_GEMM_TUNE=1): whichever wins, the result is within the same bound, and the plan
+// cache shows which products were timed.
+TEST_CASE_TEMPLATE("cuda linear with cuBLASLt's candidates timed matches cpu::linear", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  const std::int64_t large = cuda::detail::kTuneRowsMin + 5;
+  {
+    TuningScope scope(cuda::GemmTuning::Large);
+    cuda::Context ctx;
+    check_linear<T>(ctx, {large, 96, 64, true, cuda::Epilogue::GeluErf}, 800);
+    check_linear<T>(ctx, {37, 96, 64, true, cuda::Epilogue::None}, 801);
+    CHECK(plans_of(ctx, large, true) == 1);
+    CHECK(plans_of(ctx, 37, false) == 1);
+    check_linear<T>(ctx, {large, 96, 64, true, cuda::Epilogue::GeluErf}, 802);  // the cached tuned plan again
+  }
+  {
+    TuningScope scope(cuda::GemmTuning::All);
+    cuda::Context ctx;
+    check_linear<T>(ctx, {37, 96, 64, true, cuda::Epilogue::GeluTanh}, 803);
+    CHECK(plans_of(ctx, 37, true) == 1);
+  }
+  {
+    TuningScope scope(cuda::GemmTuning::Off);
+    cuda::Context ctx;
+    check_linear<T>(ctx, {large, 96, 64, false, cuda::Epilogue::None}, 804);
+    CHECK(plans_of(ctx, large, false) == 1);
+  }
+}
+
 // y as a column block of a wider buffer and x read with a row stride (the pointer form):
 // exactly the block is written, the other columns keep their poison.
 TEST_CASE_TEMPLATE("cuda linear with row strides writes only its column block", T, float, bf16) {

@@ -2,12 +2,13 @@
 // layout W (out, in), through cuBLASLt. Bias and the tanh GELU run in cuBLASLt's epilogue;
 // the erf GELU and SiLU (which cuBLASLt lacks) run as one extra element-wise pass. float32
 // uses true float32 arithmetic (CUBLAS_COMPUTE_32F, no TF32); bf16 accumulates in float32.
-// Optionally (EPONA_CUDA_GEMM_TUNE=1) each new problem times a few of cuBLASLt's candidates;
+// New problems of many rows (EPONA_CUDA_GEMM_TUNE: all or none) time a few of cuBLASLt's candidates;
 // products with a few outputs per row or a tiny K run in our own kernels (small_linear.cuh).
 // The plan, launch and epilogue steps are shared with the strided-batched form (gemm_batched.cuh).
 #pragma once
 
 #include <cstdint>
+#include <cstdlib>
 #include <memory>
 #include <type_traits>
 #include <vector>
@@ -50,17 +51,30 @@ void set_desc(cublasLtMatmulDesc_t d, cublasLtMatmulDescAttributes_t attr, const
 }
 
 // Tuning: a new plan times cuBLASLt's first few heuristic candidates on its first call outside
-// a graph capture and keeps the fastest (the heuristic's first choice is often slow for the
-// DiTs' small-M products). Candidates that add split-K partial sums in the output type (bf16:
-// extra roundings) are not considered. EPONA_CUDA_GEMM_TUNE=1 turns it on (default off);
-// set_gemm_tuning switches it at run time (benchmarks compare both in one process). Off because
-// it did not pay on the H200 (same run, bf16, real configuration: TrajDiT-100 13.41 -> 13.29 ms,
-// VisDiT eval 3.22 -> 3.18 ms, VisDiT-100 280.1 -> 283.6 ms, AR step 323.4 -> 323.3 ms).
-inline bool& gemm_tuning_flag() {
-  static bool on = env_flag("EPONA_CUDA_GEMM_TUNE", false);
-  return on;
+// a graph capture and keeps the fastest. Candidates that add split-K partial sums in the output
+// type (bf16: extra roundings) are not considered, and products that accumulate into their
+// output are never timed. EPONA_CUDA_GEMM_TUNE=1 times every new plan, 0 none; unset, the
+// products of at least kTuneRowsMin rows (the MST's 5150-row ones: the heuristic's first choice
+// for its c_fc takes 223 us, the fastest candidate 215 us; the MST 0.2 ms faster, H200,
+// docs/gpu-log.md "Session 17"). The DiTs' small-M products stay untimed: timing them did not
+// pay inside their sampler graphs (same run, bf16: TrajDiT-100 13.41 -> 13.29 ms, VisDiT-100
+// 280.1 -> 283.6 ms). Which candidate wins can differ between processes; every candidate sums
+// in float32 and rounds once, so the outputs agree to the rounding of the output type.
+enum class GemmTuning { Off, Large, All };
+inline constexpr std::int64_t kTuneRowsMin = 4096;
+inline GemmTuning& gemm_tuning_setting() {
+  static GemmTuning t = [] {
+    const char* v = std::getenv("EPONA_CUDA_GEMM_TUNE");
+    if (!v || !*v) return GemmTuning::Large;
+    return env_flag("EPONA_CUDA_GEMM_TUNE", false) ? GemmTuning::All : GemmTuning::Off;
+  }();
+  return t;
 }
-inline bool gemm_tuning() { return gemm_tuning_flag(); }
+// Whether a new plan of a product of `rows` rows is timed.
+inline bool gemm_tuning(std::int64_t rows) {
+  const GemmTuning t = gemm_tuning_setting();
+  return t == GemmTuning::All || (t == GemmTuning::Large && rows >= kTuneRowsMin);
+}
 // EPONA_CUDA_SMALL_GEMM=0 sends every product to cuBLASLt (side-by-side runs).
 inline bool small_linear_enabled() {
   static const bool on = env_flag("EPONA_CUDA_SMALL_GEMM", true);
@@ -247,7 +261,7 @@ template <class T, class TY = T>
 LtPlan& plan_for(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted, const GemmBatch& batch, const T* x,
                  const T* w, const T* bias, TY* y, bool accumulates = false) {
   auto& plans = ctx.gemm_plans();
-  const bool tuning = gemm_tuning() && !accumulates;
+  const bool tuning = gemm_tuning(key[1]) && !accumulates;
   if (auto it = plans.find(key); tuning && it != plans.end()) return *it->second;
   if (!tuning || capturing(ctx.stream())) {
     auto untuned = key;
@@ -324,8 +338,11 @@ inline bool& residual_gemm_flag() {
 
 }  // namespace detail
 
-// Turns the timing of cuBLASLt's candidates for new plans on or off (see detail::gemm_tuning).
-inline void set_gemm_tuning(bool on) { detail::gemm_tuning_flag() = on; }
+using detail::GemmTuning;
+// Which new plans time cuBLASLt's candidates (see detail::gemm_tuning_setting); plans made
+// before keep their algorithm.
+inline void set_gemm_tuning(GemmTuning t) { detail::gemm_tuning_setting() = t; }
+inline GemmTuning gemm_tuning() { return detail::gemm_tuning_setting(); }
 
 // Whether models add residual branches inside the product (linear_accumulate) rather than in
 // the norm pass after it; set_residual_gemm switches it at run time (benchmarks compare both).
