@@ -194,36 +194,43 @@ TEST_CASE_TEMPLATE("cuda linear with row strides writes only its column block", 
 // linear_accumulate: y (float32) += x wᵀ, y a column block of a wider NaN-filled buffer, x read
 // with a row stride. The sum is not rounded to T on the way: within float32 accumulation error
 // of the float32 reference y0 + cpu::linear, far inside one bf16 rounding.
+// With every product's candidates timed (All), the timing runs go to a scratch buffer: y gets
+// the product added once.
 TEST_CASE_TEMPLATE("cuda linear_accumulate adds the unrounded product to float32 y, only in its block", T, float,
                    bf16) {
   EPONA_REQUIRE_GPU();
-  cuda::Context ctx;
   cpu::Context cctx;
   struct Shape { std::int64_t M, N, K, ldx, ldy, col0; };
-  for (const Shape& c : {Shape{45, 72, 40, 56, 100, 16}, Shape{515, 2048, 2048, 2048, 2048, 0}}) {
-    HostF xw = random_tensor({c.M, c.ldx}, 900), w = random_tensor({c.N, c.K}, 901, -0.05f, 0.05f);
-    round_to<T>(xw), round_to<T>(w);
-    const HostF y0 = random_tensor({c.M, c.N}, 902, -4.f, 4.f);
-    HostF start({c.M, c.ldy}), ref;
-    std::fill_n(start.data(), start.numel(), std::numeric_limits<float>::quiet_NaN());
-    for (std::int64_t r = 0; r < c.M; ++r)
-      for (std::int64_t j = 0; j < c.N; ++j) start.at(r, c.col0 + j) = y0.at(r, j);
-    ref = start.clone();
-    HostF product({c.M, c.N});
-    cpu::linear(cctx, xw.data(), c.ldx, w.data(), static_cast<const float*>(nullptr), product.data(), c.N, c.M, c.N,
-                c.K, cpu::Epilogue::None);
-    for (std::int64_t r = 0; r < c.M; ++r)
-      for (std::int64_t j = 0; j < c.N; ++j) ref.at(r, c.col0 + j) += product.at(r, j);
-    auto dx = upload<T>(ctx, xw), dw = upload<T>(ctx, w);
-    auto dy = upload<float>(ctx, start);
-    cuda::linear_accumulate(ctx, dx.data(), c.ldx, dw.data(), dy.data() + c.col0, c.ldy, c.M, c.N, c.K);
-    const HostF out = download(ctx, dy);
-    const ColumnBlock inside{c.ldy, c.col0, c.N};
-    const std::string what = std::string("linear_accumulate ") + type_name<T>() + " M=" + std::to_string(c.M) +
-                             " N=" + std::to_string(c.N) + " K=" + std::to_string(c.K);
-    check_error(measure(out.data(), ref.data(), out.numel(), inside), {kF32Tol, kF32Tol * max_abs(y0)}, what);
-    CHECK_MESSAGE(written_outside(out, inside) == 0, what);
+  for (const auto tuning : {cuda::GemmTuning::Off, cuda::GemmTuning::All}) {
+    for (const Shape& c : {Shape{45, 72, 40, 56, 100, 16}, Shape{515, 2048, 2048, 2048, 2048, 0}}) {
+      TuningScope scope(tuning);
+      cuda::Context ctx;  // a fresh plan cache: the plan is made (and timed) here
+      HostF xw = random_tensor({c.M, c.ldx}, 900), w = random_tensor({c.N, c.K}, 901, -0.05f, 0.05f);
+      round_to<T>(xw), round_to<T>(w);
+      const HostF y0 = random_tensor({c.M, c.N}, 902, -4.f, 4.f);
+      HostF start({c.M, c.ldy}), ref;
+      std::fill_n(start.data(), start.numel(), std::numeric_limits<float>::quiet_NaN());
+      for (std::int64_t r = 0; r < c.M; ++r)
+        for (std::int64_t j = 0; j < c.N; ++j) start.at(r, c.col0 + j) = y0.at(r, j);
+      ref = start.clone();
+      HostF product({c.M, c.N});
+      cpu::linear(cctx, xw.data(), c.ldx, w.data(), static_cast<const float*>(nullptr), product.data(), c.N, c.M, c.N,
+                  c.K, cpu::Epilogue::None);
+      for (std::int64_t r = 0; r < c.M; ++r)
+        for (std::int64_t j = 0; j < c.N; ++j) ref.at(r, c.col0 + j) += product.at(r, j);
+      auto dx = upload<T>(ctx, xw), dw = upload<T>(ctx, w);
+      auto dy = upload<float>(ctx, start);
+      cuda::linear_accumulate(ctx, dx.data(), c.ldx, dw.data(), dy.data() + c.col0, c.ldy, c.M, c.N, c.K);
+      const HostF out = download(ctx, dy);
+      const ColumnBlock inside{c.ldy, c.col0, c.N};
+      const std::string what = std::string("linear_accumulate ") + type_name<T>() + " M=" + std::to_string(c.M) +
+                               " N=" + std::to_string(c.N) + " K=" + std::to_string(c.K);
+      check_error(measure(out.data(), ref.data(), out.numel(), inside), {kF32Tol, kF32Tol * max_abs(y0)}, what);
+      CHECK_MESSAGE(written_outside(out, inside) == 0, what);
+      CHECK(plans_of(ctx, c.M, tuning == cuda::GemmTuning::All) == 1);
+    }
   }
+  cuda::Context ctx;
   Dev<T> x({4, 8}), w({6, 8}), w_bad({6, 7});
   Dev<float> y({4, 6}), y_bad({4, 5});
   CHECK_THROWS_WITH_AS(cuda::linear_accumulate(ctx, x, w_bad, y), doctest::Contains("does not end in K=7"),

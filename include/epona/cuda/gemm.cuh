@@ -52,8 +52,8 @@ void set_desc(cublasLtMatmulDesc_t d, cublasLtMatmulDescAttributes_t attr, const
 
 // Tuning: a new plan times cuBLASLt's first few heuristic candidates on its first call outside
 // a graph capture and keeps the fastest. Candidates that add split-K partial sums in the output
-// type (bf16: extra roundings) are not considered, and products that accumulate into their
-// output are never timed. EPONA_CUDA_GEMM_TUNE=1 times every new plan, 0 none; unset, the
+// type (bf16: extra roundings) are not considered; products that add to their output are timed
+// on a scratch buffer. EPONA_CUDA_GEMM_TUNE=1 times every new plan, 0 none; unset, the
 // products of at least kTuneRowsMin rows (the MST's 5150-row ones: the heuristic's first choice
 // for its c_fc takes 223 us, the fastest candidate 215 us; the MST 0.2 ms faster, H200,
 // docs/gpu-log.md "Session 17"). The DiTs' small-M products stay untimed: timing them did not
@@ -165,15 +165,22 @@ std::unique_ptr<LtPlan> try_plan(Context& ctx, const LtPlanKey& key, cublasLtEpi
 }
 
 // Times each candidate on the call's own operands (in stream order before the call itself, so
-// y is simply overwritten) and keeps the fastest in the plan.
-template <class T>
+// y is simply overwritten) and keeps the fastest in the plan. A product that adds to its output
+// (beta 1: `y_elems` elements from y) is timed on a zeroed scratch buffer of that size instead.
+template <class T, class TY>
 void tune_plan(Context& ctx, LtPlan& plan, const std::vector<cublasLtMatmulAlgo_t>& candidates, const T* x,
-               const T* w, const T* bias, T* y) {
+               const T* w, const T* bias, TY* y, float beta, std::int64_t y_elems) {
   if (candidates.size() < 2) return;
   if (plan.fuses_bias()) set_desc(plan.op, CUBLASLT_MATMUL_DESC_BIAS_POINTER, static_cast<const void*>(bias));
+  Tensor<TY, Cuda> scratch;
+  if (beta != 0.0f) {
+    scratch = Tensor<TY, Cuda>({y_elems});
+    fill_bytes(ctx, scratch, 0);
+    y = scratch.data();
+  }
   cudaEvent_t events[2] = {nullptr, nullptr};
   for (auto& e : events) EPONA_CUDA_CHECK(cudaEventCreate(&e));
-  const float alpha = 1.0f, beta = 0.0f;
+  const float alpha = 1.0f;
   float best = 0;
   cublasLtMatmulAlgo_t chosen = plan.algo;
   for (const auto& algo : candidates) {
@@ -256,12 +263,12 @@ inline cublasLtEpilogue_t wanted_epilogue(Epilogue epi, bool has_bias, std::int6
 }
 
 // The cached plan of `key` (made, and with tuning on timed on this call's operands, when new).
-// A call that accumulates into y is never timed (`accumulates`: the timing runs would add to y).
+// `accumulates`: the call adds to y (beta 1), so the timing runs go to a scratch buffer.
 template <class T, class TY = T>
 LtPlan& plan_for(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted, const GemmBatch& batch, const T* x,
                  const T* w, const T* bias, TY* y, bool accumulates = false) {
   auto& plans = ctx.gemm_plans();
-  const bool tuning = gemm_tuning(key[1]) && !accumulates;
+  const bool tuning = gemm_tuning(key[1]) && (!accumulates || batch.count == 1);
   if (auto it = plans.find(key); tuning && it != plans.end()) return *it->second;
   if (!tuning || capturing(ctx.stream())) {
     auto untuned = key;
@@ -272,7 +279,8 @@ LtPlan& plan_for(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted, 
   }
   std::vector<cublasLtMatmulAlgo_t> candidates;
   auto p = make_plan<T, TY>(ctx, key, wanted, batch, &candidates);
-  if constexpr (std::is_same_v<T, TY>) tune_plan(ctx, *p, candidates, x, w, bias, y);
+  const std::int64_t y_elems = (key[1] - 1) * key[5] + key[2];  // (M - 1) ldy + N: one item's extent
+  tune_plan(ctx, *p, candidates, x, w, bias, y, accumulates ? 1.0f : 0.0f, y_elems);
   return *(plans[key] = std::move(p));
 }
 
