@@ -101,7 +101,8 @@ Options parse(int argc, char** argv) {
       for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
     } else fail("unknown option ", a,
                 " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare, "
-                "--qk-norm-compare, --pdl-compare, --front-compare, --order-compare, --group-compare, --mst-tune-compare)");
+                "--qk-norm-compare, --pdl-compare, --front-compare, --order-compare, --group-compare, "
+                "--mst-tune-compare)");
   }
   return o;
 }

@@ -272,7 +272,8 @@ TEST_CASE("the large row passes give the same bits walking the rows first to las
   const HostF x = random_tensor({rows, n}, 31, -3.f, 4.f), y = random_tensor({rows, n}, 32, -1.f, 1.f);
   const HostF w = random_tensor({n}, 33, 0.5f, 1.5f), b = random_tensor({n}, 34);
   const auto [cos, sin] = random_rope_table(rows, n / heads / 2, 35, 3.f);
-  const auto dx = upload<float>(ctx, x), dy = upload<float>(ctx, y), dw = upload<float>(ctx, w), db = upload<float>(ctx, b);
+  const auto dx = upload<float>(ctx, x), dy = upload<float>(ctx, y);
+  const auto dw = upload<float>(ctx, w), db = upload<float>(ctx, b);
   const auto dcos = upload<float>(ctx, cos), dsin = upload<float>(ctx, sin);
   const auto gelu_in = upload<bf16>(ctx, random_tensor({kLarge}, 36, -8.f, 8.f));  // finite: no NaN out
   // One pass's output as bits (bf16: one value each; the float32 residual: two halves each).

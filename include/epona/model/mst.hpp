@@ -112,7 +112,8 @@ struct MstLayer {
   void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
     ln1.bind(w, p + "ln1.", r);
     ln2.bind(w, p + "ln2.", r);
-    // key, value, query stacked in that order: one grouped product where all rows are queries.
+    // key, value, query stacked in that order: one grouped product (key and value alone in the
+    // pruned last block, whose queries are a subset of the rows).
     nn::Linear<B, W>::bind_stacked(r,
                                    {{&key, p + "attn.key."}, {&value, p + "attn.value."}, {&query, p + "attn.query."}});
     proj.bind(w, p + "attn.proj.", r);

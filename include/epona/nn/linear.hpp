@@ -33,6 +33,9 @@ struct Linear {
   Linear(std::int64_t in_features, std::int64_t out_features, bool with_bias)
       : in(in_features), out(out_features), has_bias(with_bias) {}
 
+  // Same features in and out, and a bias on both or neither: layers that can be stacked and grouped.
+  bool same_shape(const Linear& o) const { return in == o.in && out == o.out && has_bias == o.has_bias; }
+
   // prefix names the module ("img_in." → "img_in.weight", "img_in.bias").
   void bind(const io::TensorMap&, const std::string& prefix, io::BindReport& report) {
     weight = bind_param<B, T>(report, prefix + "weight", {out, in});
@@ -52,8 +55,8 @@ struct Linear {
   static void bind_stacked(io::BindReport& report, const std::vector<std::pair<Linear*, std::string>>& layers) {
     const Linear& a = *layers.front().first;
     for (const auto& [l, prefix] : layers)
-      EPONA_CHECK(l->in == a.in && l->out == a.out && l->has_bias == a.has_bias, "Linear::bind_stacked: ", prefix,
-                  " (", l->in, " -> ", l->out, ") with (", a.in, " -> ", a.out, ")");
+      EPONA_CHECK(l->same_shape(a), "Linear::bind_stacked: ", prefix, " (", l->in, " -> ", l->out, ") with (", a.in,
+                  " -> ", a.out, ")");
     const auto stack = [&](const std::string& name, const Shape& shape, Tensor<T, B> Linear::*member) {
       std::vector<std::string> names;
       for (const auto& layer : layers) names.push_back(layer.second + name);
@@ -104,8 +107,7 @@ struct Linear {
     const Linear& a = *layers.front();
     std::vector<const T*> weights, biases;
     for (const Linear* l : layers) {
-      EPONA_CHECK(l->in == a.in && l->out == a.out && l->has_bias == a.has_bias, "Linear::group: (", l->in, " -> ",
-                  l->out, ") with (", a.in, " -> ", a.out, ")");
+      EPONA_CHECK(l->same_shape(a), "Linear::group: (", l->in, " -> ", l->out, ") with (", a.in, " -> ", a.out, ")");
       weights.push_back(l->weight.data());
       biases.push_back(l->has_bias ? l->bias.data() : nullptr);
     }
