@@ -15,7 +15,9 @@
 #include "epona/cuda/qk_norm_rope.cuh"
 #include "epona/cuda/world_ops.cuh"
 
+#include <algorithm>
 #include <array>
+#include <cmath>
 #include <cstring>
 #include <vector>
 
@@ -349,6 +351,100 @@ TEST_CASE("cuda add_layer_norm and add_gated_layer_norm_modulate match the CPU's
   check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 1500, 2048, true, seed++, 0, true);
   check_residual_norm<float, float, float, float, float>(ctx, 9, 1024, true, seed++, 0, true);
   check_residual_norm<bf16, bf16, bf16, bf16, bf16>(ctx, 7, 1024, true, seed++, 2, true);
+}
+
+namespace {
+
+// The MST's token assembly (try_assemble_frame_tokens) against a float64 loop over the same
+// (TI-rounded) inputs. Action rows are a single float32 add: bit-exact. Image rows: one
+// LayerNorm rounded to float32, then the add.
+template <class TI>
+void check_frame_tokens(cuda::Context& ctx, const FrameTokens& t, bool affine, std::uint32_t seed) {
+  const std::int64_t F = t.frames, L = t.image_rows, A = t.actions, C = t.width, T = t.tokens();
+  HostF image = random_tensor({F * L, C}, seed, -2.f, 4.f), actions = random_tensor({A, t.action_entries, C}, seed + 1);
+  HostF te = random_tensor({F, C}, seed + 2), w = random_tensor({C}, seed + 3, 0.5f, 1.5f);
+  HostF b = random_tensor({C}, seed + 4);
+  round_to<TI>(image);
+  HostF ref({F, T, C});
+  for (std::int64_t f = 0; f < F; ++f) {
+    for (std::int64_t s = 0; s < A; ++s)
+      for (std::int64_t c = 0; c < C; ++c)
+        ref.at(f, s, c) = actions.at(s, f, c) + te.at(f, c);
+    for (std::int64_t l = 0; l < L; ++l) {
+      const float* x = image.data() + (f * L + l) * C;
+      double mean = 0, var = 0;
+      for (std::int64_t c = 0; c < C; ++c) mean += x[c];
+      mean /= double(C);
+      for (std::int64_t c = 0; c < C; ++c) var += (x[c] - mean) * (x[c] - mean);
+      const double rstd = 1 / std::sqrt(var / double(C) + t.eps);
+      for (std::int64_t c = 0; c < C; ++c) {
+        const double y = (x[c] - mean) * rstd;
+        ref.at(f, A + l, c) = float(float(affine ? y * w.data()[c] + b.data()[c] : y) + te.at(f, c));
+      }
+    }
+  }
+  auto dimage = upload<TI>(ctx, image);
+  auto dactions = upload<float>(ctx, actions), dte = upload<float>(ctx, te), dw = upload<float>(ctx, w);
+  auto db = upload<float>(ctx, b);
+  Dev<float> out({F, T, C});
+  poison(ctx, out);
+  REQUIRE(cuda::try_assemble_frame_tokens(ctx, dimage.data(), dactions.data(), dte.data(), affine ? dw.data() : nullptr,
+                                          affine ? db.data() : nullptr, out.data(), t));
+  const HostF got = download(ctx, out);
+  const std::string what = std::string("frame tokens ") + type_name<TI>() + " " + std::to_string(F) + "x(" +
+                           std::to_string(A) + "+" + std::to_string(L) + ")x" + std::to_string(C) +
+                           (affine ? " affine" : "");
+  const auto action_row = [&](std::int64_t i) { return (i / C) % T < A; };
+  CHECK(count_bit_differences(got.data(), ref.data(), got.numel(), action_row) == 0);
+  const auto image_row = [&](std::int64_t i) { return !action_row(i); };
+  const Diff e = measure(got.data(), ref.data(), got.numel(), image_row);
+  check_error(e, one_rounding<float>(e.max_ref), what);
+}
+
+}  // namespace
+
+TEST_CASE("cuda assemble_frame_tokens: the MST's tokens in one pass, against float64") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  std::uint32_t seed = 900;
+  // The MST's window (10 frames of 3 action + 512 image rows, 11 action entries, width 2048) in
+  // both pass orders, then small widths (one and a partial pack round per lane) and no actions.
+  for (bool reverse : {true, false}) {
+    cuda::set_reversed_passes(reverse);
+    check_frame_tokens<bf16>(ctx, {10, 512, 3, 11, 2048, 1e-5f}, true, seed++);
+    check_frame_tokens<float>(ctx, {10, 512, 3, 11, 2048, 1e-5f}, true, seed++);
+  }
+  cuda::set_reversed_passes(true);
+  check_frame_tokens<float>(ctx, {3, 5, 3, 4, 64, 1e-6f}, false, seed++);
+  check_frame_tokens<bf16>(ctx, {2, 7, 1, 2, 520, 1e-5f}, true, seed++);
+  check_frame_tokens<float>(ctx, {4, 9, 0, 0, 128, 1e-5f}, true, seed++);
+}
+
+TEST_CASE("cuda assemble_frame_tokens declines layouts it cannot pack and rejects bad arguments") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  Dev<float> image({6, 48}), actions({3, 3, 48}), te({2, 48}), out({2, 6, 48});
+  poison(ctx, out);
+  // Width 45 is not a multiple of 8: nothing is written and the caller composes the passes.
+  CHECK_FALSE(cuda::try_assemble_frame_tokens(ctx, image.data(), actions.data(), te.data(), nullptr, nullptr,
+                                              out.data(), FrameTokens{2, 3, 3, 3, 45, 1e-5f}));
+  const HostF untouched = download(ctx, out);
+  CHECK(std::count_if(untouched.data(), untouched.data() + untouched.numel(), [](float v) { return std::isnan(v); }) ==
+        untouched.numel());
+  // A misaligned output row start declines too.
+  CHECK_FALSE(cuda::try_assemble_frame_tokens(ctx, image.data(), actions.data(), te.data(), nullptr, nullptr,
+                                              out.data() + 1, FrameTokens{2, 3, 3, 3, 40, 1e-5f}));
+  const FrameTokens ok{2, 3, 3, 3, 48, 1e-5f};
+  CHECK_THROWS_AS(cuda::try_assemble_frame_tokens(ctx, image.data(), static_cast<const float*>(nullptr), te.data(),
+                                                  nullptr, nullptr, out.data(), ok),
+                  Error);
+  CHECK_THROWS_AS(cuda::try_assemble_frame_tokens(ctx, image.data(), actions.data(), te.data(), nullptr, nullptr,
+                                                  out.data(), FrameTokens{3, 2, 3, 2, 48, 1e-5f}),
+                  Error);  // 2 action entries for 3 frames
+  CHECK_THROWS_AS(cuda::try_assemble_frame_tokens(ctx, image.data(), actions.data(), te.data(), nullptr, nullptr,
+                                                  out.data(), FrameTokens{-1, 3, 3, 3, 48, 1e-5f}),
+                  Error);
+  ctx.synchronize();
 }
 
 TEST_CASE("cuda layer_norm matches cpu::layer_norm") {

@@ -24,4 +24,14 @@ struct AttentionShape {
   const float* additive_mask = nullptr;
 };
 
+// The MST's input tokens of `frames` frames, (frames, actions + image_rows, width) float32:
+// frame f's row slot < actions is action entry f of that slot plus time_emb[f]; its row
+// actions + l is LN(image[f·image_rows + l]) · weight + bias + time_emb[f]. Action slot s,
+// entry e lives at actions + (s·action_entries + e)·width.
+struct FrameTokens {
+  std::int64_t frames = 0, image_rows = 0, actions = 0, action_entries = 0, width = 0;
+  float eps = 1e-5f;
+  std::int64_t tokens() const { return actions + image_rows; }
+};
+
 }  // namespace epona

@@ -84,13 +84,14 @@ struct KeepPack {
 // One row by one worker (a warp or a block) of up to P packs per thread; `sum` reduces over the
 // worker. Affine LayerNorm when weight/bias are given; with Modulate, shift/scale take their
 // place as (1 + scale) * LN(x) + shift, 1 + scale rounded to the parameters' storage type as
-// PyTorch does for `1 + scale_tensor`. `finish` transforms each pack before it is stored.
+// PyTorch does for `1 + scale_tensor`. `finish` transforms each pack before it is stored, into
+// row `out_row` of out (row when negative).
 template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP, class Sum,
           class Finish = KeepPack>
 __device__ __forceinline__ void norm_row(const RowNormArgs<TX, TY, TG, TO, TP>& a, std::int64_t row, int first,
-                                         int step, Sum sum, Finish finish = {}) {
+                                         int step, Sum sum, Finish finish = {}, std::int64_t out_row = -1) {
   const int packs = static_cast<int>(a.n / kPack);
-  const std::int64_t base = row * a.n;
+  const std::int64_t base = row * a.n, out_base = (out_row < 0 ? row : out_row) * a.n;
   float v[P][kPack];
 #pragma unroll
   for (int k = 0; k < P; ++k)
@@ -142,7 +143,7 @@ __device__ __forceinline__ void norm_row(const RowNormArgs<TX, TY, TG, TO, TP>& 
       v[k][i] = o;
     }
     finish(v[k], p * kPack);
-    store8(a.out + base + p * kPack, v[k]);
+    store8(a.out + out_base + p * kPack, v[k]);
   }
 }
 

@@ -8,6 +8,7 @@
 #include "epona/cuda/check.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/elementwise.cuh"
+#include "epona/cuda/frame_tokens.cuh"
 #include "epona/cuda/gemm.cuh"
 #include "epona/cuda/memory.hpp"
 #include "epona/cuda/norm.cuh"

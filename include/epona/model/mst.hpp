@@ -296,7 +296,6 @@ class SpatialTemporalTransformer {
   std::size_t evaluate_workspace_bytes() const {
     ArenaCounter<B> counter;
     plan_evaluate(counter);
-    plan_actions(counter, cfg_.condition_frames + 1);  // embed_actions' scratch sits on top
     return counter.bytes();
   }
   std::size_t pose_emb_workspace_bytes() const {
@@ -324,8 +323,13 @@ class SpatialTemporalTransformer {
     for (std::int64_t b = 0; b < batch; ++b) {
       ArenaScope<B> scope(arena);
       auto s = plan_evaluate(arena);
-      embed_actions(ctx, arena, pose_idx[b], yaw_idx[b], s.actions);
-      assemble_tokens(ctx, latents[b], s);
+      upload_fourier(ctx, s.pose, pose_idx[b], yaw_idx[b]);  // on the main queue: the upload waits for it
+      // The pose projectors' twelve small kernels run on the side queue, beside the image projector's.
+      side_.fork(ctx);
+      project_actions(side_.side(ctx), s.pose, s.actions);
+      project_images(ctx, latents[b], s);
+      side_.join(ctx);
+      assemble_tokens(ctx, s);
       if (observe) observe(b, "tokens_in", s.x);
       for (std::size_t i = 0; i < blocks_.size(); ++i) {
         // Only the last frame of the last block is consumed; an observer sees every frame.
@@ -354,7 +358,9 @@ class SpatialTemporalTransformer {
     for (std::int64_t b = 0; b < batch; ++b) {
       ArenaScope<B> scope(arena);
       auto actions = arena.template take<float>({3, 1, cfg_.n_embd});
-      embed_actions(ctx, arena, pose_idx[b], yaw_idx[b], actions);
+      auto scratch = plan_actions(arena, 1);
+      upload_fourier(ctx, scratch, pose_idx[b], yaw_idx[b]);
+      project_actions(ctx, scratch, actions);
       auto emb = pose_emb[b];
       write_pose_emb(ctx, actions, 0, emb);
     }
@@ -384,17 +390,18 @@ class SpatialTemporalTransformer {
   }
 
  private:
-  struct EvaluateScratch {
-    Tensor<float, B> actions;       // (3, F+1, C): projector outputs, slots yaw, pose_x, pose_y
-    Tensor<A, B> latents;           // (F·L, token_dim) the latents as GEMM input (empty when A is float)
-    Tensor<A, B> img_hidden;        // (F·L, C/2)
-    Tensor<float, B> x;             // (F, T, C) residual stream
-    typename MstLayer<B, W>::Scratch layer;  // (F·T) tokens
-  };
   struct ActionScratch {
     Tensor<A, B> fourier;    // (3, n, E)
     Tensor<A, B> hidden;     // (n, P)
     Tensor<A, B> projected;  // (n, C) before the projector's LayerNorm
+  };
+  struct EvaluateScratch {
+    Tensor<float, B> actions;       // (3, F+1, C): projector outputs, slots yaw, pose_x, pose_y
+    ActionScratch pose;             // the pose projectors' inputs and scratch over F+1 entries
+    Tensor<A, B> latents;           // (F·L, token_dim) the latents as GEMM input (empty when A is float)
+    Tensor<A, B> img_hidden;        // (F·L, C/2)
+    Tensor<float, B> x;             // (F, T, C) residual stream
+    typename MstLayer<B, W>::Scratch layer;  // (F·T) tokens
   };
 
   template <class Alloc>
@@ -402,6 +409,7 @@ class SpatialTemporalTransformer {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
     EvaluateScratch s;
     s.actions = a.template take<float>({3, F + 1, C});
+    s.pose = plan_actions(a, F + 1);
     if (kConvertInputs) s.latents = a.template take<A>({F * cfg_.img_tokens(), cfg_.token_dim});
     s.img_hidden = a.template take<A>({F * cfg_.img_tokens(), cfg_.img_hidden()});
     s.x = a.template take<float>({F, T, C});
@@ -414,13 +422,12 @@ class SpatialTemporalTransformer {
             a.template take<A>({n, cfg_.n_embd})};
   }
 
-  // Coordinates [yaw_idx/yaw_vocab, x_idx/x_vocab, y_idx/y_vocab] -> Fourier -> projectors.
-  // pose_idx (n, 2), yaw_idx (n, 1) -> actions (3, n, C) in slot order yaw, pose_x, pose_y.
-  void embed_actions(Context& ctx, Arena<B>& arena, const Tensor<float, Cpu>& pose_idx,
-                     const Tensor<float, Cpu>& yaw_idx, Tensor<float, B>& actions) const {
+  // Coordinates [yaw_idx/yaw_vocab, x_idx/x_vocab, y_idx/y_vocab] -> Fourier features in
+  // s.fourier (3, n, E), slot order yaw, pose_x, pose_y; pose_idx (n, 2), yaw_idx (n, 1).
+  void upload_fourier(Context& ctx, ActionScratch& s, const Tensor<float, Cpu>& pose_idx,
+                      const Tensor<float, Cpu>& yaw_idx) const {
     const std::int64_t n = yaw_idx.size(0), E = cfg_.fourier_dim;
-    ArenaScope<B> scope(arena);
-    auto s = plan_actions(arena, n);
+    EPONA_CHECK(s.fourier.size(1) == n, "MST action scratch holds ", s.fourier.size(1), " entries, not ", n);
     Tensor<float, Cpu> coords({3, n}), fourier({3, n, E});
     for (std::int64_t i = 0; i < n; ++i) {
       coords.at(kYaw, i) = yaw_idx.at(i, 0) / static_cast<float>(cfg_.yaw_vocab);
@@ -429,6 +436,9 @@ class SpatialTemporalTransformer {
     }
     nn::fourier_embed(coords.data(), 3 * n, E, cfg_.fourier_max_period, fourier.data());
     upload_as(ctx, fourier, s.fourier);  // the projectors' GEMMs take it in A (rounded on the host)
+  }
+  // s.fourier -> actions (3, n, C) through the yaw, pose_x and pose_y projectors.
+  void project_actions(Context& ctx, ActionScratch& s, Tensor<float, B>& actions) const {
     const Projector<B, W>* projectors[3] = {&yaw_projector_, &pose_x_projector_, &pose_y_projector_};
     for (std::int64_t slot = 0; slot < 3; ++slot) {
       auto out = actions[slot];
@@ -443,11 +453,10 @@ class SpatialTemporalTransformer {
     for (int i = 0; i < 3; ++i) copy(ctx, actions[order[i]][entry].data(), emb.data() + i * C, C);
   }
 
-  // X[f] = [yaw_f, pose_x_f, pose_y_f, img_projector(latents_f)] + time_emb[f]. The image
-  // projector's two GEMMs run once over all F·L tokens; its LayerNorm writes each frame's rows.
-  void assemble_tokens(Context& ctx, const Tensor<float, B>& latents, EvaluateScratch& s) const {
-    const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
-    const std::int64_t L = cfg_.img_tokens();
+  // The image projector's two GEMMs, once over all F·L tokens, into s.layer.u (free until the
+  // first block); its LayerNorm is part of assemble_tokens.
+  void project_images(Context& ctx, const Tensor<float, B>& latents, EvaluateScratch& s) const {
+    const std::int64_t L = cfg_.img_tokens(), F = cfg_.condition_frames;
     auto flat = latents.reshape({F * L, cfg_.token_dim});
     if constexpr (kConvertInputs) {
       convert(ctx, flat.data(), s.latents.data(), flat.numel());
@@ -455,8 +464,24 @@ class SpatialTemporalTransformer {
     } else {
       img_projector_.mlp.fc1(ctx, flat, s.img_hidden, BackendEpilogue<B>::GeluErf);
     }
-    auto projected = s.layer.u.slice(0, F * L);  // (F·L, C), free until the first block
+    auto projected = s.layer.u.slice(0, F * L);
     img_projector_.mlp.fc2(ctx, s.img_hidden, projected);
+  }
+
+  // X[f] = [yaw_f, pose_x_f, pose_y_f, LN(projected image rows of f)] + time_emb[f], one pass
+  // where the backend has it.
+  void assemble_tokens(Context& ctx, EvaluateScratch& s) const {
+    const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
+    const std::int64_t L = cfg_.img_tokens();
+    const auto projected = s.layer.u.slice(0, F * L);
+    const auto& ln = img_projector_.norm;
+    const FrameTokens tokens{F, L, constants::action_tokens, s.actions.size(1), C, ln.eps};
+    if constexpr (requires { try_assemble_frame_tokens(ctx, projected.data(), s.actions.data(), time_emb_.data(),
+                                                       ln.weight.data(), ln.bias.data(), s.x.data(), tokens); }) {
+      if (try_assemble_frame_tokens(ctx, projected.data(), s.actions.data(), time_emb_.data(), ln.weight.data(),
+                                    ln.bias.data(), s.x.data(), tokens))
+        return;
+    }
     for (std::int64_t f = 0; f < F; ++f) {
       auto frame = s.x[f];                  // (T, C)
       auto image_rows = frame.slice(3, T);  // (L, C)
@@ -524,6 +549,7 @@ class SpatialTemporalTransformer {
   Projector<B, W> img_projector_, pose_x_projector_, pose_y_projector_, yaw_projector_;
   std::vector<CausalTimeSpaceBlock<B, W>> blocks_;
   nn::RopeTable<B> rope_;  // (F·T, head_dim/2): every frame's rows, the action tokens unrotated
+  mutable typename BackendTraits<B>::SideQueue side_;  // the pose projectors' queue (a second GPU stream)
 };
 
 }  // namespace epona::model
