@@ -127,6 +127,30 @@ void emit_value(const std::string& name, double value) {
   std::fflush(stdout);
 }
 
+// The MST's front: from the start of an evaluation to its tokens assembled (an observer records
+// an event when it sees "tokens_in"; observed evaluations run every block unpruned, after the
+// front). `evaluate(observer)` runs one evaluation. Three warm-up runs, then `repeats`.
+template <class Evaluate>
+std::vector<double> mst_front_times_ms(cuda::Context& ctx, int repeats, const Evaluate& evaluate) {
+  cudaEvent_t start = nullptr, tokens = nullptr;
+  EPONA_CUDA_CHECK(cudaEventCreate(&start));
+  EPONA_CUDA_CHECK(cudaEventCreate(&tokens));
+  std::vector<double> runs;
+  for (int r = 0; r < repeats + 3; ++r) {
+    EPONA_CUDA_CHECK(cudaEventRecord(start, ctx.stream()));
+    evaluate([&](std::int64_t, const std::string& what, const Tensor<float, Cuda>&) {
+      if (what == "tokens_in") EPONA_CUDA_CHECK(cudaEventRecord(tokens, ctx.stream()));
+    });
+    EPONA_CUDA_CHECK(cudaEventSynchronize(tokens));
+    float ms = 0;
+    EPONA_CUDA_CHECK(cudaEventElapsedTime(&ms, start, tokens));
+    if (r >= 3) runs.push_back(ms);
+  }
+  EPONA_CUDA_CHECK(cudaEventDestroy(start));
+  EPONA_CUDA_CHECK(cudaEventDestroy(tokens));
+  return runs;
+}
+
 std::size_t used_device_bytes() {
   std::size_t free_b = 0, total_b = 0;
   EPONA_CUDA_CHECK(cudaMemGetInfo(&free_b, &total_b));
@@ -347,6 +371,10 @@ int run(const Options& o) {
   mst_once();
   if (o.profile && o.want("mst")) profile_once(ctx, mst_once);
   if (o.want("mst")) emit("mst", event_times_ms(ctx, R, 3, mst_once), mst_tflop);
+  if (o.want("mst")) emit("mst_front", mst_front_times_ms(ctx, R, [&](const model::MstObserver<Cuda>& observe) {
+                            arena.reset();
+                            mst.evaluate(ctx, arena, latents, pose_idx, yaw_idx, stt, pose_emb, observe);
+                          }), 0);
   // The MST again with one switch off and on, twice (off, on, off, on: drift shows as a round
   // difference), then the switch as it was.
   const auto mst_switch_rounds = [&](const std::string& what, bool was_on, const auto& set) {
