@@ -224,10 +224,13 @@ __device__ __forceinline__ void online_softmax(float (&sc)[kKeyTiles][4], float 
   rescale_rows(o, alpha);
 }
 
-// O += P V(t): the S accumulators of two adjacent key tiles form one A fragment of P.
-template <bool kExactDim, int kM, int kKeys>
+// O += P V(t): the S accumulators of two adjacent key tiles form one A fragment of P. With
+// kZeroPast, V's rows from `valid` on are read from zero_row instead (one row of zeros: P is 0
+// there, and 0 times garbage could be NaN), so the tile need not hold them.
+template <bool kExactDim, int kM, int kKeys, bool kZeroPast = false>
 __device__ __forceinline__ void warp_pv(float (&o)[kM][kDimTiles][4], const float (&sc)[kM][kKeys / 8][4],
-                                        const bf16* sV, int lane, int D) {
+                                        const bf16* sV, int lane, int D, int valid = 0,
+                                        const bf16* zero_row = nullptr) {
 #pragma unroll
   for (int kk = 0; kk < kKeys / 16; ++kk) {
     unsigned a[kM][4];
@@ -242,7 +245,8 @@ __device__ __forceinline__ void warp_pv(float (&o)[kM][kDimTiles][4], const floa
     for (int n2 = 0; n2 < kMaxHeadDim / 16; ++n2) {
       if (!kExactDim && n2 * 16 >= D) break;
       unsigned b[4];
-      ldmatrix_x4_trans(b, sV + (kk * 16 + (lane & 7) + ((lane >> 3) & 1) * 8) * kStride + n2 * 16 + (lane >> 4) * 8);
+      const int row = kk * 16 + (lane & 7) + ((lane >> 3) & 1) * 8, col = n2 * 16 + (lane >> 4) * 8;
+      ldmatrix_x4_trans(b, (kZeroPast && row >= valid ? zero_row : sV + row * kStride) + col);
 #pragma unroll
       for (int mt = 0; mt < kM; ++mt) {
         mma_bf16(o[mt][2 * n2], a[mt], b[0], b[1]);
@@ -282,12 +286,13 @@ __device__ __forceinline__ bool tile_masked(const FlashParams<bf16>& p, int row0
   return !(p.scale > 0.f) || p.mask || k0 + keys > p.lk || (p.causal && k0 + keys - 1 > row0);
 }
 
-// One key tile for one warp: scores, softmax (per m-tile), O += P V.
-template <bool kExactDim, int kM, int kKeys>
+// One key tile for one warp: scores, softmax (per m-tile), O += P V (kZeroPast: V's rows past
+// lk read from zero_row, as warp_pv).
+template <bool kExactDim, int kM, int kKeys, bool kZeroPast = false>
 __device__ __forceinline__ void warp_tile(float (&o)[kM][kDimTiles][4], float (&m)[kM][2], float (&l)[kM][2],
                                           const FlashParams<bf16>& p, const bf16* sQ, const bf16* sK,
                                           const bf16* sV, int row0, const int (&rows)[kM][2], int k0, int lane,
-                                          int D) {
+                                          int D, const bf16* zero_row = nullptr) {
   float sc[kM][kKeys / 8][4] = {};
   warp_scores<kExactDim, kM, kKeys>(sc, sQ, sK, lane, D);
 #pragma unroll
@@ -297,7 +302,7 @@ __device__ __forceinline__ void warp_tile(float (&o)[kM][kDimTiles][4], float (&
     else
       online_softmax<false>(sc[mt], m[mt], l[mt], o[mt], p, rows[mt], k0, lane % 4);
   }
-  warp_pv<kExactDim, kM, kKeys>(o, sc, sV, lane, D);
+  warp_pv<kExactDim, kM, kKeys, kZeroPast>(o, sc, sV, lane, D, p.lk - k0, zero_row);
 }
 
 // A block: kGroups groups of kWarps warps with kM m-tiles each, over rows = 16 kWarps kM
@@ -459,29 +464,38 @@ __global__ void __launch_bounds__(Tile::threads, Tile::min_blocks)
 // per (sequence, head) loads Q, K and V once into its own shared memory (no block barrier),
 // computes the 16 x 16 scores and P V with 32 mma, and stores. A block of 4 warps takes 4
 // consecutive (sequence, head) pairs: the heads of one token are adjacent. The 16-row
-// operand tiles overlap, so that a warp needs lq + lk + 16 rows rather than 48 (more warps
-// fit a multiprocessor): Q's rows past lq are K's rows (they make score rows that are never
-// stored), K's rows past lk are V's (their scores are replaced by -inf), and V's rows past
-// lk are zeros (P = 0 there; 0 times garbage could be NaN).
+// operand tiles overlap, so that a warp needs max(lq + 2 lk + 1, lq + 16) rows rather than 48
+// (more warps fit a multiprocessor: 31 rows at the MST's 10 x 10 let 6 blocks share one with the
+// QK norm's statistics, against 5 with 16-row V tiles): Q's rows past lq are K's rows (they make
+// score rows that are never stored), K's rows past lk are V's and what follows (their scores are
+// replaced by -inf), and V's rows past lk are read from a row of zeros after V (P = 0 there;
+// 0 times garbage could be NaN).
 constexpr int kShortWarps = 4, kShortThreads = 32 * kShortWarps, kShortLen = 16;
-__host__ __device__ inline int short_smem_bytes(int lq, int lk) { return kShortWarps * (lq + lk + kShortLen) * kStride * 2; }
+__host__ __device__ inline int short_warp_rows(int lq, int lk) {
+  return lq + 2 * lk + 1 > lq + kShortLen ? lq + 2 * lk + 1 : lq + kShortLen;
+}
+__host__ __device__ inline int short_smem_bytes(int lq, int lk) {
+  return kShortWarps * short_warp_rows(lq, lk) * kStride * 2;
+}
 
-// A warp's overlapping Q, K and V tiles of (sequence s, head h) in shared memory, their loads
-// issued and committed (the caller waits).
+// A warp's overlapping Q, K and V tiles of (sequence s, head h) and its zero row in shared
+// memory, their loads issued and committed (the caller waits).
 struct ShortTiles {
-  bf16 *q, *k, *v;
+  bf16 *q, *k, *v, *zero;
 };
 template <bool kExactDim>
 __device__ __forceinline__ ShortTiles load_short_tiles(unsigned char* smem, const FlashParams<bf16>& p,
                                                        std::int64_t s, int h, int warp, int lane, int D) {
-  bf16* sQ = reinterpret_cast<bf16*>(smem) + warp * (p.lq + p.lk + kShortLen) * kStride;
+  bf16* sQ = reinterpret_cast<bf16*>(smem) + warp * short_warp_rows(p.lq, p.lk) * kStride;
   bf16* sK = sQ + p.lq * kStride;
   bf16* sV = sK + p.lk * kStride;
+  bf16* zero = sV + p.lk * kStride;
   load_tile<kExactDim>(sQ, p.q + s * p.q_seq + std::int64_t{h} * D, p.q_row, 0, p.lq, p.lq, D, lane, 32);
   load_tile<kExactDim>(sK, p.k + s * p.k_seq + std::int64_t{h} * D, p.k_row, 0, p.lk, p.lk, D, lane, 32);
-  load_tile<kExactDim>(sV, p.v + s * p.v_seq + std::int64_t{h} * D, p.v_row, 0, kShortLen, p.lk, D, lane, 32);
+  load_tile<kExactDim>(sV, p.v + s * p.v_seq + std::int64_t{h} * D, p.v_row, 0, p.lk, p.lk, D, lane, 32);
+  if (lane < kMaxHeadDim / 8) reinterpret_cast<uint4*>(zero)[lane] = make_uint4(0, 0, 0, 0);
   cp_async_commit();
-  return {sQ, sK, sV};
+  return {sQ, sK, sV, zero};
 }
 // The warp's 16 x 16 scores, softmax and P V over its loaded tiles, stored.
 template <bool kExactDim>
@@ -490,7 +504,7 @@ __device__ __forceinline__ void short_attend(const FlashParams<bf16>& p, const S
   float o[1][kDimTiles][4] = {};
   float m[1][2] = {{-INFINITY, -INFINITY}}, l[1][2] = {{0.f, 0.f}};
   const int rows[1][2] = {{lane / 4, lane / 4 + 8}};
-  if (p.lk > 0) warp_tile<kExactDim, 1, kShortLen>(o, m, l, p, t.q, t.k, t.v, 0, rows, 0, lane, D);
+  if (p.lk > 0) warp_tile<kExactDim, 1, kShortLen, true>(o, m, l, p, t.q, t.k, t.v, 0, rows, 0, lane, D, t.zero);
   store_rows<kExactDim>(o[0], l[0], p, rows[0], s, h, D, lane % 4);
 }
 
