@@ -199,8 +199,9 @@ std::pair<HostF, HostF> random_rope_table(std::int64_t rows, std::int64_t pairs,
 }
 
 template <class T>
-void check_qk_norm_rope(cuda::Context& ctx, std::int64_t rows_q, std::int64_t rows_k, bool rotate) {
-  const std::int64_t n = 2048, heads = 16, head_dim = n / heads, rows = std::max(rows_q, rows_k);
+void check_qk_norm_rope(cuda::Context& ctx, std::int64_t rows_q, std::int64_t rows_k, bool rotate,
+                        std::int64_t n = 2048, std::int64_t head_dim = 128) {
+  const std::int64_t heads = n / head_dim, rows = std::max(rows_q, rows_k);
   HostF q = random_tensor({rows_q, n}, 21, -3.f, 5.f), k = random_tensor({rows_k, n}, 22, -2.f, 2.f);
   round_to<T>(q), round_to<T>(k);
   const HostF qw = random_tensor({n}, 23, 0.5f, 1.5f), qb = random_tensor({n}, 24), kw = random_tensor({n}, 25, 0.5f, 1.5f),
@@ -214,7 +215,8 @@ void check_qk_norm_rope(cuda::Context& ctx, std::int64_t rows_q, std::int64_t ro
   const bool fused = cuda::layer_norm_rope_qk(ctx, fq.data(), rows_q, fk.data(), rows_k, n, dqw.data(), dqb.data(),
                                               1e-5f, dkw.data(), dkb.data(), 1e-6f, head_dim, c, s);
   const std::string what = std::string(type_name<T>()) + " q " + std::to_string(rows_q) + " k " +
-                           std::to_string(rows_k) + (rotate ? " rope" : "");
+                           std::to_string(rows_k) + " width " + std::to_string(n) + " head_dim " +
+                           std::to_string(head_dim) + (rotate ? " rope" : "");
   const bool expect_fused = rows_q >= 8 * ctx.info().multiprocessors && rows_k >= 8 * ctx.info().multiprocessors;
   CHECK_MESSAGE(fused == expect_fused, what);
   if (!fused) {  // declined: nothing may have been written
@@ -262,6 +264,11 @@ TEST_CASE("fused MST QK LayerNorm + RoPE: rounded once, within one bf16 rounding
   }
   check_qk_norm_rope<bf16>(ctx, 1300, 5150, false);  // the time layer: fewer queries than keys
   check_qk_norm_rope<bf16>(ctx, 515, 5150, false);   // the pruned block: declined (block-per-row norm)
+  // Head dims whose packs sit at one channel of their head per lane (64: angles loaded once with
+  // the row) and at several (96: per pack).
+  check_qk_norm_rope<bf16>(ctx, 2060, 2060, true, 2048, 64);
+  check_qk_norm_rope<bf16>(ctx, 2060, 2060, true, 1536, 96);
+  check_qk_norm_rope<float>(ctx, 2060, 2060, true, 1536, 96);
 }
 
 TEST_CASE("the large row passes give the same bits walking the rows first to last and last to first") {

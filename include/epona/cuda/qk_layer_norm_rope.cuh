@@ -27,14 +27,20 @@ struct QkNormRopeArgs {
   bool reverse;                // warps take the rows last to first
 };
 
-// Interleaved pairs (2j, 2j+1) of the 8 channels starting at channel c0 of a row (a pack inside
-// one head), rotated by the table row (cos, sin): float32 arithmetic as rope_kernel. The pack's
-// four angles are consecutive in the table: one 16-byte load each of cos and sin.
-__device__ __forceinline__ void rotate_pack(float (&v)[kPack], int c0, int head_dim, const float* cos,
-                                            const float* sin) {
-  const int j0 = (c0 % head_dim) / 2;
-  const float4 c4 = *reinterpret_cast<const float4*>(cos + j0), s4 = *reinterpret_cast<const float4*>(sin + j0);
-  const float cs[4] = {c4.x, c4.y, c4.z, c4.w}, sn[4] = {s4.x, s4.y, s4.z, s4.w};
+// The four angles of the 8 channels starting at channel c0 of a row (a pack inside one head):
+// consecutive in the table row (cos, sin), one 16-byte load each.
+struct PackAngles {
+  float4 cos, sin;
+  __device__ __forceinline__ PackAngles(int c0, int head_dim, const float* cos_row, const float* sin_row) {
+    const int j0 = (c0 % head_dim) / 2;
+    cos = *reinterpret_cast<const float4*>(cos_row + j0);
+    sin = *reinterpret_cast<const float4*>(sin_row + j0);
+  }
+};
+
+// Interleaved pairs (2j, 2j+1) of a pack rotated by its angles: float32 arithmetic as rope_kernel.
+__device__ __forceinline__ void rotate_pack(float (&v)[kPack], const PackAngles& t) {
+  const float cs[4] = {t.cos.x, t.cos.y, t.cos.z, t.cos.w}, sn[4] = {t.sin.x, t.sin.y, t.sin.z, t.sin.w};
 #pragma unroll
   for (int i = 0; i < kPack / 2; ++i) {
     const float a = v[2 * i], b = v[2 * i + 1];
@@ -49,6 +55,7 @@ __device__ __forceinline__ void rotate_pack(float (&v)[kPack], int c0, int head_
 // rotation, bf16 for the attention) rounds them.
 template <class T, int P>
 __global__ void __launch_bounds__(32 * kNormWarps) qk_layer_norm_rope_kernel(QkNormRopeArgs<T> a) {
+  wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t item = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
   if (item >= a.rows_q + a.rows_k) return;
   const std::int64_t w = pass_index(item, a.rows_q + a.rows_k, a.reverse);
@@ -65,8 +72,16 @@ __global__ void __launch_bounds__(32 * kNormWarps) qk_layer_norm_rope_kernel(QkN
   const int pairs = a.head_dim / 2;
   const float* cos = a.cos + row * pairs;
   const float* sin = a.sin + row * pairs;
-  norm_row<P, false, false>(norm, row, lane, 32, warp,
-                            [&](float (&v)[kPack], int c0) { rotate_pack(v, c0, a.head_dim, cos, sin); });
+  if ((32 * kPack) % a.head_dim == 0) {
+    // A lane's packs (lane + 32 i) all start at the same channel of their heads: their angles are
+    // loaded once, with the row, instead of after the statistics for every pack.
+    const PackAngles angles(lane * kPack, a.head_dim, cos, sin);
+    return norm_row<P, false, false>(norm, row, lane, 32, warp,
+                                     [&](float (&v)[kPack], int) { rotate_pack(v, angles); });
+  }
+  norm_row<P, false, false>(norm, row, lane, 32, warp, [&](float (&v)[kPack], int c0) {
+    rotate_pack(v, PackAngles(c0, a.head_dim, cos, sin));
+  });
 }
 
 }  // namespace detail
@@ -97,8 +112,8 @@ bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int6
                                     detail::reversed_passes_flag()};
   const auto blocks = static_cast<unsigned>((rows_q + rows_k + detail::kNormWarps - 1) / detail::kNormWarps);
   detail::with_warp_row_packs(n, [&](auto packs_per_lane) {  // the choice layer_norm makes
-    detail::qk_layer_norm_rope_kernel<T, decltype(packs_per_lane)::value>
-        <<<blocks, 32 * detail::kNormWarps, 0, ctx.stream()>>>(a);
+    detail::launch_after(detail::qk_layer_norm_rope_kernel<T, decltype(packs_per_lane)::value>, blocks,
+                         32 * detail::kNormWarps, 0, ctx.stream(), a);
   });
   EPONA_CUDA_CHECK_LAUNCH();
   return true;
