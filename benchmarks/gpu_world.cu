@@ -1,9 +1,10 @@
 // epona's world model on the GPU at the real configuration (512x1024 frames -> 16x32 latents,
 // 10 condition frames, the shipped widths and depths, 100 sampling steps), random weights
 // (model/random_weights.hpp), bf16 weights and activations (float32 MST residual stream):
-// MST over 10 frames (and `mst_front`: from its start to the tokens assembled); TrajDiT and VisDiT one evaluation (forward: cond_in, modulations and one
-// velocity) and 100-step sample (prepare + the recorded sampling loop); one autoregressive
-// step (MST + TrajDiT 100 + VisDiT 100, self-predicted action, host to host); the bf16 GEMM
+// MST over 10 frames (and `mst_front`: from its start to the tokens assembled); TrajDiT and
+// VisDiT one evaluation (forward: cond_in, modulations and one velocity) and 100-step sample
+// (prepare + the recorded sampling loop); one autoregressive step (MST + TrajDiT 100 +
+// VisDiT 100, self-predicted action, host to host); the bf16 GEMM
 // ceiling through the same cuBLASLt path (8192^3, rotating buffers); device memory in use;
 // the element-wise passes between the GEMMs at the model's sizes (row `pass_*`: residual add +
 // LayerNorm apart and fused, in-place LayerNorm, the erf GELU, gated residual + modulated norm).
