@@ -37,7 +37,7 @@ template <> struct BackendTraits<Cuda> {
     EPONA_CHECK(host.numel() == dst.numel(), "upload_into: ", shape_str(host.shape()), " into ",
                 shape_str(dst.shape()));
     auto view = Tensor<T, Cuda>::view(dst.data(), host.shape(), dst.storage());
-    cuda::copy(ctx, view, host);
+    cuda::copy_async(ctx, view, host);  // the model's uploads do not wait for the stream
   }
   template <class T>
   static void download_into(Context& ctx, const Tensor<T, Cuda>& src, Tensor<T, Cpu>& host) {

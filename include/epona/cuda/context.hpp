@@ -15,6 +15,7 @@
 
 #include "epona/core/error.hpp"
 #include "epona/cuda/check.hpp"
+#include "epona/cuda/host_staging.hpp"
 
 namespace epona::cuda {
 
@@ -124,6 +125,14 @@ class Context {
 
   std::map<detail::LtPlanKey, std::unique_ptr<detail::LtPlan>>& gemm_plans() { return gemm_plans_; }
 
+  // Host -> device on the stream without waiting for it, through the context's pinned ring
+  // (host_staging.hpp); src may be reused on return. False, with nothing done, where the ring
+  // cannot take the copy (too large, the stream capturing a graph, no pinned memory).
+  bool upload_staged(void* dst, const void* src, std::size_t bytes) {
+    if (!staging_) staging_ = std::make_unique<HostStaging>(stream());
+    return staging_->upload(dst, src, bytes);
+  }
+
   // A device buffer of `bytes` kept for the context's lifetime under `name` (constant tables
   // that kernels build on first use, such as the bf16 GELU lookup table). `*created` tells the
   // caller whether it must fill it. The same name must always ask for the same size.
@@ -155,6 +164,7 @@ class Context {
 
   DeviceInfo info_;
   std::unique_ptr<CUstream_st, StreamDeleter> stream_;
+  std::unique_ptr<HostStaging> staging_;  // after the stream: its transfers end before the stream goes
   std::unique_ptr<cublasLtContext, LtDeleter> lt_;
   std::unique_ptr<void, DeviceFree> workspace_;
   std::size_t workspace_bytes_ = 0;

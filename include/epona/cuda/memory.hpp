@@ -60,6 +60,15 @@ void copy(Context& ctx, Tensor<T, Cuda>& dst, const Tensor<T, Cpu>& src) {
   ctx.synchronize();
 }
 
+// Host -> device, ordered on ctx's stream, without waiting for the stream where the context's
+// pinned ring takes the bytes (Context::upload_staged); otherwise as copy() above. The host
+// buffer may be reused on return either way.
+template <class T>
+void copy_async(Context& ctx, Tensor<T, Cuda>& dst, const Tensor<T, Cpu>& src) {
+  detail::check_same_shape(dst, src, "copy to device");
+  if (!ctx.upload_staged(dst.data(), src.data(), src.nbytes())) copy(ctx, dst, src);
+}
+
 // Device -> host, ordered after all work queued on ctx's stream.
 template <class T>
 void copy(Context& ctx, Tensor<T, Cpu>& dst, const Tensor<T, Cuda>& src) {
