@@ -162,7 +162,8 @@ double bench_linear(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int
 std::string plan_name(const cuda::detail::TmaPlan& p) {
   return "planned " + std::to_string(p.rows) + " rows, " + std::to_string(p.splits) + " key ranges" +
          (p.splits > 1 ? (p.tail_only ? " (last row block)" : " (all row blocks)") : "") +
-         (p.share_rows ? "" : ", unshared") + (p.narrow_last ? "" : ", wide last tile");
+         (p.share_rows ? "" : ", unshared") + (p.narrow_last ? "" : ", wide last tile") +
+         (p.ctas > 0 ? ", persistent over " + std::to_string(p.ctas) + " CTAs" : "");
 }
 
 // One attention shape timed with the automatic choice (first and last: its two medians show
@@ -216,7 +217,9 @@ void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const
   if (!fits_wgmma || a.lk == 0 || fits_short) return;
   const TmaPlan plans[] = {{64, 1},       {64, 2},       {64, 3},          {64, 5},
                            {128, 1, true}, {128, 2, true}, {128, 3, true},  {128, 5, true},
-                           {128, 2},       {128, 3},       {64, 1, false, true, false}, {128, 1, true, false, false}};
+                           {128, 2},       {128, 3},       {64, 1, false, true, false}, {128, 1, true, false, false},
+                           {128, 1, true, true, true, ctx.info().multiprocessors},
+                           {128, 1, true, false, true, ctx.info().multiprocessors}};
   for (const TmaPlan& plan : plans) time(plan_name(plan), FlashKernel::TmaPlanned, &plan);
 }
 

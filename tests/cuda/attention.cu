@@ -520,13 +520,16 @@ TEST_CASE("cuda attention bf16: Auto takes the wgmma kernel where it applies, th
 // The planned TMA kernel (TmaPlanned): each way a plan covers a call. 64-row blocks (the two
 // consumers share the rows and take alternate key tiles) and 128-row blocks (a last row block of
 // <= 64 rows shared), key ranges (float32 partials and the combine kernel) on every row block or
-// the last only, unshared rows and the wide last tile; against float64 loops, with the bf16
-// bound above.
+// the last only, unshared rows, the wide last tile and persistent CTAs that take several row
+// blocks each; against float64 loops, with the bf16 bound above.
 using cuda::detail::TmaPlan;
 std::vector<TmaPlan> every_plan() {
   return {TmaPlan{64, 1},          TmaPlan{64, 2},        TmaPlan{64, 3},         TmaPlan{64, 5},
           TmaPlan{128, 1, true},   TmaPlan{128, 3, true}, TmaPlan{128, 2},        TmaPlan{128, 4},
-          TmaPlan{128, 16},        TmaPlan{64, 2, false, false, false},       TmaPlan{128, 3, true, false, true}};
+          TmaPlan{128, 16},        TmaPlan{64, 2, false, false, false},       TmaPlan{128, 3, true, false, true},
+          // persistent: few CTAs, so each takes many row blocks (shared, split and whole ones in turn)
+          TmaPlan{128, 1, true, true, true, 3}, TmaPlan{64, 3, false, true, true, 5},
+          TmaPlan{128, 2, false, true, true, 7}, TmaPlan{128, 3, true, false, true, 2}};
 }
 
 TEST_CASE("cuda attention bf16: the planned TMA kernel, every plan on awkward lengths") {
@@ -564,8 +567,10 @@ TEST_CASE("cuda attention bf16 model shapes: the planned TMA kernel") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
   EPONA_REQUIRE_WGMMA(ctx);
+  const int sms = ctx.info().multiprocessors;
   const std::vector<TmaPlan> plans = {TmaPlan{64, 1},        TmaPlan{64, 3},  TmaPlan{128, 1, true},
-                                      TmaPlan{128, 5, true}, TmaPlan{128, 2}, TmaPlan{64, 5}};
+                                      TmaPlan{128, 5, true}, TmaPlan{128, 2}, TmaPlan{64, 5},
+                                      TmaPlan{128, 1, true, true, true, sms}, TmaPlan{128, 5, true, true, true, sms}};
   std::uint32_t seed = 800;
   check_plans(ctx, packed(1, 16, 1027, 128), seed++, "VisDiT joint 16 x 1027", plans);
   check_plans(ctx, packed_tail(1, 16, 1027, 515, 128), seed++, "VisDiT last single 512 of 1027", plans);
@@ -621,6 +626,8 @@ TEST_CASE("cuda attention bf16: planned TMA kernel in a CUDA graph, bad plans re
   };
   CHECK_THROWS_WITH_AS(run_plan(l, TmaPlan{96, 1}), doctest::Contains("unsupported"), epona::Error);
   CHECK_THROWS_WITH_AS(run_plan(l, TmaPlan{64, 17}), doctest::Contains("unsupported"), epona::Error);
+  CHECK_THROWS_WITH_AS(run_plan(l, TmaPlan{128, 1, true, true, true, -1}), doctest::Contains("unsupported"),
+                       epona::Error);
   // 1 x 8 x 530 rows x 16 ranges of partials: 35 MB, more than the buffer holds.
   Layout big = packed(1, 8, 530, 128);
   CHECK(input_elems(big) <= din.numel());

@@ -644,13 +644,17 @@ inline bool is_wgmma(FlashKernel k) {
 // each, whose float32 partial results a combine kernel normalises (tail_only: only the last,
 // partial row block). narrow_last: the sequence's last key tile is multiplied only as wide as
 // its keys (32 or 64). A single wave of blocks that leaves multiprocessors idle, or a last wave
-// of full-length blocks for a few rows, is what the plan avoids.
+// of full-length blocks for a few rows, is what the plan avoids. ctas > 0 (persistent): at most
+// that many CTAs take the row blocks in turn (CTA i: i, i + grid, ...), each producer loading
+// the next block's Q and first key tiles while its consumers finish and store the last; 0: one
+// CTA per row block.
 struct TmaPlan {
   int rows = 128;
   int splits = 1;
   bool tail_only = false;
   bool share_rows = true;
   bool narrow_last = true;
+  int ctas = 0;
 };
 inline constexpr int kMaxSplits = 16;
 // Partial results of split blocks live in one buffer of the context (attention_wgmma.cuh).

@@ -220,6 +220,7 @@ __device__ __forceinline__ void tma_load(unsigned dst, const CUtensorMap& map, i
 // unnormalised outputs per (pair, row, range) in partial, its max and sum in partial_ml.
 struct TmaGrid {
   int heads, seqs, rows, full_row_blocks, full_splits, tail_splits, splits, split_row0;
+  std::int64_t blocks;  // row blocks (with their key ranges); a persistent grid has fewer CTAs
   bool share_rows, narrow_last;
   float *partial, *partial_ml;
 };
@@ -233,8 +234,9 @@ struct TmaTiling {
   static constexpr int k_bytes = keys * kMaxHeadDim * 2;    // one K (or V) tile
   static constexpr int stages = kStages;
   static constexpr int bars_offset = kConsumers * q_bytes + stages * 2 * k_bytes;
-  // Tiles, the mbarriers (q, then k, v and empty per stage), alignment slack.
-  static constexpr int smem_bytes = bars_offset + 8 * (1 + 3 * stages) + kAtomBytes;
+  // Tiles, the mbarriers (q, then k, v and empty per stage, then Q's and the merge's release),
+  // alignment slack.
+  static constexpr int smem_bytes = bars_offset + 8 * (3 + 3 * stages) + kAtomBytes;
   static_assert(kConsumers * 128 * kPartialValues * 4 <= stages * 2 * k_bytes, "the merge fits the stages");
 };
 
@@ -245,9 +247,9 @@ struct TmaBlock {
   int h, q0, t_begin, t_end;
   int split;  // -1: the block has all of its rows' keys and stores the normalised output
 };
-__device__ __forceinline__ TmaBlock tma_block(const FlashParams<bf16>& p, const TmaGrid& g, int tile_keys) {
+__device__ __forceinline__ TmaBlock tma_block(const FlashParams<bf16>& p, const TmaGrid& g, int tile_keys,
+                                              std::int64_t b) {
   const std::int64_t pairs = std::int64_t{g.heads} * g.seqs, per_pair = std::int64_t{g.full_row_blocks} * g.full_splits;
-  const std::int64_t b = blockIdx.x;
   std::int64_t pair;
   int rb, range, ranges;
   if (b < per_pair * pairs) {
@@ -299,6 +301,23 @@ __device__ __forceinline__ void consume_tile(float (&o)[kDimTiles][4], float (&m
   wg_accumulate_pv<kWidth, kTileKeys>(o, sc, sV);
 }
 
+// Whether a block's consumers share its rows (at most 64 live: each takes a share of the key
+// tiles, merged at the end) and how many 64-row Q tiles it loads.
+struct TmaRows {
+  bool shared;
+  int q_tiles;
+};
+template <class Tile>
+__device__ __forceinline__ TmaRows tma_rows(const FlashParams<bf16>& p, const TmaGrid& g, const TmaBlock& b) {
+  const bool shared = Tile::consumers > 1 && g.share_rows && min(p.lq - b.q0, g.rows) <= 64;
+  return {shared, shared ? 1 : g.rows / 64};
+}
+
+// Blocks blockIdx.x, + gridDim.x, ... of the grid's row blocks (one each unless persistent).
+// Tiles go through the stages in one sequence across the blocks (n: the CTA's tile count), so
+// the producer loads a block's first tiles while the consumers finish the one before; it loads
+// a block's Q once the consumers have released the last Q (q_empty), and after a block whose
+// consumers merge in the stages' memory, waits for the merge (merged).
 template <class Tile>
 __global__ void __launch_bounds__(Tile::threads, 1)
     flash_tma_kernel(const __grid_constant__ CUtensorMap q_map, const __grid_constant__ CUtensorMap k_map,
@@ -314,12 +333,8 @@ __global__ void __launch_bounds__(Tile::threads, 1)
   const auto k_full = [&](int stage) { return q_full + 8 * (1 + stage); };
   const auto v_full = [&](int stage) { return q_full + 8 * (1 + kStages + stage); };
   const auto empty = [&](int stage) { return q_full + 8 * (1 + 2 * kStages + stage); };
+  const unsigned q_empty = q_full + 8 * (1 + 3 * kStages), merged = q_empty + 8;
 
-  const TmaBlock b = tma_block(p, g, kKeys);
-  const int tiles = b.t_end - b.t_begin;
-  // At most 64 live rows: every consumer takes them, each a share of the key tiles.
-  const bool shared_rows = Tile::consumers > 1 && g.share_rows && min(p.lq - b.q0, g.rows) <= 64;
-  const int q_tiles = shared_rows ? 1 : g.rows / 64;
   const int wg = threadIdx.x / 128;
   if (threadIdx.x == 0) {
     mbar::init(q_full, 1);
@@ -328,6 +343,8 @@ __global__ void __launch_bounds__(Tile::threads, 1)
       mbar::init(v_full(st), 1);
       mbar::init(empty(st), 4 * Tile::consumers);  // lane 0 of every consumer warp
     }
+    mbar::init(q_empty, 4 * Tile::consumers);
+    mbar::init(merged, 1);
     asm volatile("fence.mbarrier_init.release.cluster;\n" ::: "memory");
   }
   __syncthreads();
@@ -335,74 +352,93 @@ __global__ void __launch_bounds__(Tile::threads, 1)
   if (wg == 0) {  // producer
     if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.dec.sync.aligned.u32 40;\n" ::: "memory");
     if (threadIdx.x != 0) return;
-    mbar::expect_bytes(q_full, q_tiles * Tile::q_bytes);
-    for (int c = 0; c < q_tiles; ++c)
-      for (int half = 0; half < 2; ++half)
-        tma_load(sQ + c * Tile::q_bytes + half * 64 * kRowBytes, q_map, 64 * half, b.h, b.q0 + 64 * c,
-                 static_cast<int>(b.s), q_full);
-    for (int i = 0; i < tiles; ++i) {
-      const int st = i % kStages, key0 = (b.t_begin + i) * kKeys;
-      mbar::wait(empty(st), ((i / kStages) + 1) & 1);  // tile i - kStages released the stage
-      mbar::expect_bytes(k_full(st), Tile::k_bytes);
-      for (int half = 0; half < 2; ++half)
-        tma_load(sK(st) + half * kKeys * kRowBytes, k_map, 64 * half, b.h, key0, static_cast<int>(b.s), k_full(st));
-      mbar::expect_bytes(v_full(st), Tile::k_bytes);
-      for (int half = 0; half < 2; ++half)
-        tma_load(sV(st) + half * kKeys * kRowBytes, v_map, 64 * half, b.h, key0, static_cast<int>(b.s), v_full(st));
+    int n = 0, merges = 0;
+    for (std::int64_t item = blockIdx.x, it = 0; item < g.blocks; item += gridDim.x, ++it) {
+      const TmaBlock b = tma_block(p, g, kKeys, item);
+      const TmaRows r = tma_rows<Tile>(p, g, b);
+      if (it > 0) mbar::wait(q_empty, (it - 1) & 1);  // the consumers are done with the last Q
+      mbar::expect_bytes(q_full, r.q_tiles * Tile::q_bytes);
+      for (int c = 0; c < r.q_tiles; ++c)
+        for (int half = 0; half < 2; ++half)
+          tma_load(sQ + c * Tile::q_bytes + half * 64 * kRowBytes, q_map, 64 * half, b.h, b.q0 + 64 * c,
+                   static_cast<int>(b.s), q_full);
+      for (int i = b.t_begin; i < b.t_end; ++i, ++n) {
+        const int st = n % kStages, key0 = i * kKeys;
+        mbar::wait(empty(st), ((n / kStages) + 1) & 1);  // tile n - kStages released the stage
+        mbar::expect_bytes(k_full(st), Tile::k_bytes);
+        for (int half = 0; half < 2; ++half)
+          tma_load(sK(st) + half * kKeys * kRowBytes, k_map, 64 * half, b.h, key0, static_cast<int>(b.s), k_full(st));
+        mbar::expect_bytes(v_full(st), Tile::k_bytes);
+        for (int half = 0; half < 2; ++half)
+          tma_load(sV(st) + half * kKeys * kRowBytes, v_map, 64 * half, b.h, key0, static_cast<int>(b.s), v_full(st));
+      }
+      if (r.shared && item + gridDim.x < g.blocks) mbar::wait(merged, merges++ & 1);  // the stages hold the merge
     }
   } else {  // consumer warpgroup wg - 1 (one branch of an if/else: setmaxnreg applies per role)
     if constexpr (Tile::consumers > 1) asm volatile("setmaxnreg.inc.sync.aligned.u32 232;\n" ::: "memory");
     const int group = wg - 1, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32;
-    const int q_tile = shared_rows ? 0 : group;
-    const int group_row0 = b.q0 + 64 * q_tile, warp_row0 = group_row0 + 16 * warp;
-    const int rows[2] = {warp_row0 + lane / 4, warp_row0 + lane / 4 + 8};
-    const bool group_active = group_row0 < p.lq && q_tile < q_tiles;
-    float o[kDimTiles][4] = {};
-    float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
-    mbar::wait(q_full, 0);
-    for (int i = 0; i < tiles; ++i) {
-      const int st = i % kStages;
-      const unsigned parity = (i / kStages) & 1;
-      const int k0 = (b.t_begin + i) * kKeys;
-      const bool mine = !shared_rows || i % Tile::consumers == group;
-      const bool compute = mine && group_active && !(p.causal && k0 > group_row0 + 63);
-      const auto wait_v = [&] { mbar::wait(v_full(st), parity); };
-      // Every consumer waits for every tile, its own or not, before releasing the stage: an
-      // early release would count towards the stage's next phase.
-      mbar::wait(k_full(st), parity);
-      if (!compute) {
-        wait_v();
-      } else {
-        const unsigned q = sQ + q_tile * Tile::q_bytes;
-        const int width = g.narrow_last ? p.lk - k0 : kKeys;
-        if (width <= 32)
-          consume_tile<32, kKeys>(o, m, l, p, q, sK(st), sV(st), rows, warp_row0, k0, lane, wait_v);
-        else if (width <= 64)
-          consume_tile<64, kKeys>(o, m, l, p, q, sK(st), sV(st), rows, warp_row0, k0, lane, wait_v);
-        else
-          consume_tile<kKeys, kKeys>(o, m, l, p, q, sK(st), sV(st), rows, warp_row0, k0, lane, wait_v);
+    int n = 0;
+    for (std::int64_t item = blockIdx.x, it = 0; item < g.blocks; item += gridDim.x, ++it) {
+      const TmaBlock b = tma_block(p, g, kKeys, item);
+      const TmaRows r = tma_rows<Tile>(p, g, b);
+      const int q_tile = r.shared ? 0 : group;
+      const int group_row0 = b.q0 + 64 * q_tile, warp_row0 = group_row0 + 16 * warp;
+      const int rows[2] = {warp_row0 + lane / 4, warp_row0 + lane / 4 + 8};
+      const bool group_active = group_row0 < p.lq && q_tile < r.q_tiles;
+      float o[kDimTiles][4] = {};
+      float m[2] = {-INFINITY, -INFINITY}, l[2] = {0.f, 0.f};
+      mbar::wait(q_full, it & 1);
+      for (int i = 0; i < b.t_end - b.t_begin; ++i, ++n) {
+        const int st = n % kStages;
+        const unsigned parity = (n / kStages) & 1;
+        const int k0 = (b.t_begin + i) * kKeys;
+        const bool mine = !r.shared || i % Tile::consumers == group;
+        const bool compute = mine && group_active && !(p.causal && k0 > group_row0 + 63);
+        const auto wait_v = [&] { mbar::wait(v_full(st), parity); };
+        // Every consumer waits for every tile, its own or not, before releasing the stage: an
+        // early release would count towards the stage's next phase.
+        mbar::wait(k_full(st), parity);
+        if (!compute) {
+          wait_v();
+        } else {
+          const unsigned q = sQ + q_tile * Tile::q_bytes;
+          const int width = g.narrow_last ? p.lk - k0 : kKeys;
+          if (width <= 32)
+            consume_tile<32, kKeys>(o, m, l, p, q, sK(st), sV(st), rows, warp_row0, k0, lane, wait_v);
+          else if (width <= 64)
+            consume_tile<64, kKeys>(o, m, l, p, q, sK(st), sV(st), rows, warp_row0, k0, lane, wait_v);
+          else
+            consume_tile<kKeys, kKeys>(o, m, l, p, q, sK(st), sV(st), rows, warp_row0, k0, lane, wait_v);
+        }
+        if (lane == 0) mbar::arrive(empty(st));  // this warp is done with the stage (its wgmma waited)
       }
-      if (lane == 0) mbar::arrive(empty(st));  // this warp is done with the stage (its wgmma waited)
+      if (lane == 0) mbar::arrive(q_empty);  // and with Q
+      if (r.shared) {
+        // Every tile has landed and been read: the stages hold the other consumers' partial
+        // results, folded into consumer 0's. The generic accesses are fenced against the
+        // producer's next TMA writes to the stages, which wait for `merged`.
+        float* stash = reinterpret_cast<float*>(smem + (sK(0) - smem_addr(smem)));
+        const int thread = threadIdx.x % 128;
+        constexpr int kConsumerThreads = 128 * Tile::consumers;
+        named_barrier(1, kConsumerThreads);
+        const auto slot = [&](int c) {
+          return [stash, thread, c](int v) -> float& { return stash[((c - 1) * kPartialValues + v) * 128 + thread]; };
+        };
+        if (group > 0) stash_partial(o, m, l, slot(group));
+        fence_proxy_async();
+        named_barrier(1, kConsumerThreads);
+        if (group > 0) continue;
+        for (int c = 1; c < Tile::consumers; ++c) fold_partial(o, m, l, slot(c));
+        fence_proxy_async();
+        named_barrier(2, 128);
+        if (thread == 0) mbar::arrive(merged);
+      }
+      if (q_tile >= r.q_tiles) continue;  // a 64-row block's second consumer, idle without sharing
+      if (b.split < 0)
+        store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
+      else
+        store_partial(o, m, l, p, g, b, rows, lane % 4);
     }
-    if (shared_rows) {
-      // Every tile has landed and been read: the stages hold the other consumers' partial
-      // results, folded into consumer 0's.
-      float* stash = reinterpret_cast<float*>(smem + (sK(0) - smem_addr(smem)));
-      const int thread = threadIdx.x % 128;
-      constexpr int kConsumerThreads = 128 * Tile::consumers;
-      named_barrier(1, kConsumerThreads);
-      if (group > 0)
-        stash_partial(o, m, l, [&](int v) -> float& { return stash[((group - 1) * kPartialValues + v) * 128 + thread]; });
-      named_barrier(1, kConsumerThreads);
-      if (group > 0) return;
-      for (int c = 1; c < Tile::consumers; ++c)
-        fold_partial(o, m, l, [&](int v) -> float& { return stash[((c - 1) * kPartialValues + v) * 128 + thread]; });
-    }
-    if (q_tile >= q_tiles) return;  // a 64-row block's second consumer, idle without sharing
-    if (b.split < 0)
-      store_rows<true>(o, l, p, rows, b.s, b.h, kMaxHeadDim, lane % 4);
-    else
-      store_partial(o, m, l, p, g, b, rows, lane % 4);
   }
 #endif
 }
@@ -481,6 +517,7 @@ inline fa::TmaGrid tma_grid(const FlashParams<bf16>& p, std::int64_t seqs, std::
   g.splits = split_full || tail ? plan.splits : 1;
   g.split_row0 = g.splits == 1 ? p.lq : split_full ? 0 : g.full_row_blocks * plan.rows;
   g.share_rows = plan.share_rows, g.narrow_last = plan.narrow_last;
+  g.blocks = heads * seqs * (std::int64_t{g.full_row_blocks} * g.full_splits + g.tail_splits);
   return g;
 }
 
@@ -501,6 +538,9 @@ inline TmaPlan auto_tma_plan(const Context& ctx, const FlashParams<bf16>& p, std
     plan.rows = 128;
     plan.tail_only = true;
     plan.splits = tails && full <= sms && full + tails > sms ? most : 1;
+    // Several waves (the MST's spatial layers: 800 blocks): one CTA per multiprocessor takes
+    // them in turn and overlaps each one's start with the last one's end.
+    if (plan.splits == 1 && full + tails > 2 * sms) plan.ctas = static_cast<int>(sms);
   }
   while (plan.splits > 1 && tma_partial_bytes(tma_grid(p, seqs, heads, plan), p) > kSplitPartialBytes) --plan.splits;
   return plan;
@@ -530,9 +570,10 @@ inline float* split_partial_buffer(Context& ctx) {
 template <class Tile>
 bool launch_flash_tma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads,
                       const TmaPlan& plan) {
-  EPONA_CHECK((plan.rows == 64 || plan.rows == Tile::rows) && plan.splits >= 1 && plan.splits <= kMaxSplits,
-              "attention: a TMA plan of ", plan.rows, " rows and ", plan.splits, " key ranges is unsupported (64 or ",
-              Tile::rows, " rows, 1..", kMaxSplits, " ranges)");
+  EPONA_CHECK((plan.rows == 64 || plan.rows == Tile::rows) && plan.splits >= 1 && plan.splits <= kMaxSplits &&
+                  plan.ctas >= 0,
+              "attention: a TMA plan of ", plan.rows, " rows, ", plan.splits, " key ranges and ", plan.ctas,
+              " CTAs is unsupported (64 or ", Tile::rows, " rows, 1..", kMaxSplits, " ranges, CTAs >= 0)");
   CUtensorMap q_map, k_map, v_map;
   if (!head_tensor_map(q_map, p.q, heads, p.lq, seqs, p.q_row, p.q_seq, 64) ||
       !head_tensor_map(k_map, p.k, heads, p.lk, seqs, p.k_row, p.k_seq, Tile::keys) ||
@@ -546,9 +587,9 @@ bool launch_flash_tma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seq
     g.partial = split_partial_buffer(ctx);
     g.partial_ml = g.partial + bytes / 4 / (kMaxHeadDim + 2) * kMaxHeadDim;
   }
-  const std::int64_t blocks = heads * seqs * (std::int64_t{g.full_row_blocks} * g.full_splits + g.tail_splits);
+  const std::int64_t grid = plan.ctas > 0 ? std::min<std::int64_t>(g.blocks, plan.ctas) : g.blocks;
   allow_dynamic_smem<fa::flash_tma_kernel<Tile>>(Tile::smem_bytes);
-  launch_after(fa::flash_tma_kernel<Tile>, static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream(),
+  launch_after(fa::flash_tma_kernel<Tile>, static_cast<unsigned>(grid), Tile::threads, Tile::smem_bytes, ctx.stream(),
                q_map, k_map, v_map, p, g);
   if (bytes > 0) {
     const std::int64_t rows = heads * seqs * (p.lq - g.split_row0);
