@@ -115,10 +115,8 @@ __global__ void __launch_bounds__(kTableThreads, 1)
 template <class Op>
 const std::uint16_t* bf16_table(Context& ctx, Op op) {
   const char* name = Op::table;
-  cudaStreamCaptureStatus capturing = cudaStreamCaptureStatusNone;
-  EPONA_CUDA_CHECK(cudaStreamIsCapturing(ctx.stream(), &capturing));
   bool created = false;
-  if (capturing != cudaStreamCaptureStatusNone) {
+  if (detail::capturing(ctx.stream())) {
     // Only look: creating would allocate and fill inside the graph.
     if (!ctx.has_constant_table(name)) return nullptr;
   }

@@ -31,3 +31,15 @@ inline void check_cublas(cublasStatus_t status, const char* expr, const char* fi
 // After every kernel launch: launch-configuration errors surface here, at the launch site.
 #define EPONA_CUDA_CHECK_LAUNCH() \
   ::epona::cuda::detail::check_cuda(cudaGetLastError(), "kernel launch", __FILE__, __LINE__)
+
+namespace epona::cuda::detail {
+
+// Whether `stream` is being captured into a graph: work queued on it is recorded, not run, so
+// nothing can be timed, filled once or read back from the host meanwhile.
+inline bool capturing(cudaStream_t stream) {
+  cudaStreamCaptureStatus status = cudaStreamCaptureStatusNone;
+  EPONA_CUDA_CHECK(cudaStreamIsCapturing(stream, &status));
+  return status != cudaStreamCaptureStatusNone;
+}
+
+}  // namespace epona::cuda::detail

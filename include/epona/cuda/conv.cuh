@@ -440,9 +440,7 @@ bool tuned_to_gemm(Context& ctx, const Conv2dShape& s, ConvAct act, bool has_bia
   TuneState& t = tune_state();
   std::lock_guard<std::mutex> lock(t.mutex);
   if (const auto it = t.gemm_faster.find(key); it != t.gemm_faster.end()) return it->second;
-  cudaStreamCaptureStatus capture = cudaStreamCaptureStatusNone;
-  EPONA_CUDA_CHECK(cudaStreamIsCapturing(ctx.stream(), &capture));
-  if (capture != cudaStreamCaptureStatusNone) return false;
+  if (detail::capturing(ctx.stream())) return false;
   bool cudnn_ok = true;
   const float cudnn_ms = best_ms(ctx, 3, [&] { cudnn_ok = cudnn_ok && run_cudnn(); });
   const float gemm_ms = cudnn_ok ? best_ms(ctx, 3, run_gemm) : 0.f;

@@ -86,12 +86,6 @@ constexpr int kTuneCandidates = 8, kTuneRuns = 10;
 // one: a later call outside a capture with tuning on makes and tunes the plan of the plain key.
 constexpr std::int64_t kUntunedPlan = std::int64_t{1} << 40;
 
-inline bool capturing(cudaStream_t stream) {
-  cudaStreamCaptureStatus status = cudaStreamCaptureStatusNone;
-  EPONA_CUDA_CHECK(cudaStreamIsCapturing(stream, &status));
-  return status != cudaStreamCaptureStatusNone;
-}
-
 template <class V>
 void set_layout(cublasLtMatrixLayout_t l, cublasLtMatrixLayoutAttribute_t attr, const V& value) {
   EPONA_CUBLAS_CHECK(cublasLtMatrixLayoutSetAttribute(l, attr, &value, sizeof value));

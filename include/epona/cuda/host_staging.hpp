@@ -40,7 +40,7 @@ class HostStaging {
   // ring when replayed, long after it was refilled), or no pinned memory to be had.
   bool upload(void* dst, const void* src, std::size_t bytes) {
     if (bytes == 0) return true;
-    if (bytes > capacity_ || capturing() || !allocate()) return false;
+    if (bytes > capacity_ || detail::capturing(stream_) || !allocate()) return false;
     const std::size_t offset = reserve(bytes);
     std::memcpy(ring_ + offset, src, bytes);
     EPONA_CUDA_CHECK(cudaMemcpyAsync(dst, ring_ + offset, bytes, cudaMemcpyHostToDevice, stream_));
@@ -50,19 +50,11 @@ class HostStaging {
     return true;
   }
 
-  std::size_t capacity() const { return capacity_; }
-
  private:
   struct Pending {
     std::size_t begin, end;  // the span of the ring its transfer reads
     cudaEvent_t done;
   };
-
-  bool capturing() const {
-    cudaStreamCaptureStatus status = cudaStreamCaptureStatusNone;
-    EPONA_CUDA_CHECK(cudaStreamIsCapturing(stream_, &status));
-    return status != cudaStreamCaptureStatusNone;
-  }
 
   bool allocate() {
     if (ring_) return true;

@@ -323,7 +323,7 @@ class SpatialTemporalTransformer {
     for (std::int64_t b = 0; b < batch; ++b) {
       ArenaScope<B> scope(arena);
       auto s = plan_evaluate(arena);
-      upload_fourier(ctx, s.pose, pose_idx[b], yaw_idx[b]);  // on the main queue: the upload waits for it
+      upload_fourier(ctx, s.pose, pose_idx[b], yaw_idx[b]);  // on the main queue, before the fork: the side reads it
       // The pose projectors' twelve small kernels run on the side queue, beside the image projector's.
       side_.fork(ctx);
       project_actions(side_.side(ctx), s.pose, s.actions);
