@@ -253,6 +253,42 @@ TEST_CASE("cuda linear rejects bad shapes with epona::Error") {
                        doctest::Contains("row strides"), epona::Error);
 }
 
+namespace {
+
+// A product written by one of our own GEMMs into a column block of a wider (poisoned) buffer:
+// x rows ldx apart, y's block at column col0 of rows ldy wide.
+struct BlockCase {
+  std::int64_t M, N, K, ldx, ldy, col0;
+  bool bias;
+  cuda::Epilogue epi;
+  std::string name() const {
+    return "M=" + std::to_string(M) + " N=" + std::to_string(N) + " K=" + std::to_string(K) + (bias ? " +bias " : " ") +
+           epilogue_name(epi);
+  }
+};
+
+// Runs run(x, w, bias or null, y + col0) on fresh random operands and checks the block against
+// cpu::linear (the linear bound) and that nothing outside it was written. run returns whether
+// it launched (a product it should take: REQUIREd).
+template <class Run>
+void check_block_product(cuda::Context& ctx, const BlockCase& c, std::uint32_t seed, const std::string& what,
+                         Run run) {
+  HostF xw = random_tensor({c.M, c.ldx}, seed, -2.f, 2.f);
+  HostF w = random_tensor({c.N, c.K}, seed + 1, -1.f / std::sqrt(float(c.K)), 1.f / std::sqrt(float(c.K)));
+  HostF b = c.bias ? random_tensor({c.N}, seed + 2) : HostF();
+  round_to<bf16>(xw), round_to<bf16>(w);
+  if (c.bias) round_to<bf16>(b);
+  auto dx = upload<bf16>(ctx, xw), dw = upload<bf16>(ctx, w);
+  auto db = c.bias ? upload<bf16>(ctx, b) : Dev<bf16>();
+  Dev<bf16> dy({c.M, c.ldy});
+  poison(ctx, dy);
+  REQUIRE(run(dx.data(), dw.data(), c.bias ? db.data() : nullptr, dy.data() + c.col0));
+  check_column_block<bf16>(download(ctx, dy), xw, c.ldx, w, c.bias ? b.data() : nullptr, c.M, c.N, c.K, c.ldy, c.col0,
+                           c.epi, what + " " + c.name());
+}
+
+}  // namespace
+
 // The own Hopper GEMM (gemm_wgmma.cuh) called directly, where cuda::linear would not pick it
 // too: partial row and column tiles, a depth that is no whole number of stages, row strides
 // with y a column block of a wider (poisoned) buffer, with and without bias, the erf GELU and
@@ -264,8 +300,7 @@ TEST_CASE("cuda own Hopper GEMM matches cpu::linear and writes only its block") 
     MESSAGE("skipped: the own GEMM needs an sm_90a GPU and build");
     return;
   }
-  struct OwnCase { std::int64_t M, N, K, ldx, ldy, col0; bool bias; cuda::Epilogue epi; };
-  const OwnCase cases[] = {
+  const BlockCase cases[] = {
       {300, 520, 200, 200, 520, 0, true, cuda::Epilogue::GeluErf},      // partial tiles everywhere
       {515, 2048, 512, 512, 2048, 0, false, cuda::Epilogue::GeluErf},   // the DiTs' condition rows
       {128, 256, 64, 64, 256, 0, false, cuda::Epilogue::None},          // exactly one tile, one stage
@@ -274,26 +309,112 @@ TEST_CASE("cuda own Hopper GEMM matches cpu::linear and writes only its block") 
       {5150, 512, 128, 128, 512, 0, false, cuda::Epilogue::GeluErf},    // the MST's row count
   };
   std::uint32_t seed = 900;
-  for (const OwnCase& c : cases) {
-    HostF xw = random_tensor({c.M, c.ldx}, seed++, -2.f, 2.f);
-    HostF w = random_tensor({c.N, c.K}, seed++, -1.f / std::sqrt(float(c.K)), 1.f / std::sqrt(float(c.K)));
-    HostF b = c.bias ? random_tensor({c.N}, seed++) : HostF();
-    round_to<bf16>(xw), round_to<bf16>(w);
-    if (c.bias) round_to<bf16>(b);
-    auto dx = upload<bf16>(ctx, xw), dw = upload<bf16>(ctx, w);
-    auto db = c.bias ? upload<bf16>(ctx, b) : Dev<bf16>();
-    Dev<bf16> dy({c.M, c.ldy});
-    poison(ctx, dy);
-    const auto run = [&](auto op) {
-      return cuda::detail::own_gemm(ctx, dx.data(), c.ldx, dw.data(), c.bias ? db.data() : nullptr,
-                                    dy.data() + c.col0, c.ldy, c.M, c.N, c.K, op);
-    };
-    REQUIRE((c.epi == cuda::Epilogue::GeluErf ? run(cuda::detail::GeluErfOp{}) : run(cuda::detail::Identity{})));
-    check_column_block<bf16>(download(ctx, dy), xw, c.ldx, w, c.bias ? b.data() : nullptr, c.M, c.N, c.K, c.ldy,
-                             c.col0, c.epi,
-                             "own GEMM M=" + std::to_string(c.M) + " N=" + std::to_string(c.N) + " K=" +
-                                 std::to_string(c.K) + (c.bias ? " +bias " : " ") + epilogue_name(c.epi));
+  for (const BlockCase& c : cases)
+    check_block_product(ctx, c, seed += 3, "own GEMM", [&](const bf16* x, const bf16* w, const bf16* b, bf16* y) {
+      const auto run = [&](auto op) {
+        return cuda::detail::own_gemm(ctx, x, c.ldx, w, b, y, c.ldy, c.M, c.N, c.K, op);
+      };
+      return c.epi == cuda::Epilogue::GeluErf ? run(cuda::detail::GeluErfOp{}) : run(cuda::detail::Identity{});
+    });
+}
+
+// The few-rows GEMM (gemm_few_rows.cuh), every tile: partial row and column tiles, a depth that
+// is no whole number of slices, fewer slices than a cluster has ranks (ranks with nothing to
+// add), strided x and y a column block, bias, the tanh GELU and no activation.
+TEST_CASE("cuda few-rows GEMM: every tile matches cpu::linear and writes only its block") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  if (!cuda::detail::sm90a_available(ctx)) {
+    MESSAGE("skipped: the few-rows GEMM needs an sm_90a GPU and build");
+    return;
   }
+  const BlockCase cases[] = {
+      {515, 1024, 1024, 1024, 1024, 0, true, cuda::Epilogue::None},       // the TrajDiT's attention proj
+      {300, 520, 200, 200, 520, 0, true, cuda::Epilogue::GeluTanh},       // partial tiles, depth 3 slices + 8
+      {64, 128, 64, 64, 128, 0, false, cuda::Epilogue::None},             // one tile, one slice
+      {130, 264, 136, 152, 400, 8, true, cuda::Epilogue::GeluTanh},       // strided x, y a column block
+      {515, 512, 4096, 4096, 512, 0, false, cuda::Epilogue::GeluTanh},    // deep: many slices per rank
+  };
+  std::uint32_t seed = 1200;
+  for (int choice = 0; choice < cuda::detail::fr::kChoices; ++choice)
+    for (const BlockCase& c : cases)
+      check_block_product(ctx, c, seed += 3, "few-rows tile " + std::to_string(choice),
+                          [&](const bf16* x, const bf16* w, const bf16* b, bf16* y) {
+                            return cuda::detail::few_rows_gemm(ctx, x, c.ldx, w, b, y, c.ldy, c.M, c.N, c.K, c.epi,
+                                                               choice);
+                          });
+}
+
+// Shapes and activations the few-rows GEMM refuses (nothing launched, false): cuda::linear then
+// takes cuBLASLt.
+TEST_CASE("cuda few-rows GEMM refuses what it cannot take") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  Dev<bf16> x({128, 64}), w({136, 64}), y({128, 136});
+  const auto run = [&](std::int64_t N, cuda::Epilogue epi, int choice) {
+    return cuda::detail::few_rows_gemm(ctx, x.data(), 64, w.data(), nullptr, y.data(), 136, 128, N, 64, epi, choice);
+  };
+  CHECK_FALSE(run(132, cuda::Epilogue::None, -1));     // N not a multiple of 8
+  CHECK_FALSE(run(136, cuda::Epilogue::GeluErf, -1));  // an activation it lacks
+  CHECK_FALSE(run(136, cuda::Epilogue::Silu, -1));
+  CHECK_FALSE(run(136, cuda::Epilogue::None, cuda::detail::fr::kChoices));  // no such tile
+  CHECK(run(136, cuda::Epilogue::None, -1) == cuda::detail::sm90a_available(ctx));
+}
+
+namespace {
+
+// Spins for `ns` nanoseconds, then copies n elements: a producer that writes x late, launched
+// programmatically (its wait_for_producer lets the next kernel start at once).
+__global__ void late_copy_kernel(const bf16* src, bf16* dst, std::int64_t n, long long ns) {
+  cuda::detail::wait_for_producer();
+  long long start = 0, now = 0;
+  asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(start));
+  do asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(now));
+  while (now - start < ns);
+  for (std::int64_t i = blockIdx.x * std::int64_t{blockDim.x} + threadIdx.x; i < n; i += gridDim.x * blockDim.x)
+    dst[i] = src[i];
+}
+
+}  // namespace
+
+// The few-rows GEMM starts behind a programmatic edge and loads its weights early: x written by
+// a kernel that runs 200 µs late must still be read after it is written (x starts as NaN).
+TEST_CASE("cuda few-rows GEMM behind a late producer reads x after it is written") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  if (!cuda::detail::sm90a_available(ctx)) {
+    MESSAGE("skipped: the few-rows GEMM needs an sm_90a GPU and build");
+    return;
+  }
+  const BlockCase c{515, 1024, 1024, 1024, 1024, 0, true, cuda::Epilogue::GeluTanh};
+  for (int choice = 0; choice < cuda::detail::fr::kChoices; ++choice)
+    check_block_product(ctx, c, 1300 + 3 * choice, "few-rows tile " + std::to_string(choice) + " after a late producer",
+                        [&](const bf16* x, const bf16* w, const bf16* b, bf16* y) {
+                          Dev<bf16> late({c.M, c.ldx});
+                          poison(ctx, late);
+                          cuda::detail::launch_after(late_copy_kernel, dim3(64), dim3(256), 0, ctx.stream(), x,
+                                                     late.data(), late.numel(), 200000LL);
+                          const bool ran = cuda::detail::few_rows_gemm(ctx, late.data(), c.ldx, w, b, y, c.ldy, c.M,
+                                                                       c.N, c.K, c.epi, choice);
+                          ctx.synchronize();  // `late` lives in this scope
+                          return ran;
+                        });
+}
+
+// With its switch on, cuda::linear sends the DiTs' condition-stream products to the few-rows
+// GEMM (its choice of tile); the results match cpu::linear within the linear bound.
+TEST_CASE("cuda linear with the few-rows switch on at the DiTs' shapes") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  auto& flag = cuda::detail::few_rows_flag();
+  const bool saved = flag.load();
+  flag.store(true);
+  check_linear<bf16>(ctx, {515, 3072, 1024, true, cuda::Epilogue::None}, 1400);      // qkv
+  check_linear<bf16>(ctx, {515, 4096, 1024, true, cuda::Epilogue::GeluTanh}, 1401);  // mlp fc1 + GELU
+  check_linear<bf16>(ctx, {515, 1024, 4096, true, cuda::Epilogue::None}, 1402);      // mlp fc2
+  check_linear<bf16>(ctx, {530, 2048, 1024, false, cuda::Epilogue::None}, 1403);     // single-block kv
+  check_linear<bf16>(ctx, {515, 1024, 1024, true, cuda::Epilogue::GeluErf}, 1404);   // not its: cuBLASLt + pass
+  flag.store(saved);
 }
 
 // With its switch on, cuda::linear sends bf16 products with the erf GELU (at least a tile of

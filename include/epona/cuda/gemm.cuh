@@ -17,6 +17,7 @@
 #include "epona/cuda/activation.cuh"
 #include "epona/core/kernel_options.hpp"
 #include "epona/cuda/memory.hpp"
+#include "epona/cuda/gemm_few_rows.cuh"
 #include "epona/cuda/gemm_wgmma.cuh"
 #include "epona/cuda/small_linear.cuh"
 
@@ -363,10 +364,14 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
   // Shapes cuBLASLt's tiles fit badly (a few outputs per row, a tiny K): our own kernels, which
   // say which epilogues they take (small_linear.cuh).
   if (detail::small_linear_enabled() && detail::small_linear(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi)) return;
-  if constexpr (std::is_same_v<T, bf16>)  // the erf GELU fused (cuBLASLt would need a pass after)
-    if (epi == Epilogue::GeluErf && detail::own_gemm_wins(M, K) &&
+  if constexpr (std::is_same_v<T, bf16>) {
+    if (epi == Epilogue::GeluErf && detail::own_gemm_wins(M, K) &&  // the erf GELU fused (cuBLASLt lacks it)
         detail::own_gemm(ctx, x, ldx, w, bias, y, ldy, M, N, K, detail::GeluErfOp{}))
       return;
+    if (detail::few_rows_wins(M, K, epi) &&  // a programmatic launch in the DiTs' condition chains
+        detail::few_rows_gemm(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi))
+      return;
+  }
   const cublasLtEpilogue_t wanted = detail::wanted_epilogue(epi, bias != nullptr, detail::pointer_alignment(bias));
   const detail::LtPlanKey key{detail::dtype_tag<T>(), M, N, K, ldx, ldy, static_cast<std::int64_t>(wanted),
                               detail::pointer_alignment(x), detail::pointer_alignment(w),
