@@ -5,8 +5,10 @@
 // accesses) at the VisDiT's and TrajDiT's sizes; the MST's QK LayerNorm + RoPE pass. Each row times a recorded graph of calls, each on its own copy of the weights (or qkv
 // buffer), at least 20 and 256 MB in all, so that the 50-60 MB L2 holds none of them (the
 // sampler's weights are cold too), and reports the median per call. --profile runs each variant once, eagerly,
-// inside cudaProfilerStart/Stop (for ncu; the order is printed).
-// Usage: bench_cuda_small_kernels [--repeats N] [--profile]
+// inside cudaProfilerStart/Stop (for ncu; the order is printed). The DiTs' condition-stream
+// products (515-1027 rows) in cuBLASLt vs the few-rows GEMM (gemm_few_rows.cuh): its own
+// choice of tile through linear, with and without programmatic launches, and each tile.
+// Usage: bench_cuda_small_kernels [--repeats N] [--profile] [--only skinny|few_rows|qk]
 #include <cuda_profiler_api.h>
 
 #include <algorithm>
@@ -63,6 +65,8 @@ double median(std::vector<double> v) {
 struct Options {
   int repeats = 30;
   bool profile = false;
+  std::string only;  // one section (skinny, few_rows, qk) or all
+  bool runs(const char* section) const { return only.empty() || only == section; }
 };
 
 // Times fn(i) for i = 0..calls-1 recorded as one graph (after an eager warm-up call of each i);
@@ -131,17 +135,32 @@ struct ProductShape {
   bool gelu;
 };
 
+// A product's operands: one weight copy per recorded call (cold weights, see calls_for), x,
+// bias and y; the product's epilogue.
+template <class T>
+struct ProductOperands {
+  std::int64_t wn;
+  int calls;
+  Tensor<T, Cuda> pool, x, bias, y;
+  Epilogue epi;
+  ProductOperands(cuda::Context& ctx, const ProductShape& s, std::uint32_t seed)
+      : wn(s.N * s.K),
+        calls(calls_for(wn * std::int64_t{sizeof(T)})),
+        pool(random_device<T>(ctx, wn * calls, seed)),
+        x(random_device<T>(ctx, s.M * s.K, seed + 1)),
+        bias(random_device<T>(ctx, s.N, seed + 2)),
+        y({s.M, s.N}),
+        epi(s.gelu ? Epilogue::GeluTanh : Epilogue::None) {}
+  const T* w(int i) const { return pool.data() + i * wn; }
+};
+
 // cuBLASLt vs the skinny kernel (default rounds of 2 chunks, and 1, 4) on one product shape.
 template <class T>
 void time_product(const Options& o, cuda::Context& ctx, const ProductShape& s) {
-  const std::int64_t wn = s.N * s.K;
-  const int calls = calls_for(wn * std::int64_t{sizeof(T)});
-  const auto pool = random_device<T>(ctx, wn * calls, 1);
-  const auto x = random_device<T>(ctx, s.M * s.K, 2), bias = random_device<T>(ctx, s.N, 3);
-  Tensor<T, Cuda> y({s.M, s.N});
-  const auto epi = s.gelu ? Epilogue::GeluTanh : Epilogue::None;
+  ProductOperands<T> p(ctx, s, 1);
+  const auto epi = p.epi;
   const auto args = [&](int i) {
-    return cuda::detail::LinearArgs<T>{x.data(), s.K, pool.data() + i * wn, bias.data(), y.data(), s.N,
+    return cuda::detail::LinearArgs<T>{p.x.data(), s.K, p.w(i), p.bias.data(), p.y.data(), s.N,
                                        static_cast<int>(s.M), static_cast<int>(s.N), static_cast<int>(s.K)};
   };
   const auto via_linear = [&](bool skinny) {
@@ -152,13 +171,42 @@ void time_product(const Options& o, cuda::Context& ctx, const ProductShape& s) {
     };
   };
   const std::string tag = std::string("linear_") + (std::is_same_v<T, float> ? "f32_" : "bf16_") + s.name;
-  const double bytes = double(sizeof(T)) * (wn + s.M * s.K + s.M * s.N);
+  const double bytes = double(sizeof(T)) * (p.wn + s.M * s.K + s.M * s.N);
   Variants variants{{"cublaslt", via_linear(false)}, {"skinny", via_linear(true)}};
   if constexpr (!std::is_same_v<T, float>)
     variants.insert(variants.end(), {{"skinny_u1", skinny_with<1, T>(ctx, args, epi)},
                                      {"skinny_u4", skinny_with<4, T>(ctx, args, epi)}});
-  time_variants(o, ctx, tag, calls, bytes, variants, "cuBLASLt");
+  time_variants(o, ctx, tag, p.calls, bytes, variants, "cuBLASLt");
   cuda::set_skinny_linear(true);
+}
+
+// A product of the DiTs' condition streams in cuBLASLt, the few-rows GEMM through linear (its
+// choice of tile; with and without programmatic launches) and each of its tiles called directly.
+void time_few_rows(const Options& o, cuda::Context& ctx, const ProductShape& s) {
+  ProductOperands<bf16> p(ctx, s, 13);
+  auto& flag = cuda::detail::few_rows_flag();
+  const auto via_linear = [&](bool few_rows, bool pdl) {
+    return [&, few_rows, pdl](int i) {
+      flag.store(few_rows);
+      cuda::set_programmatic_launch(pdl);
+      cuda::linear(ctx, p.x.data(), s.K, p.w(i), p.bias.data(), p.y.data(), s.N, s.M, s.N, s.K, p.epi);
+      flag.store(false);
+      cuda::set_programmatic_launch(true);
+    };
+  };
+  Variants variants{{"cublaslt", via_linear(false, true)},
+                    {"few_rows", via_linear(true, true)},
+                    {"few_rows_no_pdl", via_linear(true, false)}};
+  for (int choice = 0; choice < cuda::detail::fr::kChoices; ++choice)
+    variants.emplace_back("tile" + std::to_string(choice), [&, choice](int i) {
+      const bool ran = cuda::detail::few_rows_gemm(ctx, p.x.data(), s.K, p.w(i), p.bias.data(), p.y.data(), s.N,
+                                                   s.M, s.N, s.K, p.epi, choice);
+      EPONA_CHECK(ran, "few-rows GEMM declined tile ", choice);
+    });
+  std::printf("# %s: the model picks tile %d\n", s.name,
+              static_cast<int>(cuda::detail::fr::choose(s.M, s.N, s.K, ctx.info().multiprocessors)));
+  time_variants(o, ctx, std::string("few_rows_") + s.name, p.calls, double(sizeof(bf16)) * (p.wn + s.M * (s.K + s.N)),
+                variants, "cuBLASLt");
 }
 
 // qk_norm_rope head-per-warp vs row path over the segments of one DiT's joint qkv rows.
@@ -238,8 +286,11 @@ int main(int argc, char** argv) {
     for (int i = 1; i < argc; ++i) {
       if (!std::strcmp(argv[i], "--profile")) o.profile = true;
       else if (!std::strcmp(argv[i], "--repeats") && i + 1 < argc) o.repeats = std::atoi(argv[++i]);
-      else fail("unknown option ", argv[i], " (--repeats N, --profile)");
+      else if (!std::strcmp(argv[i], "--only") && i + 1 < argc) o.only = argv[++i];
+      else fail("unknown option ", argv[i], " (--repeats N, --profile, --only skinny|few_rows|qk)");
     }
+    EPONA_CHECK(o.only.empty() || o.only == "skinny" || o.only == "few_rows" || o.only == "qk", "--only ", o.only,
+                ": not a section (skinny, few_rows, qk)");
     if (!cuda::has_gpu()) {
       std::printf("no CUDA device: nothing to measure\n");
       return 0;
@@ -251,14 +302,29 @@ int main(int argc, char** argv) {
                                     {"traj_fc1", 15, 4096, 1024, true},    {"traj_fc2", 15, 1024, 4096, false},
                                     {"traj_linear2", 15, 1024, 5120, false}, {"traj_mod", 1, 6144, 1024, false},
                                     {"vis_mod", 1, 12288, 2048, false}};
-    for (const auto& s : shapes) time_product<bf16>(o, ctx, s);
-    for (const auto& s : {shapes[0], shapes[4]}) time_product<float>(o, ctx, s);
-    using R = std::array<std::int64_t, 3>;
-    time_qk<bf16, 2>(o, ctx, "vis", 1027, 16, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 1027}});
-    time_qk<bf16, 2>(o, ctx, "traj", 530, 8, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 530}});
-    time_qk<bf16, 1>(o, ctx, "traj_pruned", 530, 8, std::array<R, 1>{R{0, 515, 530}});
-    time_qk<float, 2>(o, ctx, "vis", 1027, 16, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 1027}});
-    time_mst_qk(o, ctx);
+    if (o.runs("skinny")) {
+      for (const auto& s : shapes) time_product<bf16>(o, ctx, s);
+      for (const auto& s : {shapes[0], shapes[4]}) time_product<float>(o, ctx, s);
+    }
+    if (o.runs("few_rows")) {
+      // The condition streams: TrajDiT (D 1024; 515 rows, 530 in the single blocks), VisDiT (D
+      // 2048; 515 rows in the double blocks, 1027 in the single blocks).
+      const std::vector<ProductShape> cond{
+          {"traj_qkv", 515, 3072, 1024, false}, {"traj_proj", 515, 1024, 1024, false},
+          {"traj_fc1", 515, 4096, 1024, true},  {"traj_fc2", 515, 1024, 4096, false},
+          {"traj_kv", 530, 2048, 1024, false},  {"vis_qkv", 515, 6144, 2048, false},
+          {"vis_fc1", 515, 8192, 2048, true},   {"vis_fc2", 515, 2048, 8192, false},
+          {"vis_single_linear1", 1027, 14336, 2048, false}};
+      for (const auto& s : cond) time_few_rows(o, ctx, s);
+    }
+    if (o.runs("qk")) {
+      using R = std::array<std::int64_t, 3>;
+      time_qk<bf16, 2>(o, ctx, "vis", 1027, 16, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 1027}});
+      time_qk<bf16, 2>(o, ctx, "traj", 530, 8, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 530}});
+      time_qk<bf16, 1>(o, ctx, "traj_pruned", 530, 8, std::array<R, 1>{R{0, 515, 530}});
+      time_qk<float, 2>(o, ctx, "vis", 1027, 16, std::array<R, 2>{R{0, 0, 515}, R{515, 515, 1027}});
+      time_mst_qk(o, ctx);
+    }
     return 0;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "bench_cuda_small_kernels: %s\n", e.what());
