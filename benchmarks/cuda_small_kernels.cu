@@ -181,7 +181,8 @@ void time_product(const Options& o, cuda::Context& ctx, const ProductShape& s) {
 }
 
 // A product of the DiTs' condition streams in cuBLASLt, the few-rows GEMM through linear (its
-// choice of tile; with and without programmatic launches) and each of its tiles called directly.
+// choice of tile; with and without programmatic launches), with all of w loaded after the wait,
+// and each of its tiles called directly.
 void time_few_rows(const Options& o, cuda::Context& ctx, const ProductShape& s) {
   ProductOperands<bf16> p(ctx, s, 13);
   auto& flag = cuda::detail::few_rows_flag();
@@ -197,12 +198,16 @@ void time_few_rows(const Options& o, cuda::Context& ctx, const ProductShape& s) 
   Variants variants{{"cublaslt", via_linear(false, true)},
                     {"few_rows", via_linear(true, true)},
                     {"few_rows_no_pdl", via_linear(true, false)}};
-  for (int choice = 0; choice < cuda::detail::fr::kChoices; ++choice)
-    variants.emplace_back("tile" + std::to_string(choice), [&, choice](int i) {
+  const auto direct = [&](int choice, bool early_weights) {
+    return [&, choice, early_weights](int i) {
       const bool ran = cuda::detail::few_rows_gemm(ctx, p.x.data(), s.K, p.w(i), p.bias.data(), p.y.data(), s.N,
-                                                   s.M, s.N, s.K, p.epi, choice);
+                                                   s.M, s.N, s.K, p.epi, choice, early_weights);
       EPONA_CHECK(ran, "few-rows GEMM declined tile ", choice);
-    });
+    };
+  };
+  variants.emplace_back("few_rows_late_weights", direct(-1, false));  // what loading w before the wait is worth
+  for (int choice = 0; choice < cuda::detail::fr::kChoices; ++choice)
+    variants.emplace_back("tile" + std::to_string(choice), direct(choice, true));
   std::printf("# %s: the model picks tile %d\n", s.name,
               static_cast<int>(cuda::detail::fr::choose(s.M, s.N, s.K, ctx.info().multiprocessors)));
   time_variants(o, ctx, std::string("few_rows_") + s.name, p.calls, double(sizeof(bf16)) * (p.wn + s.M * (s.K + s.N)),

@@ -377,9 +377,10 @@ __global__ void late_copy_kernel(const bf16* src, bf16* dst, std::int64_t n, lon
 
 }  // namespace
 
-// The few-rows GEMM starts behind a programmatic edge and loads its weights early: x written by
-// a kernel that runs 200 µs late must still be read after it is written (x starts as NaN).
-TEST_CASE("cuda few-rows GEMM behind a late producer reads x after it is written") {
+// The few-rows GEMM starts behind a programmatic edge. x written by a kernel that runs 200 µs
+// late must still be read after it is written (x starts as NaN); so must w when the call says
+// its w is not a parameter (early_weights false: nothing loaded before the wait).
+TEST_CASE("cuda few-rows GEMM behind a late producer reads its operands after they are written") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
   if (!cuda::detail::sm90a_available(ctx)) {
@@ -388,17 +389,20 @@ TEST_CASE("cuda few-rows GEMM behind a late producer reads x after it is written
   }
   const BlockCase c{515, 1024, 1024, 1024, 1024, 0, true, cuda::Epilogue::GeluTanh};
   for (int choice = 0; choice < cuda::detail::fr::kChoices; ++choice)
-    check_block_product(ctx, c, 1300 + 3 * choice, "few-rows tile " + std::to_string(choice) + " after a late producer",
-                        [&](const bf16* x, const bf16* w, const bf16* b, bf16* y) {
-                          Dev<bf16> late({c.M, c.ldx});
-                          poison(ctx, late);
-                          cuda::detail::launch_after(late_copy_kernel, dim3(64), dim3(256), 0, ctx.stream(), x,
-                                                     late.data(), late.numel(), 200000LL);
-                          const bool ran = cuda::detail::few_rows_gemm(ctx, late.data(), c.ldx, w, b, y, c.ldy, c.M,
-                                                                       c.N, c.K, c.epi, choice);
-                          ctx.synchronize();  // `late` lives in this scope
-                          return ran;
-                        });
+    for (const bool late_w : {false, true})
+      check_block_product(ctx, c, 1300 + 3 * choice,
+                          "few-rows tile " + std::to_string(choice) + (late_w ? " after a late w" : " after a late x"),
+                          [&](const bf16* x, const bf16* w, const bf16* b, bf16* y) {
+                            Dev<bf16> late(late_w ? Shape{c.N, c.K} : Shape{c.M, c.ldx});
+                            poison(ctx, late);
+                            cuda::detail::launch_after(late_copy_kernel, dim3(64), dim3(256), 0, ctx.stream(),
+                                                       late_w ? w : x, late.data(), late.numel(), 200000LL);
+                            const bool ran = cuda::detail::few_rows_gemm(
+                                ctx, late_w ? x : late.data(), c.ldx, late_w ? late.data() : w, b, y, c.ldy, c.M, c.N,
+                                c.K, c.epi, choice, /*early_weights=*/!late_w);
+                            ctx.synchronize();  // `late` lives in this scope
+                            return ran;
+                          });
 }
 
 // With its switch on, cuda::linear sends the DiTs' condition-stream products to the few-rows

@@ -65,6 +65,7 @@ struct Args {
   const bf16* bias;  // (N) or null
   bf16* y;           // rows ldy apart
   int M, N, K, ldy, row_tiles;
+  bool early_weights;  // load the first stages' weights before griddepcontrol.wait
 };
 
 // The epilogue value of one output: Op(sum + bias) in float32, rounded once.
@@ -132,11 +133,11 @@ __device__ __forceinline__ void combine_rows(float* partial, const Args& g, cons
 // kernel before may still run: w must not be its output), x after; then the ring of stages.
 template <class S>
 __device__ __forceinline__ void produce(const CUtensorMap& x_map, const CUtensorMap& w_map, unsigned base, int m0,
-                                        int n0, int k_begin, int slices) {
+                                        int n0, int k_begin, int slices, bool early_weights) {
   const auto sx = [&](int st) { return base + st * S::stage_bytes; };
   const auto full = [&](int st) { return base + S::bars_offset + 8 * st; };
   const auto empty = [&](int st) { return base + S::bars_offset + 8 * (S::stages + st); };
-  const int early = slices < S::stages ? slices : S::stages;
+  const int early = !early_weights ? 0 : slices < S::stages ? slices : S::stages;
   for (int i = 0; i < early; ++i) {
     mbar::expect_bytes(full(i), S::stage_bytes);
     tma_load_2d(sx(i) + S::x_bytes, w_map, (k_begin + i) * kDepth, n0, full(i));
@@ -198,7 +199,7 @@ __global__ void __launch_bounds__(S::threads)
   const int consumer_threads = 128 * S::consumers;
   float acc[S::cols / 8][4];
   if (threadIdx.x == consumer_threads) {
-    produce<S>(x_map, w_map, base, m0, n0, k_begin, slices);
+    produce<S>(x_map, w_map, base, m0, n0, k_begin, slices, g.early_weights);
   } else if (threadIdx.x < consumer_threads) {
     wait_for_producer();  // y may be read by the kernel before (its results reach here only through x anyway)
     const int c = threadIdx.x / 128, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32;
@@ -280,14 +281,15 @@ inline bool few_rows_wins(std::int64_t M, std::int64_t K, Epilogue epi) {
          (epi == Epilogue::None || epi == Epilogue::GeluTanh);
 }
 
-// y = act(x · wᵀ + bias) by the kernel above, as a programmatic launch (w loaded before the
-// wait: it must not be written by the kernel before in the stream). choice < 0: choose()'s
+// y = act(x · wᵀ + bias) by the kernel above, as a programmatic launch. early_weights: w's
+// first stages are loaded before the wait, so w must not be written by the kernel before in
+// the stream (model parameters); false loads everything after it. choice < 0: choose()'s
 // pick, else the fr::Choice of that index. false (nothing launched) where the product does not
 // fit (own_gemm_fits, N % 8 == 0), the activation is not None / GeluTanh, or the driver cannot
 // describe the operands.
 inline bool few_rows_gemm(Context& ctx, const bf16* x, std::int64_t ldx, const bf16* w, const bf16* bias, bf16* y,
                           std::int64_t ldy, std::int64_t M, std::int64_t N, std::int64_t K, Epilogue epi,
-                          int choice = -1) {
+                          int choice = -1, bool early_weights = true) {
   if (N % 8 != 0 || choice >= fr::kChoices || (epi != Epilogue::None && epi != Epilogue::GeluTanh) ||
       !own_gemm_fits(ctx, x, ldx, w, bias, y, ldy, M, N, K) || !clusters_available(ctx))
     return false;
@@ -300,7 +302,7 @@ inline bool few_rows_gemm(Context& ctx, const bf16* x, std::int64_t ldx, const b
     const int row_tiles = static_cast<int>((M + S::rows - 1) / S::rows);
     const std::int64_t ctas = std::int64_t{row_tiles} * ((N + S::cols - 1) / S::cols) * S::splits;
     const fr::Args g{bias, y, static_cast<int>(M), static_cast<int>(N), static_cast<int>(K), static_cast<int>(ldy),
-                     row_tiles};
+                     row_tiles, early_weights};
     if (ctas >= std::int64_t{1} << 31 || ldy >= std::int64_t{1} << 31) return false;  // 32-bit grid and rows
     const auto launch = [&](auto op) {
       allow_dynamic_smem<fr::few_rows_kernel<S, decltype(op)>>(S::smem_bytes);
