@@ -12,10 +12,8 @@ set -u
 OFFICIAL=$(cd "$1" && pwd)
 BIN=$(cd "$2" && pwd)
 OUT=${3:-side-by-side-out}
-mkdir -p "$OUT"
+source "$(dirname "$0")/../tests/cuda/device_env.sh"
 HERE=$(cd "$(dirname "$0")" && pwd)
-lt=$(find /usr/local /opt /usr/lib -name 'libcublasLt.so.13' 2>/dev/null | head -1)
-export LD_LIBRARY_PATH="$(dirname "${lt:-/usr/local/cuda/lib64/x}"):/usr/local/cuda/lib64:${LD_LIBRARY_PATH:-}:$BIN/lib"
 
 nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.mem,temperature.gpu,power.draw --format=csv | tee "$OUT/device.txt"
 start=$(date +%s)

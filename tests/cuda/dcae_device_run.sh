@@ -10,12 +10,7 @@ BIN=$(cd "$1" && pwd)
 OUT=$2
 WHAT=${3:-all}
 OLD=${4:-}
-mkdir -p "$OUT"
-lt=$(find /usr/local /opt /usr/lib -name 'libcublasLt.so.13' 2>/dev/null | head -1)
-dnn=$(find /usr/local /opt /usr/lib -name 'libcudnn.so.9' 2>/dev/null | head -1)
-export LD_LIBRARY_PATH="$(dirname "${lt:-/usr/local/cuda/lib64/x}"):$(dirname "${dnn:-/usr/local/cuda/lib64/x}"):/usr/local/cuda/lib64:${LD_LIBRARY_PATH:-}:$BIN/lib"
-SAN=$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)
-summary() { echo "$*" | tee -a "$OUT/summary.txt"; }
+source "$(dirname "$0")/device_env.sh"
 ms() { echo $(( ($(date +%s%N) - $1) / 1000000 )); }
 TESTS="dcae_temporal dcae_ops dcae_layers dcae_model"
 

@@ -9,11 +9,7 @@ set -u
 BIN=$(cd "$1" && pwd)
 OUT=$2
 JOBS=${3:-4}
-mkdir -p "$OUT"
-lt=$(find /usr/local /opt /usr/lib -name 'libcublasLt.so.13' 2>/dev/null | head -1)
-export LD_LIBRARY_PATH="$(dirname "${lt:-/usr/local/cuda/lib64/x}"):/usr/local/cuda/lib64:${LD_LIBRARY_PATH:-}:$BIN/lib"
-export EPONA_GOLDEN_DIR=${EPONA_GOLDEN_DIR:-$(pwd)/tests/data/golden}
-SAN=$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)
+source "$(dirname "$0")/device_env.sh"
 LIMIT=${SANITIZE_TIMEOUT:-540}
 
 # tool, program: one sanitizer run; prints its summary line.

@@ -8,12 +8,7 @@ set -u
 BIN=$(cd "$1" && pwd)
 OUT=$2
 shift 2
-mkdir -p "$OUT"
-lt=$(find /usr/local /opt /usr/lib -name 'libcublasLt.so.13' 2>/dev/null | head -1)
-export LD_LIBRARY_PATH="$(dirname "${lt:-/usr/local/cuda/lib64/x}"):/usr/local/cuda/lib64:${LD_LIBRARY_PATH:-}:$BIN/lib"
-export EPONA_GOLDEN_DIR=${EPONA_GOLDEN_DIR:-$(pwd)/tests/data/golden}
-SAN=$(command -v compute-sanitizer || echo /usr/local/cuda/bin/compute-sanitizer)
-summary() { echo "$*" | tee -a "$OUT/summary.txt"; }
+source "$(dirname "$0")/device_env.sh"
 nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.mem,temperature.gpu --format=csv,noheader | tee -a "$OUT/summary.txt"
 
 while [ $# -gt 0 ]; do
