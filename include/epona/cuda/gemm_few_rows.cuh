@@ -18,7 +18,10 @@
 // cuBLASLt's fused bias / tanh-GELU epilogue stores).
 //
 // EPONA_CUDA_FEW_ROWS_GEMM=1 sends cuda::linear's bf16 products of 64-2048 rows without an
-// activation or with the tanh GELU here. Off by default until measured on a GPU. With it on,
+// activation or with the tanh GELU here. Off by default: on the H100 it is 1.5-2.5x slower than
+// cuBLASLt at the DiTs' shapes (cuBLASLt multicasts each weight tile to a 4-CTA cluster), which
+// the programmatic launch (0.9-3.4 us per product) does not make up; docs/gpu-log.md
+// "Session 22". A base for a multicast version. With it on,
 // linear assumes its w is not written by the kernel just before it in the stream (true of
 // every product in the models, whose w are parameters; not of a w a caller has just computed).
 #pragma once
@@ -244,8 +247,9 @@ decltype(auto) with_shape(Choice choice, F&& f) {
 // A latency estimate (µs) of a product under `choice`, for choose(): a wave of CTAs streams its
 // slices at the slower of the tensor cores (~7.5 TFLOP/s per multiprocessor) and the L2 feed
 // (~110 B/ns per multiprocessor); CTAs sharing a multiprocessor share both; a launch and
-// prologue cost ~2 µs, the cluster's exchange ~0.5 µs per rank. Crude on purpose: measured
-// choices (benchmarks/cuda_few_rows_gemm.cu) are to replace it shape by shape.
+// prologue cost ~2 µs, the cluster's exchange ~0.5 µs per rank. Crude: on the H100 it picked
+// the fastest tile for 6 of the 9 DiT shapes, within 6 % on two more, 24 % off on the VisDiT's
+// fc2 (bench_cuda_small_kernels --only few_rows).
 inline double estimate_us(Choice choice, std::int64_t M, std::int64_t N, std::int64_t K, int multiprocessors) {
   return with_shape(choice, [&](auto s) {
     using S = decltype(s);
@@ -270,7 +274,7 @@ inline Choice choose(std::int64_t M, std::int64_t N, std::int64_t K, int multipr
 }  // namespace fr
 
 // EPONA_CUDA_FEW_ROWS_GEMM=1 routes linear's bf16 products of 64-2048 rows (no activation or
-// the tanh GELU) to few_rows_gemm; off by default (not yet measured against cuBLASLt).
+// the tanh GELU) to few_rows_gemm; off by default (measured slower than cuBLASLt, see the top).
 inline std::atomic<bool>& few_rows_flag() {
   static std::atomic<bool> on{env_flag("EPONA_CUDA_FEW_ROWS_GEMM", false)};
   return on;
