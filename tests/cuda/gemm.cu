@@ -8,6 +8,7 @@
 #include "cuda_test_util.cuh"
 
 #include <algorithm>
+#include <atomic>
 #include <limits>
 
 using namespace epona;
@@ -255,6 +256,22 @@ TEST_CASE("cuda linear rejects bad shapes with epona::Error") {
 
 namespace {
 
+// Whether the test is skipped (with a message) because the kernel `what` needs an sm_90a GPU
+// and build.
+bool skipped_without_sm90a(cuda::Context& ctx, const char* what) {
+  if (cuda::detail::sm90a_available(ctx)) return false;
+  MESSAGE((std::string("skipped: ") + what + " needs an sm_90a GPU and build"));
+  return true;
+}
+
+// Sets a kernel switch for a scope, then restores what it was (also when a check throws).
+struct SwitchScope {
+  std::atomic<bool>& flag;
+  bool was = flag.load();
+  SwitchScope(std::atomic<bool>& f, bool on) : flag(f) { flag.store(on); }
+  ~SwitchScope() { flag.store(was); }
+};
+
 // A product written by one of our own GEMMs into a column block of a wider (poisoned) buffer:
 // x rows ldx apart, y's block at column col0 of rows ldy wide.
 struct BlockCase {
@@ -296,10 +313,7 @@ void check_block_product(cuda::Context& ctx, const BlockCase& c, std::uint32_t s
 TEST_CASE("cuda own Hopper GEMM matches cpu::linear and writes only its block") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
-  if (!cuda::detail::sm90a_available(ctx)) {
-    MESSAGE("skipped: the own GEMM needs an sm_90a GPU and build");
-    return;
-  }
+  if (skipped_without_sm90a(ctx, "the own GEMM")) return;
   const BlockCase cases[] = {
       {300, 520, 200, 200, 520, 0, true, cuda::Epilogue::GeluErf},      // partial tiles everywhere
       {515, 2048, 512, 512, 2048, 0, false, cuda::Epilogue::GeluErf},   // the DiTs' condition rows
@@ -324,10 +338,7 @@ TEST_CASE("cuda own Hopper GEMM matches cpu::linear and writes only its block") 
 TEST_CASE("cuda few-rows GEMM: every tile matches cpu::linear and writes only its block") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
-  if (!cuda::detail::sm90a_available(ctx)) {
-    MESSAGE("skipped: the few-rows GEMM needs an sm_90a GPU and build");
-    return;
-  }
+  if (skipped_without_sm90a(ctx, "the few-rows GEMM")) return;
   const BlockCase cases[] = {
       {515, 1024, 1024, 1024, 1024, 0, true, cuda::Epilogue::None},       // the TrajDiT's attention proj
       {300, 520, 200, 200, 520, 0, true, cuda::Epilogue::GeluTanh},       // partial tiles, depth 3 slices + 8
@@ -383,10 +394,7 @@ __global__ void late_copy_kernel(const bf16* src, bf16* dst, std::int64_t n, lon
 TEST_CASE("cuda few-rows GEMM behind a late producer reads its operands after they are written") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
-  if (!cuda::detail::sm90a_available(ctx)) {
-    MESSAGE("skipped: the few-rows GEMM needs an sm_90a GPU and build");
-    return;
-  }
+  if (skipped_without_sm90a(ctx, "the few-rows GEMM")) return;
   const BlockCase c{515, 1024, 1024, 1024, 1024, 0, true, cuda::Epilogue::GeluTanh};
   for (int choice = 0; choice < cuda::detail::fr::kChoices; ++choice)
     for (const bool late_w : {false, true})
@@ -410,15 +418,12 @@ TEST_CASE("cuda few-rows GEMM behind a late producer reads its operands after th
 TEST_CASE("cuda linear with the few-rows switch on at the DiTs' shapes") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
-  auto& flag = cuda::detail::few_rows_flag();
-  const bool saved = flag.load();
-  flag.store(true);
+  const SwitchScope few_rows(cuda::detail::few_rows_flag(), true);
   check_linear<bf16>(ctx, {515, 3072, 1024, true, cuda::Epilogue::None}, 1400);      // qkv
   check_linear<bf16>(ctx, {515, 4096, 1024, true, cuda::Epilogue::GeluTanh}, 1401);  // mlp fc1 + GELU
   check_linear<bf16>(ctx, {515, 1024, 4096, true, cuda::Epilogue::None}, 1402);      // mlp fc2
   check_linear<bf16>(ctx, {530, 2048, 1024, false, cuda::Epilogue::None}, 1403);     // single-block kv
   check_linear<bf16>(ctx, {515, 1024, 1024, true, cuda::Epilogue::GeluErf}, 1404);   // not its: cuBLASLt + pass
-  flag.store(saved);
 }
 
 // With its switch on, cuda::linear sends bf16 products with the erf GELU (at least a tile of
@@ -433,14 +438,11 @@ TEST_CASE("cuda linear with the erf GELU: own GEMM and cuBLASLt + pass agree") {
   round_to<bf16>(x), round_to<bf16>(w);
   auto dx = upload<bf16>(ctx, x), dw = upload<bf16>(ctx, w);
   Dev<bf16> none, on({M, N}), off({M, N});
-  auto& flag = cuda::detail::own_gemm_flag();
-  const bool saved = flag.load();
   poison(ctx, on), poison(ctx, off);
-  flag.store(true);
-  cuda::linear(ctx, dx, dw, none, on, cuda::Epilogue::GeluErf);
-  flag.store(false);
-  cuda::linear(ctx, dx, dw, none, off, cuda::Epilogue::GeluErf);
-  flag.store(saved);
+  for (const bool own : {true, false}) {
+    const SwitchScope scope(cuda::detail::own_gemm_flag(), own);
+    cuda::linear(ctx, dx, dw, none, own ? on : off, cuda::Epilogue::GeluErf);
+  }
   HostF z({M, N}), y({M, N});
   cpu::linear(cctx, x, w, HostF(), z, cpu::Epilogue::None);
   cpu::linear(cctx, x, w, HostF(), y, cpu::Epilogue::GeluErf);

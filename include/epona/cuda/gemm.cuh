@@ -368,7 +368,7 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
     if (epi == Epilogue::GeluErf && detail::own_gemm_wins(M, K) &&  // the erf GELU fused (cuBLASLt lacks it)
         detail::own_gemm(ctx, x, ldx, w, bias, y, ldy, M, N, K, detail::GeluErfOp{}))
       return;
-    if (detail::few_rows_wins(M, K, epi) &&  // a programmatic launch in the DiTs' condition chains
+    if (detail::few_rows_wins(M, K) &&  // a programmatic launch in the DiTs' condition chains
         detail::few_rows_gemm(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi))
       return;
   }

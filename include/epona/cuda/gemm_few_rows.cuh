@@ -46,7 +46,7 @@ constexpr int kDepth = hg::kDepth;  // channels of a stage's slice: one 128-byte
 
 // A tile shape: BM x BN outputs per CTA, the depth split over Splits CTAs of a cluster.
 template <int BM, int BN, int Splits>
-struct Shape {
+struct TileShape {
   static_assert(BM == 64 || BM == 128, "a consumer warpgroup per 64 rows");
   static_assert(BN == 128 || BN == 256, "wgmma n128 / n256");
   static_assert(Splits == 1 || Splits == 2 || Splits == 4, "the cluster's ranks split the rows evenly");
@@ -64,6 +64,16 @@ struct Shape {
   static_assert(stages >= 2, "double buffering at least");
 };
 
+// Where a CTA's stages and barriers lie in its shared memory (from the first atom `base`).
+template <class S>
+struct StageLayout {
+  unsigned base;
+  __device__ unsigned x(int st) const { return base + st * S::stage_bytes; }
+  __device__ unsigned w(int st) const { return x(st) + S::x_bytes; }
+  __device__ unsigned full(int st) const { return base + S::bars_offset + 8 * st; }              // TMA -> consumers
+  __device__ unsigned empty(int st) const { return base + S::bars_offset + 8 * (S::stages + st); }  // consumers -> TMA
+};
+
 struct Args {
   const bf16* bias;  // (N) or null
   bf16* y;           // rows ldy apart
@@ -71,10 +81,12 @@ struct Args {
   bool early_weights;  // load the first stages' weights before griddepcontrol.wait
 };
 
-// The epilogue value of one output: Op(sum + bias) in float32, rounded once.
+// The epilogue of outputs col and col + 1: Op(sum + bias) in float32, the pair rounded once to
+// two bf16 in one word (low: col).
 template <class Op>
-__device__ __forceinline__ bf16 finish(const Op& op, float sum, const bf16* bias, int col) {
-  return from_f32<bf16>(op(sum + (bias ? to_f32(bias[col]) : 0.f)));
+__device__ __forceinline__ unsigned finish_pair(const Op& op, float lo, float hi, const bf16* bias, int col) {
+  if (bias) lo += to_f32(bias[col]), hi += to_f32(bias[col + 1]);
+  return hg::RoundedThen<Identity>::round_pair(op(lo), op(hi));
 }
 
 // A consumer warp's 16 rows x BN columns (accumulator layout: rows r, r + 8; columns 8 i + c,
@@ -90,9 +102,8 @@ __device__ __forceinline__ void store_rows(const float (&acc)[BN / 8][4], const 
     for (int i = 0; i < BN / 8; ++i) {
       const int col = n0 + 8 * i + c;
       if (col >= g.N) continue;
-      const bf16 lo = finish(op, acc[i][2 * h], g.bias, col), hi = finish(op, acc[i][2 * h + 1], g.bias, col + 1);
-      const unsigned pair = static_cast<unsigned>(lo.bits) | static_cast<unsigned>(hi.bits) << 16;
-      *reinterpret_cast<unsigned*>(g.y + static_cast<std::int64_t>(row) * g.ldy + col) = pair;
+      *reinterpret_cast<unsigned*>(g.y + static_cast<std::int64_t>(row) * g.ldy + col) =
+          finish_pair(op, acc[i][2 * h], acc[i][2 * h + 1], g.bias, col);
     }
   }
 }
@@ -123,58 +134,48 @@ __device__ __forceinline__ void combine_rows(float* partial, const Args& g, cons
       const float4 p = *reinterpret_cast<const float4*>(cluster_peer(partial, s) + row * S::partial_ld + col);
       sum.x += p.x, sum.y += p.y, sum.z += p.z, sum.w += p.w;
     }
-    const bf16 v[4] = {finish(op, sum.x, g.bias, gn), finish(op, sum.y, g.bias, gn + 1),
-                       finish(op, sum.z, g.bias, gn + 2), finish(op, sum.w, g.bias, gn + 3)};
-    uint2 packed;
-    packed.x = static_cast<unsigned>(v[0].bits) | static_cast<unsigned>(v[1].bits) << 16;
-    packed.y = static_cast<unsigned>(v[2].bits) | static_cast<unsigned>(v[3].bits) << 16;
-    *reinterpret_cast<uint2*>(g.y + static_cast<std::int64_t>(gm) * g.ldy + gn) = packed;
+    *reinterpret_cast<uint2*>(g.y + static_cast<std::int64_t>(gm) * g.ldy + gn) =
+        make_uint2(finish_pair(op, sum.x, sum.y, g.bias, gn), finish_pair(op, sum.z, sum.w, g.bias, gn + 2));
   }
 }
 
 // The producer thread: the weight slices of the first stages before griddepcontrol.wait (the
 // kernel before may still run: w must not be its output), x after; then the ring of stages.
 template <class S>
-__device__ __forceinline__ void produce(const CUtensorMap& x_map, const CUtensorMap& w_map, unsigned base, int m0,
+__device__ __forceinline__ void produce(const CUtensorMap& x_map, const CUtensorMap& w_map, StageLayout<S> at, int m0,
                                         int n0, int k_begin, int slices, bool early_weights) {
-  const auto sx = [&](int st) { return base + st * S::stage_bytes; };
-  const auto full = [&](int st) { return base + S::bars_offset + 8 * st; };
-  const auto empty = [&](int st) { return base + S::bars_offset + 8 * (S::stages + st); };
   const int early = !early_weights ? 0 : slices < S::stages ? slices : S::stages;
   for (int i = 0; i < early; ++i) {
-    mbar::expect_bytes(full(i), S::stage_bytes);
-    tma_load_2d(sx(i) + S::x_bytes, w_map, (k_begin + i) * kDepth, n0, full(i));
+    mbar::expect_bytes(at.full(i), S::stage_bytes);
+    tma_load_2d(at.w(i), w_map, (k_begin + i) * kDepth, n0, at.full(i));
   }
   wait_for_producer();
-  for (int i = 0; i < early; ++i) tma_load_2d(sx(i), x_map, (k_begin + i) * kDepth, m0, full(i));
+  for (int i = 0; i < early; ++i) tma_load_2d(at.x(i), x_map, (k_begin + i) * kDepth, m0, at.full(i));
   for (int i = early; i < slices; ++i) {
     const int st = i % S::stages;
-    mbar::wait(empty(st), (i / S::stages + 1) & 1);  // the slice S::stages earlier was consumed
-    mbar::expect_bytes(full(st), S::stage_bytes);
-    tma_load_2d(sx(st), x_map, (k_begin + i) * kDepth, m0, full(st));
-    tma_load_2d(sx(st) + S::x_bytes, w_map, (k_begin + i) * kDepth, n0, full(st));
+    mbar::wait(at.empty(st), (i / S::stages + 1) & 1);  // the slice S::stages earlier was consumed
+    mbar::expect_bytes(at.full(st), S::stage_bytes);
+    tma_load_2d(at.x(st), x_map, (k_begin + i) * kDepth, m0, at.full(st));
+    tma_load_2d(at.w(st), w_map, (k_begin + i) * kDepth, n0, at.full(st));
   }
 }
 
 // Consumer warpgroup c: rows 64 c .. + 64 of the tile by all BN columns over this CTA's slices.
 template <class S>
-__device__ __forceinline__ void consume(float (&acc)[S::cols / 8][4], unsigned base, int c, int slices) {
-  const auto sx = [&](int st) { return base + st * S::stage_bytes; };
-  const auto full = [&](int st) { return base + S::bars_offset + 8 * st; };
-  const auto empty = [&](int st) { return base + S::bars_offset + 8 * (S::stages + st); };
+__device__ __forceinline__ void consume(float (&acc)[S::cols / 8][4], StageLayout<S> at, int c, int slices) {
 #pragma unroll
   for (int i = 0; i < S::cols / 8; ++i) acc[i][0] = acc[i][1] = acc[i][2] = acc[i][3] = 0.f;
   for (int i = 0; i < slices; ++i) {
     const int st = i % S::stages;
-    mbar::wait(full(st), (i / S::stages) & 1);
+    mbar::wait(at.full(st), (i / S::stages) & 1);
     wgmma_fence();
 #pragma unroll
     for (int k = 0; k < kDepth / 16; ++k)  // 16 channels = 32 bytes along the swizzled rows
-      wgmma_ss(acc, smem_desc(sx(st) + c * 64 * kRowBytes + 32 * k, 16, kAtomBytes),
-               smem_desc(sx(st) + S::x_bytes + 32 * k, 16, kAtomBytes), 1);
+      wgmma_ss(acc, smem_desc(at.x(st) + c * 64 * kRowBytes + 32 * k, 16, kAtomBytes),
+               smem_desc(at.w(st) + 32 * k, 16, kAtomBytes), 1);
     wgmma_commit();
     wgmma_wait<1>();  // the previous slice's products are done: release its stage
-    if (i > 0 && threadIdx.x % 32 == 0) mbar::arrive(empty((i - 1) % S::stages));
+    if (i > 0 && threadIdx.x % 32 == 0) mbar::arrive(at.empty((i - 1) % S::stages));
   }
   wgmma_wait<0>();
   pin(acc);
@@ -186,15 +187,16 @@ __global__ void __launch_bounds__(S::threads)
                     Op op) {
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
   extern __shared__ __align__(16) unsigned char smem[];
-  const unsigned base = first_atom(smem);
+  const StageLayout<S> at{first_atom(smem)};
+  float* const partial = reinterpret_cast<float*>(smem + (at.base - smem_addr(smem)));  // split tiles: over the stages
   const int tile = blockIdx.x / S::splits, rank = blockIdx.x % S::splits;  // 1-D clusters of S::splits
   const int m0 = tile % g.row_tiles * S::rows, n0 = tile / g.row_tiles * S::cols;
   const int k_tiles = (g.K + kDepth - 1) / kDepth;
   const int k_begin = rank * k_tiles / S::splits, slices = (rank + 1) * k_tiles / S::splits - k_begin;
   if (threadIdx.x == 0) {
     for (int st = 0; st < S::stages; ++st) {
-      mbar::init(base + S::bars_offset + 8 * st, 1);
-      mbar::init(base + S::bars_offset + 8 * (S::stages + st), 4 * S::consumers);  // lane 0 of each consumer warp
+      mbar::init(at.full(st), 1);
+      mbar::init(at.empty(st), 4 * S::consumers);  // lane 0 of each consumer warp
     }
     asm volatile("fence.mbarrier_init.release.cluster;\n" ::: "memory");
   }
@@ -202,23 +204,21 @@ __global__ void __launch_bounds__(S::threads)
   const int consumer_threads = 128 * S::consumers;
   float acc[S::cols / 8][4];
   if (threadIdx.x == consumer_threads) {
-    produce<S>(x_map, w_map, base, m0, n0, k_begin, slices, g.early_weights);
+    produce<S>(x_map, w_map, at, m0, n0, k_begin, slices, g.early_weights);
   } else if (threadIdx.x < consumer_threads) {
     wait_for_producer();  // y may be read by the kernel before (its results reach here only through x anyway)
     const int c = threadIdx.x / 128, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32;
-    consume<S>(acc, base, c, slices);
+    consume<S>(acc, at, c, slices);
     const int r = 64 * c + 16 * warp + lane / 4;
     if constexpr (S::splits == 1) {
       store_rows<S::cols>(acc, g, op, m0 + r, n0, 2 * (lane % 4));
     } else {
       named_barrier(1, consumer_threads);  // the other warpgroup's wgmma no longer read the stages
-      park_rows<S::cols>(acc, reinterpret_cast<float*>(smem + (base - smem_addr(smem))), S::partial_ld, r,
-                         2 * (lane % 4));
+      park_rows<S::cols>(acc, partial, S::partial_ld, r, 2 * (lane % 4));
     }
   }
   if constexpr (S::splits > 1) {
     __syncwarp();  // the producer warp reconverges (its lane 0 ran produce)
-    float* partial = reinterpret_cast<float*>(smem + (base - smem_addr(smem)));
     cluster_sync();  // every rank's partial tile is parked
     combine_rows<S>(partial, g, op, m0, n0, rank);
     cluster_sync();  // no rank leaves (freeing its shared memory) while another still reads it
@@ -232,15 +232,15 @@ __global__ void __launch_bounds__(S::threads)
 enum class Choice { k64x128, k128x128, k64x256, k64x128k2, k64x128k4 };
 constexpr int kChoices = 5;
 
-// Calls f(Shape{}) for the shape of `choice`.
+// Calls f(TileShape{}) for the shape of `choice`.
 template <class F>
 decltype(auto) with_shape(Choice choice, F&& f) {
   switch (choice) {
-    case Choice::k64x128: return f(Shape<64, 128, 1>{});
-    case Choice::k128x128: return f(Shape<128, 128, 1>{});
-    case Choice::k64x256: return f(Shape<64, 256, 1>{});
-    case Choice::k64x128k2: return f(Shape<64, 128, 2>{});
-    default: return f(Shape<64, 128, 4>{});
+    case Choice::k64x128: return f(TileShape<64, 128, 1>{});
+    case Choice::k128x128: return f(TileShape<128, 128, 1>{});
+    case Choice::k64x256: return f(TileShape<64, 256, 1>{});
+    case Choice::k64x128k2: return f(TileShape<64, 128, 2>{});
+    default: return f(TileShape<64, 128, 4>{});
   }
 }
 
@@ -280,9 +280,9 @@ inline std::atomic<bool>& few_rows_flag() {
   return on;
 }
 
-inline bool few_rows_wins(std::int64_t M, std::int64_t K, Epilogue epi) {
-  return few_rows_flag() && M >= 64 && M <= 2048 && K >= fr::kDepth &&
-         (epi == Epilogue::None || epi == Epilogue::GeluTanh);
+// Where linear tries it (few_rows_gemm itself declines the epilogues it lacks).
+inline bool few_rows_wins(std::int64_t M, std::int64_t K) {
+  return few_rows_flag() && M >= 64 && M <= 2048 && K >= fr::kDepth;
 }
 
 // y = act(x · wᵀ + bias) by the kernel above, as a programmatic launch. early_weights: w's
