@@ -28,6 +28,17 @@
 
 namespace epona::test {
 
+// Sets one of the CUDA backend's global switches while alive, then restores its previous value.
+template <auto Get, auto Set>
+struct ScopedSwitch {
+  using Value = decltype(Get());
+  Value before;
+  explicit ScopedSwitch(Value v) : before(Get()) { Set(v); }
+  ~ScopedSwitch() { Set(before); }
+  ScopedSwitch(const ScopedSwitch&) = delete;
+  ScopedSwitch& operator=(const ScopedSwitch&) = delete;
+};
+
 using HostF = Tensor<float, Cpu>;
 template <class T> using Dev = Tensor<T, Cuda>;
 

@@ -72,16 +72,6 @@ struct PoisonBuffers {
   PoisonBuffers& operator=(const PoisonBuffers&) = delete;
 };
 
-// Sets one of the CUDA backend's global switches while alive, then restores its previous value.
-template <auto Get, auto Set>
-struct ScopedSwitch {
-  using Value = decltype(Get());
-  Value before;
-  explicit ScopedSwitch(Value v) : before(Get()) { Set(v); }
-  ~ScopedSwitch() { Set(before); }
-  ScopedSwitch(const ScopedSwitch&) = delete;
-  ScopedSwitch& operator=(const ScopedSwitch&) = delete;
-};
 // The engine of the dense convolutions.
 using UseEngine = ScopedSwitch<cuda::conv_engine, cuda::set_conv_engine>;
 // The fused conv epilogues (and BatchNorm folding at bind time).

@@ -134,11 +134,7 @@ std::size_t plans_of(cuda::Context& ctx, std::int64_t M, bool tuned) {
 }
 
 // Sets the tuning for a scope, then restores what it was.
-struct TuningScope {
-  cuda::GemmTuning was = cuda::gemm_tuning();
-  explicit TuningScope(cuda::GemmTuning t) { cuda::set_gemm_tuning(t); }
-  ~TuningScope() { cuda::set_gemm_tuning(was); }
-};
+using TuningScope = ScopedSwitch<cuda::gemm_tuning, cuda::set_gemm_tuning>;
 
 }  // namespace
 
@@ -264,7 +260,7 @@ bool skipped_without_sm90a(cuda::Context& ctx, const char* what) {
   return true;
 }
 
-// Sets a kernel switch for a scope, then restores what it was (also when a check throws).
+// ScopedSwitch for the kernel switches that are a detail:: flag without a setter.
 struct SwitchScope {
   std::atomic<bool>& flag;
   bool was = flag.load();
