@@ -16,6 +16,7 @@
 #include "args.hpp"
 #include "cmd_codec.hpp"
 #include "cmd_convert.hpp"
+#include "cmd_eval.hpp"
 #include "cmd_generate.hpp"
 #include "cmd_info.hpp"
 #include "cmd_plan.hpp"
@@ -39,6 +40,7 @@ inline const std::vector<Subcommand>& subcommands() {
       {"encode", "images -> DC-AE latents (.npy)", encode_parser, run_encode},
       {"decode", "DC-AE latents (.npy) -> PNG frames", decode_parser, run_decode},
       {"info", "what a checkpoint holds and the configuration its shapes imply", info_parser, run_info},
+      {"eval", "scores the model on a clip set: planning L2/collisions, video PSNR/SSIM, with baselines", eval_parser, run_eval},
       {"convert", "a checkpoint (.pkl or .safetensors) -> .safetensors, same tensors", convert_parser, run_convert},
   };
   return list;
@@ -60,7 +62,7 @@ inline int run(const std::vector<std::string>& args, std::ostream& out, std::ost
   try {
     if (args.empty() || args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
       (args.empty() ? err : out) << main_help();
-      if (args.empty()) usage_fail("no command given (plan, generate, encode, decode, info, convert)");
+      if (args.empty()) usage_fail("no command given (plan, generate, eval, encode, decode, info, convert)");
       return 0;
     }
     if (args[0] == "--version") {
@@ -78,7 +80,7 @@ inline int run(const std::vector<std::string>& args, std::ostream& out, std::ost
       const Console con{out, err, parsed.flag("quiet"), interactive};
       return c.run(parsed, con);
     }
-    usage_fail("unknown command '", args[0], "' (commands: plan, generate, encode, decode, info, convert; see epona --help)");
+    usage_fail("unknown command '", args[0], "' (commands: plan, generate, eval, encode, decode, info, convert; see epona --help)");
   } catch (const std::exception& e) {
     err << "epona: error: " << e.what() << "\n";
     return 1;

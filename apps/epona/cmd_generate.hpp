@@ -17,6 +17,7 @@
 #include "engine.hpp"
 #include "frames.hpp"
 #include "models.hpp"
+#include "rollout_common.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/trajectory_io.hpp"
@@ -55,7 +56,7 @@ inline ArgParser generate_parser() {
 }
 
 // Writes decoded frames as they complete and keeps the ones the contact sheet shows.
-class FrameSink {
+class FrameSink final : public FrameConsumer {
  public:
   FrameSink(std::filesystem::path dir, std::vector<std::int64_t> sheet_picks)
       : dir_(std::move(dir)), picks_(std::move(sheet_picks)) {
@@ -64,7 +65,7 @@ class FrameSink {
     EPONA_CHECK(std::filesystem::is_directory(dir_, ec), dir_.string(), ": cannot create the frames folder");
     remove_stale_frames();
   }
-  void put(const io::Image& img) {
+  void put(const io::Image& img) override {
     char name[32];
     std::snprintf(name, sizeof name, "frame_%04lld.png", static_cast<long long>(written_));
     io::write_png((dir_ / name).string(), img);
@@ -99,18 +100,6 @@ class FrameSink {
   std::vector<io::Image> kept_;
 };
 
-// Decodes generated latents (tokens (1, L, C) each) as one group: a temporal clip when
-// `is_video`, else frame by frame.
-inline void decode_group(cpu::Context& ctx, Engine& engine, const WorldModelConfig& w,
-                         const std::vector<Tensor<float>>& tokens, bool is_video, FrameSink& sink) {
-  if (tokens.empty()) return;
-  const std::int64_t L = w.img_tokens(), C = w.token_dim(), n = static_cast<std::int64_t>(tokens.size());
-  Tensor<float> group({n, L, C});
-  for (std::int64_t i = 0; i < n; ++i) std::copy_n(tokens[static_cast<std::size_t>(i)].data(), L * C, group[i].data());
-  const Tensor<float> images = engine.decode(tokens_to_latent(ctx, group, w.latent_h(), w.latent_w()), is_video);
-  for (std::int64_t i = 0; i < n; ++i) sink.put(io::tensor_to_image(images, i));
-}
-
 // The per-step actions of --trajectory, or none (self-predicted).
 inline std::optional<io::PoseSequence> read_step_actions(const ParsedArgs& a) {
   if (!a.has("trajectory")) return std::nullopt;
@@ -126,63 +115,6 @@ inline std::int64_t frames_to_generate(const ParsedArgs& a, const std::optional<
   EPONA_CHECK(!n || *n <= available, "--trajectory ", *a.get("trajectory"), " holds ", available,
               " action(s); --num-frames asks for ", *n);
   return n.value_or(available);
-}
-
-inline NextAction action_at(const io::PoseSequence& p, std::size_t i) {
-  NextAction act{Tensor<float>({1, 1, 2}), Tensor<float>({1, 1, 1})};
-  act.rel_pose.data()[0] = p.x[i], act.rel_pose.data()[1] = p.y[i];
-  act.rel_yaw.data()[0] = p.yaw[i];
-  return act;
-}
-
-// What drives a rollout, and what it keeps.
-struct RolloutPlan {
-  std::int64_t frames = 0, steps = 0, clip_len = 1;  // clip_len: latents decoded together
-  std::uint64_t seed = 0;
-  std::optional<io::PoseSequence> actions;  // one per step; none: self-predicted
-  bool keep_latents = false;
-};
-
-// What drove each step and what it made.
-struct RolloutLog {
-  Tensor<float> steps;       // (N, W, 3): each step's plan (W = traj_len) or its given action (W = 1)
-  io::PoseSequence motions;  // the motion into each generated frame (waypoint 0 / the action)
-  Tensor<float> latents;     // (N, L, C) when kept
-};
-
-// Runs the rollout from `window`: one noise generator for all steps (the official draw order),
-// the window slid after each step, frames decoded into `sink` as soon as a clip is complete.
-inline RolloutLog roll_out(Engine& engine, cpu::Context& ctx, History window, const WorldModelConfig& wc,
-                           const RolloutPlan& p, FrameSink& sink, const Console& con) {
-  const std::int64_t W = p.actions ? 1 : wc.traj_len;
-  RolloutLog log{Tensor<float>({p.frames, W, 3}), {},
-                 p.keep_latents ? Tensor<float>({p.frames, wc.img_tokens(), wc.token_dim()}) : Tensor<float>()};
-  std::vector<Tensor<float>> pending;
-  NoiseSource noise = NoiseSource::seeded(p.seed);
-  Progress bar(con, "generate", p.frames, "frame");
-  for (std::int64_t i = 0; i < p.frames; ++i) {
-    const auto act = p.actions ? std::optional(action_at(*p.actions, std::size_t(i))) : std::nullopt;
-    const StepResult r = engine.step(window, act ? &*act : nullptr, p.steps, noise);
-    const Tensor<float> used = log.steps[i].reshape({1, W, 3});  // what drove this step
-    if (act) {
-      used.data()[0] = act->rel_pose.data()[0], used.data()[1] = act->rel_pose.data()[1];
-      used.data()[2] = act->rel_yaw.data()[0];
-    } else {
-      std::copy_n(r.trajectory.data(), used.numel(), used.data());
-    }
-    log.motions.x.push_back(used.data()[0]), log.motions.y.push_back(used.data()[1]);
-    log.motions.yaw.push_back(used.data()[2]);
-    if (p.keep_latents) std::copy_n(r.latent.data(), r.latent.numel(), log.latents[i].data());
-    model::slide_window(window, r.latent, used);
-    pending.push_back(r.latent);
-    if (static_cast<std::int64_t>(pending.size()) == p.clip_len) {
-      decode_group(ctx, engine, wc, pending, p.clip_len > 1, sink);
-      pending.clear();
-    }
-    bar.advance();
-  }
-  decode_group(ctx, engine, wc, pending, false, sink);  // an incomplete last clip: frame by frame (test_nuplan.py)
-  return log;
 }
 
 inline void print_generate_summary(std::ostream& out, const std::filesystem::path& dir, const WorldModelConfig& wc,

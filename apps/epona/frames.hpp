@@ -15,57 +15,21 @@
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/context.hpp"
 #include "epona/io/image.hpp"
+#include "epona/io/image_folder.hpp"
 #include "epona/io/poses.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/world_model.hpp"
 
 namespace epona::app {
 
-inline std::string lower_text(std::string s) {
-  for (auto& ch : s) ch = static_cast<char>(std::tolower(static_cast<unsigned char>(ch)));
-  return s;
-}
-
-inline bool is_image_file(const std::filesystem::path& p) {
-  const std::string ext = lower_text(p.extension().string());
-  return ext == ".png" || ext == ".jpg" || ext == ".jpeg";
-}
-
-// "frame_2.png" before "frame_10.png": digit runs compare by value, the rest byte-wise.
-inline bool natural_less(const std::string& a, const std::string& b) {
-  std::size_t i = 0, j = 0;
-  while (i < a.size() && j < b.size()) {
-    const bool da = std::isdigit(static_cast<unsigned char>(a[i])), db = std::isdigit(static_cast<unsigned char>(b[j]));
-    if (da && db) {
-      std::size_t ie = i, je = j;
-      while (ie < a.size() && std::isdigit(static_cast<unsigned char>(a[ie]))) ++ie;
-      while (je < b.size() && std::isdigit(static_cast<unsigned char>(b[je]))) ++je;
-      std::string na = a.substr(i, ie - i), nb = b.substr(j, je - j);
-      na.erase(0, std::min(na.find_first_not_of('0'), na.size()));
-      nb.erase(0, std::min(nb.find_first_not_of('0'), nb.size()));
-      if (na.size() != nb.size()) return na.size() < nb.size();
-      if (na != nb) return na < nb;
-      i = ie, j = je;
-      continue;
-    }
-    if (a[i] != b[j]) return a[i] < b[j];
-    ++i, ++j;
-  }
-  return a.size() - i < b.size() - j || (a.size() - i == b.size() - j && a < b);
-}
+using io::is_image_file;
+using io::lower_text;
+using io::natural_less;
 
 // The image files of a folder in natural name order; errors name the folder.
 inline std::vector<std::filesystem::path> list_images(const std::filesystem::path& dir, const std::string& option) {
-  std::error_code ec;
-  EPONA_CHECK(std::filesystem::exists(dir, ec), option, " ", dir.string(), ": no such folder");
-  EPONA_CHECK(std::filesystem::is_directory(dir, ec), option, " ", dir.string(), ": not a folder");
-  std::vector<std::filesystem::path> files;
-  for (const auto& e : std::filesystem::directory_iterator(dir, ec))
-    if (e.is_regular_file() && is_image_file(e.path())) files.push_back(e.path());
-  EPONA_CHECK(!ec, option, " ", dir.string(), ": cannot list the folder: ", ec.message());
+  std::vector<std::filesystem::path> files = io::image_files(dir, option);
   EPONA_CHECK(!files.empty(), option, " ", dir.string(), ": no .png/.jpg/.jpeg frames in the folder");
-  std::sort(files.begin(), files.end(),
-            [](const auto& x, const auto& y) { return natural_less(x.filename().string(), y.filename().string()); });
   return files;
 }
 

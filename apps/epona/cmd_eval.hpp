@@ -1,0 +1,410 @@
+// apps/epona/cmd_eval.hpp — `epona eval`: scores the world model on a clip set (as `epona synth`
+// writes it) the way the Epona paper evaluates: open-loop planning (L2 at 1/2/3 s, collision
+// rate) against constant-velocity and constant-turn baselines, and video quality (PSNR, SSIM per
+// horizon) of rollouts driven by the true future motions, beside the repeat-last-frame baseline
+// and the DC-AE's own reconstruction (the ceiling). One JSON report, written atomically.
+#pragma once
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "args.hpp"
+#include "cmd_common.hpp"
+#include "console.hpp"
+#include "engine.hpp"
+#include "frames.hpp"
+#include "models.hpp"
+#include "rollout_common.hpp"
+#include "epona/eval/baselines.hpp"
+#include "epona/eval/clip_set.hpp"
+#include "epona/eval/feature_metrics.hpp"
+#include "epona/eval/ground_truth.hpp"
+#include "epona/eval/image_metrics.hpp"
+#include "epona/eval/planning_metrics.hpp"
+#include "epona/io/atomic_file.hpp"
+
+namespace epona::app {
+
+inline ArgParser eval_parser() {
+  ArgParser p("epona eval", "--clips DIR --json FILE [options]",
+              "Evaluates the world model on a clip set (DIR/clip_*/ with frames/, poses.csv, future/,\n"
+              "future_poses.csv, boxes.json, as `epona synth` writes): plans from each clip's last F frames\n"
+              "(L2 at 1/2/3 s, collision rate) beside constant-velocity and constant-turn baselines, and rolls\n"
+              "out --horizon frames under the true future motions (PSNR, SSIM per horizon) beside repeating\n"
+              "the last frame and the DC-AE's reconstruction of the true frames. Writes one JSON report and\n"
+              "prints a table. Without --weights it runs the bundled demo model.");
+  add_model_options(p, true, true);
+  p.option("clips", "DIR", "the clip set (every subfolder holding frames/, in natural name order)")
+      .option("json", "FILE", "the report to write (atomically)")
+      .option("horizon", "N", "video horizons 1..N scored", "5")
+      .option("limit", "N", "evaluate only the first N clips", "all")
+      .flag("no-video", "skip the video metrics (no rollouts)")
+      .flag("no-plan", "skip the planning metrics")
+      .option("fit", "MODE", "frames not at the model's size: exact (refuse), resize, crop, cover", "exact");
+  add_sampling_options(p);
+  add_compute_options(p);
+  p.flag("quiet", "no progress bars or notes on stderr", 'q');
+  p.epilog("examples:\n"
+           "  epona synth --out clips/ && epona eval --clips clips/ --json eval.json   # the bundled demo model\n"
+           "  epona eval --weights world.pkl --dcae dcae_td_20000.pkl --clips clips/ --json eval.json \\\n"
+           "             --steps 100 --backend cuda");
+  return p;
+}
+
+struct EvalOptions {
+  std::filesystem::path clips, json;
+  std::int64_t horizon = 5;
+  std::optional<std::int64_t> limit;
+  bool plan = true, video = true;
+  std::string fit = "exact";
+  SampleOptions sample;
+};
+
+inline EvalOptions eval_options(const ParsedArgs& a, const WorldModelConfig& wc) {
+  EvalOptions o;
+  if (!a.has("clips")) usage_fail("eval: --clips DIR is needed (the clip set to evaluate)");
+  if (!a.has("json")) usage_fail("eval: --json FILE is needed (where the report goes)");
+  o.clips = *a.get("clips");
+  o.json = *a.get("json");
+  o.horizon = a.integer("horizon", 5, 1, 1000);
+  o.limit = a.maybe_integer("limit", 1);
+  o.plan = !a.flag("no-plan"), o.video = !a.flag("no-video");
+  if (!o.plan && !o.video) usage_fail("eval: --no-plan and --no-video leave nothing to evaluate");
+  o.fit = a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact");
+  o.sample = sample_options(a, wc);
+  std::error_code ec;
+  const auto parent = std::filesystem::absolute(o.json, ec).parent_path();
+  EPONA_CHECK(std::filesystem::is_directory(parent, ec), "--json ", o.json.string(), ": the folder ", parent.string(),
+              " does not exist");
+  return o;
+}
+
+// ---- per clip -------------------------------------------------------------------------------
+
+// A planner's scores on one clip.
+struct PlanScores {
+  eval::L2Errors l2;
+  eval::Collisions collisions;  // all none without boxes.json
+};
+
+struct ClipScores {
+  std::string name;
+  std::optional<PlanScores> model, constant_velocity, constant_turn, ground_truth;
+  std::vector<double> psnr, ssim, repeat_psnr, repeat_ssim, ae_psnr, ae_ssim;  // per horizon; empty: no video
+};
+
+inline PlanScores score_plan(const std::vector<eval::Pose2>& plan, const std::vector<eval::Pose2>& truth,
+                             const eval::EvalClip& c) {
+  PlanScores s{eval::l2_errors(plan, truth), {}};
+  if (c.boxes) s.collisions = eval::plan_collisions(plan, c.boxes->ego, c.future_boxes());
+  return s;
+}
+
+// Keeps decoded frames in memory.
+class FrameCollector final : public FrameConsumer {
+ public:
+  void put(const io::Image& img) override { frames.push_back(img); }
+  std::vector<io::Image> frames;
+};
+
+// Everything a clip's evaluation uses, loaded once.
+struct EvalContext {
+  Engine& engine;
+  cpu::Context& ctx;
+  const WorldModelConfig& wc;
+  const EvalOptions& opt;
+  io::SizePolicy fit;
+  const Console& silent;  // for the per-clip rollout (the progress bar is over clips)
+};
+
+inline std::vector<io::Image> read_frames(const std::vector<std::filesystem::path>& files, std::size_t first,
+                                          std::size_t count, const EvalContext& e) {
+  std::vector<io::Image> out;
+  for (std::size_t i = first; i < first + count; ++i) out.push_back(read_frame(files[i], e.wc.image_h, e.wc.image_w, e.fit));
+  return out;
+}
+
+inline void score_planning(ClipScores& s, const eval::EvalClip& c, const History& window, std::uint64_t seed,
+                           const EvalContext& e) {
+  const auto truth = eval::cumulative_poses(*c.future_motions, eval::kPlanWaypoints);
+  SampleOptions o = e.opt.sample;
+  o.seed = seed;
+  s.model = score_plan(eval::poses_of(e.engine.plan(window, o)), truth, c);
+  const eval::Pose2 last = eval::motion_at(c.poses, c.poses.size() - 1);
+  s.constant_velocity = score_plan(eval::constant_velocity(last, eval::kPlanWaypoints), truth, c);
+  s.constant_turn = score_plan(eval::constant_turn(last, eval::kPlanWaypoints), truth, c);
+  s.ground_truth = score_plan(truth, truth, c);
+}
+
+inline void score_video(ClipScores& s, const eval::EvalClip& c, const History& window,
+                        const std::vector<io::Image>& history, std::uint64_t seed, const EvalContext& e) {
+  const auto N = static_cast<std::size_t>(e.opt.horizon);
+  RolloutPlan plan;
+  plan.frames = e.opt.horizon, plan.steps = *e.opt.sample.steps, plan.seed = seed, plan.clip_len = 1;
+  plan.actions = io::PoseSequence{};
+  for (std::size_t i = 0; i < N; ++i) {
+    plan.actions->x.push_back(c.future_motions->x[i]), plan.actions->y.push_back(c.future_motions->y[i]);
+    plan.actions->yaw.push_back(c.future_motions->yaw[i]);
+  }
+  FrameCollector generated;
+  roll_out(e.engine, e.ctx, window, e.wc, plan, generated, e.silent);
+  const std::vector<io::Image> truth = read_frames(c.future_frames, 0, N, e);
+  const io::Image& last = eval::repeat_last_frame(history);
+  for (std::size_t h = 0; h < N; ++h) {
+    s.psnr.push_back(eval::psnr(generated.frames[h], truth[h]));
+    s.ssim.push_back(eval::ssim(generated.frames[h], truth[h]));
+    s.repeat_psnr.push_back(eval::psnr(last, truth[h]));
+    s.repeat_ssim.push_back(eval::ssim(last, truth[h]));
+    const io::Image recon = io::tensor_to_image(e.engine.decode(e.engine.encode(truth[h]), false), 0);
+    s.ae_psnr.push_back(eval::psnr(recon, truth[h]));
+    s.ae_ssim.push_back(eval::ssim(recon, truth[h]));
+  }
+}
+
+inline ClipScores evaluate_clip(const eval::EvalClip& c, std::uint64_t seed, const EvalContext& e) {
+  ClipScores s{c.name, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}};
+  const auto F = static_cast<std::size_t>(e.wc.condition_frames);
+  const std::vector<io::Image> history = read_frames(c.frames, c.frames.size() - F, F, e);
+  io::PoseSequence poses;
+  for (std::size_t i = c.poses.size() - F; i < c.poses.size(); ++i)
+    poses.x.push_back(c.poses.x[i]), poses.y.push_back(c.poses.y[i]), poses.yaw.push_back(c.poses.yaw[i]);
+  const History window = make_history(e.ctx, encode_frames(e.engine, history, e.silent), poses);
+  if (e.opt.plan && c.future_motions) score_planning(s, c, window, seed, e);
+  if (e.opt.video && !c.future_frames.empty()) score_video(s, c, window, history, seed, e);
+  return s;
+}
+
+// ---- over the clips -------------------------------------------------------------------------
+
+// The mean over the clips that have a value; none when no clip has one.
+struct Mean {
+  double sum = 0;
+  std::int64_t count = 0;
+  void add(double v) { sum += v, ++count; }
+  std::optional<double> value() const { return count ? std::optional(sum / double(count)) : std::nullopt; }
+};
+
+inline nlohmann::ordered_json number(std::optional<double> v) {
+  return v && std::isfinite(*v) ? nlohmann::ordered_json(*v) : nlohmann::ordered_json(nullptr);
+}
+
+// Mean L2s and collision rates of one planner over the clips.
+inline nlohmann::ordered_json plan_summary(const std::vector<ClipScores>& clips,
+                                           std::optional<PlanScores> ClipScores::*planner) {
+  std::array<Mean, eval::kPlanSeconds> at, avg, hit;
+  for (const auto& c : clips) {
+    if (!(c.*planner)) continue;
+    const PlanScores& p = *(c.*planner);
+    for (std::size_t k = 0; k < eval::kPlanSeconds; ++k) {
+      at[k].add(p.l2.at[k]), avg[k].add(p.l2.avg[k]);
+      if (p.collisions[k]) hit[k].add(*p.collisions[k] ? 1.0 : 0.0);
+    }
+  }
+  nlohmann::ordered_json j;
+  for (std::size_t k = 0; k < eval::kPlanSeconds; ++k) j["l2_" + std::to_string(k + 1) + "s"] = number(at[k].value());
+  for (std::size_t k = 0; k < eval::kPlanSeconds; ++k) j["l2_avg_" + std::to_string(k + 1) + "s"] = number(avg[k].value());
+  j["collision_rate"] = number(hit[eval::kPlanSeconds - 1].value());  // any waypoint up to 3 s
+  for (std::size_t k = 0; k < eval::kPlanSeconds; ++k)
+    j["collision_rate_" + std::to_string(k + 1) + "s"] = number(hit[k].value());
+  j["clips"] = at[0].count;
+  j["collision_clips"] = hit[eval::kPlanSeconds - 1].count;
+  return j;
+}
+
+// Mean of a per-horizon series over the clips that have it.
+inline nlohmann::ordered_json series_mean(const std::vector<ClipScores>& clips, std::vector<double> ClipScores::*series,
+                                          std::int64_t horizon) {
+  std::vector<Mean> m(static_cast<std::size_t>(horizon));
+  for (const auto& c : clips)
+    for (std::size_t h = 0; h < (c.*series).size() && h < m.size(); ++h) m[h].add((c.*series)[h]);
+  auto j = nlohmann::ordered_json::array();
+  for (const auto& v : m) j.push_back(number(v.value()));
+  return j;
+}
+
+inline nlohmann::ordered_json video_summary(const std::vector<ClipScores>& clips, std::vector<double> ClipScores::*psnr,
+                                            std::vector<double> ClipScores::*ssim, std::int64_t horizon) {
+  return {{"psnr", series_mean(clips, psnr, horizon)}, {"ssim", series_mean(clips, ssim, horizon)}};
+}
+
+inline nlohmann::ordered_json numbers(const std::vector<double>& v) {
+  auto j = nlohmann::ordered_json::array();
+  for (double x : v) j.push_back(number(x));
+  return j;
+}
+
+inline nlohmann::ordered_json clip_json(const ClipScores& c) {
+  nlohmann::ordered_json j;
+  j["name"] = c.name;
+  const auto plan = [&](const char* prefix, const std::optional<PlanScores>& p) {
+    for (std::size_t k = 0; k < eval::kPlanSeconds; ++k) {
+      const std::string t = std::to_string(k + 1) + "s";
+      j[prefix + ("l2_" + t)] = p ? number(p->l2.at[k]) : nullptr;
+      j[prefix + ("l2_avg_" + t)] = p ? number(p->l2.avg[k]) : nullptr;
+      j[prefix + ("collision_" + t)] = p && p->collisions[k] ? nlohmann::ordered_json(*p->collisions[k]) : nullptr;
+    }
+  };
+  plan("", c.model);
+  plan("constant_velocity_", c.constant_velocity);
+  plan("constant_turn_", c.constant_turn);
+  j["psnr"] = numbers(c.psnr), j["ssim"] = numbers(c.ssim);
+  j["repeat_last_psnr"] = numbers(c.repeat_psnr), j["repeat_last_ssim"] = numbers(c.repeat_ssim);
+  j["autoencoder_psnr"] = numbers(c.ae_psnr), j["autoencoder_ssim"] = numbers(c.ae_ssim);
+  return j;
+}
+
+inline nlohmann::ordered_json settings_json(const ParsedArgs& a, const ModelFiles& f, const ComputeOptions& c,
+                                            const EvalOptions& o, const WorldModelConfig& wc) {
+  return {{"steps", *o.sample.steps},
+          {"seed", o.sample.seed},
+          {"seed_rule", "clip i (0-based, in clip order) uses seed + i, for both its plan and its rollout"},
+          {"horizon", o.horizon},
+          {"limit", o.limit ? nlohmann::ordered_json(*o.limit) : nullptr},
+          {"plan", o.plan},
+          {"video", o.video},
+          {"clips_dir", o.clips.string()},
+          {"weights", f.demo ? "bundled demo model (" + f.world + ")" : f.world},
+          {"dcae", f.dcae},
+          {"config", f.config_source},
+          {"backend", c.backend},
+          {"dtype", c.bf16_weights ? "bfloat16" : "float32"},
+          {"threads", a.text("threads", "all")},
+          {"fit", o.fit},
+          {"condition_frames", wc.condition_frames},
+          {"image_size", {wc.image_h, wc.image_w}}};
+}
+
+inline nlohmann::ordered_json notes_json() {
+  nlohmann::ordered_json j;
+  j["l2"] = "l2_Ns: Euclidean distance between planned and true waypoint at N s (index 5N-1 at 5 Hz; UniAD's "
+            "at-time convention); l2_avg_Ns: mean over the waypoints up to N s (ST-P3/VAD convention); metres";
+  j["collision"] = "ego box (boxes.json ego size, heading = waypoint yaw, centred on the waypoint) against the other "
+                   "vehicles' boxes of the matching future frame, separating-axis test, touching counts; "
+                   "collision_rate_Ns: fraction of clips with boxes whose plan collides at any waypoint up to N s; "
+                   "collision_rate = collision_rate_3s";
+  j["psnr"] = "8-bit RGB, MAX 255, MSE over all pixels and channels; identical frames reported as " +
+              std::to_string(int(eval::kPsnrCap)) + " dB";
+  j["ssim"] = "Wang et al. 2004: 11x11 Gaussian window sigma 1.5, K1 0.01, K2 0.03, L 255, valid positions, mean "
+              "over the RGB channels";
+  j["video"] = "rollout driven by the true future motions (future_poses.csv), each latent decoded alone (frame mode)";
+  for (const auto& m : eval::uncomputed_feature_metrics()) j[m.name] = m.note;
+  return j;
+}
+
+inline nlohmann::ordered_json report_json(const std::vector<ClipScores>& clips, const nlohmann::ordered_json& settings,
+                                          std::int64_t horizon, bool video) {
+  nlohmann::ordered_json j;
+  j["clips"] = clips.size();
+  auto model = plan_summary(clips, &ClipScores::model);
+  if (video) model.update(video_summary(clips, &ClipScores::psnr, &ClipScores::ssim, horizon));
+  for (const auto& m : eval::uncomputed_feature_metrics()) model[m.name] = number(m.value);
+  j["model"] = model;
+  j["constant_velocity"] = plan_summary(clips, &ClipScores::constant_velocity);
+  j["constant_turn"] = plan_summary(clips, &ClipScores::constant_turn);
+  j["ground_truth"] = plan_summary(clips, &ClipScores::ground_truth);
+  if (video) {
+    j["repeat_last"] = video_summary(clips, &ClipScores::repeat_psnr, &ClipScores::repeat_ssim, horizon);
+    j["autoencoder"] = video_summary(clips, &ClipScores::ae_psnr, &ClipScores::ae_ssim, horizon);
+  }
+  for (const auto& m : eval::uncomputed_feature_metrics()) j[m.name] = number(m.value);
+  j["settings"] = settings;
+  j["notes"] = notes_json();
+  j["per_clip"] = nlohmann::ordered_json::array();
+  for (const auto& c : clips) j["per_clip"].push_back(clip_json(c));
+  return j;
+}
+
+// ---- the table ------------------------------------------------------------------------------
+
+inline std::string cell(const nlohmann::ordered_json& v, const char* format) {
+  if (!v.is_number()) return "-";
+  char buf[32];
+  std::snprintf(buf, sizeof buf, format, v.get<double>());
+  return buf;
+}
+
+inline void print_eval_table(std::ostream& out, const nlohmann::ordered_json& r, bool plan, bool video) {
+  char line[256];
+  if (plan) {
+    out << "planning (metres; collision rate)  L2@1s   L2@2s   L2@3s  avgL2@3s  coll@1s coll@2s coll@3s\n";
+    for (const char* name : {"model", "constant_velocity", "constant_turn", "ground_truth"}) {
+      const auto& m = r[name];
+      std::snprintf(line, sizeof line, "  %-32s %6s  %6s  %6s  %8s  %7s %7s %7s\n", name,
+                    cell(m["l2_1s"], "%.3f").c_str(), cell(m["l2_2s"], "%.3f").c_str(),
+                    cell(m["l2_3s"], "%.3f").c_str(), cell(m["l2_avg_3s"], "%.3f").c_str(),
+                    cell(m["collision_rate_1s"], "%.3f").c_str(), cell(m["collision_rate_2s"], "%.3f").c_str(),
+                    cell(m["collision_rate_3s"], "%.3f").c_str());
+      out << line;
+    }
+  }
+  if (video) {
+    const std::size_t N = r["model"]["psnr"].size();
+    out << "video (PSNR dB / SSIM per horizon)";
+    for (std::size_t h = 0; h < N; ++h) out << "      h" << h + 1;
+    out << "\n";
+    for (const char* name : {"model", "repeat_last", "autoencoder"})
+      for (const char* metric : {"psnr", "ssim"}) {
+        std::snprintf(line, sizeof line, "  %-32s", (std::string(name) + " " + metric).c_str());
+        out << line;
+        for (std::size_t h = 0; h < N; ++h) {
+          std::snprintf(line, sizeof line, " %7s", cell(r[name][metric][h], metric[0] == 'p' ? "%.2f" : "%.4f").c_str());
+          out << line;
+        }
+        out << "\n";
+      }
+  }
+}
+
+// ---- the command ----------------------------------------------------------------------------
+
+inline std::vector<eval::EvalClip> read_clip_set(const EvalOptions& o, const WorldModelConfig& wc) {
+  auto folders = eval::find_clip_folders(o.clips);
+  if (o.limit && static_cast<std::size_t>(*o.limit) < folders.size()) folders.resize(static_cast<std::size_t>(*o.limit));
+  const eval::ClipNeeds need{static_cast<std::size_t>(wc.condition_frames), o.plan ? eval::kPlanWaypoints : 0,
+                             o.video ? static_cast<std::size_t>(o.horizon) : 0};
+  std::vector<eval::EvalClip> clips;
+  for (const auto& dir : folders) {
+    clips.push_back(eval::read_clip(dir));
+    eval::check_clip(clips.back(), need);
+  }
+  return clips;
+}
+
+inline int run_eval(const ParsedArgs& a, const Console& con) {
+  const ComputeOptions compute = compute_options(a);
+  const ModelFiles files = resolve_models(a, true, true);
+  const WorldModelConfig& wc = files.configs.world;
+  const EvalOptions opt = eval_options(a, wc);
+  EPONA_CHECK(!opt.plan || wc.traj_len >= std::int64_t(eval::kPlanWaypoints), "eval: the model plans ", wc.traj_len,
+              " waypoint(s); L2 at 1/2/3 s needs ", eval::kPlanWaypoints, " (or pass --no-plan)");
+  const std::vector<eval::EvalClip> clips = read_clip_set(opt, wc);  // every clip checked before any work
+  con.note("evaluating ", clips.size(), " clip(s) from ", opt.clips.string(), ": ", *opt.sample.steps,
+           " sampling steps, seed ", opt.sample.seed, " + clip index",
+           opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"));
+
+  const auto engine = make_engine(compute);
+  cpu::Context ctx(compute.threads);
+  engine->load_dcae(files, con);
+  engine->load_world(files, con);
+  const Console silent{con.out, con.err, true, false};
+  const EvalContext e{*engine, ctx, wc, opt, size_policy(opt.fit), silent};
+  std::vector<ClipScores> scores;
+  Progress bar(con, "eval    ", static_cast<std::int64_t>(clips.size()), "clip");
+  for (std::size_t i = 0; i < clips.size(); ++i) {
+    scores.push_back(evaluate_clip(clips[i], opt.sample.seed + i, e));
+    bar.advance();
+  }
+  const auto report = report_json(scores, settings_json(a, files, compute, opt, wc), opt.horizon, opt.video);
+  io::write_atomically(opt.json, report.dump(2) + "\n");
+  print_eval_table(con.out, report, opt.plan, opt.video);
+  con.out << "wrote " << opt.json.string() << " (" << clips.size() << " clip(s); FID and FVD not computed)\n";
+  return 0;
+}
+
+}  // namespace epona::app
