@@ -1,0 +1,230 @@
+// Tests of `epona eval` (apps/epona/cmd_eval.hpp) run in-process through app::run on the bundled
+// demo model (64x128, condition_frames 3): a hand-made clip set of two clips (demo frames, known
+// motions, one with boxes.json), every required JSON key with finite values of the right
+// lengths, the constant-velocity L2 and collision rates against a hand computation, --limit not
+// changing a clip's result, collision_rate null without boxes, and bad inputs failing with the
+// clip and file named and no report written.
+#include <doctest/doctest.h>
+
+#include <atomic>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+#include <unistd.h>
+
+#include "../../apps/epona/cli.hpp"
+#include "epona/io/image.hpp"
+
+namespace fs = std::filesystem;
+using namespace epona;
+using nlohmann::json;
+
+namespace {
+
+struct Result {
+  int rc = -1;
+  std::string out, err;
+};
+
+Result cli(const std::vector<std::string>& args) {
+  std::ostringstream out, err;
+  Result r;
+  r.rc = app::run(args, out, err, false);
+  r.out = out.str(), r.err = err.str();
+  return r;
+}
+
+bool has(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+
+struct TempDir {
+  fs::path path;
+  TempDir() {
+    static std::atomic<int> counter{0};
+    path = fs::temp_directory_path() / ("epona_eval_cli_" + std::to_string(getpid()) + "_" + std::to_string(counter++));
+    fs::remove_all(path);
+    fs::create_directories(path);
+  }
+  ~TempDir() {
+    std::error_code ec;
+    fs::remove_all(path, ec);
+  }
+};
+
+void write_text(const fs::path& p, const std::string& text) { std::ofstream(p) << text; }
+
+io::Image demo_frame(int i) {
+  return io::read_image(std::string(EPONA_TEST_DATA_DIR) + "/demo/frame_0" + std::to_string(i) + ".png");
+}
+
+std::string rows(const std::string& row, int n) {
+  std::string s = "x,y,yaw\n";
+  for (int i = 0; i < n; ++i) s += row + "\n";
+  return s;
+}
+
+// A clip: the 3 demo frames as history (last motion `last`), demo frames 1 and 2 as the two true
+// future frames, 15 future motions of 1 m straight ahead.
+void make_clip(const fs::path& dir, const std::string& last) {
+  fs::create_directories(dir / "frames");
+  fs::create_directories(dir / "future");
+  for (int i = 0; i < 3; ++i) io::write_png((dir / "frames" / ("frame_0" + std::to_string(i) + ".png")).string(), demo_frame(i));
+  for (int i = 0; i < 2; ++i) io::write_png((dir / "future" / ("frame_0" + std::to_string(i) + ".png")).string(), demo_frame(i + 1));
+  write_text(dir / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n" + last + "\n");
+  write_text(dir / "future_poses.csv", rows("1,0,0", 15));
+}
+
+// Clip 0 goes 2 m a frame, clip 1 1 m left; a vehicle stands 10 m ahead in clip 0's future.
+fs::path make_clip_set(const TempDir& t) {
+  const fs::path set = t.path / "clips";
+  make_clip(set / "clip_0000", "2,0,0");
+  make_clip(set / "clip_0001", "0,1,0");
+  std::string boxes = R"({"ego": {"length": 4, "width": 2}, "frames": [[], [], [])";
+  for (int i = 0; i < 15; ++i) boxes += R"(, [{"x": 10, "y": 0, "yaw": 0, "length": 4, "width": 2}])";
+  write_text(set / "clip_0000" / "boxes.json", boxes + "]}");
+  return set;
+}
+
+json read_json(const fs::path& p) {
+  std::ifstream in(p);
+  return json::parse(in);
+}
+
+std::vector<std::string> eval_args(const fs::path& clips, const fs::path& report) {
+  return {"eval", "--clips", clips.string(), "--json", report.string(), "--steps", "2", "--horizon", "2", "-q"};
+}
+
+void check_number(const json& j, const std::string& key) {
+  INFO(key);
+  REQUIRE(j.contains(key));
+  REQUIRE(j[key].is_number());
+  CHECK(std::isfinite(j[key].get<double>()));
+}
+
+void check_series(const json& j, const std::string& key, std::size_t n) {
+  INFO(key);
+  REQUIRE(j.contains(key));
+  REQUIRE(j[key].is_array());
+  REQUIRE(j[key].size() == n);
+  for (const auto& v : j[key]) CHECK((v.is_number() && std::isfinite(v.get<double>())));
+}
+
+const char* kPlanKeys[] = {"l2_1s", "l2_2s", "l2_3s", "l2_avg_1s", "l2_avg_2s", "l2_avg_3s",
+                           "collision_rate", "collision_rate_1s", "collision_rate_2s", "collision_rate_3s"};
+
+}  // namespace
+
+TEST_CASE("eval on the demo model: every key, finite values, baselines by hand") {
+  TempDir t;
+  const fs::path set = make_clip_set(t), report = t.path / "eval.json";
+  const Result r = cli(eval_args(set, report));
+  INFO(r.err);
+  REQUIRE(r.rc == 0);
+  CHECK(has(r.out, "constant_velocity"));
+  CHECK(has(r.out, "repeat_last"));
+  const json j = read_json(report);
+  CHECK(j["clips"] == 2);
+  for (const char* who : {"model", "constant_velocity", "constant_turn"})
+    for (const char* key : kPlanKeys) check_number(j[who], key);
+  for (const char* who : {"model", "repeat_last", "autoencoder"}) {
+    check_series(j[who], "psnr", 2);
+    check_series(j[who], "ssim", 2);
+  }
+  CHECK(j["model"]["fid"].is_null());
+  CHECK(j["fvd"].is_null());
+  CHECK(has(j["notes"]["fid"].get<std::string>(), "not computed"));
+  for (const char* key : {"steps", "seed", "horizon", "weights", "backend", "dtype"}) CHECK(j["settings"].contains(key));
+  CHECK(j["settings"]["steps"] == 2);
+
+  // Truth: waypoint n at (n + 1, 0). Constant velocity: clip 0 (2 (n + 1), 0), error n + 1;
+  // clip 1 (0, n + 1), error sqrt 2 (n + 1). At 1/2/3 s (n = 4, 9, 14), averaged over the clips.
+  const double k = (1 + std::sqrt(2.0)) / 2;
+  const json& cv = j["constant_velocity"];
+  CHECK(cv["l2_1s"].get<double>() == doctest::Approx(5 * k));
+  CHECK(cv["l2_2s"].get<double>() == doctest::Approx(10 * k));
+  CHECK(cv["l2_3s"].get<double>() == doctest::Approx(15 * k));
+  CHECK(cv["l2_avg_1s"].get<double>() == doctest::Approx(3 * k));  // mean of 1..5
+  CHECK(cv["l2_avg_3s"].get<double>() == doctest::Approx(8 * k));  // mean of 1..15
+  CHECK(j["constant_turn"]["l2_3s"].get<double>() == doctest::Approx(15 * k));  // no turn: the same
+  // Only clip 0 has boxes; its constant-velocity ego reaches the vehicle at 10 m by waypoint 4.
+  CHECK(cv["collision_rate_1s"] == 1.0);
+  CHECK(cv["collision_clips"] == 1);
+  CHECK(j["ground_truth"]["collision_rate_1s"] == 0.0);  // 5 m at 1 s: clear
+  CHECK(j["ground_truth"]["collision_rate_2s"] == 1.0);  // 10 m at 2 s: on it
+  // The second true frame is the last history frame.
+  CHECK(j["repeat_last"]["psnr"][1] == eval::kPsnrCap);
+  CHECK(j["repeat_last"]["ssim"][1].get<double>() == doctest::Approx(1.0));
+
+  REQUIRE(j["per_clip"].size() == 2);
+  CHECK(j["per_clip"][0]["name"] == "clip_0000");
+  CHECK(j["per_clip"][1]["psnr"].size() == 2);
+  CHECK(j["per_clip"][0]["constant_velocity_l2_3s"].get<double>() == doctest::Approx(15));
+  CHECK(j["per_clip"][1]["collision_3s"].is_null());
+
+  // --limit 1: clip 0 alone, with the same seed and so the same result.
+  const fs::path first = t.path / "first.json";
+  auto args = eval_args(set, first);
+  args.insert(args.end(), {"--limit", "1"});
+  REQUIRE(cli(args).rc == 0);
+  const json f = read_json(first);
+  CHECK(f["clips"] == 1);
+  CHECK(f["per_clip"][0] == j["per_clip"][0]);
+}
+
+TEST_CASE("eval: collision_rate is null without boxes; --no-video and --no-plan") {
+  TempDir t;
+  const fs::path set = make_clip_set(t), report = t.path / "eval.json";
+  fs::remove(set / "clip_0000" / "boxes.json");
+  auto args = eval_args(set, report);
+  args.push_back("--no-video");
+  REQUIRE(cli(args).rc == 0);
+  json j = read_json(report);
+  CHECK(j["model"]["collision_rate"].is_null());
+  CHECK(j["model"]["l2_3s"].is_number());
+  CHECK_FALSE(j["model"].contains("psnr"));
+  args = eval_args(set, report);
+  args.push_back("--no-plan");
+  REQUIRE(cli(args).rc == 0);
+  j = read_json(report);
+  CHECK(j["model"]["l2_3s"].is_null());
+  CHECK(j["model"]["psnr"].size() == 2);
+}
+
+TEST_CASE("eval: bad inputs fail naming the clip and file, and write no report") {
+  TempDir t;
+  const fs::path set = make_clip_set(t), report = t.path / "eval.json";
+  const auto fails_with = [&](const std::vector<std::string>& args, const std::string& part) {
+    const Result r = cli(args);
+    INFO(r.err);
+    CHECK(r.rc == 1);
+    CHECK(has(r.err, "epona: error:"));
+    CHECK(has(r.err, part));
+    CHECK_FALSE(fs::exists(report));
+  };
+  fails_with({"eval", "--json", report.string()}, "--clips DIR is needed");
+  fails_with({"eval", "--clips", set.string()}, "--json FILE is needed");
+  fails_with(eval_args(t.path / "nowhere", report), "no such folder");
+  fails_with(eval_args(t.path, report), "no clips");
+  fails_with({"eval", "--clips", set.string(), "--json", (t.path / "no" / "r.json").string()}, "does not exist");
+  fails_with({"eval", "--clips", set.string(), "--json", report.string(), "--horizon", "3"}, "--horizon asks for 3");
+
+  write_text(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n");
+  fails_with(eval_args(set, report), "clip clip_0001");
+  fails_with(eval_args(set, report), "poses.csv holds 2 pose(s) for the 3 frame(s)");
+  write_text(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,inf,0\n2,0,0\n");
+  fails_with(eval_args(set, report), "clip_0001/poses.csv: line 3");
+  make_clip(set / "clip_0001", "0,1,0");
+  fs::remove(set / "clip_0001" / "frames" / "frame_00.png");
+  write_text(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n");
+  fails_with(eval_args(set, report), "the model's window needs 3");
+  make_clip(set / "clip_0001", "0,1,0");
+  write_text(set / "clip_0001" / "future_poses.csv", rows("1,0,0", 14));
+  fails_with(eval_args(set, report), "future_poses.csv holds 14 motion(s); 15 are needed");
+}
+
+// The one translation unit of this test program that compiles stb.
+#include "epona/io/stb_implementation.hpp"
