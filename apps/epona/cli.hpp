@@ -20,6 +20,7 @@
 #include "cmd_generate.hpp"
 #include "cmd_info.hpp"
 #include "cmd_plan.hpp"
+#include "cmd_synth.hpp"
 #include "console.hpp"
 
 namespace epona::app {
@@ -42,6 +43,7 @@ inline const std::vector<Subcommand>& subcommands() {
       {"info", "what a checkpoint holds and the configuration its shapes imply", info_parser, run_info},
       {"eval", "scores the model on a clip set: planning L2/collisions, video PSNR/SSIM, with baselines", eval_parser, run_eval},
       {"convert", "a checkpoint (.pkl or .safetensors) -> .safetensors, same tensors", convert_parser, run_convert},
+      {"synth", "driving clips from a procedural world (frames, poses, boxes) for training and evaluation", synth_parser, run_synth},
   };
   return list;
 }
@@ -62,7 +64,7 @@ inline int run(const std::vector<std::string>& args, std::ostream& out, std::ost
   try {
     if (args.empty() || args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
       (args.empty() ? err : out) << main_help();
-      if (args.empty()) usage_fail("no command given (plan, generate, eval, encode, decode, info, convert)");
+      if (args.empty()) usage_fail("no command given (plan, generate, eval, encode, decode, info, convert, synth)");
       return 0;
     }
     if (args[0] == "--version") {
@@ -80,7 +82,7 @@ inline int run(const std::vector<std::string>& args, std::ostream& out, std::ost
       const Console con{out, err, parsed.flag("quiet"), interactive};
       return c.run(parsed, con);
     }
-    usage_fail("unknown command '", args[0], "' (commands: plan, generate, eval, encode, decode, info, convert; see epona --help)");
+    usage_fail("unknown command '", args[0], "' (commands: plan, generate, eval, encode, decode, info, convert, synth; see epona --help)");
   } catch (const std::exception& e) {
     err << "epona: error: " << e.what() << "\n";
     return 1;

@@ -289,28 +289,32 @@ NpyArray<T> read_npy(const std::filesystem::path& path) {
   return parse_npy<T>(bytes, path.string());
 }
 
-// Serialises a tensor as a .npy file ('<f4' for float, '<f8' for double), format 1.0 (a
-// header of at most 64 dimensions always fits its 16-bit length), data aligned to 64 bytes.
-template <class T>
-std::string to_npy_bytes(const Tensor<T>& t) {
-  static_assert(std::is_same_v<T, float> || std::is_same_v<T, double>);
-  std::string shape = "(";
-  for (std::size_t i = 0; i < t.shape().size(); ++i) shape += (i ? ", " : "") + std::to_string(t.shape()[i]);
-  shape += t.shape().size() == 1 ? ",)" : ")";
-  std::string header = std::string("{'descr': '") + (std::is_same_v<T, float> ? "<f4" : "<f8") +
-                       "', 'fortran_order': False, 'shape': " + shape + ", }";
+// The preamble and header dict of a .npy file, format 1.0 (a header of at most 64 dimensions
+// always fits its 16-bit length), padded so the data starts at a multiple of 64 bytes.
+inline std::string npy_preamble(std::string_view descr, const std::vector<std::int64_t>& shape) {
+  std::string dims = "(";
+  for (std::size_t i = 0; i < shape.size(); ++i) dims += (i ? ", " : "") + std::to_string(shape[i]);
+  dims += shape.size() == 1 ? ",)" : ")";
+  std::string header = "{'descr': '" + std::string(descr) + "', 'fortran_order': False, 'shape': " + dims + ", }";
   const std::size_t preamble = 10;  // magic, version 1.0, uint16 header length
   header.resize((preamble + header.size() + 1 + 63) / 64 * 64 - preamble - 1, ' ');
   header.push_back('\n');
-  EPONA_CHECK(t.dim() <= static_cast<int>(npy_detail::kMaxRank) && header.size() <= 65535,
-              "write_npy: shape ", shape_str(t.shape()), " has too many dimensions");
-
+  EPONA_CHECK(shape.size() <= npy_detail::kMaxRank && header.size() <= 65535,
+              "write_npy: shape ", dims, " has too many dimensions");
   std::string out = "\x93NUMPY";
   out += '\x01';
   out += '\x00';
   out += static_cast<char>(header.size() & 0xff);
   out += static_cast<char>(header.size() >> 8);
-  out += header;
+  return out + header;
+}
+
+// Serialises a tensor as a .npy file ('<f4' for float, '<f8' for double).
+template <class T>
+std::string to_npy_bytes(const Tensor<T>& t) {
+  static_assert(std::is_same_v<T, float> || std::is_same_v<T, double>);
+  std::vector<std::int64_t> shape(t.shape().begin(), t.shape().end());
+  std::string out = npy_preamble(std::is_same_v<T, float> ? "<f4" : "<f8", shape);
   out.append(reinterpret_cast<const char*>(t.data()), t.nbytes());
   return out;
 }
@@ -318,6 +322,17 @@ std::string to_npy_bytes(const Tensor<T>& t) {
 template <class T>
 void write_npy(const std::filesystem::path& path, const Tensor<T>& t) {
   write_atomically(path, to_npy_bytes(t));
+}
+
+// Writes raw C-order data of dtype `descr` ('|u1' for uint8 images, '<f8', ...) and `shape`;
+// `bytes` must hold exactly the product of the shape times the item size.
+inline void write_npy(const std::filesystem::path& path, std::string_view descr, const std::vector<std::int64_t>& shape,
+                      std::span<const std::byte> bytes) {
+  const std::string head = npy_preamble(descr, shape);
+  write_atomically(path, [&](AtomicFileSink& out) {
+    out.write(head);
+    out.write(bytes.data(), bytes.size());
+  });
 }
 
 }  // namespace epona::io

@@ -1,0 +1,117 @@
+// epona/synth/ego_controller.hpp — the ego car's driver: pure-pursuit steering towards a point on
+// its lane a speed-dependent distance ahead (Coulter 1992), lane changes at random times in
+// either direction when the target lane has room, and IDM car-following of the lead vehicle
+// with a desired speed from the drive's regime, capped by the curvature ahead (lateral
+// acceleration at most 2.5 m/s^2). The car moves as a kinematic unicycle in world coordinates.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+
+#include "epona/synth/geometry.hpp"
+#include "epona/synth/rng.hpp"
+#include "epona/synth/road.hpp"
+#include "epona/synth/traffic.hpp"
+
+namespace epona::synth {
+
+struct EgoCar {
+  Pose2 pose;
+  double v = 0;
+  double s = 0, d = 0;  // road coordinates (kept up to date by the controller)
+  std::int64_t hint = 0;
+  int lane = 0;
+  LaneChange change;
+  double v_desired = 10, hold_left = 10;
+  double next_change_in = 10;  // s until the next lane-change wish
+  int lane_changes = 0;
+  static constexpr double kLength = 4.6, kWidth = 1.9;
+  Obstacle obstacle() const { return {s, d, v, kLength}; }
+};
+
+class EgoController {
+ public:
+  IdmParams idm{1.6, 2.5, 3.0, 1.4};
+  double max_lateral_accel = 2.5;  // m/s^2
+  double mean_change_interval = 12;  // s between lane-change wishes
+
+  EgoCar start(Rng& rng, const Road& road, const RoadLayout& layout, const SpeedRegime& regime, double s, int lane) {
+    EgoCar e;
+    e.lane = lane;
+    e.d = layout.lane_centre(lane);
+    e.s = s;
+    e.pose = road.at(s, e.d);
+    e.hint = static_cast<std::int64_t>(s / Road::kStep);
+    e.v_desired = regime.draw(rng);
+    if (e.v_desired == 0) e.v_desired = regime.v_max * 0.5;  // start moving, so the first motions are real
+    e.v = e.v_desired;
+    e.hold_left = rng.uniform(regime.hold_min, regime.hold_max);
+    e.next_change_in = rng.uniform(2, 2 * mean_change_interval);
+    return e;
+  }
+
+  void step(Rng& rng, EgoCar& e, const Road& road, const RoadLayout& layout, const SpeedRegime& regime,
+            const Traffic& traffic, double dt) const {
+    road.project(e.pose.x, e.pose.y, e.hint, e.s, e.d);
+    plan_lane_change(rng, e, layout, traffic, dt);
+    const double d_ref = e.change.active() ? lerp(e.change.from, e.change.to, smoothstep((e.change.t + 0.6) / e.change.duration))
+                                           : layout.lane_centre(e.lane);
+
+    // Pure pursuit: the arc through the look-ahead point.
+    const double look = std::clamp(4.0 + 0.9 * e.v, 6.0, 35.0);
+    const Pose2 target = road.at(e.s + look, d_ref);
+    double lx, ly;
+    to_local(e.pose, target.x, target.y, lx, ly);
+    const double kappa = std::clamp(2 * ly / std::max(lx * lx + ly * ly, 1.0), -0.2, 0.2);
+
+    // Speed: the regime's wish, the curves ahead, the lead vehicle.
+    e.hold_left -= dt;
+    if (e.hold_left <= 0) e.v_desired = regime.draw(rng), e.hold_left = rng.uniform(regime.hold_min, regime.hold_max);
+    double v0 = e.v_desired;
+    for (double ahead = 0; ahead <= 20 + 3 * e.v; ahead += 5)
+      v0 = std::min(v0, std::sqrt(max_lateral_accel / std::max(std::abs(road.curvature(e.s + ahead)), 1e-4)));
+    double gap = -1, closing = 0;
+    lead(e, traffic, gap, closing);
+    const double a = std::clamp(idm_accel(idm, e.v, v0, gap, closing), -7.0, idm.accel);
+    const double v1 = std::max(0.0, e.v + a * dt);
+    const double vm = 0.5 * (e.v + v1);
+    const double h_mid = e.pose.yaw + 0.5 * vm * kappa * dt;
+    e.pose.x += std::cos(h_mid) * vm * dt;
+    e.pose.y += std::sin(h_mid) * vm * dt;
+    e.pose.yaw = wrap_angle(e.pose.yaw + vm * kappa * dt);
+    e.v = v1;
+    if (e.change.active()) e.change.t += dt;
+  }
+
+  // The nearest vehicle ahead in the ego's lane (or the lane it is moving into).
+  static void lead(const EgoCar& e, const Traffic& traffic, double& gap, double& closing) {
+    for (const Vehicle& o : traffic.vehicles) {
+      if (o.direction < 0) continue;
+      const double ahead = o.s - e.s;
+      if (ahead <= 0 || ahead > 150) continue;
+      const bool same = std::abs(o.d - e.d) < 2.4 || (e.change.active() && std::abs(o.d - e.change.to) < 2.4);
+      if (!same) continue;
+      const double g = ahead - 0.5 * (o.length + EgoCar::kLength);
+      if (gap < 0 || g < gap) gap = std::max(g, 0.05), closing = e.v - o.v;
+    }
+  }
+
+ private:
+  void plan_lane_change(Rng& rng, EgoCar& e, const RoadLayout& layout, const Traffic& traffic, double dt) const {
+    if (e.change.active() || layout.lanes < 2) return;
+    e.next_change_in -= dt;
+    if (e.next_change_in > 0 || e.v < 1.5) return;
+    e.next_change_in = rng.uniform(0.3, 1.7) * mean_change_interval;
+    const int target = e.lane + (e.lane == 0 ? 1 : e.lane == layout.lanes - 1 ? -1 : (rng.chance(0.5) ? 1 : -1));
+    const Obstacle none{-1e9, 0, 0, 0};
+    if (!traffic.lane_free(layout, target, e.s - 15, e.s + 20, nullptr, none)) {
+      e.next_change_in = rng.uniform(1, 3);  // try again soon
+      return;
+    }
+    e.change = {layout.lane_centre(e.lane), layout.lane_centre(target), 0, std::clamp(rng.uniform(3.5, 5.5), 3.0, 6.0)};
+    e.lane = target;
+    ++e.lane_changes;
+  }
+};
+
+}  // namespace epona::synth
