@@ -18,6 +18,8 @@
 #include <unistd.h>
 
 #include "../../apps/epona/cli.hpp"
+#include "../temp_dir.hpp"
+#include "cli_testing.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
@@ -29,21 +31,9 @@ using namespace epona;
 
 namespace {
 
-struct Result {
-  int rc = -1;
-  std::string out, err;
-};
-
-Result cli(const std::vector<std::string>& args) {
-  std::ostringstream out, err;
-  Result r;
-  r.rc = app::run(args, out, err, false);
-  r.out = out.str();
-  r.err = err.str();
-  return r;
-}
-
-bool has(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+using test::cli;
+using test::has;
+using Result = test::CliResult;
 
 std::string golden_dir() {
   const char* env = std::getenv("EPONA_GOLDEN_DIR");
@@ -59,19 +49,8 @@ std::vector<std::string> golden_model_args() {
 }
 
 // A fresh folder under the system temp dir, removed at the end of the test.
-struct TempDir {
-  fs::path path;
-  TempDir() {
-    static std::atomic<int> counter{0};
-    path = fs::temp_directory_path() / ("epona_cli_test_" + std::to_string(getpid()) + "_" + std::to_string(counter++));
-    fs::remove_all(path);
-    fs::create_directories(path);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
-  std::string operator/(const std::string& name) const { return (path / name).string(); }
+struct TempDir : test::TempDir {
+  TempDir() : test::TempDir("epona_cli_test") {}
 };
 
 std::string read_bytes(const fs::path& p) {

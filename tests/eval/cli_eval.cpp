@@ -6,18 +6,16 @@
 // clip and file named and no report written.
 #include <doctest/doctest.h>
 
-#include <atomic>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
-#include <sstream>
 #include <string>
 #include <vector>
 
 #include <nlohmann/json.hpp>
-#include <unistd.h>
 
-#include "../../apps/epona/cli.hpp"
+#include "../apps/cli_testing.hpp"
+#include "../temp_dir.hpp"
 #include "epona/io/image.hpp"
 
 namespace fs = std::filesystem;
@@ -26,33 +24,12 @@ using nlohmann::json;
 
 namespace {
 
-struct Result {
-  int rc = -1;
-  std::string out, err;
-};
+using test::cli;
+using test::has;
+using Result = test::CliResult;
 
-Result cli(const std::vector<std::string>& args) {
-  std::ostringstream out, err;
-  Result r;
-  r.rc = app::run(args, out, err, false);
-  r.out = out.str(), r.err = err.str();
-  return r;
-}
-
-bool has(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
-
-struct TempDir {
-  fs::path path;
-  TempDir() {
-    static std::atomic<int> counter{0};
-    path = fs::temp_directory_path() / ("epona_eval_cli_" + std::to_string(getpid()) + "_" + std::to_string(counter++));
-    fs::remove_all(path);
-    fs::create_directories(path);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
+struct TempDir : test::TempDir {
+  TempDir() : test::TempDir("epona_eval_cli") {}
 };
 
 void write_text(const fs::path& p, const std::string& text) { std::ofstream(p) << text; }

@@ -5,7 +5,6 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
-#include <atomic>
 #include <functional>
 #include <cmath>
 #include <filesystem>
@@ -14,7 +13,6 @@
 #include <string>
 #include <vector>
 
-#include <unistd.h>
 
 #include "epona/eval/baselines.hpp"
 #include "epona/eval/clip_set.hpp"
@@ -22,6 +20,7 @@
 #include "epona/eval/image_metrics.hpp"
 #include "epona/eval/planning_metrics.hpp"
 #include "epona/io/image.hpp"
+#include "../temp_dir.hpp"
 
 namespace fs = std::filesystem;
 using namespace epona;
@@ -68,18 +67,8 @@ double reference_ssim(const io::Image& a, const io::Image& b) {
   return total / 3;
 }
 
-struct TempDir {
-  fs::path path;
-  TempDir() {
-    static std::atomic<int> counter{0};
-    path = fs::temp_directory_path() / ("epona_eval_test_" + std::to_string(getpid()) + "_" + std::to_string(counter++));
-    fs::remove_all(path);
-    fs::create_directories(path);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
+struct TempDir : epona::test::TempDir {
+  TempDir() : epona::test::TempDir("epona_eval_test") {}
 };
 
 void write_text(const fs::path& p, const std::string& text) {
