@@ -14,9 +14,8 @@
 #include <string>
 #include <vector>
 
-#include <unistd.h>
-
-#include "../../apps/epona/cli.hpp"
+#include "../apps/cli_testing.hpp"
+#include "../temp_dir.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/synth/scenario.hpp"
@@ -26,31 +25,8 @@ using namespace epona;
 
 namespace {
 
-struct Result {
-  int rc = -1;
-  std::string out, err;
-};
-
-Result cli(const std::vector<std::string>& args) {
-  std::ostringstream out, err;
-  Result r;
-  r.rc = app::run(args, out, err, false);
-  r.out = out.str(), r.err = err.str();
-  return r;
-}
-
-struct TempDir {
-  fs::path path;
-  TempDir() {
-    static int n = 0;
-    path = fs::temp_directory_path() / ("epona_synth_test_" + std::to_string(::getpid()) + "_" + std::to_string(n++));
-    fs::remove_all(path);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
-};
+using test::cli;
+using test::TempDir;
 
 std::string slurp(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);
@@ -131,7 +107,7 @@ TEST_CASE("synth: the picture does not depend on the thread count") {
 
 TEST_CASE("synth: npy layout; future motions continue the history; boxes in the last history frame") {
   TempDir t;
-  const Result r = cli({"synth", "--seed", "2", "--clips", "2", "--frames", "4", "--future", "16", "--size", "32x64",
+  const test::CliResult r = cli({"synth", "--seed", "2", "--clips", "2", "--frames", "4", "--future", "16", "--size", "32x64",
                         "--supersample", "1", "--format", "npy", "--quiet", "--out", t.path.string()});
   REQUIRE_MESSAGE(r.rc == 0, r.err);
   for (const char* clip : {"clip_0000", "clip_0001"}) {
@@ -254,7 +230,7 @@ TEST_CASE("synth: bad options give clear errors") {
   for (const auto& [extra, message] : cases) {
     std::vector<std::string> args{"synth", "--out", out, "--quiet"};
     args.insert(args.end(), extra.begin(), extra.end());
-    const Result r = cli(args);
+    const test::CliResult r = cli(args);
     CHECK(r.rc == 1);
     CHECK_MESSAGE(r.err.find("epona: error: ") == 0, r.err);
     CHECK_MESSAGE(r.err.find(message) != std::string::npos, r.err);
