@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# The training of docs/training.md on a lent GPU machine, in device calls of at most 10 minutes.
+# Run from the repository root there, with the official checkout carried in .official/ and a
+# CPU-portable `epona` (EPONA_NATIVE=OFF) with its libgomp in .device-build/pkg/ (see
+# docs/training.md "Reproducing"). State lives in $EPONA_TRAIN_WORK (default /tmp/epona-train),
+# which survives between calls while the machine stays warm.
+#
+#   training/device_train.sh start  OUT   # data, DC-AE, latents, the first world-model chunk
+#   training/device_train.sh resume OUT   # more world-model training (WORLD_SECONDS), preview
+#
+# Both copy the exported model (bf16 safetensors + configs.json), the loss curves and the
+# preview into OUT. Knobs (environment): CLIPS, FRAMES, DATA_SEED, DCAE_SECONDS, WORLD_SECONDS,
+# WORLD_SCHEDULE (the world model's planned total seconds over all chunks), BATCH.
+set -euo pipefail
+phase=${1:?start or resume} out=${2:?output folder}
+work=${EPONA_TRAIN_WORK:-/tmp/epona-train}
+official=.official
+epona=.device-build/pkg/epona
+export PYTHONUNBUFFERED=1 LD_LIBRARY_PATH=$PWD/.device-build/pkg/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+train() { python3 training/train.py "$@" --official "$official" --work "$work" --data "$work/data"; }
+
+collect() {
+  mkdir -p "$out"
+  cp "$work"/small/* "$out"/ 2>/dev/null || true
+  cp "$work"/*.jsonl "$work"/preview.* "$out"/ 2>/dev/null || true
+}
+
+case $phase in
+  start)
+    mkdir -p "$work"
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+    t0=$(date +%s)
+    "$epona" synth --seed "${DATA_SEED:-1000}" --clips "${CLIPS:-600}" --frames "${FRAMES:-64}" --future 0 \
+      --format npy --out "$work/data" --quiet
+    echo "synth: $(( $(date +%s) - t0 )) s, $(du -sh "$work/data" | cut -f1)"
+    train dcae --seconds "${DCAE_SECONDS:-150}" --schedule-seconds "${DCAE_SECONDS:-150}" --batch 32 --lr 1e-3
+    train encode
+    train world --seconds "${WORLD_SECONDS:-240}" --schedule-seconds "${WORLD_SCHEDULE:-600}" \
+      --batch "${BATCH:-32}" --lr 4e-4
+    train preview --limit-clips 16
+    ;;
+  resume)
+    train world --seconds "${WORLD_SECONDS:-300}" --schedule-seconds "${WORLD_SCHEDULE:-600}" \
+      --batch "${BATCH:-32}" --lr 4e-4
+    train preview --limit-clips 16
+    ;;
+  *) echo "device_train.sh: start or resume" >&2; exit 2 ;;
+esac
+collect
