@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # The main job: installs dependencies, builds the `epona` program, then runs `epona generate`
-# and `epona plan` on the bundled demo (a small conformance model with random weights and a
-# rendered 3-frame road clip, both in tests/data), writing PNG/JSON/CSV into ./out/demo.
+# and `epona plan` on the bundled model (a small Epona trained on the synthetic driving world,
+# models/small-synthetic) and its held-out demo clip, writing PNG/JSON/CSV into ./out/demo.
 #
-#   scripts/demo.sh                                   # the bundled demo
+#   scripts/demo.sh                                   # the bundled model and clip
 #   scripts/demo.sh --weights world.pkl --dcae dcae_td_20000.pkl \
 #                   --frames clip/ --poses clip/poses.csv    # the released model
 #

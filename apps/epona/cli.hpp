@@ -53,7 +53,7 @@ inline std::string main_help() {
       "usage: epona <command> [options]\n\n"
       "Runs the Epona world model (ICCV 2025) from its released checkpoints: plans trajectories, rolls\n"
       "out driving video, encodes and decodes frames. Without --weights, plan and generate run a small\n"
-      "bundled demo model (random conformance weights) on a bundled clip.\n\ncommands:\n";
+      "bundled model (a small Epona trained on a synthetic driving world) on its demo clip.\n\ncommands:\n";
   for (const auto& c : subcommands()) s += "  " + std::string(c.name) + std::string(10 - std::string(c.name).size(), ' ') + c.summary + "\n";
   s += "\n`epona <command> --help` shows the options of a command.\n";
   return s;

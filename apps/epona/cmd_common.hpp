@@ -18,9 +18,9 @@ namespace epona::app {
 
 inline void add_clip_options(ArgParser& p) {
   p.option("frames", "DIR", "folder of the input frames (PNG/JPEG, natural name order; the last F are used)",
-           "the bundled demo clip")
+           "the bundled model's demo clip")
       .option("poses", "FILE", "one ego motion per frame: .csv/.json (x, y, yaw), the demo's pose.npy+yaw.npy folder, "
-              "or absolute 4x4 poses (.npy/.json)", "the bundled demo poses")
+              "or absolute 4x4 poses (.npy/.json)", "the demo clip's poses")
       .option("fit", "MODE", "frames not at the model's size: exact (refuse), resize, crop, cover", "exact");
 }
 inline void add_sampling_options(ArgParser& p) {
@@ -40,7 +40,7 @@ inline ClipInputs clip_inputs(const ParsedArgs& a, const ModelFiles& f) {
   if (!f.demo && !a.has("poses")) usage_fail(a.command(), ": --poses FILE is needed with --weights");
   ClipInputs in;
   in.frames = a.text("frames", demo_frames_dir());
-  in.poses = a.text("poses", a.has("frames") ? "" : demo_frames_dir() + "/poses.csv");
+  in.poses = a.text("poses", a.has("frames") ? "" : demo_poses_file());
   if (in.poses.empty()) usage_fail(a.command(), ": --poses FILE is needed with --frames");
   return in;
 }

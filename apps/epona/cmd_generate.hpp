@@ -35,7 +35,7 @@ inline ArgParser generate_parser() {
               "each step's trajectory) or, with --trajectory, one action per step from a file. Writes\n"
               "frames/frame_NNNN.png, contact_sheet.png, trajectory.json/.csv (each step's plan, or the\n"
               "actions used) and poses.csv (the motion into each generated frame) into the output folder.\n"
-              "Without --weights it runs the bundled demo model on the bundled demo clip.");
+              "Without --weights it runs the bundled model (models/small-synthetic) on its demo clip.");
   add_model_options(p, true, true);
   add_clip_options(p);
   p.option("num-frames", "N", "frames to generate", "6, or one per action of --trajectory", 'n')
@@ -48,7 +48,7 @@ inline ArgParser generate_parser() {
   add_compute_options(p);
   add_output_options(p, "out/generate");
   p.epilog("examples:\n"
-           "  epona generate -n 4                          # the bundled demo\n"
+           "  epona generate -n 4                          # the bundled model and clip\n"
            "  epona generate --weights world.pkl --dcae dcae_td_20000.pkl --frames clip/ \\\n"
            "                 --poses clip/poses.csv -n 60 --steps 100 --out out/drive\n"
            "  epona generate ... --trajectory out/drive/trajectory.csv   # replay the same actions");

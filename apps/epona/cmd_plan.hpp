@@ -24,14 +24,14 @@ inline ArgParser plan_parser() {
               "Plans the ego trajectory from the last F frames and their ego motions (F = condition_frames,\n"
               "10 for the released model): traj_len waypoints (15 = 3 s at 5 Hz). Writes trajectory.json,\n"
               "trajectory.csv and plan.png (the plan drawn top-down over the last frame) into the output folder.\n"
-              "Without --weights it runs the bundled demo model on the bundled demo clip.");
+              "Without --weights it runs the bundled model (models/small-synthetic) on its demo clip.");
   add_model_options(p, true, true);
   add_clip_options(p);
   add_sampling_options(p);
   add_compute_options(p);
   add_output_options(p, "out/plan");
   p.epilog("examples:\n"
-           "  epona plan                                  # the bundled demo\n"
+           "  epona plan                                  # the bundled model and clip\n"
            "  epona plan --weights world.pkl --dcae dcae_td_20000.pkl \\\n"
            "             --frames clip/ --poses clip/poses.csv --out out/plan");
   return p;

@@ -1,4 +1,4 @@
-// apps/epona/models.hpp — which model files and configuration a command uses (the bundled demo
+// apps/epona/models.hpp — which model files and configuration a command uses (the bundled
 // model when no --weights/--dcae is given; the shipped configuration, WorldModelConfig{} and
 // DcaeConfig{}, unless --config names another), the compute options (backend, weight dtype,
 // threads), and loading. A binding failure is explained with what the checkpoint's shapes imply.
@@ -32,8 +32,33 @@ inline std::string data_dir() {
   return "tests/data";
 #endif
 }
-inline std::string demo_model_dir() { return data_dir() + "/golden"; }
-inline std::string demo_frames_dir() { return data_dir() + "/demo"; }
+
+// The model and clip used without --weights. The program: the small Epona trained on the synthetic
+// world (models/small-synthetic, docs/training.md) and its held-out demo clip. Test programs, built
+// without EPONA_APP_MODEL_DIR: the conformance model of tests/data/golden and the 3-frame clip of
+// tests/data/demo (fast and exact). $EPONA_MODEL_DIR names another folder of the same layout
+// (configs.json, weights_world/_dcae.safetensors, demo/frames/ + demo/poses.csv).
+struct BundledModel {
+  std::string dir;            // configs.json + weights
+  std::string frames, poses;  // the demo clip
+  bool trained;               // false: random conformance weights
+};
+
+inline BundledModel bundled_model() {
+  const auto trained_layout = [](const std::string& dir) { return BundledModel{dir, dir + "/demo/frames", dir + "/demo/poses.csv", true}; };
+  if (const char* env = std::getenv("EPONA_MODEL_DIR"); env && *env) return trained_layout(env);
+#if defined(EPONA_APP_MODEL_DIR)
+  if (!std::getenv("EPONA_DATA_DIR")) return trained_layout(EPONA_APP_MODEL_DIR);
+#endif
+  return {data_dir() + "/golden", data_dir() + "/demo", data_dir() + "/demo/poses.csv", false};
+}
+inline std::string demo_model_dir() { return bundled_model().dir; }
+inline std::string demo_frames_dir() { return bundled_model().frames; }
+inline std::string demo_poses_file() { return bundled_model().poses; }
+inline const char* demo_description() {
+  return bundled_model().trained ? " (bundled: the small Epona trained on the synthetic world)"
+                                 : " (bundled demo: small random conformance weights)";
+}
 
 // ---- compute options --------------------------------------------------------------------
 
@@ -76,15 +101,15 @@ inline ComputeOptions compute_options(const ParsedArgs& a) {
 // ---- which files ------------------------------------------------------------------------
 
 inline void add_model_options(ArgParser& p, bool world, bool dcae) {
-  if (world) p.option("weights", "FILE", "world-model checkpoint: official .pkl or .safetensors", "the bundled demo model");
+  if (world) p.option("weights", "FILE", "world-model checkpoint: official .pkl or .safetensors", "the bundled model");
   if (dcae) p.option("dcae", "FILE", "DC-AE checkpoint: official .pkl (dcae_td_*.pkl) or .safetensors",
-                     world ? "the bundled demo DC-AE, or --weights when it holds the DC-AE too" : "the bundled demo DC-AE");
+                     world ? "the bundled DC-AE, or --weights when it holds the DC-AE too" : "the bundled DC-AE");
   p.option("config", "FILE", "model configuration JSON (configs.json layout, or the world_model_config keys)",
            "with --weights/--dcae: the shipped Epona configuration");
 }
 
 struct ModelFiles {
-  bool demo = false;             // the bundled demo model (small random conformance weights)
+  bool demo = false;             // the bundled model (bundled_model())
   std::string world, dcae;       // checkpoint paths (empty when the command does not need one)
   io::ModelConfigs configs;
   std::string config_source;     // named in messages
@@ -102,12 +127,12 @@ inline ModelFiles resolve_models(const ParsedArgs& a, bool need_world, bool need
   if (f.demo) {
     const std::string dir = demo_model_dir();
     std::error_code ec;
-    EPONA_CHECK(std::filesystem::is_directory(dir, ec), "the bundled demo model is not at ", dir,
-                " (set EPONA_DATA_DIR to the repository's tests/data, or give --weights/--dcae)");
+    EPONA_CHECK(std::filesystem::is_directory(dir, ec), "the bundled model is not at ", dir,
+                " (set EPONA_MODEL_DIR to the repository's models/small-synthetic, or give --weights/--dcae)");
     if (need_world) f.world = dir + "/weights_world.safetensors";
     if (need_dcae) f.dcae = dir + "/weights_dcae.safetensors";
     f.configs = io::load_configs(a.text("config", dir + "/configs.json"));
-    f.config_source = a.text("config", "the demo configuration " + dir + "/configs.json");
+    f.config_source = a.text("config", "the bundled configuration " + dir + "/configs.json");
     return f;
   }
   if (need_world) {
@@ -160,7 +185,7 @@ inline std::string join(const std::vector<std::string>& v, const std::string& se
 template <class B, class W>
 WorldModel<B, W> load_world(const ModelFiles& f, const ComputeOptions& c, const Console& con) {
   const auto t0 = std::chrono::steady_clock::now();
-  con.note("loading the world model from ", f.world, f.demo ? " (bundled demo: small random conformance weights)" : "");
+  con.note("loading the world model from ", f.world, f.demo ? demo_description() : "");
   const io::TensorMap weights = io::load_weights(f.world);
   try {
     auto wm = WorldModel<B, W>::load(weights, f.configs.world);
@@ -185,7 +210,7 @@ inline io::TensorMap dcae_entries(const io::TensorMap& m) {
 template <class B, class T>
 Dcae<B, T> load_dcae(const ModelFiles& f, const Console& con) {
   const auto t0 = std::chrono::steady_clock::now();
-  con.note("loading the DC-AE from ", f.dcae, f.demo ? " (bundled demo: small random conformance weights)" : "");
+  con.note("loading the DC-AE from ", f.dcae, f.demo ? demo_description() : "");
   const io::TensorMap all = io::load_weights(f.dcae);
   const io::TensorMap weights = dcae_entries(all);  // views into `all`, which lives until binding is done
   if (weights.size() == 0 || (f.dcae == f.world && !weights.contains("encoder.project_in.conv.conv.weight")))
