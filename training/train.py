@@ -177,7 +177,9 @@ def encode_all(a):
     off = official.load(a.official, a.device, triton_rmsnorm=False)
     configs = model_configs(a.model)
     ae = official.build_dcae(off, configs, a.device).eval()
-    ae.load_state_dict(torch.load(os.path.join(a.work, "dcae.pt"), map_location=a.device)["model"])
+    ckpt = os.path.join(a.work, "dcae.pt")
+    ae.load_state_dict(torch.load(ckpt, map_location=a.device)["model"] if os.path.exists(ckpt) else
+                       exported_state(a.init, "weights_dcae", ""))
     frames, poses = load_clips(a.data, a.device, a.limit_clips)
     n, t = frames.shape[:2]
     flat = frames.reshape(n * t, *frames.shape[2:])
@@ -192,6 +194,32 @@ def encode_all(a):
 
 
 # ---------------------------------------------------------------------------------------- world model
+
+def exported_state(folder, name, prefix):
+    """A state_dict from an exported model folder (--init), float32, `prefix` stripped."""
+    from safetensors.torch import load_file
+    if not folder:
+        raise SystemExit("no checkpoint in --work and no --init folder to start from")
+    t = load_file(os.path.join(folder, name + ".safetensors"))
+    return {k[len(prefix):]: (v.float() if v.is_floating_point() else v) for k, v in t.items() if k.startswith(prefix)}
+
+
+def trajectory_loss(wm, latents_total, rot):
+    """The TrajDiT half of the official model_forward, with the MST frozen (--trajectory-only): the
+    same relative poses, tokens, MST features and normalised targets, and TrajDiT.training_losses."""
+    mm = sys.modules["models.model"]  # the official module's own helpers (matrix get_rel_pose/_traj)
+    F = wm.condition_frames
+    with torch.no_grad():
+        with torch.autocast(device_type="cuda", enabled=False):
+            rel_pose, rel_yaw = mm.get_rel_pose(rot[:, :F + 1])
+            traj_poses, traj_yaws = mm.get_rel_traj(rot, F, wm.traj_len)
+        pose_idx = mm.poses_to_indices(rel_pose, wm.pose_x_vocab_size, wm.pose_y_vocab_size)
+        yaw_idx = mm.yaws_to_indices(rel_yaw, wm.yaw_vocab_size)
+        stt = wm.model(latents_total, pose_idx, yaw_idx, drop_feature=wm.args.drop_feature)["logits"]
+        targets = wm.normalize_traj(torch.cat([traj_poses, traj_yaws], dim=-1).reshape(-1, wm.traj_len, 3))
+    t = torch.rand((targets.shape[0], 1, 1), device=targets.device)
+    return wm.traj_dit.training_losses(traj=targets, traj_ids=wm.traj_ids, cond=stt, cond_ids=wm.cond_ids, t=t)["loss"]
+
 
 def world_batch(lat, poses, F, fi, traj_len, batch, gen):
     """Windows of F + fi latents and F + traj_len + fi - 1 poses, as the official loop slices them."""
@@ -230,8 +258,16 @@ def train_world(a):
     log("world model: MST {model:.2f} M, VisDiT {dit:.2f} M, TrajDiT {traj_dit:.2f} M parameters".format(**counts))
     data = torch.load(os.path.join(a.work, "latents.pt"))
     lat, poses = data["latents"].to(a.device), data["poses"].to(a.device)
-    opt = torch.optim.AdamW(wm.parameters(), lr=a.lr, betas=(0.9, 0.95), weight_decay=0.01)
     ckpt = os.path.join(a.work, "world.pt")
+    if not os.path.exists(ckpt) and a.init:
+        for sub in ("model", "dit", "traj_dit"):
+            getattr(wm, sub).load_state_dict(exported_state(a.init, "weights_world", f"module.{sub}."))
+        log(f"started from the exported model in {a.init}")
+    trained = wm.traj_dit.parameters() if a.trajectory_only else wm.parameters()
+    if a.trajectory_only:  # the MST and the VisDiT stay exactly as they are
+        for sub in (wm.model, wm.dit):
+            sub.eval().requires_grad_(False)
+    opt = torch.optim.AdamW(trained, lr=a.lr, betas=(0.9, 0.95), weight_decay=0.01)
     step, done = 0, 0.0
     if os.path.exists(ckpt):
         state = torch.load(ckpt, map_location=a.device)
@@ -252,8 +288,19 @@ def train_world(a):
         latents, rot = world_batch(lat, poses, F, fi, traj_len, a.batch, gen)
         latents_cond = latents[:, :F]
         rel_pose_cond = rel_yaw_cond = None
-        passes = fi if step % args.multifw_perstep == 0 else 1
-        wm.train()
+        passes = fi if step % args.multifw_perstep == 0 and not a.trajectory_only else 1
+        if a.trajectory_only:
+            wm.traj_dit.train()
+            with autocast:
+                loss = trajectory_loss(wm, latents[:, :F + 1], rot[:, :F + traj_len])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(wm.traj_dit.parameters(), 1.0)
+            opt.step()
+            out = {"loss_diff": torch.zeros(()), "loss_yaw_pose": loss.detach()}
+            passes = 0
+        else:
+            wm.train()
         for j in range(passes):  # the official chain-of-forward (scripts/train_deepspeed.py)
             rot_cond = rot[:, j:j + F + traj_len]
             latents_gt = latents[:, j + F:j + F + 1]
@@ -400,6 +447,9 @@ def main():
     ap.add_argument("--latent-weight", type=float, default=0.1, help="DC-AE: weight of the latent-statistics penalty")
     ap.add_argument("--save-every", type=float, default=60.0, help="seconds between checkpoints")
     ap.add_argument("--preview-steps", type=int, default=30, help="preview: sampling steps")
+    ap.add_argument("--init", default="", help="an exported model folder to start from where --work has no checkpoint")
+    ap.add_argument("--trajectory-only", action="store_true",
+                    help="world: train the TrajDiT alone on the trajectory loss, the MST and VisDiT frozen")
     a = ap.parse_args()
     os.makedirs(a.work, exist_ok=True)
     if a.device == "cuda":
