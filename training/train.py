@@ -107,6 +107,22 @@ def save_atomic(obj, path):
     os.replace(tmp, path)
 
 
+def checkpoint(path, module, opt, step, seconds):
+    """Weights, optimiser state, steps and training seconds so far (what --seconds chunks resume)."""
+    save_atomic({"model": module.state_dict(), "opt": opt.state_dict(), "step": step, "seconds": seconds}, path)
+
+
+def resume(path, module, opt, device, what):
+    """(step, training seconds) of the checkpoint at `path`, loaded into module and opt; (0, 0) if none."""
+    if not os.path.exists(path):
+        return 0, 0.0
+    state = torch.load(path, map_location=device)
+    module.load_state_dict(state["model"])
+    opt.load_state_dict(state["opt"])
+    log(f"resumed {what} at step {state['step']}")
+    return state["step"], state.get("seconds", 0.0)
+
+
 # ---------------------------------------------------------------------------------------- DC-AE
 
 def latent_stats_penalty(z):
@@ -127,13 +143,7 @@ def train_dcae(a):
     params = [p for n, p in ae.named_parameters() if not n.startswith(("causal_time_block", "space_block"))]
     opt = torch.optim.AdamW(params, lr=a.lr, betas=(0.9, 0.95), weight_decay=0.01)
     ckpt = os.path.join(a.work, "dcae.pt")
-    step, done = 0, 0.0
-    if os.path.exists(ckpt):
-        state = torch.load(ckpt, map_location=a.device)
-        ae.load_state_dict(state["model"])
-        opt.load_state_dict(state["opt"])
-        step, done = state["step"], state.get("seconds", 0.0)
-        log(f"resumed the DC-AE at step {step}")
+    step, done = resume(ckpt, ae, opt, a.device, "the DC-AE")
     curve = Curve(os.path.join(a.work, "dcae_loss.jsonl"))
     gen = torch.Generator(device=a.device).manual_seed(a.seed + step)
     t0 = time.time()
@@ -165,9 +175,8 @@ def train_dcae(a):
                       latent_penalty=reg.item(), psnr=psnr, latent_std=z.float().std().item())
             log(f"dcae step {step} l1 {l1.item():.4f} psnr {psnr:.2f} latent std {z.float().std().item():.3f}")
         if step % 500 == 0:
-            save_atomic({"model": ae.state_dict(), "opt": opt.state_dict(), "step": step,
-                         "seconds": done + time.time() - t0}, ckpt)
-    save_atomic({"model": ae.state_dict(), "opt": opt.state_dict(), "step": step, "seconds": done + time.time() - t0}, ckpt)
+            checkpoint(ckpt, ae, opt, step, done + time.time() - t0)
+    checkpoint(ckpt, ae, opt, step, done + time.time() - t0)
     log(f"DC-AE: {step} steps, {time.time() - t0:.0f} s")
 
 
@@ -268,13 +277,7 @@ def train_world(a):
         for sub in (wm.model, wm.dit):
             sub.eval().requires_grad_(False)
     opt = torch.optim.AdamW(trained, lr=a.lr, betas=(0.9, 0.95), weight_decay=0.01)
-    step, done = 0, 0.0
-    if os.path.exists(ckpt):
-        state = torch.load(ckpt, map_location=a.device)
-        wm.load_state_dict(state["model"])
-        opt.load_state_dict(state["opt"])
-        step, done = state["step"], state.get("seconds", 0.0)
-        log(f"resumed the world model at step {step}")
+    step, done = resume(ckpt, wm, opt, a.device, "the world model")
     curve = Curve(os.path.join(a.work, "world_loss.jsonl"))
     gen = torch.Generator(device=a.device).manual_seed(a.seed + 7919 * step + 1)
     F, fi, traj_len = args.condition_frames, args.forward_iter, args.traj_len
@@ -329,11 +332,10 @@ def train_world(a):
             log(f"world step {step} loss {loss.item():.4f} (video {out['loss_diff'].item():.4f}, "
                 f"trajectory {out['loss_yaw_pose'].item():.4f}) lr {lr:.2e}")
         if time.time() - last_save > a.save_every:
-            save_atomic({"model": wm.state_dict(), "opt": opt.state_dict(), "step": step,
-                         "seconds": done + time.time() - t0}, ckpt)
+            checkpoint(ckpt, wm, opt, step, done + time.time() - t0)
             export(a, configs, wm=wm)
             last_save = time.time()
-    save_atomic({"model": wm.state_dict(), "opt": opt.state_dict(), "step": step, "seconds": done + time.time() - t0}, ckpt)
+    checkpoint(ckpt, wm, opt, step, done + time.time() - t0)
     export(a, configs, wm=wm)
     log(f"world model: {step} steps, {time.time() - t0:.0f} s")
 
