@@ -2,9 +2,12 @@
 // writes it) the way the Epona paper evaluates: open-loop planning (L2 at 1/2/3 s, collision
 // rate) against constant-velocity and constant-turn baselines, and video quality (PSNR, SSIM per
 // horizon) of rollouts driven by the true future motions, beside the repeat-last-frame baseline
-// and the DC-AE's own reconstruction (the ceiling). One JSON report, written atomically.
+// and the DC-AE's own reconstruction (the ceiling). With --control, trajectory control: the same
+// window rolled out under "turn left" and "turn right", scored by the horizontal shift between the
+// two frames (include/epona/eval/control_metrics.hpp). One JSON report, written atomically.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -23,6 +26,7 @@
 #include "rollout_common.hpp"
 #include "epona/eval/baselines.hpp"
 #include "epona/eval/clip_set.hpp"
+#include "epona/eval/control_metrics.hpp"
 #include "epona/eval/feature_metrics.hpp"
 #include "epona/eval/ground_truth.hpp"
 #include "epona/eval/image_metrics.hpp"
@@ -37,8 +41,10 @@ inline ArgParser eval_parser() {
               "future_poses.csv, boxes.json, as `epona synth` writes): plans from each clip's last F frames\n"
               "(L2 at 1/2/3 s, collision rate) beside constant-velocity and constant-turn baselines, and rolls\n"
               "out --horizon frames under the true future motions (PSNR, SSIM per horizon) beside repeating\n"
-              "the last frame and the DC-AE's reconstruction of the true frames. Writes one JSON report and\n"
-              "prints a table. Without --weights it runs the bundled demo model.");
+              "the last frame and the DC-AE's reconstruction of the true frames. --control also rolls each window\n"
+              "out under \"turn left\" and \"turn right\" and checks that the road shifts the matching way. DIR may\n"
+              "also be one clip folder. Writes one JSON report and prints a table. Without --weights it runs the\n"
+              "bundled demo model.");
   add_model_options(p, true, true);
   p.option("clips", "DIR", "the clip set (every subfolder holding frames/, in natural name order)")
       .option("json", "FILE", "the report to write (atomically)")
@@ -46,6 +52,9 @@ inline ArgParser eval_parser() {
       .option("limit", "N", "evaluate only the first N clips", "all")
       .flag("no-video", "skip the video metrics (no rollouts)")
       .flag("no-plan", "skip the planning metrics")
+      .flag("control", "score trajectory control: turn left vs turn right from each clip's window")
+      .option("control-yaw", "DEG", "the turns' yaw per frame, degrees (1..7)", "5")
+      .option("control-frames", "N", "frames rolled out per turn; the last one is compared", "1")
       .option("fit", "MODE", "frames not at the model's size: exact (refuse), resize, crop, cover", "exact");
   add_sampling_options(p);
   add_compute_options(p);
@@ -61,7 +70,8 @@ struct EvalOptions {
   std::filesystem::path clips, json;
   std::int64_t horizon = 5;
   std::optional<std::int64_t> limit;
-  bool plan = true, video = true;
+  bool plan = true, video = true, control = false;
+  std::int64_t control_yaw = 5, control_frames = 1;
   std::string fit = "exact";
   SampleOptions sample;
 };
@@ -74,8 +84,11 @@ inline EvalOptions eval_options(const ParsedArgs& a, const WorldModelConfig& wc)
   o.json = *a.get("json");
   o.horizon = a.integer("horizon", 5, 1, 1000);
   o.limit = a.maybe_integer("limit", 1);
-  o.plan = !a.flag("no-plan"), o.video = !a.flag("no-video");
-  if (!o.plan && !o.video) usage_fail("eval: --no-plan and --no-video leave nothing to evaluate");
+  o.plan = !a.flag("no-plan"), o.video = !a.flag("no-video"), o.control = a.flag("control");
+  if (!o.plan && !o.video && !o.control) usage_fail("eval: --no-plan and --no-video leave nothing to evaluate");
+  // |yaw| < 8: inside the pose tokenizer's range (yaw_range 16 degrees, centred).
+  o.control_yaw = a.integer("control-yaw", 5, 1, 7);
+  o.control_frames = a.integer("control-frames", 1, 1, 100);
   o.fit = a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact");
   o.sample = sample_options(a, wc);
   std::error_code ec;
@@ -93,10 +106,19 @@ struct PlanScores {
   eval::Collisions collisions;  // all none without boxes.json
 };
 
+// Trajectory control on one clip: the shift of the left-turn frame against the right-turn frame
+// (eval::horizontal_shift; > 0 when the road moved the way the turns say).
+struct ControlScore {
+  double forward_m = 0;  // the forward motion of both turns, per frame
+  eval::ShiftEstimate shift;
+  bool agrees() const { return shift.shift > 0; }
+};
+
 struct ClipScores {
   std::string name;
   std::optional<PlanScores> model, constant_velocity, constant_turn, ground_truth;
   std::vector<double> psnr, ssim, repeat_psnr, repeat_ssim, ae_psnr, ae_ssim;  // per horizon; empty: no video
+  std::optional<ControlScore> control;
 };
 
 inline PlanScores score_plan(const std::vector<eval::Pose2>& plan, const std::vector<eval::Pose2>& truth,
@@ -142,23 +164,32 @@ inline void score_planning(ClipScores& s, const eval::EvalClip& c, const History
   s.ground_truth = score_plan(truth, truth, c);
 }
 
+// The window rolled out under `actions` (one per frame), each latent decoded alone (frame mode).
+inline std::vector<io::Image> roll_out_under(const History& window, io::PoseSequence actions, std::uint64_t seed,
+                                             const EvalContext& e) {
+  RolloutPlan plan;
+  plan.frames = static_cast<std::int64_t>(actions.size()), plan.steps = *e.opt.sample.steps, plan.seed = seed;
+  plan.clip_len = 1;
+  plan.actions = std::move(actions);
+  FrameCollector out;
+  roll_out(e.engine, e.ctx, window, e.wc, plan, out, e.silent);
+  return std::move(out.frames);
+}
+
 inline void score_video(ClipScores& s, const eval::EvalClip& c, const History& window,
                         const std::vector<io::Image>& history, std::uint64_t seed, const EvalContext& e) {
   const auto N = static_cast<std::size_t>(e.opt.horizon);
-  RolloutPlan plan;
-  plan.frames = e.opt.horizon, plan.steps = *e.opt.sample.steps, plan.seed = seed, plan.clip_len = 1;
-  plan.actions = io::PoseSequence{};
+  io::PoseSequence actions;
   for (std::size_t i = 0; i < N; ++i) {
-    plan.actions->x.push_back(c.future_motions->x[i]), plan.actions->y.push_back(c.future_motions->y[i]);
-    plan.actions->yaw.push_back(c.future_motions->yaw[i]);
+    actions.x.push_back(c.future_motions->x[i]), actions.y.push_back(c.future_motions->y[i]);
+    actions.yaw.push_back(c.future_motions->yaw[i]);
   }
-  FrameCollector generated;
-  roll_out(e.engine, e.ctx, window, e.wc, plan, generated, e.silent);
+  const std::vector<io::Image> generated = roll_out_under(window, std::move(actions), seed, e);
   const std::vector<io::Image> truth = read_frames(c.future_frames, 0, N, e);
   const io::Image& last = eval::repeat_last_frame(history);
   for (std::size_t h = 0; h < N; ++h) {
-    s.psnr.push_back(eval::psnr(generated.frames[h], truth[h]));
-    s.ssim.push_back(eval::ssim(generated.frames[h], truth[h]));
+    s.psnr.push_back(eval::psnr(generated[h], truth[h]));
+    s.ssim.push_back(eval::ssim(generated[h], truth[h]));
     s.repeat_psnr.push_back(eval::psnr(last, truth[h]));
     s.repeat_ssim.push_back(eval::ssim(last, truth[h]));
     const io::Image recon = io::tensor_to_image(e.engine.decode(e.engine.encode(truth[h]), false), 0);
@@ -167,8 +198,30 @@ inline void score_video(ClipScores& s, const eval::EvalClip& c, const History& w
   }
 }
 
+// A turn needs some speed to read as one: the turns go at least this far forward per frame.
+inline constexpr double kControlMinForward = 2.0;  // metres
+
+// `frames` steps of (forward, 0, yaw): a steady turn at the clip's speed.
+inline io::PoseSequence steady_turn(double forward, double yaw_deg, std::int64_t frames) {
+  io::PoseSequence p;
+  for (std::int64_t i = 0; i < frames; ++i)
+    p.x.push_back(float(forward)), p.y.push_back(0.0f), p.yaw.push_back(float(yaw_deg));
+  return p;
+}
+
+// The same window and noise rolled out turning left (+yaw) and turning right (-yaw); the last
+// frames compared below the horizon (the lower half: road, markings, kerbs).
+inline void score_control(ClipScores& s, const eval::EvalClip& c, const History& window, std::uint64_t seed,
+                          const EvalContext& e) {
+  const double forward = std::max(double(c.poses.x.back()), kControlMinForward);
+  const double yaw = double(e.opt.control_yaw);
+  const io::Image left = roll_out_under(window, steady_turn(forward, yaw, e.opt.control_frames), seed, e).back();
+  const io::Image right = roll_out_under(window, steady_turn(forward, -yaw, e.opt.control_frames), seed, e).back();
+  s.control = ControlScore{forward, eval::horizontal_shift(left, right)};
+}
+
 inline ClipScores evaluate_clip(const eval::EvalClip& c, std::uint64_t seed, const EvalContext& e) {
-  ClipScores s{c.name, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}};
+  ClipScores s{c.name, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}};
   const auto F = static_cast<std::size_t>(e.wc.condition_frames);
   const std::vector<io::Image> history = read_frames(c.frames, c.frames.size() - F, F, e);
   io::PoseSequence poses;
@@ -177,6 +230,7 @@ inline ClipScores evaluate_clip(const eval::EvalClip& c, std::uint64_t seed, con
   const History window = make_history(e.ctx, encode_frames(e.engine, history, e.silent), poses);
   if (e.opt.plan && c.future_motions) score_planning(s, c, window, seed, e);
   if (e.opt.video && !c.future_frames.empty()) score_video(s, c, window, history, seed, e);
+  if (e.opt.control) score_control(s, c, window, seed, e);
   return s;
 }
 
@@ -239,6 +293,28 @@ inline nlohmann::ordered_json numbers(const std::vector<double>& v) {
   return j;
 }
 
+// The share of clips whose turns shifted the road the matching way, and the shifts.
+inline nlohmann::ordered_json control_summary(const std::vector<ClipScores>& clips, const EvalOptions& o) {
+  std::vector<std::int64_t> shifts;
+  std::int64_t agree = 0;
+  for (const auto& c : clips)
+    if (c.control) shifts.push_back(c.control->shift.shift), agree += c.control->agrees() ? 1 : 0;
+  nlohmann::ordered_json j;
+  j["scenes"] = shifts.size();
+  j["agree"] = agree;
+  j["agree_rate"] = shifts.empty() ? nlohmann::ordered_json(nullptr) : nlohmann::ordered_json(double(agree) / double(shifts.size()));
+  j["yaw_deg"] = o.control_yaw;
+  j["frames"] = o.control_frames;
+  j["min_forward_m"] = kControlMinForward;
+  std::vector<std::int64_t> sorted = shifts;
+  std::sort(sorted.begin(), sorted.end());
+  j["shift_min_px"] = sorted.empty() ? nlohmann::ordered_json(nullptr) : nlohmann::ordered_json(sorted.front());
+  j["shift_median_px"] = sorted.empty() ? nlohmann::ordered_json(nullptr) : nlohmann::ordered_json(sorted[sorted.size() / 2]);
+  j["shift_max_px"] = sorted.empty() ? nlohmann::ordered_json(nullptr) : nlohmann::ordered_json(sorted.back());
+  j["per_clip"] = shifts;
+  return j;
+}
+
 inline nlohmann::ordered_json clip_json(const ClipScores& c) {
   nlohmann::ordered_json j;
   j["name"] = c.name;
@@ -256,6 +332,7 @@ inline nlohmann::ordered_json clip_json(const ClipScores& c) {
   j["psnr"] = numbers(c.psnr), j["ssim"] = numbers(c.ssim);
   j["repeat_last_psnr"] = numbers(c.repeat_psnr), j["repeat_last_ssim"] = numbers(c.repeat_ssim);
   j["autoencoder_psnr"] = numbers(c.ae_psnr), j["autoencoder_ssim"] = numbers(c.ae_ssim);
+  j["control_shift_px"] = c.control ? nlohmann::ordered_json(c.control->shift.shift) : nullptr;
   return j;
 }
 
@@ -263,11 +340,14 @@ inline nlohmann::ordered_json settings_json(const ParsedArgs& a, const ModelFile
                                             const EvalOptions& o, const WorldModelConfig& wc) {
   return {{"steps", *o.sample.steps},
           {"seed", o.sample.seed},
-          {"seed_rule", "clip i (0-based, in clip order) uses seed + i, for both its plan and its rollout"},
+          {"seed_rule", "clip i (0-based, in clip order) uses seed + i, for its plan, its rollout and both control rollouts"},
           {"horizon", o.horizon},
           {"limit", o.limit ? nlohmann::ordered_json(*o.limit) : nullptr},
           {"plan", o.plan},
           {"video", o.video},
+          {"control", o.control},
+          {"control_yaw_deg", o.control_yaw},
+          {"control_frames", o.control_frames},
           {"clips_dir", o.clips.string()},
           {"weights", f.demo ? "bundled demo model (" + f.world + ")" : f.world},
           {"dcae", f.dcae},
@@ -293,12 +373,20 @@ inline nlohmann::ordered_json notes_json() {
   j["ssim"] = "Wang et al. 2004: 11x11 Gaussian window sigma 1.5, K1 0.01, K2 0.03, L 255, valid positions, mean "
               "over the RGB channels";
   j["video"] = "rollout driven by the true future motions (future_poses.csv), each latent decoded alone (frame mode)";
+  j["control"] = "the window rolled out `frames` frames turning left (x = the last history motion's forward "
+                 "distance, at least min_forward_m; y = 0; yaw = +yaw_deg per frame) and turning right (yaw = "
+                 "-yaw_deg), same noise; shift = the integer column offset in [-W/4, W/4] minimising the mean "
+                 "absolute grey difference of the two last frames' lower halves, > 0 when the left-turn frame's "
+                 "content lies right of the right-turn frame's, which is the matching way (turning left moves "
+                 "the scene right in the image); agree: shift > 0; per_clip: the shifts in pixels";
   for (const auto& m : eval::uncomputed_feature_metrics()) j[m.name] = m.note;
   return j;
 }
 
 inline nlohmann::ordered_json report_json(const std::vector<ClipScores>& clips, const nlohmann::ordered_json& settings,
-                                          std::int64_t horizon, bool video) {
+                                          const EvalOptions& o) {
+  const std::int64_t horizon = o.horizon;
+  const bool video = o.video;
   nlohmann::ordered_json j;
   j["clips"] = clips.size();
   auto model = plan_summary(clips, &ClipScores::model);
@@ -312,6 +400,7 @@ inline nlohmann::ordered_json report_json(const std::vector<ClipScores>& clips, 
     j["repeat_last"] = video_summary(clips, &ClipScores::repeat_psnr, &ClipScores::repeat_ssim, horizon);
     j["autoencoder"] = video_summary(clips, &ClipScores::ae_psnr, &ClipScores::ae_ssim, horizon);
   }
+  if (o.control) j["control"] = control_summary(clips, o);
   for (const auto& m : eval::uncomputed_feature_metrics()) j[m.name] = number(m.value);
   j["settings"] = settings;
   j["notes"] = notes_json();
@@ -361,6 +450,17 @@ inline void print_eval_table(std::ostream& out, const nlohmann::ordered_json& r,
   }
 }
 
+inline void print_control_table(std::ostream& out, const nlohmann::ordered_json& c) {
+  char line[256];
+  std::snprintf(line, sizeof line, "control (turn left vs right, yaw +-%d deg, %d frame(s))  scenes  agree   rate   shift px min/median/max\n",
+                c["yaw_deg"].get<int>(), c["frames"].get<int>());
+  out << line;
+  std::snprintf(line, sizeof line, "  %-52s %6d  %5d  %5s   %s / %s / %s\n", "model", c["scenes"].get<int>(),
+                c["agree"].get<int>(), cell(c["agree_rate"], "%.3f").c_str(), cell(c["shift_min_px"], "%.0f").c_str(),
+                cell(c["shift_median_px"], "%.0f").c_str(), cell(c["shift_max_px"], "%.0f").c_str());
+  out << line;
+}
+
 // ---- the command ----------------------------------------------------------------------------
 
 inline std::vector<eval::EvalClip> read_clip_set(const EvalOptions& o, const WorldModelConfig& wc) {
@@ -386,7 +486,8 @@ inline int run_eval(const ParsedArgs& a, const Console& con) {
   const std::vector<eval::EvalClip> clips = read_clip_set(opt, wc);  // every clip checked before any work
   con.note("evaluating ", clips.size(), " clip(s) from ", opt.clips.string(), ": ", *opt.sample.steps,
            " sampling steps, seed ", opt.sample.seed, " + clip index",
-           opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"));
+           opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"),
+           opt.control ? ", control at +-" + std::to_string(opt.control_yaw) + " deg" : std::string());
 
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);
@@ -400,9 +501,10 @@ inline int run_eval(const ParsedArgs& a, const Console& con) {
     scores.push_back(evaluate_clip(clips[i], opt.sample.seed + i, e));
     bar.advance();
   }
-  const auto report = report_json(scores, settings_json(a, files, compute, opt, wc), opt.horizon, opt.video);
+  const auto report = report_json(scores, settings_json(a, files, compute, opt, wc), opt);
   io::write_atomically(opt.json, report.dump(2) + "\n");
   print_eval_table(con.out, report, opt.plan, opt.video);
+  if (opt.control) print_control_table(con.out, report["control"]);
   con.out << "wrote " << opt.json.string() << " (" << clips.size() << " clip(s); FID and FVD not computed)\n";
   return 0;
 }

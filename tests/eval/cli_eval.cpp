@@ -2,11 +2,14 @@
 // demo model (64x128, condition_frames 3): a hand-made clip set of two clips (demo frames, known
 // motions, one with boxes.json), every required JSON key with finite values of the right
 // lengths, the constant-velocity L2 and collision rates against a hand computation, --limit not
-// changing a clip's result, collision_rate null without boxes, and bad inputs failing with the
-// clip and file named and no report written.
+// changing a clip's result, collision_rate null without boxes, --control's block consistent with
+// its per-clip shifts (and a clip folder alone read as a set of one), and bad inputs failing with
+// the clip and file named and no report written.
 #include <doctest/doctest.h>
 
 #include <cmath>
+#include <cstdint>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -171,6 +174,50 @@ TEST_CASE("eval: collision_rate is null without boxes; --no-video and --no-plan"
   CHECK(j["model"]["psnr"].size() == 2);
 }
 
+TEST_CASE("eval --control: the report's control block agrees with its shifts; one clip folder alone is a set") {
+  TempDir t;
+  const fs::path set = make_clip_set(t), report = t.path / "eval.json";
+  auto args = eval_args(set, report);
+  args.insert(args.end(), {"--no-plan", "--no-video", "--control", "--control-yaw", "6", "--control-frames", "2"});
+  const Result r = cli(args);
+  INFO(r.err);
+  REQUIRE(r.rc == 0);
+  CHECK(has(r.out, "control (turn left vs right, yaw +-6 deg, 2 frame(s))"));
+  const json j = read_json(report);
+  const json& c = j["control"];
+  CHECK(c["scenes"] == 2);
+  CHECK(c["yaw_deg"] == 6);
+  CHECK(c["frames"] == 2);
+  CHECK(c["min_forward_m"] == 2.0);
+  REQUIRE(c["per_clip"].size() == 2);
+  int agree = 0;
+  for (std::size_t i = 0; i < 2; ++i) {
+    REQUIRE(c["per_clip"][i].is_number_integer());
+    const auto shift = c["per_clip"][i].get<std::int64_t>();
+    CHECK(std::abs(shift) <= 128 / 4);  // the search range: a quarter of the width
+    CHECK(j["per_clip"][i]["control_shift_px"] == shift);
+    agree += shift > 0;
+  }
+  CHECK(c["agree"] == agree);
+  CHECK(c["agree_rate"].get<double>() == doctest::Approx(agree / 2.0));
+  CHECK(c["shift_min_px"].get<std::int64_t>() <= c["shift_max_px"].get<std::int64_t>());
+  CHECK(j["settings"]["control"] == true);
+  CHECK(j["model"]["l2_3s"].is_null());
+
+  // The clip folder alone: a set of one, clip 0, the same seed and so the same shift.
+  const fs::path one = t.path / "one.json";
+  auto single = eval_args(set / "clip_0000", one);
+  single.insert(single.end(), {"--no-plan", "--no-video", "--control", "--control-yaw", "6", "--control-frames", "2"});
+  REQUIRE(cli(single).rc == 0);
+  const json o = read_json(one);
+  CHECK(o["clips"] == 1);
+  CHECK(o["control"]["per_clip"][0] == c["per_clip"][0]);
+  // Without --control, no control block, and per-clip shifts are null.
+  REQUIRE(cli(eval_args(set, one)).rc == 0);
+  CHECK_FALSE(read_json(one).contains("control"));
+  CHECK(read_json(one)["per_clip"][0]["control_shift_px"].is_null());
+}
+
 TEST_CASE("eval: bad inputs fail naming the clip and file, and write no report") {
   TempDir t;
   const fs::path set = make_clip_set(t), report = t.path / "eval.json";
@@ -188,6 +235,8 @@ TEST_CASE("eval: bad inputs fail naming the clip and file, and write no report")
   fails_with(eval_args(t.path, report), "no clips");
   fails_with({"eval", "--clips", set.string(), "--json", (t.path / "no" / "r.json").string()}, "does not exist");
   fails_with({"eval", "--clips", set.string(), "--json", report.string(), "--horizon", "3"}, "--horizon asks for 3");
+  fails_with({"eval", "--clips", set.string(), "--json", report.string(), "--control", "--control-yaw", "8"},
+             "--control-yaw must be in [1, 7]");
 
   write_text(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n");
   fails_with(eval_args(set, report), "clip clip_0001");

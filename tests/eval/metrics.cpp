@@ -238,6 +238,9 @@ TEST_CASE("clip sets: natural order, optional parts, errors naming the clip and 
   const auto folders = find_clip_folders(t.path);
   REQUIRE(folders.size() == 2);
   CHECK(folders[0].filename() == "clip_2");
+  const auto single = find_clip_folders(t.path / "clip_10");  // a clip folder alone is a set of one
+  REQUIRE(single.size() == 1);
+  CHECK(single[0] == t.path / "clip_10");
   const EvalClip c = read_clip(folders[0]);
   CHECK(c.frames.size() == 3);
   CHECK_FALSE(c.future_motions.has_value());

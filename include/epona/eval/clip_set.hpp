@@ -104,11 +104,13 @@ inline SceneBoxes read_boxes(const std::filesystem::path& file) {
   return s;
 }
 
-// The clip folders of a set: every subfolder of `root` holding frames/, in natural name order.
+// The clip folders of a set: every subfolder of `root` holding frames/, in natural name order; or
+// `root` alone when it holds frames/ itself (one clip, e.g. a model's demo clip).
 inline std::vector<std::filesystem::path> find_clip_folders(const std::filesystem::path& root) {
   std::error_code ec;
   EPONA_CHECK(std::filesystem::exists(root, ec), "--clips ", root.string(), ": no such folder");
   EPONA_CHECK(std::filesystem::is_directory(root, ec), "--clips ", root.string(), ": not a folder");
+  if (clip_detail::is_dir(root / "frames")) return {root};
   std::vector<std::filesystem::path> clips;
   for (const auto& e : std::filesystem::directory_iterator(root, ec))
     if (clip_detail::is_dir(e.path()) && clip_detail::is_dir(e.path() / "frames")) clips.push_back(e.path());
