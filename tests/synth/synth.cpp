@@ -3,7 +3,8 @@
 // thread count, motions finite and within Epona's ranges, future motions continuing the history
 // (checked against the absolute poses of --format npy), boxes in the last history frame's ego
 // frame, variety over a dozen drives (curves both ways, slow and fast drives, lane changes,
-// traffic), plausible pictures, and clear errors for bad options. Small sizes keep it fast.
+// traffic), plausible pictures, a frame rendered from another pose, and clear errors for bad
+// options. Small sizes keep it fast.
 #include <doctest/doctest.h>
 
 #include <algorithm>
@@ -103,6 +104,16 @@ TEST_CASE("synth: the picture does not depend on the thread count") {
   const io::Image one = sc.render(2, o);
   o.threads = 3;
   CHECK(sc.render(2, o).rgb == one.rgb);
+}
+
+TEST_CASE("synth: a frame's world rendered from another pose") {
+  const synth::Scenario sc(11, 0, 3);
+  synth::RenderOptions o;
+  o.camera.height = 64, o.camera.width = 128;
+  synth::Pose2 ego = sc.frames()[2].ego;
+  CHECK(sc.render(2, o, ego).rgb == sc.render(2, o).rgb);  // the recorded pose: the frame itself
+  ego.yaw += synth::rad(5);
+  CHECK(sc.render(2, o, ego).rgb != sc.render(2, o).rgb);
 }
 
 TEST_CASE("synth: npy layout; future motions continue the history; boxes in the last history frame") {

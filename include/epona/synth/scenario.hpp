@@ -174,9 +174,14 @@ class Scenario {
     return std::move(mesh.triangles);
   }
 
-  io::Image render(std::int64_t i, const RenderOptions& opt) const {
+  io::Image render(std::int64_t i, const RenderOptions& opt) const { return render(i, opt, frames_[static_cast<std::size_t>(i)].ego); }
+
+  // Frame i's world (its vehicles, the scenery near it) seen from `ego` instead of the recorded
+  // pose: the view had the ego stood or looked elsewhere at that moment (a turned camera, a step
+  // ahead). Used to check measurements against what the camera would really show.
+  io::Image render(std::int64_t i, const RenderOptions& opt, const Pose2& ego) const {
     const Renderer r(road_, params_.layout, params_.palette, params_.lighting, opt);
-    return r.render(frames_[static_cast<std::size_t>(i)].ego, triangles(i));
+    return r.render(ego, triangles(i));
   }
 
  private:

@@ -1,0 +1,62 @@
+// Does the bundled model (models/small-synthetic, docs/training.md) beat the trivial baselines on
+// its held-out demo clip? `epona eval` runs in-process on the clip alone at the documented
+// settings (100 steps, horizons 1..5, seed 0; docs/evaluation.md, "How") and the test reads its
+// JSON report:
+//   video:    the mean PSNR over horizons 1..5 of the model's rollout beats repeat-last's;
+//   planning: the model's L2 at 3 s beats constant velocity's.
+// docs/evaluation.md ("What it shows") gives the same comparison on 200 held-out clips. Only the
+// two means are asserted, never a single horizon: on this clip the model loses at h4 (21.4 vs
+// 23.1 dB), and the per-horizon order is not what the model promises. Margins measured (Release):
+// PSNR 23.47 vs 22.50 dB with seed 0 and 23.21..23.77 with seeds 1..4; L2 at 3 s 5.26 vs 6.96 m
+// with seed 0 and 1.19..4.40 with seeds 1..4.
+#include <doctest/doctest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <numeric>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "../apps/cli_testing.hpp"
+#include "../temp_dir.hpp"
+
+using namespace epona;
+using nlohmann::json;
+
+namespace {
+
+const std::string kModel = std::string(EPONA_MODELS_DIR) + "/small-synthetic";
+
+double mean_of(const json& values) {
+  const std::vector<double> v = values.get<std::vector<double>>();
+  REQUIRE(v.size() == 5);
+  return std::accumulate(v.begin(), v.end(), 0.0) / double(v.size());
+}
+
+}  // namespace
+
+TEST_CASE("demo clip: the bundled model beats repeat-last on video and constant velocity on planning") {
+  const test::TempDir t("epona_quality_demo");
+  const std::string report = t / "eval.json";
+  const test::CliResult r = test::cli({"eval", "--clips", kModel + "/demo", "--weights", kModel + "/weights_world.safetensors",
+                                       "--dcae", kModel + "/weights_dcae.safetensors", "--config", kModel + "/configs.json",
+                                       "--steps", "100", "--horizon", "5", "--seed", "0", "--json", report, "-q"});
+  INFO(r.out, r.err);
+  REQUIRE(r.rc == 0);
+  std::ifstream in(report);
+  const json j = json::parse(in);
+  REQUIRE(j.at("clips") == 1);
+
+  const double model_psnr = mean_of(j.at("model").at("psnr")), repeat_psnr = mean_of(j.at("repeat_last").at("psnr"));
+  const double model_l2 = j.at("model").at("l2_3s"), cv_l2 = j.at("constant_velocity").at("l2_3s");
+  MESSAGE("mean PSNR h1..h5: model ", model_psnr, " dB, repeat-last ", repeat_psnr, " dB; L2 at 3 s: model ", model_l2,
+          " m, constant velocity ", cv_l2, " m");
+  CHECK(model_psnr > repeat_psnr);
+  CHECK(model_l2 < cv_l2);
+}
+
+// The one translation unit of this test program that compiles stb.
+#include "epona/io/stb_implementation.hpp"
