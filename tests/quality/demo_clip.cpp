@@ -44,8 +44,7 @@ TEST_CASE("demo clip: the bundled model beats repeat-last on video and constant 
   const test::CliResult r = test::cli({"eval", "--clips", kModel + "/demo", "--weights", kModel + "/weights_world.safetensors",
                                        "--dcae", kModel + "/weights_dcae.safetensors", "--config", kModel + "/configs.json",
                                        "--steps", "100", "--horizon", "5", "--seed", "0", "--json", report, "-q"});
-  INFO(r.out, r.err);
-  REQUIRE(r.rc == 0);
+  REQUIRE_MESSAGE(r.rc == 0, r.out, r.err);
   std::ifstream in(report);
   const json j = json::parse(in);
   REQUIRE(j.at("clips") == 1);
