@@ -179,12 +179,7 @@ inline std::vector<io::Image> roll_out_under(const History& window, io::PoseSequ
 inline void score_video(ClipScores& s, const eval::EvalClip& c, const History& window,
                         const std::vector<io::Image>& history, std::uint64_t seed, const EvalContext& e) {
   const auto N = static_cast<std::size_t>(e.opt.horizon);
-  io::PoseSequence actions;
-  for (std::size_t i = 0; i < N; ++i) {
-    actions.x.push_back(c.future_motions->x[i]), actions.y.push_back(c.future_motions->y[i]);
-    actions.yaw.push_back(c.future_motions->yaw[i]);
-  }
-  const std::vector<io::Image> generated = roll_out_under(window, std::move(actions), seed, e);
+  const std::vector<io::Image> generated = roll_out_under(window, c.future_motions->slice(0, N), seed, e);
   const std::vector<io::Image> truth = read_frames(c.future_frames, 0, N, e);
   const io::Image& last = eval::repeat_last_frame(history);
   for (std::size_t h = 0; h < N; ++h) {
@@ -224,9 +219,7 @@ inline ClipScores evaluate_clip(const eval::EvalClip& c, std::uint64_t seed, con
   ClipScores s{c.name, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}};
   const auto F = static_cast<std::size_t>(e.wc.condition_frames);
   const std::vector<io::Image> history = read_frames(c.frames, c.frames.size() - F, F, e);
-  io::PoseSequence poses;
-  for (std::size_t i = c.poses.size() - F; i < c.poses.size(); ++i)
-    poses.x.push_back(c.poses.x[i]), poses.y.push_back(c.poses.y[i]), poses.yaw.push_back(c.poses.yaw[i]);
+  const io::PoseSequence poses = c.poses.slice(c.poses.size() - F, F);
   const History window = make_history(e.ctx, encode_frames(e.engine, history, e.silent), poses);
   if (e.opt.plan && c.future_motions) score_planning(s, c, window, seed, e);
   if (e.opt.video && !c.future_frames.empty()) score_video(s, c, window, history, seed, e);

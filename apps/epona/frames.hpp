@@ -76,10 +76,8 @@ inline Clip load_clip(const std::filesystem::path& frames_dir, const std::filesy
   for (std::int64_t i = n - window; i < n; ++i) {
     c.files.push_back(files[static_cast<std::size_t>(i)]);
     c.frames.push_back(read_frame(files[static_cast<std::size_t>(i)], height, width, policy));
-    c.poses.x.push_back(poses.x[static_cast<std::size_t>(i)]);
-    c.poses.y.push_back(poses.y[static_cast<std::size_t>(i)]);
-    c.poses.yaw.push_back(poses.yaw[static_cast<std::size_t>(i)]);
   }
+  c.poses = poses.slice(static_cast<std::size_t>(n - window), static_cast<std::size_t>(window));
   return c;
 }
 

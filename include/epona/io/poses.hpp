@@ -49,6 +49,16 @@ struct PoseSequence {
     std::copy(yaw.begin(), yaw.end(), t.data());
     return t;
   }
+
+  // Motions [first, first + count): a clip's window, or the first actions of a future.
+  PoseSequence slice(std::size_t first, std::size_t count) const {
+    EPONA_CHECK(first <= size() && count <= size() - first, "PoseSequence::slice: [", first, ", ", first + count,
+                ") of ", size(), " motion(s)");
+    const auto part = [&](const std::vector<float>& v) {
+      return std::vector<float>(v.begin() + std::ptrdiff_t(first), v.begin() + std::ptrdiff_t(first + count));
+    };
+    return {part(x), part(y), part(yaw)};
+  }
 };
 
 namespace poses_detail {
