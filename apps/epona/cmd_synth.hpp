@@ -36,7 +36,9 @@ inline ArgParser synth_parser() {
       .option("size", "HxW", "frame size, multiples of 32 in 32..4096", "256x512")
       .option("format", "png|npy", "png folders, or frames.npy (uint8) + poses_abs.npy", "png")
       .option("supersample", "N", "samples per pixel side (1..8), box-filtered", "2")
-      .option("threads", "N", "rendering threads (the output does not depend on it)", "all cores");
+      .option("threads", "N", "rendering threads (the output does not depend on it)", "all cores")
+      .flag("explore", "an exploring ego driver: random steering and speed impulses (training data that teaches\n"
+                       "a model to follow actions; leave it off for evaluation sets)");
   add_output_options(p, "out/synth");
   p.epilog("examples:\n"
            "  epona synth --seed 1 --clips 100 --frames 10 --out data/synth\n"
@@ -51,6 +53,7 @@ struct Options {
   std::int64_t clips = 1, frames = 10, future = 15, future_poses = 15;
   int height = 256, width = 512, supersample = 2, threads = 1;
   bool npy = false;
+  std::optional<synth::Exploration> exploration;
 };
 
 inline std::pair<int, int> parse_size(const std::string& text) {
@@ -79,6 +82,7 @@ inline Options options(const ParsedArgs& a) {
   std::tie(o.height, o.width) = parse_size(a.text("size", "256x512"));
   o.npy = a.choice("format", {"png", "npy"}, "png") == "npy";
   o.supersample = static_cast<int>(a.integer("supersample", 2, 1, 8));
+  if (a.flag("explore")) o.exploration = synth::Exploration{};
   const auto cores = static_cast<std::int64_t>(std::max(1u, std::thread::hardware_concurrency()));
   o.threads = static_cast<int>(a.integer("threads", cores, 1, 1024));
   const double pixels = double(o.height) * o.width * double(o.frames + o.future);
@@ -160,7 +164,8 @@ inline std::string scene_json(const synth::Scenario& sc, std::uint64_t seed, std
          ",\"sky_zenith\":" + rgb_json(L.zenith) + ",\"sky_horizon\":" + rgb_json(L.horizon) + ",\"asphalt\":" +
          rgb_json(p.palette.asphalt) + ",\"grass\":" + rgb_json(p.palette.grass) +
          ",\"recorded\":{\"speed_min_mps\":" + num(vmin) + ",\"speed_max_mps\":" + num(vmax) + ",\"total_yaw_deg\":" +
-         num(yaw) + ",\"lane_changes\":" + std::to_string(sc.lane_changes()) + "}}\n";
+         num(yaw) + ",\"lane_changes\":" + std::to_string(sc.lane_changes()) + "}" +
+         (sc.exploring() ? ",\"exploring_driver\":{\"impulses\":" + std::to_string(sc.impulses()) + "}" : "") + "}\n";
 }
 
 inline std::string frame_name(std::int64_t i, std::int64_t count) {
@@ -178,7 +183,7 @@ inline void make_dir(const std::filesystem::path& dir) {
 
 inline void write_clip(const Options& o, std::int64_t k, const std::filesystem::path& dir) {
   const std::int64_t F = o.frames, K = o.future, P = o.future_poses;
-  const synth::Scenario sc(o.seed, static_cast<std::uint64_t>(k), F + P);
+  const synth::Scenario sc(o.seed, static_cast<std::uint64_t>(k), F + P, o.exploration);
   synth::RenderOptions ro;
   ro.camera.height = o.height, ro.camera.width = o.width, ro.supersample = o.supersample, ro.threads = o.threads;
   make_dir(dir);
@@ -228,7 +233,8 @@ inline int run_synth(const ParsedArgs& a, const Console& con) {
                            ",\"future\":" + std::to_string(o.future) + ",\"future_poses\":" +
                            std::to_string(o.future_poses) + ",\"size\":[" + std::to_string(o.height) + "," +
                            std::to_string(o.width) + "],\"fps\":5,\"image_format\":\"" + (o.npy ? "npy" : "png") +
-                           "\",\"supersample\":" + std::to_string(o.supersample) + ",\"camera\":" +
+                           "\",\"supersample\":" + std::to_string(o.supersample) +
+                           (o.exploration ? ",\"exploring_driver\":true" : "") + ",\"camera\":" +
                            synth_cmd::camera_json(cam) + "}\n");
   con.note("synth: ", o.clips, " clips of ", o.frames, " + ", o.future, " frames at ", o.height, "x", o.width, ", seed ",
            o.seed, ", ", o.threads, " threads");

@@ -197,6 +197,52 @@ TEST_CASE("synth: motions in Epona's range, lead vehicles ahead, and variety ove
   CHECK(leads >= 1);
 }
 
+// The exploring driver (training data that teaches action following): its steering impulses turn
+// the ego by several degrees within a frame where the natural driver's heading changes smoothly,
+// its motions stay inside the range Epona's pose tokenizer covers (|yaw| < 8 deg, 0 <= x < 8 m),
+// and reruns are identical.
+TEST_CASE("synth: the exploring driver swerves at random moments, within Epona's ranges") {
+  auto jumps = [](const synth::Scenario& sc, double& max_yaw) {
+    int n = 0;
+    for (std::int64_t i = 1; i < sc.size(); ++i) {
+      const synth::Motion m = sc.motion(i), prev = sc.motion(i - 1);
+      REQUIRE(std::isfinite(m.yaw_deg));
+      CHECK(m.x >= 0);
+      CHECK(m.x < 8);
+      CHECK(std::abs(m.y) < 0.5);
+      CHECK(std::abs(m.yaw_deg) < 8);
+      max_yaw = std::max(max_yaw, std::abs(m.yaw_deg));
+      n += std::abs(m.yaw_deg - prev.yaw_deg) > 1.5;
+    }
+    return n;
+  };
+  int natural_jumps = 0, exploring_jumps = 0, impulses = 0;
+  double natural_max = 0, exploring_max = 0;
+  for (std::uint64_t k = 0; k < 12; ++k) {
+    const synth::Scenario natural(7, k, 100), exploring(7, k, 100, synth::Exploration{});
+    CHECK_FALSE(natural.exploring());
+    CHECK(exploring.exploring());
+    natural_jumps += jumps(natural, natural_max);
+    exploring_jumps += jumps(exploring, exploring_max);
+    impulses += exploring.impulses();
+  }
+  CHECK(impulses >= 12 * 20 / 3);  // 20 s per drive, one impulse per 2 s on average
+  CHECK(natural_jumps <= 12);
+  CHECK(exploring_jumps >= 5 * std::max(natural_jumps, 10));
+  CHECK(exploring_max > 4);  // the 5-degree turns of eval --control are in the training range
+  const synth::Scenario a(3, 1, 40, synth::Exploration{}), b(3, 1, 40, synth::Exploration{});
+  for (std::int64_t i = 0; i < a.size(); ++i) CHECK(a.motion(i).yaw_deg == b.motion(i).yaw_deg);
+
+  TempDir tmp("synth_explore");
+  auto args = synth_args(tmp.path() / "x", "4", "1");
+  args.push_back("--explore");
+  REQUIRE(cli(args).code == 0);
+  CHECK(slurp(tmp.path() / "x" / "clips.json").find("\"exploring_driver\":true") != std::string::npos);
+  CHECK(slurp(tmp.path() / "x" / "clip_0000" / "scene.json").find("\"exploring_driver\":{\"impulses\":") != std::string::npos);
+  REQUIRE(cli(synth_args(tmp.path() / "n", "4", "1")).code == 0);
+  CHECK(slurp(tmp.path() / "n" / "clip_0000" / "scene.json").find("exploring") == std::string::npos);
+}
+
 TEST_CASE("synth: frames look like a road scene") {
   for (std::uint64_t k = 0; k < 3; ++k) {
     const synth::Scenario sc(1, k, 2);

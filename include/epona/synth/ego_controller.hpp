@@ -3,10 +3,13 @@
 // either direction when the target lane has room, and IDM car-following of the lead vehicle
 // with a desired speed from the drive's regime, capped by the curvature ahead (lateral
 // acceleration at most 2.5 m/s^2). The car moves as a kinematic unicycle in world coordinates.
+// An exploring driver (training data, `epona synth --explore`) adds steering and speed impulses
+// at random moments on top, which the driver then corrects.
 #pragma once
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
 
 #include "epona/synth/geometry.hpp"
 #include "epona/synth/rng.hpp"
@@ -14,6 +17,21 @@
 #include "epona/synth/traffic.hpp"
 
 namespace epona::synth {
+
+// The exploring driver's impulses. Their onsets cannot be foreseen from the drive so far, so a
+// world model trained on such clips must read the next action, not the history, to draw the next
+// frame: natural driving alone teaches it to ignore the action (docs/synthetic-world.md).
+struct Exploration {
+  double mean_interval = 2.0;                    // s between impulse onsets, on average
+  double min_yaw_rate = 0.1, max_yaw_rate = 0.9;  // rad/s on top of the steering (0.9: ~10 deg per frame)
+  double min_accel = 1.0, max_accel = 3.0;       // m/s^2 on top of the speed control
+  double min_duration = 0.2, max_duration = 0.8;  // s
+};
+
+struct Impulse {
+  double yaw_rate = 0, accel = 0, left = 0;  // left: seconds still to run
+  bool active() const { return left > 0; }
+};
 
 struct EgoCar {
   Pose2 pose;
@@ -25,6 +43,9 @@ struct EgoCar {
   double v_desired = 10, hold_left = 10;
   double next_change_in = 10;  // s until the next lane-change wish
   int lane_changes = 0;
+  Impulse impulse;
+  double next_impulse_in = 0;
+  int impulses = 0;
   static constexpr double kLength = 4.6, kWidth = 1.9;
   Obstacle obstacle() const { return {s, d, v, kLength}; }
 };
@@ -34,6 +55,7 @@ class EgoController {
   IdmParams idm{1.6, 2.5, 3.0, 1.4};
   double max_lateral_accel = 2.5;  // m/s^2
   double mean_change_interval = 12;  // s between lane-change wishes
+  std::optional<Exploration> exploration;  // set: the exploring driver of training clips
 
   EgoCar start(Rng& rng, const Road& road, const RoadLayout& layout, const SpeedRegime& regime, double s, int lane) {
     EgoCar e;
@@ -47,6 +69,7 @@ class EgoController {
     e.v = e.v_desired;
     e.hold_left = rng.uniform(regime.hold_min, regime.hold_max);
     e.next_change_in = rng.uniform(2, 2 * mean_change_interval);
+    if (exploration) e.next_impulse_in = rng.uniform(0.3, 2 * exploration->mean_interval);
     return e;
   }
 
@@ -54,6 +77,7 @@ class EgoController {
             const Traffic& traffic, double dt) const {
     road.project(e.pose.x, e.pose.y, e.hint, e.s, e.d);
     plan_lane_change(rng, e, layout, traffic, dt);
+    if (exploration) plan_impulse(rng, e, dt);
     const double d_ref = e.change.active() ? lerp(e.change.from, e.change.to, smoothstep((e.change.t + 0.6) / e.change.duration))
                                            : layout.lane_centre(e.lane);
 
@@ -72,13 +96,16 @@ class EgoController {
       v0 = std::min(v0, std::sqrt(max_lateral_accel / std::max(std::abs(road.curvature(e.s + ahead)), 1e-4)));
     double gap = -1, closing = 0;
     lead(e, traffic, gap, closing);
-    const double a = std::clamp(idm_accel(idm, e.v, v0, gap, closing), -7.0, idm.accel);
+    double a = std::clamp(idm_accel(idm, e.v, v0, gap, closing), -7.0, idm.accel);
+    if (e.impulse.active()) a = std::clamp(a + e.impulse.accel, -7.0, idm.accel + e.impulse.accel);
     const double v1 = std::max(0.0, e.v + a * dt);
     const double vm = 0.5 * (e.v + v1);
-    const double h_mid = e.pose.yaw + 0.5 * vm * kappa * dt;
+    double yaw_rate = vm * kappa;
+    if (e.impulse.active() && vm > 2) yaw_rate += e.impulse.yaw_rate;  // a car at a crawl cannot swerve
+    const double h_mid = e.pose.yaw + 0.5 * yaw_rate * dt;
     e.pose.x += std::cos(h_mid) * vm * dt;
     e.pose.y += std::sin(h_mid) * vm * dt;
-    e.pose.yaw = wrap_angle(e.pose.yaw + vm * kappa * dt);
+    e.pose.yaw = wrap_angle(e.pose.yaw + yaw_rate * dt);
     e.v = v1;
     if (e.change.active()) e.change.t += dt;
   }
@@ -97,6 +124,23 @@ class EgoController {
   }
 
  private:
+  // Starts a steering impulse, a speed impulse or both at random moments; one at a time.
+  void plan_impulse(Rng& rng, EgoCar& e, double dt) const {
+    const Exploration& x = *exploration;
+    if (e.impulse.active()) e.impulse.left -= dt;
+    if (!e.impulse.active()) e.impulse = {};
+    e.next_impulse_in -= dt;
+    if (e.next_impulse_in > 0 || e.impulse.active()) return;
+    e.next_impulse_in = rng.uniform(0.3, 1.7) * x.mean_interval;
+    const double kind = rng.uniform();
+    Impulse im;
+    if (kind < 0.7) im.yaw_rate = (rng.chance(0.5) ? 1 : -1) * rng.uniform(x.min_yaw_rate, x.max_yaw_rate);
+    if (kind > 0.5) im.accel = (rng.chance(0.5) ? 1 : -1) * rng.uniform(x.min_accel, x.max_accel);
+    im.left = rng.uniform(x.min_duration, x.max_duration);
+    e.impulse = im;
+    ++e.impulses;
+  }
+
   void plan_lane_change(Rng& rng, EgoCar& e, const RoadLayout& layout, const Traffic& traffic, double dt) const {
     if (e.change.active() || layout.lanes < 2) return;
     e.next_change_in -= dt;

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -123,8 +124,11 @@ struct FrameState {
 
 class Scenario {
  public:
-  // Simulates `frames` recorded frames of clip `clip` of run `seed`.
-  Scenario(std::uint64_t seed, std::uint64_t clip, std::int64_t frames) : seed_(seed), clip_(clip) {
+  // Simulates `frames` recorded frames of clip `clip` of run `seed`; with `exploration`, driven by
+  // the exploring driver (ego_controller.hpp), otherwise the same drive as ever.
+  Scenario(std::uint64_t seed, std::uint64_t clip, std::int64_t frames,
+           std::optional<Exploration> exploration = std::nullopt)
+      : seed_(seed), clip_(clip) {
     EPONA_CHECK(frames >= 1 && frames <= 1000000, "synth: frame count ", frames, " out of range");
     Rng rng = Rng::for_clip(seed, clip);
     params_ = draw_params(rng);
@@ -134,6 +138,7 @@ class Scenario {
     road_ = Road::generate(road_rng, params_.road, length);
     props_ = place_scenery(scenery_rng, road_, params_.layout, params_.scenery, 0, road_.length());
     EgoController controller;
+    controller.exploration = exploration;
     EgoCar ego = controller.start(ego_rng, road_, params_.layout, params_.regime, start_s, params_.start_lane);
     traffic_.populate(traffic_rng, road_, params_.layout, params_.regime, 20, road_.length() - 50,
                       params_.traffic_spacing, start_s, params_.start_lane);
@@ -147,6 +152,8 @@ class Scenario {
       if (f >= kWarmupFrames) frames_.push_back(record(ego));
     }
     ego_lane_changes_ = ego.lane_changes;
+    exploring_ = exploration.has_value();
+    impulses_ = ego.impulses;
   }
 
   const DriveParams& params() const { return params_; }
@@ -155,6 +162,8 @@ class Scenario {
   std::int64_t size() const { return static_cast<std::int64_t>(frames_.size()); }
   // Epona's motion into frame i (from frame i-1; frame -1 is the last warm-up frame).
   Motion motion(std::int64_t i) const { return motion_between(i == 0 ? before_ : frames_[i - 1].ego, frames_[i].ego); }
+  bool exploring() const { return exploring_; }
+  int impulses() const { return impulses_; }  // the exploring driver's impulses, warm-up included
   // Lane changes begun during the recorded frames.
   int lane_changes() const {
     int n = 0;
@@ -201,6 +210,8 @@ class Scenario {
   Pose2 before_;
   std::vector<FrameState> frames_;
   int ego_lane_changes_ = 0;
+  bool exploring_ = false;
+  int impulses_ = 0;
 };
 
 }  // namespace epona::synth
