@@ -95,11 +95,16 @@ inline Tensor<float> encode_frames(Engine& engine, const std::vector<io::Image>&
   return out;
 }
 
-// The world model's window (batch 1) from encoded frames (F, C, h, w) and their motions.
+// The world model's window (batch 1) from encoded frames (F, C, h, w) and their motions. The
+// window's first frame gets no motion: the official code makes a window's motions with
+// get_rel_pose of its own poses, which gives the first frame the identity, in training and in its
+// planning test (scripts/test/test_traj.py), so the model has never seen a motion there (a real
+// one there cost the bundled model 60% more planning error at 1 s; docs/evaluation.md).
 inline History make_history(cpu::Context& ctx, const Tensor<float>& latents, const io::PoseSequence& poses) {
   const Tensor<float> tokens = latent_to_tokens(ctx, latents);  // (F, L, C)
-  return History{tokens.reshape({1, tokens.size(0), tokens.size(1), tokens.size(2)}), poses.pose_tensor(),
-                 poses.yaw_tensor()};
+  History h{tokens.reshape({1, tokens.size(0), tokens.size(1), tokens.size(2)}), poses.pose_tensor(), poses.yaw_tensor()};
+  if (h.rel_pose.numel() > 0) h.rel_pose.data()[0] = h.rel_pose.data()[1] = h.rel_yaw.data()[0] = 0.0f;
+  return h;
 }
 
 }  // namespace epona::app
