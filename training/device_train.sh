@@ -7,10 +7,14 @@
 #
 #   training/device_train.sh start  OUT   # data, DC-AE, latents, the first world-model chunk
 #   training/device_train.sh resume OUT   # more world-model training (WORLD_SECONDS), preview
+#   training/device_train.sh retrain OUT  # run 2: from the bundled model (INIT), natural clips plus
+#                                         # clips of the exploring driver, the first world chunk
+#                                         # (then `resume` with the same knobs)
 #
 # Both copy the exported model (bf16 safetensors + configs.json), the loss curves and the
 # preview into OUT. Knobs (environment): CLIPS, FRAMES, DATA_SEED, DCAE_SECONDS, WORLD_SECONDS,
-# WORLD_SCHEDULE (the world model's planned total seconds over all chunks), BATCH.
+# WORLD_SCHEDULE (the world model's planned total seconds over all chunks), BATCH, and for retrain
+# INIT (default models/small-synthetic), EXPLORE_SEED, EXPLORE_CLIPS, EXPLORE_SHARE, LR.
 set -euo pipefail
 phase=${1:?start or resume} out=${2:?output folder}
 work=${EPONA_TRAIN_WORK:-/tmp/epona-train}
@@ -39,11 +43,26 @@ case $phase in
       --batch "${BATCH:-32}" --lr 4e-4
     train preview --limit-clips 16
     ;;
+  retrain)
+    mkdir -p "$work"
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+    t0=$(date +%s)
+    "$epona" synth --seed "${DATA_SEED:-1002}" --clips "${CLIPS:-350}" --frames "${FRAMES:-48}" --future 0 \
+      --format npy --out "$work/data" --quiet
+    "$epona" synth --seed "${EXPLORE_SEED:-1003}" --clips "${EXPLORE_CLIPS:-350}" --frames "${FRAMES:-48}" --future 0 \
+      --format npy --explore --out "$work/explore" --quiet
+    echo "synth: $(( $(date +%s) - t0 )) s, $(du -sh "$work/data" "$work/explore" | cut -f1 | tr '\n' ' ')"
+    train encode --init "${INIT:-models/small-synthetic}" --explore-data "$work/explore"
+    train world --init "${INIT:-models/small-synthetic}" --seconds "${WORLD_SECONDS:-300}" \
+      --schedule-seconds "${WORLD_SCHEDULE:-900}" --batch "${BATCH:-32}" --lr "${LR:-3e-4}" \
+      --explore-share "${EXPLORE_SHARE:-0.5}"
+    cp "${INIT:-models/small-synthetic}/weights_dcae.safetensors" "$work/small/"
+    ;;
   resume)
     train world --seconds "${WORLD_SECONDS:-300}" --schedule-seconds "${WORLD_SCHEDULE:-600}" \
-      --batch "${BATCH:-32}" --lr 4e-4
-    train preview --limit-clips 16
+      --batch "${BATCH:-32}" --lr "${LR:-4e-4}" --explore-share "${EXPLORE_SHARE:-0.5}"
+    [ -n "${SKIP_PREVIEW:-}" ] || train preview --limit-clips 16
     ;;
-  *) echo "device_train.sh: start or resume" >&2; exit 2 ;;
+  *) echo "device_train.sh: start, resume or retrain" >&2; exit 2 ;;
 esac
 collect

@@ -3,6 +3,10 @@
 PNG for docs/training.md.
 
     python3 training/plot_curves.py training/runs/2026-11-27 docs/images/training-loss.png
+    python3 training/plot_curves.py --run2 training/runs/2026-11-28 docs/images/training-loss-run2.png
+
+--run2 plots the second run (two chunks from the first run's weights, natural and exploring-driver
+batches, lambda_yaw_pose 2): world_loss_chunk1.jsonl then world_loss_chunk2.jsonl.
 """
 import json
 import os
@@ -27,7 +31,33 @@ def smooth(values, k=9):
     return out
 
 
+def plot_run2(run, dest, trajectory_weight=2.0):
+    chunks = [rows(os.path.join(run, f"world_loss_chunk{i}.jsonl")) for i in (1, 2)]
+    world, offset = [], 0
+    for chunk in chunks:
+        world += [dict(r, step=r["step"] + offset) for r in chunk]
+        offset += chunk[-1]["step"]
+    natural = [r for r in world if not r.get("exploring")]
+    exploring = [r for r in world if r.get("exploring")]
+    fig, ax = plt.subplots(figsize=(7, 3.8))
+    ax.plot([r["step"] for r in natural], smooth([r["loss_diff"] for r in natural]), label="VisDiT, natural batches", lw=1)
+    ax.plot([r["step"] for r in exploring], smooth([r["loss_diff"] for r in exploring]), label="VisDiT, exploring-driver batches", lw=1)
+    ax.plot([r["step"] for r in natural], smooth([r["loss_traj"] / trajectory_weight for r in natural]),
+            label="TrajDiT (natural batches only)", lw=1)
+    ax.axvline(chunks[0][-1]["step"], color="grey", lw=0.8, ls="--")
+    ax.set_yscale("log")
+    ax.set_xlabel("world-model step of run 2 (batch 48); dashed: second chunk, fresh optimiser")
+    ax.set_ylabel("velocity MSE (running mean of 9 logged points)")
+    ax.set_title("Run 2: from run 1's weights, natural + exploring-driver drives")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(dest, dpi=110)
+    print("wrote", dest)
+
+
 def main():
+    if sys.argv[1] == "--run2":
+        return plot_run2(sys.argv[2], sys.argv[3])
     run, dest = sys.argv[1], sys.argv[2]
     dcae, world = rows(os.path.join(run, "dcae_loss.jsonl")), rows(os.path.join(run, "world_loss.jsonl"))
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 3.8))

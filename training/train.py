@@ -189,17 +189,30 @@ def encode_all(a):
     ckpt = os.path.join(a.work, "dcae.pt")
     ae.load_state_dict(torch.load(ckpt, map_location=a.device)["model"] if os.path.exists(ckpt) else
                        exported_state(a.init, "weights_dcae", ""))
-    frames, poses = load_clips(a.data, a.device, a.limit_clips)
+    sets = [(a.data, True)] + ([(a.explore_data, False)] if a.explore_data else [])
+    lat, poses, natural = [], [], []
+    for folder, is_natural in sets:
+        frames, p = load_clips(folder, a.device, a.limit_clips)
+        lat.append(encode_frames(ae, frames))
+        poses.append(p.cpu())
+        natural.append(torch.full((frames.shape[0],), is_natural))
+        del frames
+    t, tp = min(x.shape[1] for x in lat), min(x.shape[1] for x in poses)
+    lat = torch.cat([x[:, :t] for x in lat])
+    log(f"latents {tuple(lat.shape)}: mean {lat.mean().item():.3f} std {lat.std().item():.3f}")
+    torch.save({"latents": lat, "poses": torch.cat([x[:, :tp] for x in poses]), "natural": torch.cat(natural)},
+               os.path.join(a.work, "latents.pt"))
+
+
+def encode_frames(ae, frames):
+    """(N, T, H, W, 3) uint8 -> (N, T, h*w, 32) latents on the CPU, patchified with patch 1 (row-major)."""
     n, t = frames.shape[:2]
     flat = frames.reshape(n * t, *frames.shape[2:])
     out = []
     for i in range(0, flat.shape[0], 128):
-        x = to_model_range(flat[i:i + 128])
-        z = ae.encode(x).float()  # (b, 32, h, w)
-        out.append(z.flatten(2).transpose(1, 2))  # patchify with patch 1: (b, h*w, 32), row-major
-    lat = torch.cat(out).reshape(n, t, *out[0].shape[1:])
-    log(f"latents {tuple(lat.shape)}: mean {lat.mean().item():.3f} std {lat.std().item():.3f}")
-    torch.save({"latents": lat.cpu(), "poses": poses.cpu()}, os.path.join(a.work, "latents.pt"))
+        z = ae.encode(to_model_range(flat[i:i + 128])).float()  # (b, 32, h, w)
+        out.append(z.flatten(2).transpose(1, 2).cpu())
+    return torch.cat(out).reshape(n, t, *out[0].shape[1:])
 
 
 # ---------------------------------------------------------------------------------------- world model
@@ -230,12 +243,13 @@ def trajectory_loss(wm, latents_total, rot):
     return wm.traj_dit.training_losses(traj=targets, traj_ids=wm.traj_ids, cond=stt, cond_ids=wm.cond_ids, t=t)["loss"]
 
 
-def world_batch(lat, poses, F, fi, traj_len, batch, gen):
-    """Windows of F + fi latents and F + traj_len + fi - 1 poses, as the official loop slices them."""
-    n, t = lat.shape[:2]
+def world_batch(lat, poses, F, fi, traj_len, batch, gen, clips):
+    """Windows of F + fi latents and F + traj_len + fi - 1 poses, as the official loop slices them,
+    from the clips listed in `clips`."""
+    t = lat.shape[1]
     n_frames, n_poses = F + fi, F + traj_len + fi - 1
     last_start = min(t - n_frames, poses.shape[1] - n_poses)
-    clip = torch.randint(0, n, (batch,), device=lat.device, generator=gen)
+    clip = clips[torch.randint(0, clips.numel(), (batch,), device=lat.device, generator=gen)]
     start = torch.randint(0, last_start + 1, (batch,), device=lat.device, generator=gen)
     fr = start[:, None] + torch.arange(n_frames, device=lat.device)
     po = start[:, None] + torch.arange(n_poses, device=lat.device)
@@ -267,6 +281,9 @@ def train_world(a):
     log("world model: MST {model:.2f} M, VisDiT {dit:.2f} M, TrajDiT {traj_dit:.2f} M parameters".format(**counts))
     data = torch.load(os.path.join(a.work, "latents.pt"))
     lat, poses = data["latents"].to(a.device), data["poses"].to(a.device)
+    natural = data.get("natural", torch.ones(lat.shape[0], dtype=torch.bool)).to(a.device)
+    natural_clips, exploring_clips = natural.nonzero()[:, 0], (~natural).nonzero()[:, 0]
+    log(f"{natural_clips.numel()} natural clips, {exploring_clips.numel()} of the exploring driver")
     ckpt = os.path.join(a.work, "world.pt")
     if not os.path.exists(ckpt) and a.init:
         for sub in ("model", "dit", "traj_dit"):
@@ -288,7 +305,11 @@ def train_world(a):
         lr = lr_at(step, (done + time.time() - t0) / a.schedule_seconds, a.lr, 300)
         for g in opt.param_groups:
             g["lr"] = lr
-        latents, rot = world_batch(lat, poses, F, fi, traj_len, a.batch, gen)
+        # Batches of the exploring driver (a share explore_share of the steps, spread evenly) teach the
+        # VisDiT to follow the action; their futures hold random impulses no planner should imitate, so
+        # they train no trajectory.
+        exploring = exploring_clips.numel() > 0 and int((step + 1) * a.explore_share) > int(step * a.explore_share)
+        latents, rot = world_batch(lat, poses, F, fi, traj_len, a.batch, gen, exploring_clips if exploring else natural_clips)
         latents_cond = latents[:, :F]
         rel_pose_cond = rel_yaw_cond = None
         passes = fi if step % args.multifw_perstep == 0 and not a.trajectory_only else 1
@@ -309,7 +330,7 @@ def train_world(a):
             latents_gt = latents[:, j + F:j + F + 1]
             with autocast:
                 out = wm(latents_cond, rot_cond, latents_gt, rel_pose_cond=rel_pose_cond, rel_yaw_cond=rel_yaw_cond)
-            loss = out["loss_all"]
+            loss = out["loss_diff"] if exploring else out["loss_all"]
             if not math.isfinite(loss.item()):
                 raise SystemExit(f"loss is {loss.item()} at step {step}")
             opt.zero_grad(set_to_none=True)
@@ -327,7 +348,8 @@ def train_world(a):
         step += 1
         if step % 25 == 0 or step == 1:
             curve.add(step=step, seconds=round(time.time() - t0, 2), lr=lr, loss=loss.item(),
-                      loss_diff=out["loss_diff"].item(), loss_traj=out["loss_yaw_pose"].item(), passes=passes)
+                      loss_diff=out["loss_diff"].item(), loss_traj=out["loss_yaw_pose"].item(), passes=passes,
+                      exploring=bool(exploring))
         if step % 100 == 0:
             log(f"world step {step} loss {loss.item():.4f} (video {out['loss_diff'].item():.4f}, "
                 f"trajectory {out['loss_yaw_pose'].item():.4f}) lr {lr:.2e}")
@@ -391,7 +413,9 @@ def preview(a):
     configs = model_configs(a.model)
     args = official.world_args(configs)
     ae = official.build_dcae(off, configs, a.device).eval()
-    ae.load_state_dict(torch.load(os.path.join(a.work, "dcae.pt"), map_location=a.device)["model"])
+    ckpt = os.path.join(a.work, "dcae.pt")
+    ae.load_state_dict(torch.load(ckpt, map_location=a.device)["model"] if os.path.exists(ckpt) else
+                       exported_state(a.init, "weights_dcae", ""))
     wm = official.build_world(off, configs, a.device).eval()
     wm.load_state_dict(torch.load(os.path.join(a.work, "world.pt"), map_location=a.device)["model"])
     args.num_sampling_steps = a.preview_steps
@@ -433,6 +457,9 @@ def main():
     ap.add_argument("stage", choices=["dcae", "encode", "world", "export", "preview"])
     ap.add_argument("--official", required=True, help="checkout of Kevin-thu/Epona")
     ap.add_argument("--data", help="folder of `epona synth --format npy` clips")
+    ap.add_argument("--explore-data", default="", help="encode: a second folder, of `epona synth --explore` clips")
+    ap.add_argument("--explore-share", type=float, default=0.5,
+                    help="world: the share of steps whose batch comes from the exploring driver's clips (if encoded)")
     ap.add_argument("--work", required=True, help="checkpoints, logs, latent cache")
     ap.add_argument("--model", default=os.path.join(HERE, "small_epona.json"))
     ap.add_argument("--export", default="", help="export folder (default WORK/small)")
