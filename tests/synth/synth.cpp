@@ -234,13 +234,13 @@ TEST_CASE("synth: the exploring driver swerves at random moments, within Epona's
   for (std::int64_t i = 0; i < a.size(); ++i) CHECK(a.motion(i).yaw_deg == b.motion(i).yaw_deg);
 
   TempDir tmp("synth_explore");
-  auto args = synth_args(tmp.path() / "x", "4", "1");
+  auto args = synth_args(tmp.path / "x", "4", "1");
   args.push_back("--explore");
-  REQUIRE(cli(args).code == 0);
-  CHECK(slurp(tmp.path() / "x" / "clips.json").find("\"exploring_driver\":true") != std::string::npos);
-  CHECK(slurp(tmp.path() / "x" / "clip_0000" / "scene.json").find("\"exploring_driver\":{\"impulses\":") != std::string::npos);
-  REQUIRE(cli(synth_args(tmp.path() / "n", "4", "1")).code == 0);
-  CHECK(slurp(tmp.path() / "n" / "clip_0000" / "scene.json").find("exploring") == std::string::npos);
+  REQUIRE(cli(args).rc == 0);
+  CHECK(slurp(tmp.path / "x" / "clips.json").find("\"exploring_driver\":true") != std::string::npos);
+  CHECK(slurp(tmp.path / "x" / "clip_0000" / "scene.json").find("\"exploring_driver\":{\"impulses\":") != std::string::npos);
+  REQUIRE(cli(synth_args(tmp.path / "n", "4", "1")).rc == 0);
+  CHECK(slurp(tmp.path / "n" / "clip_0000" / "scene.json").find("exploring") == std::string::npos);
 }
 
 TEST_CASE("synth: frames look like a road scene") {
