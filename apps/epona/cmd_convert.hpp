@@ -6,10 +6,12 @@
 #include <filesystem>
 #include <string>
 
+#include "activity.hpp"
 #include "args.hpp"
 #include "console.hpp"
 #include "inspect.hpp"
 #include "models.hpp"
+#include "output_paths.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/safetensors.hpp"
 
@@ -33,8 +35,13 @@ inline int run_convert(const ParsedArgs& a, const Console& con) {
               ": the name must end in .safetensors");
   std::error_code ec;
   EPONA_CHECK(!std::filesystem::equivalent(in, out, ec), "output ", out, " is the input file");
+  prepare_output_file(out, "output " + out);
   con.note("reading ", in);
-  const io::TensorMap m = io::load_weights(in, a.text("key", ""));
+  const io::TensorMap m = [&] {
+    const Activity doing("reading " + in);
+    return io::load_weights(in, a.text("key", ""));
+  }();
+  const Activity doing("writing " + out);
   io::save_safetensors(out, m, {{"converted_from", std::filesystem::path(in).filename().string()}});
   const CheckpointStats s = checkpoint_stats(m, 1);
   con.out << "wrote " << out << ": " << s.tensors << " tensors, " << epona::detail::human_bytes(s.bytes) << "\n";

@@ -145,7 +145,7 @@ TEST_CASE("usage errors exit 1 with 'epona: error:' and name the problem") {
   check_error(cli({"plan", "extra"}), "unexpected argument 'extra'");
   check_error(cli({"plan", "--backend", "tpu"}), "--backend must be one of cpu, cuda; got 'tpu'");
   check_error(cli({"plan", "--dtype", "int8"}), "--dtype must be one of");
-  check_error(cli({"generate", "-n", "0"}), "--num-frames must be in [1, 1000000], got 0");
+  check_error(cli({"generate", "-n", "0"}), "--num-frames must be at least 1, got 0");
   check_error(cli({"generate", "--decode", "gif"}), "--decode must be one of clip, frame");
   check_error(cli({"info"}), "missing checkpoint file(s)");
   check_error(cli({"decode"}), "missing latents file");
