@@ -15,6 +15,7 @@
 
 #include "../../apps/epona/cli.hpp"
 #include "../temp_dir.hpp"
+#include "../io/zip_builder.hpp"
 #include "cli_testing.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
@@ -49,7 +50,52 @@ void check_error(const test::CliResult& r, const std::string& part) {
   CHECK(r.err.find('\x1b') == std::string::npos);
 }
 
+// A torch.save-like .pkl whose `views` tensors all view one float storage of `numel` elements.
+std::string shared_storage_pkl(int views, std::int64_t numel) {
+  std::string p = "\x80\x02}(";
+  const auto str = [&](const std::string& s) {
+    p += 'X';
+    zip_test::put<std::uint32_t>(p, static_cast<std::uint32_t>(s.size()));
+    p += s;
+  };
+  const auto int32 = [&](std::int64_t v) {
+    p += 'J';
+    zip_test::put<std::int32_t>(p, static_cast<std::int32_t>(v));
+  };
+  for (int i = 0; i < views; ++i) {
+    str("w" + std::to_string(i));
+    p += "ctorch._utils\n_rebuild_tensor_v2\n((";
+    str("storage");
+    p += "ctorch\nFloatStorage\n";
+    str("0");
+    str("cpu");
+    int32(numel);
+    p += "tQ";
+    int32(0);
+    p += "(";
+    int32(numel);
+    p += "t(K\x01t\x89" "ccollections\nOrderedDict\n)RtR";
+  }
+  p += "u.";
+  zip_test::ZipSpec z;
+  z.entries.push_back({"arc/data.pkl", p});
+  z.entries.push_back({"arc/data/0", std::string(std::size_t(numel) * 4, '\x01')});
+  z.entries.push_back({"arc/version", "3\n"});
+  return zip_test::layout_zip(z).bytes();
+}
+
 }  // namespace
+
+TEST_CASE("convert refuses a .pkl whose views would repeat one storage many times over") {
+  test::TempDir t;
+  write_text(t.path / "views.pkl", shared_storage_pkl(40, 1 << 18));  // 1 MiB storage, 40 MiB of views
+  const auto r = cli({"convert", t / "views.pkl", t / "out.safetensors", "-q"});
+  check_error(r, "distinct bytes of storage 40 times over");
+  CHECK_FALSE(fs::exists(t.path / "out.safetensors"));
+  write_text(t.path / "tied.pkl", shared_storage_pkl(2, 1 << 18));  // tied weights: written twice
+  CHECK(cli({"convert", t / "tied.pkl", t / "tied.safetensors", "-q"}).rc == 0);
+  CHECK(fs::file_size(t.path / "tied.safetensors") > 2u << 20);
+}
 
 TEST_CASE("info prints tensor names with ESC and NUL escaped") {
   test::TempDir t;

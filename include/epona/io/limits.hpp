@@ -4,6 +4,7 @@
 // the allocation it bounds. docs/reliability.md ("Resource limits") lists them with their reasons.
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
 
 namespace epona::io::limits {
@@ -34,6 +35,12 @@ inline constexpr std::int64_t kPixels = std::int64_t{1} << 25;
 inline constexpr std::int64_t kImageSide = 16384;
 // Latent cells (h x w) of one frame: the pixel limit at the DC-AE's 32x downsampling.
 inline constexpr std::int64_t kLatentCells = kPixels / (32 * 32);
+
+// ---- convert ----
+// Tensors viewing one storage are written once each (safetensors cannot share bytes): the output
+// may hold the distinct storage bytes this many times (tied weights are 2x), plus a slack.
+inline constexpr std::uint64_t kConvertRepeat = 2;
+inline constexpr std::uint64_t kConvertRepeatSlack = std::uint64_t{16} << 20;
 
 // ---- compute ----
 // --threads: more threads than this many per hardware thread only slow the work down.
