@@ -136,6 +136,7 @@ inline int run_decode(const ParsedArgs& a, const Console& con) {
   for (std::int64_t i = 0; i < latents.numel(); ++i)
     EPONA_CHECK(std::isfinite(latents.data()[i]), path, ": non-finite latent value at flat index ", i);
   const auto dir = output_dir(a, "out/decode");
+  IncompleteMarker incomplete(dir, "epona decode");
   const auto engine = make_engine(compute);
   engine->load_dcae(files, con);
   const DcaeConfig& dc = engine->dcae_config();
@@ -154,6 +155,7 @@ inline int run_decode(const ParsedArgs& a, const Console& con) {
     }
     bar.advance(group);
   }
+  incomplete.done();
   con.out << "decoded " << N << " frame(s) of " << 32 * latents.size(2) << "x" << 32 * latents.size(3) << " into "
           << dir.string() << "/frame_0000.png ...\n";
   return 0;

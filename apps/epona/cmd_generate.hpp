@@ -153,6 +153,7 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   const bool clip_decode = a.choice("decode", {"clip", "frame"}, "clip") == "clip";
   const Clip clip = load_clip_for(a, files, con);
   const auto dir = output_dir(a, "out/generate");
+  IncompleteMarker incomplete(dir, "epona generate");
 
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);
@@ -181,6 +182,7 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   write_pose_csv(dir / "poses.csv", log.motions);
   if (plan.keep_latents)
     io::write_npy(dir / "latents.npy", tokens_to_latent(ctx, log.latents, wc.latent_h(), wc.latent_w()));
+  incomplete.done();
   print_generate_summary(con.out, dir, wc, plan.frames, seconds, sheet, clip.frames.size(), sink.kept().size(),
                          plan.actions.has_value(), plan.keep_latents);
   return 0;

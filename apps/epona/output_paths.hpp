@@ -13,6 +13,7 @@
 #include <system_error>
 
 #include "epona/core/error.hpp"
+#include "epona/io/atomic_file.hpp"
 
 namespace epona::app {
 
@@ -66,5 +67,25 @@ inline void prepare_output_file(const std::filesystem::path& file, const std::st
   const auto parent = file.parent_path();
   prepare_output_dir(parent.empty() ? std::filesystem::path(".") : parent, what);
 }
+
+// An INCOMPLETE note in an output folder while a long run fills it: written before the first
+// output, removed by done() after the last. An interrupt, a crash or an error leaves it there,
+// so a folder of frames without trajectory or poses files says what it is. No handler needed.
+class IncompleteMarker {
+ public:
+  IncompleteMarker(const std::filesystem::path& dir, const std::string& what) : path_(dir / "INCOMPLETE") {
+    io::write_atomically(path_, what + ": started; this folder is incomplete until the run ends, which removes "
+                                       "this file (an interrupt, crash or error leaves it)\n");
+  }
+  IncompleteMarker(const IncompleteMarker&) = delete;
+  IncompleteMarker& operator=(const IncompleteMarker&) = delete;
+  void done() {
+    std::error_code ec;
+    std::filesystem::remove(path_, ec);
+  }
+
+ private:
+  std::filesystem::path path_;
+};
 
 }  // namespace epona::app

@@ -403,6 +403,7 @@ TEST_CASE("generate 2 frames: files and sizes, equal to rollout(), deterministic
   check_png(t / "g1/frames/frame_0000.png", w.image_h, w.image_w);
   check_png(t / "g1/frames/frame_0001.png", w.image_h, w.image_w);
   CHECK_FALSE(fs::exists(t / "g1/frames/frame_0002.png"));
+  CHECK_FALSE(fs::exists(t / "g1/INCOMPLETE"));  // the note of a run in progress is gone at the end
   const auto layout = app::SheetLayout::of(w.condition_frames + 2, w.image_h, w.image_w);
   check_png(t / "g1/contact_sheet.png", layout.height(), layout.width());
   const Tensor<float> traj = io::read_trajectory(t / "g1/trajectory.csv");
