@@ -27,6 +27,7 @@
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/io/atomic_file.hpp"
+#include "epona/io/jpeg_scan.hpp"
 #include "epona/io/limits.hpp"
 
 namespace epona::io {
@@ -117,6 +118,9 @@ inline void check_jpeg_huffman_tables(std::span<const std::uint8_t> b, const std
 // stb decodes many truncated files into partly grey images without complaint, so the
 // container is checked first: PNG chunks must lie inside the file up to IEND; a JPEG must have
 // its end-of-image marker after the last start-of-scan (markers never occur inside scan data).
+// decode_image then checks, once the size is known to be within limits, that a sequential JPEG's
+// scans hold all their blocks (jpeg_scan.hpp: a scan cut short before a well-placed end-of-image
+// marker passed every other check).
 inline void check_container(std::span<const std::uint8_t> b, const std::string& source) {
   static constexpr std::uint8_t png_sig[8] = {0x89, 'P', 'N', 'G', 0x0d, 0x0a, 0x1a, 0x0a};
   if (b.size() >= 8 && std::equal(png_sig, png_sig + 8, b.begin())) {
@@ -302,6 +306,7 @@ inline Image decode_image(std::span<const std::uint8_t> bytes, const std::string
               " pixels), more than the limit of ", opt.max_pixels, " pixels (ImageReadOptions::max_pixels)");
   EPONA_CHECK(h <= opt.max_side && w <= opt.max_side, source, ": image is ", h, "x", w,
               ", a side longer than the limit of ", opt.max_side, " (ImageReadOptions::max_side)");
+  if (bytes[0] == 0xFF) check_jpeg_scans_complete(bytes, source);  // check_container: PNG or JPEG
   const bool deep = stbi_is_16_bit_from_memory(bytes.data(), len) != 0;
   if (!opt.convert_to_rgb8) {
     EPONA_CHECK(comp == 3, source, ": image has ", comp, " channel(s) (", image_detail::channel_name(comp),
