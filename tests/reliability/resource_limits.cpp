@@ -8,6 +8,10 @@
 #include <string>
 #include <vector>
 
+#include <fstream>
+#include <iterator>
+
+#include "epona/io/config_json.hpp"
 #include "epona/io/image.hpp"  // stb_image_write.h too
 #include "epona/io/limits.hpp"
 #include "epona/io/poses.hpp"
@@ -85,6 +89,25 @@ TEST_CASE("JSON: a trajectory of more values than the limit is refused while par
   for (std::uint64_t s = 0; s < steps; ++s) text += s ? ",[[1,2,3]]" : "[[1,2,3]]";
   text += "]}";
   CHECK_THROWS_WITH_AS(io::parse_trajectory_json(text, "t.json"), doctest::Contains("more than 4194304 values"), Error);
+}
+
+TEST_CASE("config: frames beyond 16x the released model's 512x1024 are refused by name") {
+  std::ifstream in(std::string(EPONA_GOLDEN_DEFAULT_DIR) + "/configs.json");
+  const auto golden = nlohmann::json::parse(std::string(std::istreambuf_iterator<char>(in), {}));
+  auto j = golden;
+  j["world_model_config"]["image_size"] = {4096, 8192};  // the red team's config: 2.4 GB, 56 s
+  CHECK_THROWS_WITH_AS(io::parse_configs(j.dump(), "big.json"),
+                       doctest::Contains("image_size (4096, 8192) is 33554432 pixels per frame, more than the limit of 8388608"),
+                       Error);
+  j = golden;
+  j["dcae"]["image_size"] = {4096, 8192};
+  j["dcae"]["config"]["token_size"] = 128 * 256;
+  CHECK_THROWS_WITH_AS(io::parse_configs(j.dump(), "big.json"), doctest::Contains("more than the limit of 8388608"), Error);
+  j = golden;
+  j["world_model_config"]["image_size"] = {2048, 4096};  // at the limit: accepted
+  j["dcae"]["image_size"] = {2048, 4096};
+  j["dcae"]["config"]["token_size"] = 64 * 128;
+  CHECK_NOTHROW(io::parse_configs(j.dump(), "ok.json"));
 }
 
 #include "epona/io/stb_implementation.hpp"
