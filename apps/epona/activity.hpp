@@ -4,6 +4,7 @@
 // Activity, and cli.hpp prints "epona: error: <stage>: out of memory".
 #pragma once
 
+#include <exception>
 #include <string>
 #include <utility>
 
@@ -15,18 +16,22 @@ inline std::string& current_activity() {
 }
 
 // Appends a stage to the activity for its scope ("encode" -> "encode: reading a.png") and
-// restores the enclosing one after.
+// restores the enclosing one after, unless an exception leaves the scope: then the stage stays
+// for the handler in cli.hpp, which runs after the unwinding.
 class Activity {
  public:
-  explicit Activity(const std::string& what) : saved_(current_activity()) {
+  explicit Activity(const std::string& what) : saved_(current_activity()), exceptions_(std::uncaught_exceptions()) {
     current_activity() = saved_.empty() ? what : saved_ + ": " + what;
   }
   Activity(const Activity&) = delete;
   Activity& operator=(const Activity&) = delete;
-  ~Activity() { current_activity() = std::move(saved_); }
+  ~Activity() {
+    if (std::uncaught_exceptions() == exceptions_) current_activity() = std::move(saved_);
+  }
 
  private:
   std::string saved_;
+  int exceptions_;
 };
 
 }  // namespace epona::app

@@ -10,6 +10,8 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <new>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -185,6 +187,12 @@ TEST_CASE("filesystem errors and failed allocations become one line naming the a
     CHECK(app::filesystem_text(e) == "convert: writing out.safetensors: Not a directory: 'a/b'");
   }
   CHECK(app::current_activity() == "convert");
+  try {  // an exception leaving the stage keeps it for the handler, which runs after the unwinding
+    const app::Activity doing("decoding 4 frame(s) of 512x1024");
+    throw std::bad_alloc();
+  } catch (const std::bad_alloc&) {
+    CHECK(app::current_activity() == "convert: decoding 4 frame(s) of 512x1024");
+  }
   std::ostringstream err;
   CHECK(app::fail_line(err, std::string("a\x1b[2Jb\nsecond line")) == 1);
   CHECK(err.str() == "epona: error: a\\x1b[2Jb\nsecond line\n");
