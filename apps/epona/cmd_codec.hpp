@@ -3,6 +3,7 @@
 // the raw DC-AE values the world model works on (no scaling, no shift).
 #pragma once
 
+#include <algorithm>
 #include <charconv>
 #include <cstdio>
 #include <filesystem>
@@ -32,7 +33,8 @@ inline ArgParser encode_parser() {
   add_model_options(p, false, true);
   p.option("size", "HxW", "image size to encode at (with --fit)", "the first image's size")
       .option("fit", "MODE", "images not at that size: exact (refuse), resize, crop, cover", "exact")
-      .option("max-pixels", "N", "refuse images, --size and resize steps of more pixels", "33554432 (2^25)");
+      .option("max-pixels", "N", "refuse to encode at a size of more pixels (--size, or the first image's)",
+              "8388608 (2048x4096)");
   add_compute_options(p);
   p.option("out", "FILE", "latents file (.npy)", "out/encode/latents.npy", 'o')
       .flag("quiet", "no progress bars or notes on stderr", 'q');
@@ -46,7 +48,7 @@ inline ArgParser decode_parser() {
   p.positionals(1, 1, "latents file");
   add_model_options(p, false, true);
   p.flag("video", "decode clips of the DC-AE's temporal length together (N must be a multiple of it)")
-      .option("max-pixels", "N", "refuse latent grids that decode to larger images", "33554432 (2^25)");
+      .option("max-pixels", "N", "refuse latent grids that decode to larger images", "8388608 (2048x4096)");
   add_compute_options(p);
   add_output_options(p, "out/decode");
   return p;
@@ -91,15 +93,25 @@ inline int run_encode(const ParsedArgs& a, const Console& con) {
   const ModelFiles files = resolve_models(a, false, true);
   const auto policy = size_policy(a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact"));
   std::int64_t H = 0, W = 0;
-  const std::int64_t max_pixels = max_pixels_option(a);
+  const std::int64_t max_pixels = max_pixels_option(a, io::limits::kCodecPixels);
   if (a.has("size")) std::tie(H, W) = parse_size(*a.get("size"), max_pixels);
   const std::filesystem::path out = a.text("out", "out/encode/latents.npy");
   prepare_output_file(out, "--out " + out.string());
   const auto inputs = expand_inputs(a.positionals());
+  EPONA_CHECK(static_cast<std::int64_t>(inputs.size()) <= io::limits::kFrames, "encode: ", inputs.size(),
+              " images are more than the limit of ", io::limits::kFrames, " per run (encode them in parts)");
+  // Images are read up to the reading limit (they may be resized); the size encoded at is
+  // bounded by --max-pixels, checked from the first image before the model loads.
+  const std::int64_t read_limit = std::max(io::limits::kPixels, max_pixels);
   std::vector<io::Image> images;
   for (const auto& f : inputs) {
-    images.push_back(read_frame(f, H, W, policy, max_pixels));
-    if (H == 0) H = images.back().height, W = images.back().width;  // the first image sets the size
+    images.push_back(read_frame(f, H, W, policy, read_limit));
+    if (H == 0) {  // the first image sets the size
+      H = images.back().height, W = images.back().width;
+      EPONA_CHECK(H <= max_pixels / W, f.string(), ": encoding at its size ", H, "x", W, " (", H * W,
+                  " pixels) is more than the limit of ", max_pixels,
+                  " (--max-pixels raises it; or --size HxW with --fit converts the images)");
+    }
   }
   const auto engine = make_engine(compute);
   engine->load_dcae(files, con);
@@ -132,7 +144,7 @@ inline int run_decode(const ParsedArgs& a, const Console& con) {
   check_file(path, "latents");
   const Tensor<float> latents = io::read_npy<float>(path).values;
   EPONA_CHECK(latents.dim() == 4, path, ": latents must be (N, C, h, w), got ", shape_str(latents.shape()));
-  check_latent_grid(latents, path, max_pixels_option(a));
+  check_latent_grid(latents, path, max_pixels_option(a, io::limits::kCodecPixels));
   for (std::int64_t i = 0; i < latents.numel(); ++i)
     EPONA_CHECK(std::isfinite(latents.data()[i]), path, ": non-finite latent value at flat index ", i);
   const auto dir = output_dir(a, "out/decode");

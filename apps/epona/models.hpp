@@ -77,9 +77,10 @@ inline std::int64_t max_threads() {
   return std::min<std::int64_t>(io::limits::kThreadsCap, io::limits::kThreadsPerCore * hw);
 }
 
-// --max-pixels: the limit on one image's (and one resize step's) pixels, raised only on purpose.
-inline std::int64_t max_pixels_option(const ParsedArgs& a) {
-  return a.integer("max-pixels", io::limits::kPixels, 1024, std::int64_t{1} << 34);
+// --max-pixels: the limit on one image's (and one resize step's) pixels, raised only on purpose;
+// `fallback` is the command's default (io/limits.hpp).
+inline std::int64_t max_pixels_option(const ParsedArgs& a, std::int64_t fallback = io::limits::kPixels) {
+  return a.integer("max-pixels", fallback, 1024, std::int64_t{1} << 34);
 }
 
 inline void add_compute_options(ArgParser& p) {

@@ -149,6 +149,16 @@ TEST_CASE("a trajectory of more actions than the frame limit is refused before a
   CHECK_FALSE(fs::exists(t.path / "g"));  // refused before the output folder was made
 }
 
+TEST_CASE("encode refuses to encode beyond --max-pixels at the first image's size, before loading the model") {
+  test::TempDir t;
+  io::write_png(t / "a.png", io::Image(64, 64));
+  check_error(cli({"encode", t / "a.png", "--max-pixels", "2048", "-o", t / "z.npy", "-q"}),
+              "encoding at its size 64x64 (4096 pixels) is more than the limit of 2048 (--max-pixels raises it");
+  // The default is 16x the released 512x1024; a 16384-pixel --size side passes, 8.4M pixels do not.
+  check_error(cli({"encode", t / "a.png", "--size", "4096x4096", "-q", "-o", t / "z.npy"}),
+              "more than the limit of 8388608 (--max-pixels raises it)");
+}
+
 TEST_CASE("decode refuses latents with no frames and grids beyond --max-pixels, before loading the model") {
   test::TempDir t;
   io::write_npy(t / "empty.npy", Tensor<float>({0, 32, 2, 4}));

@@ -33,8 +33,10 @@ inline constexpr std::int64_t kFrames = 10'000;
 inline constexpr std::int64_t kPixels = std::int64_t{1} << 25;
 // One side of an image or of --size: 16384 = 32x the released model's height.
 inline constexpr std::int64_t kImageSide = 16384;
-// Latent cells (h x w) of one frame: the pixel limit at the DC-AE's 32x downsampling.
-inline constexpr std::int64_t kLatentCells = kPixels / (32 * 32);
+// Frames the DC-AE encodes or decodes at their own size (`epona encode`, `epona decode`): 16x the
+// released 512x1024, as a configuration's image_size (model/config.hpp). A 5792x5792 PNG, within
+// kPixels, took 2.2 GB to encode. `--max-pixels` of encode/decode raises it.
+inline constexpr std::int64_t kCodecPixels = std::int64_t{16} * 512 * 1024;
 
 // ---- convert ----
 // Tensors viewing one storage are written once each (safetensors cannot share bytes): the output
