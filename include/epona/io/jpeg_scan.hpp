@@ -215,10 +215,12 @@ inline void check_jpeg_scans_complete(std::span<const std::uint8_t> b, const std
         EPONA_CHECK(!r.ended(), source, ": truncated JPEG (scan ", scan_no, " ends after ", mcu, " of ", mcus,
                     " MCUs of its ", height, "x", width, " image; the rest would decode as grey)");
       }
-      // Step to the marker after the scan data.
+      // Step to the marker after the scan data (not a stuffed 0xFF00, not an RSTn).
+      const auto is_marker = [&](std::size_t i) {
+        return b[i] == 0xFF && b[i + 1] != 0x00 && (b[i + 1] < 0xD0 || b[i + 1] > 0xD7);
+      };
       std::size_t next = r.end_position();
-      while (next + 1 < b.size() && !(b[next] == 0xFF && b[next + 1] != 0x00 && (b[next + 1] < 0xD0 || b[next + 1] > 0xD7)))
-        ++next;
+      while (next + 1 < b.size() && !is_marker(next)) ++next;
       pos = next;
       continue;
     }
