@@ -178,7 +178,9 @@ TEST_CASE("output paths: below a regular file, or in a read-only folder, refused
               "is a file, not a folder");
   check_error(cli({"convert", golden_dir() + "/weights_dcae.safetensors", (t.path / "file" / "o.safetensors").string()}),
               "is a file, not a folder");
-  if (geteuid() != 0) {  // root writes anywhere
+  // /proc takes no new files, even from root: the probe finds it before any work.
+  check_error(cli({"decode", t / "z.npy", "--out", "/proc", "-q"}), "cannot write in the folder /proc");
+  if (geteuid() != 0) {  // root writes anywhere else
     const fs::path ro = t.path / "ro";
     fs::create_directories(ro);
     ::chmod(ro.c_str(), 0555);
