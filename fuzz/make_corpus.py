@@ -173,6 +173,58 @@ put("image", "rgba8_4x4.png.in", bytes([CONVERT | RESIZE | TARGET]) + png(4, 4, 
 put("image", "rgb16_2x2.png.in", bytes([EXACT]) + png(2, 2, 2, 16))
 put("image", "palette4_4x4.png.in", bytes([CONVERT]) + png(4, 4, 3, 4, palette=bytes(range(48))))
 
+# ---- issue #36: the red team's classes, small enough for libFuzzer's default lengths -------
+DEEP = 3000  # far past the 64-level JSON limit; the targets must refuse, not recurse
+put("config_json", "deep_open.json", "[" * DEEP)
+put("config_json", "deep_under_key.json", '{"world_model_config": ' + "[" * DEEP + "]" * DEEP + "}")
+put("config_json", "duplicate_key.json", '{"world_model_config": {"n_embd": 1, "n_embd": 2}}')
+put("config_json", "long_string.json", '{"world_model_config": {"n_embd": "' + "\u001b" * 2000 + '"}}')
+put("poses_json", "deep_poses.json", '{"poses": ' + "[" * DEEP)
+put("poses_json", "deep_absolute.json", '{"absolute": ' + "[" * DEEP + "]" * DEEP + "}")
+put("poses_json", "duplicate_key.json", '[{"x": 1, "y": 2, "yaw": 3, "x": 4}]')
+put("poses_json", "deep_value.json", "[[1, 2, " + "[" * 60 + "]" * 60 + "]]")
+put("trajectory_json", "deep_steps.json", '{"steps": ' + "[" * DEEP + "]" * DEEP + "}")
+put("trajectory_json", "duplicate_steps.json", '{"steps": [[[1, 2, 3]]], "steps": [[[4, 5, 6]]]}')
+put("poses_csv", "commas.csv", "," * 5000 + "\n")
+put("poses_csv", "control_bytes.csv", "x,y,yaw\n1,2,\x1b[2J\x00\n")
+put("trajectory_csv", "commas.csv", "step,waypoint,x,y,yaw\n" + "," * 5000 + "\n")
+many = {f"layer.{i}.weight": ("F32", [1], f32(float(i))) for i in range(300)}
+put("safetensors", "many_tensors.safetensors", safetensors(many))
+deep_header = b"[" * DEEP
+put("safetensors", "deep_header.safetensors", struct.pack("<Q", len(deep_header)) + deep_header)
+dup = b'{"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]},"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}}'
+put("safetensors", "duplicate_names.safetensors", struct.pack("<Q", len(dup)) + dup + f32(1.0))
+# One long key memoised, then set again and again (and into fresh dicts): interned, linear.
+key = b"k" * 2000
+rep = b"\x80\x02}X" + struct.pack("<I", len(key)) + key + b"q\x00K\x01s" + b"h\x00K\x02s" * 300
+rep += b"}h\x00K\x03s" * 300 + b"."
+put("pickle", "repeated_long_key.pkl", rep)
+# Two entries, the first stretched (central sizes) over the second's header and data.
+def overlapping_zip():
+    a, b = b"a" * 64, b"hello"
+    def local(name, data, descriptor):
+        flags = 8 if descriptor else 0
+        crc, size = (0, 0) if descriptor else (zlib.crc32(data), len(data))
+        return struct.pack("<IHHHHHIIIHH", 0x04034B50, 20, flags, 0, 0, 0, crc, size, size, len(name), 0) + name + data
+    la = local(b"a", a, True) + struct.pack("<IIII", 0x08074B50, zlib.crc32(a), len(a), len(a))
+    lb = local(b"b", b, False)
+    stretched = len(la) - 30 - 1 + len(lb)  # from a's data to the end of b's data
+    def central(name, flags, crc, size, offset):
+        return struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, 20, flags, 0, 0, 0, crc, size, size, len(name),
+                           0, 0, 0, 0, 0, offset) + name
+    cd = central(b"a", 8, zlib.crc32(a), stretched, 0) + central(b"b", 0, zlib.crc32(b), len(b), len(la))
+    body = la + lb
+    return body + cd + struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, 2, 2, len(cd), len(body), 0)
+put("zip", "overlapping_entries.zip", overlapping_zip())
+# A baseline JPEG whose scan is cut at half before a well-placed end-of-image marker.
+jpg_seed = (OUT / "image" / "rgb_32x32_q30.jpg.in").read_bytes()
+sos = jpg_seed.rfind(b"\xff\xda")
+data_start = sos + 2 + struct.unpack(">H", jpg_seed[sos + 2:sos + 4])[0]
+cut = data_start + (len(jpg_seed) - 2 - data_start) // 2
+cut -= jpg_seed[cut - 1] == 0xFF
+put("image", "rgb_32x32_q30_scan_cut.jpg.in", jpg_seed[:cut] + b"\xff\xd9")
+put("image", "strip_1x17000.png.in", bytes([CONVERT | RESIZE | TARGET]) + png(17000, 1, 0, 8))
+
 if __name__ == "__main__":
     for d in sorted(OUT.iterdir()):
         print(f"{d.name}: {len(list(d.iterdir()))} files, {sum(f.stat().st_size for f in d.iterdir())} bytes")

@@ -9,10 +9,13 @@
 #include "epona/io/trajectory_io.hpp"
 
 #include <exception>
+#include <filesystem>
 #include <iostream>
+#include <new>
 #include <string>
 #include <vector>
 
+#include "activity.hpp"
 #include "args.hpp"
 #include "cmd_codec.hpp"
 #include "cmd_convert.hpp"
@@ -22,6 +25,7 @@
 #include "cmd_plan.hpp"
 #include "cmd_synth.hpp"
 #include "console.hpp"
+#include "epona/core/printable.hpp"
 
 namespace epona::app {
 
@@ -59,6 +63,22 @@ inline std::string main_help() {
   return s;
 }
 
+// The one error line: escaped (no control characters from echoed input reach the terminal) and
+// cut (a message never echoes megabytes); newlines the program wrote itself are kept.
+inline int fail_line(std::ostream& err, const std::string& message) {
+  err << "epona: error: " << printable(message, 4000, true) << "\n";
+  current_activity().clear();
+  return 1;
+}
+
+// "<activity>: cannot create folder 'a/b/c': Not a directory" rather than the library's text.
+inline std::string filesystem_text(const std::filesystem::filesystem_error& e) {
+  std::string s = current_activity() + ": " + e.code().message();
+  if (!e.path1().empty()) s += ": '" + e.path1().string() + "'";
+  if (!e.path2().empty()) s += " -> '" + e.path2().string() + "'";
+  return s;
+}
+
 // Runs the program on `args` (without argv[0]). `interactive`: err is a terminal.
 inline int run(const std::vector<std::string>& args, std::ostream& out, std::ostream& err, bool interactive = false) {
   try {
@@ -80,12 +100,16 @@ inline int run(const std::vector<std::string>& args, std::ostream& out, std::ost
         return 0;
       }
       const Console con{out, err, parsed.flag("quiet"), interactive};
+      current_activity() = c.name;
       return c.run(parsed, con);
     }
     usage_fail("unknown command '", args[0], "' (commands: plan, generate, eval, encode, decode, info, convert, synth; see epona --help)");
+  } catch (const std::bad_alloc&) {
+    return fail_line(err, current_activity() + ": out of memory (an allocation failed; a smaller input or size needs less)");
+  } catch (const std::filesystem::filesystem_error& e) {
+    return fail_line(err, filesystem_text(e));
   } catch (const std::exception& e) {
-    err << "epona: error: " << e.what() << "\n";
-    return 1;
+    return fail_line(err, e.what());
   }
 }
 

@@ -10,6 +10,7 @@
 #include "args.hpp"
 #include "frames.hpp"
 #include "models.hpp"
+#include "output_paths.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/poses.hpp"
 #include "epona/model/world_model.hpp"
@@ -21,7 +22,8 @@ inline void add_clip_options(ArgParser& p) {
            "the bundled model's demo clip")
       .option("poses", "FILE", "one ego motion per frame: .csv/.json (x, y, yaw), the demo's pose.npy+yaw.npy folder, "
               "or absolute 4x4 poses (.npy/.json)", "the demo clip's poses")
-      .option("fit", "MODE", "frames not at the model's size: exact (refuse), resize, crop, cover", "exact");
+      .option("fit", "MODE", "frames not at the model's size: exact (refuse), resize, crop, cover", "exact")
+      .option("max-pixels", "N", "refuse input frames (and resize steps) of more pixels", "33554432 (2^25)");
 }
 inline void add_sampling_options(ArgParser& p) {
   p.option("steps", "N", "Euler sampling steps of each DiT", "the configuration's num_sampling_steps")
@@ -49,7 +51,7 @@ inline Clip load_clip_for(const ParsedArgs& a, const ModelFiles& f, const Consol
   const ClipInputs in = clip_inputs(a, f);
   const auto& w = f.configs.world;
   const auto policy = size_policy(a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact"));
-  Clip clip = load_clip(in.frames, in.poses, w.condition_frames, w.image_h, w.image_w, policy);
+  Clip clip = load_clip(in.frames, in.poses, w.condition_frames, w.image_h, w.image_w, policy, max_pixels_option(a));
   con.note("input: ", clip.frames.size(), " of ", clip.folder_frames, " frame(s) from ", in.frames.string(),
            " (", w.image_h, "x", w.image_w, "), poses from ", in.poses.string());
   return clip;
@@ -62,12 +64,10 @@ inline SampleOptions sample_options(const ParsedArgs& a, const WorldModelConfig&
   return o;
 }
 
+// The --out folder, created and checked for writing before any work.
 inline std::filesystem::path output_dir(const ParsedArgs& a, const std::string& fallback) {
   const std::filesystem::path dir = a.text("out", fallback);
-  std::error_code ec;
-  std::filesystem::create_directories(dir, ec);
-  EPONA_CHECK(std::filesystem::is_directory(dir, ec), "--out ", dir.string(), ": cannot create the output folder",
-              ec ? " (" + ec.message() + ")" : std::string());
+  prepare_output_dir(dir, "--out " + dir.string());
   return dir;
 }
 

@@ -95,6 +95,7 @@ inline EvalOptions eval_options(const ParsedArgs& a, const WorldModelConfig& wc)
   const auto parent = std::filesystem::absolute(o.json, ec).parent_path();
   EPONA_CHECK(std::filesystem::is_directory(parent, ec), "--json ", o.json.string(), ": the folder ", parent.string(),
               " does not exist");
+  output_detail::check_writable(parent, "--json " + o.json.string());  // before the clips are scored
   return o;
 }
 

@@ -41,6 +41,7 @@ inline ArgParser generate_parser() {
   p.option("num-frames", "N", "frames to generate", "6, or one per action of --trajectory", 'n')
       .option("trajectory", "FILE", "actions to follow: a trajectory written by epona (waypoint 0 of each step) "
               "or a poses file (one motion per step)")
+      .option("max-frames", "N", "refuse to roll out more frames than this", "10000")
       .option("decode", "MODE", "clip: clips of the DC-AE's temporal length (video mode, as test_nuplan.py); "
               "frame: each frame alone", "clip")
       .flag("latents", "also write latents.npy, (N, C, h, w), for `epona decode`");
@@ -108,12 +109,20 @@ inline std::optional<io::PoseSequence> read_step_actions(const ParsedArgs& a) {
   return io::read_actions(path);
 }
 
+// Frames to roll out: --num-frames, or one per action of --trajectory; either way within
+// --max-frames (a file of a million actions asked for a million frames).
 inline std::int64_t frames_to_generate(const ParsedArgs& a, const std::optional<io::PoseSequence>& actions) {
-  const auto n = a.maybe_integer("num-frames", 1, 1000000);
+  const std::int64_t limit = a.integer("max-frames", io::limits::kFrames, 1);
+  const auto n = a.maybe_integer("num-frames", 1);
+  if (n && *n > limit)
+    usage_fail("--num-frames ", *n, " is more than the limit of ", limit, " frames (--max-frames raises it)");
   if (!actions) return n.value_or(6);
   const auto available = static_cast<std::int64_t>(actions->size());
   EPONA_CHECK(!n || *n <= available, "--trajectory ", *a.get("trajectory"), " holds ", available,
               " action(s); --num-frames asks for ", *n);
+  EPONA_CHECK(n || available <= limit, "--trajectory ", *a.get("trajectory"), " holds ", available,
+              " actions, more than the limit of ", limit,
+              " frames (--num-frames N follows the first N; --max-frames raises the limit)");
   return n.value_or(available);
 }
 
@@ -144,6 +153,7 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   const bool clip_decode = a.choice("decode", {"clip", "frame"}, "clip") == "clip";
   const Clip clip = load_clip_for(a, files, con);
   const auto dir = output_dir(a, "out/generate");
+  IncompleteMarker incomplete(dir, "epona generate");
 
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);
@@ -172,6 +182,7 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   write_pose_csv(dir / "poses.csv", log.motions);
   if (plan.keep_latents)
     io::write_npy(dir / "latents.npy", tokens_to_latent(ctx, log.latents, wc.latent_h(), wc.latent_w()));
+  incomplete.done();
   print_generate_summary(con.out, dir, wc, plan.frames, seconds, sheet, clip.frames.size(), sink.kept().size(),
                          plan.actions.has_value(), plan.keep_latents);
   return 0;

@@ -11,12 +11,17 @@
 #include "console.hpp"
 #include "inspect.hpp"
 #include "models.hpp"
+#include "epona/core/printable.hpp"
 #include "epona/io/config_json.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
 
 namespace epona::app {
+
+// Tensor names and metadata come from the file: printed escaped (no ESC or NUL reaches the
+// terminal) and cut; real names are under 200 bytes.
+inline constexpr std::size_t kNameCut = 200;
 
 inline ArgParser info_parser() {
   ArgParser p("epona info", "FILE... [options]",
@@ -71,7 +76,7 @@ inline void print_prefix_counts(std::ostream& out, const io::TensorMap& m,
     double n = 0;
     for (const auto& [name, t] : m.entries())
       if (starts_with(name, prefix) && !is_buffer(name)) n += double(t.numel());
-    out << "    " << prefix << "* " << count_text(n) << " parameters; the detected configuration implies "
+    out << "    " << printable(prefix, kNameCut) << "* " << count_text(n) << " parameters; the detected configuration implies "
         << count_text(implied) << (n == implied ? " (match)" : " (MISMATCH)") << "\n";
   }
 }
@@ -82,7 +87,7 @@ inline void print_checkpoint(std::ostream& out, const std::string& path, const i
   out << path << "\n  format: "
       << (format == io::WeightFormat::TorchZip ? "PyTorch checkpoint (torch.save ZIP)" : "safetensors") << "\n";
   if (format == io::WeightFormat::Safetensors)
-    for (const auto& [k, v] : io::read_safetensors(path).metadata) out << "  metadata: " << k << " = " << v << "\n";
+    for (const auto& [k, v] : io::read_safetensors(path).metadata) out << "  metadata: " << printable(k, kNameCut) << " = " << printable(v, kNameCut) << "\n";
   const CheckpointStats s = checkpoint_stats(m, depth);
   out << "  tensors: " << s.tensors << ", " << human_bytes_text(s.bytes) << " of data; dtypes:";
   for (const auto& [name, d] : s.dtypes) out << " " << d.first << " x " << name << " (" << human_bytes_text(d.second) << ")";
@@ -90,14 +95,16 @@ inline void print_checkpoint(std::ostream& out, const std::string& path, const i
   if (s.buffer_elements > 0) out << " + " << count_text(s.buffer_elements) << " BatchNorm buffer elements";
   out << "\n  per module prefix:\n";
   std::size_t w = 0;
-  for (const auto& [g, _] : s.groups) w = std::max(w, g.size());
-  for (const auto& [g, st] : s.groups)
+  for (const auto& [g, _] : s.groups) w = std::max(w, printable(g, kNameCut).size());
+  for (const auto& [group, st] : s.groups) {
+    const std::string g = printable(group, kNameCut);
     out << "    " << g << std::string(w - g.size() + 2, ' ') << count_text(st.parameters) << " parameters, " << st.tensors
         << " tensors, " << human_bytes_text(st.bytes) << "\n";
+  }
   if (keys) {
     out << "  keys:\n";
     for (const auto& [name, t] : m.entries())
-      out << "    " << name << "  " << dtype_name(t.dtype) << "  " << shape_str(t.shape) << "\n";
+      out << "    " << printable(name, kNameCut) << "  " << dtype_name(t.dtype) << "  " << shape_str(t.shape) << "\n";
   }
 }
 
@@ -129,7 +136,7 @@ inline void print_detection(std::ostream& out, const io::TensorMap& m, const Det
                                  {"causal_time_block.", half},
                                  {"space_block.", half}});
   }
-  for (const auto& p : d.problems) out << "  cannot read: " << p << "\n";
+  for (const auto& p : d.problems) out << "  cannot read: " << printable(p, 4 * kNameCut) << "\n";
 }
 
 inline int run_info(const ParsedArgs& a, const Console& con) {

@@ -10,12 +10,14 @@
 #include <string>
 #include <vector>
 
+#include "activity.hpp"
 #include "console.hpp"
 #include "engine.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/context.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/image_folder.hpp"
+#include "epona/io/limits.hpp"
 #include "epona/io/poses.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/world_model.hpp"
@@ -42,14 +44,18 @@ inline io::SizePolicy size_policy(const std::string& name) {
 
 // Reads a frame, converting grayscale/RGBA/16-bit to 8-bit RGB and fitting it to height x width.
 inline io::Image read_frame(const std::filesystem::path& file, std::int64_t height, std::int64_t width,
-                            io::SizePolicy policy) {
+                            io::SizePolicy policy, std::int64_t max_pixels = io::limits::kPixels) {
   io::ImageReadOptions opt;
-  opt.height = height, opt.width = width, opt.size = policy, opt.convert_to_rgb8 = true;
+  opt.height = height, opt.width = width, opt.size = policy, opt.convert_to_rgb8 = true, opt.max_pixels = max_pixels;
+  const Activity doing("reading " + file.string());
   try {
     return io::read_image(file.string(), opt);
   } catch (const Error& e) {
-    if (policy == io::SizePolicy::Exact && std::string(e.what()).find("the model takes") != std::string::npos)
-      fail(e.what(), " (or pass --fit resize|crop|cover)");
+    const std::string what = e.what();
+    if (policy == io::SizePolicy::Exact && what.find("the model takes") != std::string::npos)
+      fail(what, " (or pass --fit resize|crop|cover)");
+    if (what.find("pixels") != std::string::npos && what.find("limit") != std::string::npos)
+      fail(what, "; --max-pixels raises the limit");
     throw;
   }
 }
@@ -63,7 +69,8 @@ struct Clip {
 };
 
 inline Clip load_clip(const std::filesystem::path& frames_dir, const std::filesystem::path& poses_file,
-                      std::int64_t window, std::int64_t height, std::int64_t width, io::SizePolicy policy) {
+                      std::int64_t window, std::int64_t height, std::int64_t width, io::SizePolicy policy,
+                      std::int64_t max_pixels = io::limits::kPixels) {
   const auto files = list_images(frames_dir, "--frames");
   const io::PoseSequence poses = io::load_poses(poses_file);
   const auto n = static_cast<std::int64_t>(files.size());
@@ -75,7 +82,7 @@ inline Clip load_clip(const std::filesystem::path& frames_dir, const std::filesy
   c.folder_frames = n;
   for (std::int64_t i = n - window; i < n; ++i) {
     c.files.push_back(files[static_cast<std::size_t>(i)]);
-    c.frames.push_back(read_frame(files[static_cast<std::size_t>(i)], height, width, policy));
+    c.frames.push_back(read_frame(files[static_cast<std::size_t>(i)], height, width, policy, max_pixels));
   }
   c.poses = poses.slice(static_cast<std::size_t>(n - window), static_cast<std::size_t>(window));
   return c;

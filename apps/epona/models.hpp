@@ -7,7 +7,9 @@
 #include <chrono>
 #include <cstdlib>
 #include <filesystem>
+#include <algorithm>
 #include <string>
+#include <thread>
 #include <type_traits>
 
 #include "console.hpp"
@@ -15,6 +17,7 @@
 #include "inspect.hpp"
 #include "epona/core/dtype.hpp"
 #include "epona/io/config_json.hpp"
+#include "epona/io/limits.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/model/dcae.hpp"
 #include "epona/model/world_model.hpp"
@@ -68,6 +71,18 @@ struct ComputeOptions {
   int threads = 0;            // 0: all hardware threads
 };
 
+// --threads beyond a few per hardware thread only slows the work (4096 on 2 cores ran 50x slower).
+inline std::int64_t max_threads() {
+  const auto hw = static_cast<std::int64_t>(std::max(1u, std::thread::hardware_concurrency()));
+  return std::min<std::int64_t>(io::limits::kThreadsCap, io::limits::kThreadsPerCore * hw);
+}
+
+// --max-pixels: the limit on one image's (and one resize step's) pixels, raised only on purpose;
+// `fallback` is the command's default (io/limits.hpp).
+inline std::int64_t max_pixels_option(const ParsedArgs& a, std::int64_t fallback = io::limits::kPixels) {
+  return a.integer("max-pixels", fallback, 1024, std::int64_t{1} << 34);
+}
+
 inline void add_compute_options(ArgParser& p) {
   p.option("backend", "NAME", "cpu or cuda", "cpu")
       .option("dtype", "TYPE", "weight precision: float32 (exact) or bfloat16 (half the memory)", "float32")
@@ -93,7 +108,7 @@ inline ComputeOptions compute_options(const ParsedArgs& a) {
   c.backend = a.choice("backend", {"cpu", "cuda"}, "cpu");
   const std::string dtype = a.choice("dtype", {"float32", "fp32", "bfloat16", "bf16"}, "float32");
   c.bf16_weights = dtype == "bfloat16" || dtype == "bf16";
-  if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 1, 4096));
+  if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 1, max_threads()));
   check_backend(c.backend);
   return c;
 }

@@ -349,8 +349,8 @@ TEST_CASE("to_json round-trips, and a plain world_model_config object is accepte
 
 TEST_CASE("malformed JSON, missing keys and wrong types give errors naming the key") {
   const std::string broken = error_of([] { io::parse_configs("{\"a\": ", "broken.json"); });
-  CHECK(broken.find("broken.json: not valid JSON") != std::string::npos);
-  CHECK_THROWS_WITH_AS(io::parse_configs("", "empty.json"), doctest::Contains("not valid JSON"), Error);
+  CHECK(broken.find("broken.json: invalid JSON") != std::string::npos);
+  CHECK_THROWS_WITH_AS(io::parse_configs("", "empty.json"), doctest::Contains("invalid JSON"), Error);
   CHECK_THROWS_WITH_AS(io::parse_configs("[1, 2]", "list.json"), doctest::Contains("must be a JSON object"), Error);
   CHECK_THROWS_WITH_AS(io::load_configs(golden_dir() + "/no_such_file.json"), doctest::Contains("does not exist"),
                        Error);

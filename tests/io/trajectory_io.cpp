@@ -149,7 +149,7 @@ TEST_CASE("malformed trajectory files name the file and line or step") {
       {R"({"steps": 3})", "\"steps\" must be a list"},
       {R"({"steps": []})", "t.json: no trajectory rows"},
       {R"({"steps": [[]]})", "t.json: step 0 must be a non-empty list of waypoints"},
-      {R"({"steps": [[[1, 2, 3]], [[1, 2]]]})", "t.json: step 1, waypoint 0: expected [x, y, yaw], got [1,2]"},
+      {R"({"steps": [[[1, 2, 3]], [[1, 2]]]})", "t.json: step 1, waypoint 0: expected [x, y, yaw], got a list of 2 value(s)"},
       {R"({"steps": [[[1, 2, 3], [1, 2, 3]], [[1, 2, 3]]]})", "step 1 has 1 waypoints, the steps before it have 2"},
       {R"({"steps": [[[1, 2, 3]], [[1, 2, 3], [1, 2, 3]]]})", "step 1, waypoint 1: step 1 has more waypoints than the 1"},
       {R"({"steps": [[[1, true, 3]]]})", "step 0, waypoint 0: y must be a number, got true"},

@@ -18,6 +18,7 @@
 #include "epona/core/error.hpp"
 #include "epona/eval/planning_metrics.hpp"
 #include "epona/io/image_folder.hpp"
+#include "epona/io/json_reader.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/poses.hpp"
 
@@ -50,7 +51,7 @@ namespace clip_detail {
 inline double finite_number(const nlohmann::json& j, const char* key, const std::string& where) {
   EPONA_CHECK(j.is_object() && j.contains(key), where, ": missing \"", key, "\"");
   const auto& v = j[key];
-  EPONA_CHECK(v.is_number(), where, ": \"", key, "\" must be a number, got ", v.dump());
+  EPONA_CHECK(v.is_number(), where, ": \"", key, "\" must be a number, got ", io::json_brief(v));
   const double d = v.get<double>();
   EPONA_CHECK(std::isfinite(d), where, ": \"", key, "\" is not finite");
   return d;
@@ -78,12 +79,7 @@ inline SceneBoxes read_boxes(const std::filesystem::path& file) {
   using namespace clip_detail;
   const std::string src = file.string();
   const auto bytes = io::read_whole_file(file);
-  nlohmann::json j;
-  try {
-    j = nlohmann::json::parse(std::string(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
-  } catch (const nlohmann::json::exception& e) {
-    fail(src, ": invalid JSON: ", e.what());
-  }
+  nlohmann::json j = io::parse_json(std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()), src);
   EPONA_CHECK(j.is_object() && j.contains("ego") && j.contains("frames"), src,
               ": expected {\"ego\": {\"length\", \"width\"}, \"frames\": [[boxes of frame 0], ...]}");
   SceneBoxes s;

@@ -4,7 +4,9 @@
 //
 // Any failure — an exception from the caller's fill function, a short write, a full disk — removes
 // the temporary file and leaves whatever was at the destination untouched. A process killed
-// mid-write leaves only a "<name>.tmp-<pid>-<n>" file beside an intact destination.
+// mid-write leaves only a "<name>.tmp-<pid>-<n>" file beside an intact destination, unless the
+// program removes it from its signal handler with remove_temporary_files() (a library installs
+// no handler; the epona program does, apps/epona/interrupts.hpp).
 #pragma once
 
 #include <atomic>
@@ -69,6 +71,32 @@ class AtomicFileSink {
 
 namespace atomic_detail {
 
+// The temporary files being written, in fixed slots that a signal handler can read: atomics and
+// static arrays, no allocation or lock. A path too long for a slot, or a 33rd concurrent writer,
+// is simply not listed (its file is left behind on a signal, as before).
+struct TempRegistry {
+  static constexpr int kSlots = 32;
+  static constexpr std::size_t kPathBytes = 4096;
+  std::atomic<int> state[kSlots];  // 0 free, 1 being filled in, 2 listed
+  char path[kSlots][kPathBytes];
+};
+inline TempRegistry temp_registry{};  // constant-initialised: usable before main and in handlers
+
+inline int list_temporary(const std::string& name) {
+  if (name.size() >= TempRegistry::kPathBytes) return -1;
+  for (int i = 0; i < TempRegistry::kSlots; ++i) {
+    int free = 0;
+    if (!temp_registry.state[i].compare_exchange_strong(free, 1)) continue;
+    std::memcpy(temp_registry.path[i], name.c_str(), name.size() + 1);
+    temp_registry.state[i].store(2);
+    return i;
+  }
+  return -1;
+}
+inline void unlist_temporary(int slot) {
+  if (slot >= 0) temp_registry.state[slot].store(0);
+}
+
 // A temporary file created exclusively beside `path`; removed on destruction unless released.
 class TempFile {
  public:
@@ -80,10 +108,12 @@ class TempFile {
       if (fd_ >= 0 || errno != EEXIST) break;
     }
     if (fd_ < 0) fail(path.string(), ": cannot create the temporary file ", name_, ": ", std::strerror(errno));
+    slot_ = list_temporary(name_);
   }
   TempFile(const TempFile&) = delete;
   TempFile& operator=(const TempFile&) = delete;
   ~TempFile() {
+    unlist_temporary(slot_);
     if (fd_ >= 0) ::close(fd_);
     if (!name_.empty()) ::unlink(name_.c_str());
   }
@@ -97,11 +127,16 @@ class TempFile {
     fd_ = -1;
     if (!synced || !closed) fail(destination, ": cannot flush the written file to disk: ", std::strerror(synced ? errno : err));
   }
-  void release() { name_.clear(); }
+  void release() {
+    unlist_temporary(slot_);
+    slot_ = -1;
+    name_.clear();
+  }
 
  private:
   std::string name_;
   int fd_ = -1;
+  int slot_ = -1;  // in temp_registry
 };
 
 // Makes the rename itself durable (best effort: some file systems cannot sync a folder).
@@ -113,6 +148,14 @@ inline void sync_directory(const std::filesystem::path& dir) {
 }
 
 }  // namespace atomic_detail
+
+// Removes every temporary file being written now. Async-signal-safe (unlink and atomics only):
+// for a program's SIGINT/SIGTERM handler, so an interrupted write leaves no "<name>.tmp-*" file.
+inline void remove_temporary_files() noexcept {
+  auto& r = atomic_detail::temp_registry;
+  for (int i = 0; i < atomic_detail::TempRegistry::kSlots; ++i)
+    if (r.state[i].load() == 2) ::unlink(r.path[i]);
+}
 
 // Creates `path` with the bytes that fill(AtomicFileSink&) writes, atomically (see above). An
 // exception from fill propagates unchanged after the temporary file is removed.

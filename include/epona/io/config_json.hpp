@@ -13,6 +13,8 @@
 #include <nlohmann/json.hpp>
 
 #include "epona/core/error.hpp"
+#include "epona/core/printable.hpp"
+#include "epona/io/json_reader.hpp"
 #include "epona/model/config.hpp"
 
 namespace epona::io {
@@ -83,7 +85,7 @@ class JsonObject {
   // Keys that describe architecture choices this library implements in one way only.
   void expect(const char* key, const json& supported) const {
     const json& v = at(key);
-    EPONA_CHECK(v == supported, where(key), " = ", v.dump(), " is not supported (only ", supported.dump(), ")");
+    EPONA_CHECK(v == supported, where(key), " = ", json_brief(v), " is not supported (only ", supported.dump(), ")");
   }
   // Converts a name with `parse` (which throws for unknown names), adding the key to the error.
   template <class Parse>
@@ -110,7 +112,8 @@ class JsonObject {
     return v;
   }
   std::string name(const char* key) const { return path_.empty() ? key : path_ + "." + key; }
-  static std::string type_of(const json& v) { return std::string(v.type_name()) + " " + v.dump(); }
+  // Never v.dump(): it walks the value (a 300k-deep list overflowed the stack) and echoes it whole.
+  static std::string type_of(const json& v) { return std::string(v.type_name()) + " " + json_brief(v); }
   std::string bad_type(const char* key, const char* expected, const json& v) const {
     return where(key) + " must be " + expected + ", got " + type_of(v);
   }
@@ -118,14 +121,14 @@ class JsonObject {
   std::int64_t to_integer(const json& v, const char* key, std::ptrdiff_t index = -1) const {
     const std::string at_ = index < 0 ? where(key) : where(key) + "[" + std::to_string(index) + "]";
     if (v.is_number_unsigned()) {  // first: is_number_integer() is true for unsigned values too
-      EPONA_CHECK(v.get<std::uint64_t>() <= std::uint64_t(INT64_MAX), at_, " is out of range: ", v.dump());
+      EPONA_CHECK(v.get<std::uint64_t>() <= std::uint64_t(INT64_MAX), at_, " is out of range: ", json_brief(v));
       return static_cast<std::int64_t>(v.get<std::uint64_t>());
     }
     if (v.is_number_integer()) return v.get<std::int64_t>();
     EPONA_CHECK(v.is_number_float(), at_, " must be an integer, got ", type_of(v));
     const double d = v.get<double>();
     EPONA_CHECK(std::isfinite(d) && d == std::floor(d) && std::fabs(d) < 9.2e18, at_,
-                " must be an integer, got ", v.dump());
+                " must be an integer, got ", json_brief(v));
     return static_cast<std::int64_t>(d);
   }
 
@@ -301,13 +304,7 @@ inline ModelConfigs configs_from_json(const nlohmann::json& j, const std::string
 }
 
 inline ModelConfigs parse_configs(std::string_view text, const std::string& source) {
-  nlohmann::json j;
-  try {
-    j = nlohmann::json::parse(text.begin(), text.end());
-  } catch (const nlohmann::json::exception& e) {
-    fail(source, ": not valid JSON: ", e.what());
-  }
-  return configs_from_json(j, source);
+  return configs_from_json(parse_json(text, source), source);
 }
 
 inline ModelConfigs load_configs(const std::string& path) {

@@ -27,6 +27,8 @@
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/io/atomic_file.hpp"
+#include "epona/io/jpeg_scan.hpp"
+#include "epona/io/limits.hpp"
 
 namespace epona::io {
 
@@ -60,7 +62,11 @@ struct ImageReadOptions {
   bool convert_to_rgb8 = false;
   // Files declaring more pixels are refused before decoding: a few hundred bytes of JPEG can
   // declare a 28960 x 3072 image (a decompression bomb, found by fuzz/fuzz_image). 2^25 holds 8K UHD.
-  std::int64_t max_pixels = std::int64_t{1} << 25;
+  // Resizing keeps its intermediate image under the same bound.
+  std::int64_t max_pixels = limits::kPixels;
+  // Either side longer than this is refused too: a 1 x 16.7M strip is within max_pixels, but its
+  // resampling weights (taps grow with the scale) and any resize through it are not.
+  std::int64_t max_side = limits::kImageSide;
 };
 
 inline constexpr std::int64_t kImageMultiple = 32;  // the DC-AE's total downsampling
@@ -112,6 +118,9 @@ inline void check_jpeg_huffman_tables(std::span<const std::uint8_t> b, const std
 // stb decodes many truncated files into partly grey images without complaint, so the
 // container is checked first: PNG chunks must lie inside the file up to IEND; a JPEG must have
 // its end-of-image marker after the last start-of-scan (markers never occur inside scan data).
+// decode_image then checks, once the size is known to be within limits, that a sequential JPEG's
+// scans hold all their blocks (jpeg_scan.hpp: a scan cut short before a well-placed end-of-image
+// marker passed every other check).
 inline void check_container(std::span<const std::uint8_t> b, const std::string& source) {
   static constexpr std::uint8_t png_sig[8] = {0x89, 'P', 'N', 'G', 0x0d, 0x0a, 0x1a, 0x0a};
   if (b.size() >= 8 && std::equal(png_sig, png_sig + 8, b.begin())) {
@@ -218,12 +227,27 @@ inline Image resample_axis(const Image& in, std::int64_t out_size, bool horizont
 
 // Resize with PIL's Image.resize(..., BICUBIC) algorithm (horizontal pass, then vertical, each
 // skipped when its size is unchanged; see resample_axis). Epona's nuPlan loader uses PIL bicubic.
-inline Image resize_bicubic(const Image& in, std::int64_t height, std::int64_t width) {
+// The intermediate image (in.height x width) must hold at most `max_pixels`; when only the other
+// order fits (a tall strip widened: 16.7M x 1 -> 512 x 1024 went through 16.7M x 1024), the
+// vertical pass runs first (PIL's order, and so its exact bytes, are kept whenever they fit).
+inline Image resize_bicubic(const Image& in, std::int64_t height, std::int64_t width,
+                            std::int64_t max_pixels = limits::kPixels) {
   EPONA_CHECK(height > 0 && width > 0 && in.height > 0 && in.width > 0, "resize_bicubic: cannot resize ", in.height,
               "x", in.width, " to ", height, "x", width);
+  const auto fits = [&](std::int64_t h, std::int64_t w) { return h <= max_pixels / w; };
+  EPONA_CHECK(fits(height, width), "resize_bicubic: a ", height, "x", width, " image is more than the limit of ",
+              max_pixels, " pixels");
+  const bool horizontal_first = width == in.width || height == in.height || fits(in.height, width);
+  EPONA_CHECK(horizontal_first || fits(height, in.width), "resize_bicubic: resizing ", in.height, "x", in.width,
+              " to ", height, "x", width, " needs an intermediate of more than the limit of ", max_pixels, " pixels");
   Image out = in;
-  if (width != in.width) out = image_detail::resample_axis(out, width, true);
-  if (height != in.height) out = image_detail::resample_axis(out, height, false);
+  if (horizontal_first) {
+    if (width != in.width) out = image_detail::resample_axis(out, width, true);
+    if (height != in.height) out = image_detail::resample_axis(out, height, false);
+  } else {
+    out = image_detail::resample_axis(out, height, false);
+    out = image_detail::resample_axis(out, width, true);
+  }
   return out;
 }
 
@@ -240,7 +264,7 @@ inline Image center_crop(const Image& in, std::int64_t height, std::int64_t widt
 
 // Applies a size policy (see SizePolicy); `source` names the image in errors.
 inline Image fit_image(Image img, std::int64_t height, std::int64_t width, SizePolicy policy,
-                       const std::string& source = "image") {
+                       const std::string& source = "image", std::int64_t max_pixels = limits::kPixels) {
   if (height == 0 && width == 0) {
     EPONA_CHECK(img.height % kImageMultiple == 0 && img.width % kImageMultiple == 0, source, ": size ", img.height,
                 "x", img.width, " is not a multiple of ", kImageMultiple,
@@ -254,7 +278,7 @@ inline Image fit_image(Image img, std::int64_t height, std::int64_t width, SizeP
     case SizePolicy::Exact:
       fail(source, ": image is ", img.height, "x", img.width, " (HxW), the model takes ", height, "x", width,
            "; choose SizePolicy::Resize, CenterCrop or ResizeCover to convert it");
-    case SizePolicy::Resize: return resize_bicubic(img, height, width);
+    case SizePolicy::Resize: return resize_bicubic(img, height, width, max_pixels);
     case SizePolicy::CenterCrop:
       EPONA_CHECK(img.height >= height && img.width >= width, source, ": image is ", img.height, "x", img.width,
                   ", smaller than the ", height, "x", width, " crop");
@@ -263,7 +287,7 @@ inline Image fit_image(Image img, std::int64_t height, std::int64_t width, SizeP
       const double s = std::max(double(height) / double(img.height), double(width) / double(img.width));
       const std::int64_t h = std::max(height, static_cast<std::int64_t>(std::lround(double(img.height) * s)));
       const std::int64_t w = std::max(width, static_cast<std::int64_t>(std::lround(double(img.width) * s)));
-      return center_crop(resize_bicubic(img, h, w), height, width);
+      return center_crop(resize_bicubic(img, h, w, max_pixels), height, width);
     }
   }
   fail(source, ": unknown size policy");
@@ -279,7 +303,10 @@ inline Image decode_image(std::span<const std::uint8_t> bytes, const std::string
   EPONA_CHECK(stbi_info_from_memory(bytes.data(), len, &w, &h, &comp), source, ": cannot decode image (",
               stbi_failure_reason(), ")");
   EPONA_CHECK(std::int64_t{w} * h <= opt.max_pixels, source, ": image is ", h, "x", w, " (", std::int64_t{w} * h,
-              " pixels), more than ImageReadOptions::max_pixels = ", opt.max_pixels);
+              " pixels), more than the limit of ", opt.max_pixels, " pixels (ImageReadOptions::max_pixels)");
+  EPONA_CHECK(h <= opt.max_side && w <= opt.max_side, source, ": image is ", h, "x", w,
+              ", a side longer than the limit of ", opt.max_side, " (ImageReadOptions::max_side)");
+  if (bytes[0] == 0xFF) check_jpeg_scans_complete(bytes, source);  // check_container: PNG or JPEG
   const bool deep = stbi_is_16_bit_from_memory(bytes.data(), len) != 0;
   if (!opt.convert_to_rgb8) {
     EPONA_CHECK(comp == 3, source, ": image has ", comp, " channel(s) (", image_detail::channel_name(comp),
@@ -291,7 +318,7 @@ inline Image decode_image(std::span<const std::uint8_t> bytes, const std::string
   Image img(h, w);
   std::memcpy(img.rgb.data(), data, img.rgb.size());
   stbi_image_free(data);
-  return fit_image(std::move(img), opt.height, opt.width, opt.size, source);
+  return fit_image(std::move(img), opt.height, opt.width, opt.size, source, opt.max_pixels);
 }
 
 inline Image read_image(const std::string& path, const ImageReadOptions& opt = {}) {

@@ -23,6 +23,7 @@
 
 #include "epona/core/dtype.hpp"
 #include "epona/core/error.hpp"
+#include "epona/core/printable.hpp"
 #include "epona/core/tensor.hpp"
 
 namespace epona::io::pickle {
@@ -93,10 +94,30 @@ struct Sequence {
   std::size_t depth = 1;
 };
 
+// A dict key by value, in constant size: strings are interned when read (equal text, one index),
+// so a key is its kind and one 64-bit word. Copying and hashing whole key texts per SETITEM made
+// a 2 MB pickle of one long key set many times take minutes and 3.4 GB.
+struct DictKey {
+  char kind = 'n';  // 's' interned string, 'i' integer (and integral float, bool), 'f' other float, 'n' None
+  std::uint64_t bits = 0;
+  bool operator==(const DictKey&) const = default;
+};
+struct DictKeyHash {
+  std::size_t operator()(const DictKey& k) const {
+    return std::hash<std::uint64_t>()(k.bits * 0x9e3779b97f4a7c15ull + static_cast<unsigned char>(k.kind));
+  }
+};
+
 struct Dict {
-  std::vector<std::pair<Value, Value>> items;          // insertion order, as Python dicts
-  std::unordered_map<std::string, std::size_t> index;  // canonical key -> position in items
+  std::vector<std::pair<Value, Value>> items;                  // insertion order, as Python dicts
+  std::unordered_map<DictKey, std::size_t, DictKeyHash> index;  // key -> position in items
   std::size_t depth = 1;
+};
+
+// Work done on key and string text (bytes hashed or compared), for the linearity tests: it must
+// stay within a small multiple of the pickle's size whatever the pickle repeats.
+struct Work {
+  std::uint64_t text_bytes = 0;
 };
 
 struct Limits {
@@ -127,11 +148,13 @@ class Document {
   const StorageRef& storage(std::int64_t i) const { return storages_.at(static_cast<std::size_t>(i)); }
   const TensorRef& tensor(const Value& v) const { return tensors_[index(v, Kind::Tensor)]; }
 
-  // The value stored under string key `key`, or nullptr.
+  // The value stored under string key `key`, or nullptr (a scan: readers look up a few keys).
   const Value* find(const Dict& d, std::string_view key) const {
-    auto it = d.index.find(std::string("s") + std::string(key));
-    return it == d.index.end() ? nullptr : &d.items[it->second].second;
+    for (const auto& [k, v] : d.items)
+      if (k.kind == Kind::String && str(k) == key) return &v;
+    return nullptr;
   }
+  const Work& work() const { return work_; }
 
   // A short description for error messages: "str 'abc'", "int 3", "dict of 4 items", "tensor".
   std::string describe(const Value& v) const {
@@ -148,21 +171,9 @@ class Document {
     }
   }
 
-  // Printable ASCII, truncated: safe to put a hostile string into an error message.
-  static std::string printable(std::string_view s, std::size_t max_len = 80) {
-    std::string out;
-    for (std::size_t i = 0; i < s.size() && i < max_len; ++i) {
-      const unsigned char c = static_cast<unsigned char>(s[i]);
-      if (std::isprint(c)) {
-        out += static_cast<char>(c);
-      } else {
-        char buf[8];
-        std::snprintf(buf, sizeof buf, "\\x%02x", c);
-        out += buf;
-      }
-    }
-    if (s.size() > max_len) out += "...";
-    return out;
+  // Safe to put a hostile string into an error message (core/printable.hpp).
+  static std::string printable(std::string_view s, std::size_t max_len = kPrintableDefault) {
+    return epona::printable(s, max_len);
   }
 
  private:
@@ -177,6 +188,7 @@ class Document {
   std::vector<GlobalRef> globals_;
   std::vector<StorageRef> storages_;
   std::vector<TensorRef> tensors_;
+  Work work_;
 };
 
 class Unpickler {
@@ -362,11 +374,18 @@ class Unpickler {
   void count_object() {
     if (++objects_ > limits_.max_objects) error("the pickle creates more than ", limits_.max_objects, " objects");
   }
+  // Equal texts share one entry (strings are immutable): a dict key is then its index, and a text
+  // repeated through the pickle is stored once. Hashing here reads each input byte once.
   Value new_string(std::uint64_t length) {
     const std::byte* p = take(length, "a string");
+    const std::string_view text(reinterpret_cast<const char*>(p), static_cast<std::size_t>(length));
+    doc_.work_.text_bytes += text.size();
+    if (auto it = interned_.find(text); it != interned_.end()) return {Kind::String, it->second};
     count_object();
-    doc_.strings_.emplace_back(reinterpret_cast<const char*>(p), static_cast<std::size_t>(length));
-    return {Kind::String, static_cast<std::int64_t>(doc_.strings_.size() - 1)};
+    doc_.strings_.emplace_back(text);
+    const auto index = static_cast<std::int64_t>(doc_.strings_.size() - 1);
+    interned_.emplace(text, index);  // views the input, which outlives the unpickler
+    return {Kind::String, index};
   }
   Value new_dict() {
     count_object();
@@ -393,17 +412,18 @@ class Unpickler {
     return d + 1;
   }
 
-  // Python dict keys compare by value; only the hashable scalars are supported.
-  std::string canonical_key(const Value& k) const {
+  // Python dict keys compare by value; only the hashable scalars are supported. Constant work:
+  // strings are interned, so equal texts have equal indices.
+  DictKey dict_key(const Value& k) const {
     switch (k.kind) {
-      case Kind::String: return "s" + doc_.strings_[std::size_t(k.i)];
+      case Kind::String: return {'s', std::uint64_t(k.i)};
       case Kind::Int:
-      case Kind::Bool: return "i" + std::to_string(k.i);
-      case Kind::None: return "n";
+      case Kind::Bool: return {'i', std::uint64_t(k.i)};
+      case Kind::None: return {'n', 0};
       case Kind::Float:
         if (std::abs(k.f) < 9.0e18 && k.f == static_cast<double>(static_cast<std::int64_t>(k.f)))
-          return "i" + std::to_string(static_cast<std::int64_t>(k.f));
-        return "f" + std::to_string(std::bit_cast<std::uint64_t>(k.f));
+          return {'i', std::uint64_t(static_cast<std::int64_t>(k.f))};
+        return {'f', std::bit_cast<std::uint64_t>(k.f)};
       default: error("a dict key of type ", kind_name(k.kind), " is not supported");
     }
   }
@@ -414,7 +434,7 @@ class Unpickler {
     Dict& d = doc_.dicts_[std::size_t(target.i)];
     for (std::size_t n = 0; n < kv.size(); n += 2) {
       d.depth = std::max({d.depth, nested_depth(kv[n]), nested_depth(kv[n + 1])});
-      auto [it, inserted] = d.index.emplace(canonical_key(kv[n]), d.items.size());
+      auto [it, inserted] = d.index.emplace(dict_key(kv[n]), d.items.size());
       if (inserted)
         d.items.emplace_back(kv[n], kv[n + 1]);
       else
@@ -565,6 +585,10 @@ class Unpickler {
     StorageRef s{doc_.globals_[std::size_t(a[1].i)].storage_dtype, doc_.strings_[std::size_t(a[2].i)],
                  doc_.strings_[std::size_t(a[3].i)], a[4].i};
     if (s.key.empty()) error("a storage with an empty key");
+    // torch.save writes keys "0", "1", ... and locations "cpu", "cuda:0": a long one only copies
+    // its text once per storage, which a repeated BINPERSID would multiply.
+    if (s.key.size() > 256 || s.location.size() > 256)
+      error("a storage key or location of ", std::max(s.key.size(), s.location.size()), " bytes (at most 256)");
     count_object();
     doc_.storages_.push_back(std::move(s));
     push({Kind::Storage, static_cast<std::int64_t>(doc_.storages_.size() - 1)});
@@ -587,6 +611,7 @@ class Unpickler {
   std::vector<Value> stack_;
   std::vector<std::size_t> marks_;
   std::unordered_map<std::uint64_t, Value> memo_;
+  std::unordered_map<std::string_view, std::int64_t> interned_;  // text -> index in doc_.strings_
   std::size_t objects_ = 0;
   Document doc_;
 };

@@ -26,7 +26,10 @@
 #include <nlohmann/json.hpp>
 
 #include "epona/core/error.hpp"
+#include "epona/core/printable.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/io/json_reader.hpp"
+#include "epona/io/limits.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/model/relative_pose.hpp"
 
@@ -91,12 +94,19 @@ inline std::string_view trim(std::string_view s) {
   return s.substr(b, s.find_last_not_of(" \t\r") - b + 1);
 }
 
-// Fields of a CSV line: comma-separated when it has a comma, else whitespace-separated.
+// Fields of a CSV line: comma-separated when it has a comma, else whitespace-separated. At most
+// limits::kCsvFields + 1 fields are split off (the last holds the rest), so a line of 96M commas
+// costs one field vector of 17, not 96M views; more_fields() tells whether the cut happened.
 inline std::vector<std::string_view> split_fields(std::string_view line) {
   std::vector<std::string_view> out;
+  const auto full = [&] { return out.size() == limits::kCsvFields; };
   if (line.find(',') != std::string_view::npos) {
     std::size_t start = 0;
     for (;;) {
+      if (full()) {
+        out.push_back(line.substr(start));
+        break;
+      }
       const auto comma = line.find(',', start);
       out.push_back(trim(line.substr(start, comma - start)));
       if (comma == std::string_view::npos) break;
@@ -105,12 +115,22 @@ inline std::vector<std::string_view> split_fields(std::string_view line) {
   } else {
     std::size_t i = 0;
     while ((i = line.find_first_not_of(" \t", i)) != std::string_view::npos) {
+      if (full()) {
+        out.push_back(line.substr(i));
+        break;
+      }
       const auto end = std::min(line.find_first_of(" \t", i), line.size());
       out.push_back(line.substr(i, end - i));
       i = end;
     }
   }
   return out;
+}
+
+// "3", or "more than 16" when split_fields stopped splitting.
+inline std::string field_count(const std::vector<std::string_view>& fields) {
+  return fields.size() > limits::kCsvFields ? "more than " + std::to_string(limits::kCsvFields)
+                                            : std::to_string(fields.size());
 }
 
 // A whole field as a number (a leading '+' allowed); false if it is not one.
@@ -154,22 +174,14 @@ inline std::array<int, 3> header_columns(const std::vector<std::string_view>& fi
     ok = k < 3 && col[k] < 0;
     if (ok) col[k] = static_cast<int>(f);
   }
-  EPONA_CHECK(ok, where, ": the header must name the three columns x, y, yaw (got '", line,
+  EPONA_CHECK(ok, where, ": the header must name the three columns x, y, yaw (got '", printable(line),
               "'); or leave the header out and give x, y, yaw in that order");
   return col;
 }
 
 inline double json_number(const nlohmann::json& v, const char* what, const std::string& where) {
-  EPONA_CHECK(v.is_number(), where, ": ", what, " must be a number, got ", v.dump());
+  EPONA_CHECK(v.is_number(), where, ": ", what, " must be a number, got ", json_brief(v));
   return v.get<double>();
-}
-
-inline nlohmann::json parse_json(std::string_view text, const std::string& source) {
-  try {
-    return nlohmann::json::parse(text);
-  } catch (const nlohmann::json::exception& e) {
-    fail(source, ": invalid JSON: ", e.what());
-  }
 }
 
 inline std::string_view as_text(const std::vector<std::byte>& bytes) {
@@ -202,9 +214,10 @@ inline PoseSequence parse_pose_csv(std::string_view text, const std::string& sou
       col = header_columns(fields, line, where());
       return true;
     }
-    EPONA_CHECK(fields.size() == 3, where(), ": expected 3 values (x, y, yaw), got ", fields.size(), ": '", line, "'");
+    EPONA_CHECK(fields.size() == 3, where(), ": expected 3 values (x, y, yaw), got ", field_count(fields), ": '",
+                printable(line), "'");
     for (int k = 0; k < 3; ++k)
-      EPONA_CHECK(parse_number(fields[col[k]], v[k]), where(), ": ", kMotionNames[k], " = '", fields[col[k]],
+      EPONA_CHECK(parse_number(fields[col[k]], v[k]), where(), ": ", kMotionNames[k], " = '", printable(fields[col[k]]),
                   "' is not a number");
     push_motion(s, v[0], v[1], v[2], where);
     return true;
@@ -226,9 +239,10 @@ inline void push_json_entry(PoseSequence& s, const nlohmann::json& e, std::size_
                 [&] { return where; });
     return;
   }
-  EPONA_CHECK(e.is_object(), where, ": expected [x, y, yaw] or {\"x\": .., \"y\": .., \"yaw\": ..}, got ", e.dump());
+  EPONA_CHECK(e.is_object(), where, ": expected [x, y, yaw] or {\"x\": .., \"y\": .., \"yaw\": ..}, got ", json_brief(e));
   for (const auto& [key, _] : e.items())
-    EPONA_CHECK(key == "x" || key == "y" || key == "yaw", where, ": unexpected key '", key, "' (expected x, y, yaw)");
+    EPONA_CHECK(key == "x" || key == "y" || key == "yaw", where, ": unexpected key '", printable(key),
+                "' (expected x, y, yaw)");
   for (const char* key : {"x", "y", "yaw"}) EPONA_CHECK(e.contains(key), where, ": missing '", key, "'");
   push_motion(s, json_number(e["x"], "x", where), json_number(e["y"], "y", where), json_number(e["yaw"], "yaw", where),
               [&] { return where; });
@@ -283,11 +297,11 @@ PoseSequence poses_from_absolute(const Tensor<S>& absolute, const std::string& s
 
 inline PoseSequence parse_pose_json(std::string_view text, const std::string& source) {
   using namespace poses_detail;
-  const nlohmann::json j = parse_json(text, source);
+  const nlohmann::json j = io::parse_json(text, source);
   const nlohmann::json* list = &j;
   if (j.is_object()) {
     for (const auto& [key, _] : j.items())
-      EPONA_CHECK(key == "poses" || key == "absolute", source, ": unexpected key '", key,
+      EPONA_CHECK(key == "poses" || key == "absolute", source, ": unexpected key '", printable(key),
                   "' (expected \"poses\": [[x, y, yaw], ...] or \"absolute\": [4x4 matrices])");
     EPONA_CHECK(j.size() == 1, source, ": give either \"poses\" or \"absolute\", not both");
     if (j.contains("absolute")) return poses_from_absolute(json_matrices(j["absolute"], source), source);

@@ -15,6 +15,7 @@
 
 #include "epona/core/dtype.hpp"
 #include "epona/core/error.hpp"
+#include "epona/core/printable.hpp"
 #include "epona/core/tensor.hpp"
 
 namespace epona::io {
@@ -33,7 +34,7 @@ class TensorMap {
 
   // Adds a tensor; duplicate names and byte counts that do not match the shape are errors.
   void add(const std::string& name, RawTensor t) {
-    EPONA_CHECK(!entries_.count(name), source_, ": duplicate tensor name '", name, "'");
+    EPONA_CHECK(!entries_.count(name), source_, ": duplicate tensor name '", printable(name, 200), "'");
     const auto n = t.numel();
     EPONA_CHECK(static_cast<std::size_t>(n) * dtype_size(t.dtype) == t.bytes.size(), source_, ": tensor '",
                 name, "' of shape ", shape_str(t.shape), " and dtype ", dtype_name(t.dtype), " needs ",
@@ -45,7 +46,7 @@ class TensorMap {
   bool contains(const std::string& name) const { return entries_.count(name) != 0; }
   const RawTensor& at(const std::string& name) const {
     auto it = entries_.find(name);
-    EPONA_CHECK(it != entries_.end(), source_, ": missing tensor '", name, "'");
+    EPONA_CHECK(it != entries_.end(), source_, ": missing tensor '", printable(name, 200), "'");
     return it->second;
   }
   std::vector<std::string> names() const {

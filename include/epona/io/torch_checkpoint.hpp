@@ -117,13 +117,14 @@ class StorageTable {
     auto it = records_.find(s.key);
     if (it != records_.end()) {
       EPONA_CHECK(it->second.dtype == s.dtype, zip_.name(), ": storage '", s.key, "' is used as ",
-                  dtype_name(it->second.dtype), " and as ", dtype_name(s.dtype), " (tensor '", tensor, "')");
+                  dtype_name(it->second.dtype), " and as ", dtype_name(s.dtype), " (tensor '", printable(tensor, 200),
+                  "')");
       return it->second;
     }
     const std::string record = prefix_ + "data/" + s.key;
     const ZipEntry* e = zip_.find(record);
     EPONA_CHECK(e != nullptr, zip_.name(), ": storage '", pickle::Document::printable(s.key), "' of tensor '",
-                tensor, "' has no record '", pickle::Document::printable(record), "' in the archive");
+                printable(tensor, 200), "' has no record '", pickle::Document::printable(record), "' in the archive");
     if (verify_) zip_.verify_crc(*e);
     return records_.emplace(s.key, Record{s.dtype, zip_.data(*e), record}).first->second;
   }
@@ -143,21 +144,21 @@ inline RawTensor tensor_view(const pickle::Document& doc, const pickle::TensorRe
   try {
     numel = shape_numel(t.shape);
   } catch (const Error& e) {
-    fail(source, ": tensor '", name, "': ", e.what());
+    fail(source, ": tensor '", printable(name, 200), "': ", e.what());
   }
-  EPONA_CHECK(is_contiguous(t.shape, t.stride), source, ": tensor '", name, "' of shape ", shape_str(t.shape),
-              " is not contiguous (stride ", shape_str(t.stride), "); save it with .contiguous()");
+  EPONA_CHECK(is_contiguous(t.shape, t.stride), source, ": tensor '", printable(name, 200), "' of shape ",
+              shape_str(t.shape), " is not contiguous (stride ", shape_str(t.stride), "); save it with .contiguous()");
   const auto esize = static_cast<std::uint64_t>(dtype_size(s.dtype));
   const auto first = static_cast<std::uint64_t>(t.offset), count = static_cast<std::uint64_t>(numel);
   const std::uint64_t limit = ~std::uint64_t{0} / esize;
-  EPONA_CHECK(count <= limit && first <= limit - count, source, ": tensor '", name, "' of shape ",
+  EPONA_CHECK(count <= limit && first <= limit - count, source, ": tensor '", printable(name, 200), "' of shape ",
               shape_str(t.shape), " at storage offset ", t.offset, " overflows 64-bit byte offsets");
   const auto& record = storages.get(s, name);
   const std::uint64_t needed = (first + count) * esize;
-  EPONA_CHECK(count == 0 || needed <= record.bytes.size(), source, ": tensor '", name, "' needs ", needed,
+  EPONA_CHECK(count == 0 || needed <= record.bytes.size(), source, ": tensor '", printable(name, 200), "' needs ", needed,
               " bytes (", dtype_name(s.dtype), " ", shape_str(t.shape), " at storage offset ", t.offset,
               "), storage '", s.key, "' has ", record.bytes.size());
-  EPONA_CHECK(count == 0 || first + count <= static_cast<std::uint64_t>(s.numel), source, ": tensor '", name,
+  EPONA_CHECK(count == 0 || first + count <= static_cast<std::uint64_t>(s.numel), source, ": tensor '", printable(name, 200),
               "' needs elements up to ", first + count, ", storage '", s.key, "' declares ", s.numel);
   EPONA_CHECK(static_cast<std::uint64_t>(s.numel) <= record.bytes.size() / esize, source, ": storage '", s.key,
               "' declares ", s.numel, " elements of ", dtype_name(s.dtype), ", its record '", record.name,
@@ -201,7 +202,7 @@ inline TensorMap load_torch_checkpoint(const ZipArchive& zip, const TorchLoadOpt
                 doc.describe(k), ", expected parameter names (str)");
     const std::string& name = doc.str(k);
     EPONA_CHECK(v.kind == pickle::Kind::Tensor, zip.name(), ": state dict entry '",
-                pickle::Document::printable(name), "' is a ", doc.describe(v), ", not a tensor");
+                pickle::Document::printable(name, 200), "' is a ", doc.describe(v), ", not a tensor");
     map.add(name, torch_detail::tensor_view(doc, doc.tensor(v), name, storages, zip.name()));
   }
   map.keep_alive(std::const_pointer_cast<void>(zip.owner()));

@@ -180,17 +180,19 @@ inline Tensor<float> parse_trajectory_csv(std::string_view text, const std::stri
         joined += lower(f);
       }
       EPONA_CHECK(joined == traj_detail::kCsvHeader, where(), ": expected the header '", traj_detail::kCsvHeader,
-                  "', got '", line, "'");
+                  "', got '", printable(line), "'");
       header_seen = true;
       return true;
     }
-    EPONA_CHECK(fields.size() == 5, where(), ": expected 5 values (step, waypoint, x, y, yaw), got ", fields.size());
+    EPONA_CHECK(fields.size() == 5, where(), ": expected 5 values (step, waypoint, x, y, yaw), got ",
+                poses_detail::field_count(fields));
     std::int64_t step, waypoint;
     EPONA_CHECK(traj_detail::parse_index(fields[0], step) && traj_detail::parse_index(fields[1], waypoint), where(),
-                ": step and waypoint must be non-negative integers, got '", fields[0], "', '", fields[1], "'");
+                ": step and waypoint must be non-negative integers, got '", printable(fields[0]), "', '",
+                printable(fields[1]), "'");
     double v[3];
     for (int k = 0; k < 3; ++k)
-      EPONA_CHECK(parse_number(fields[2 + k], v[k]), where(), ": ", kMotionNames[k], " = '", fields[2 + k],
+      EPONA_CHECK(parse_number(fields[2 + k], v[k]), where(), ": ", kMotionNames[k], " = '", printable(fields[2 + k]),
                   "' is not a number");
     grid.add(step, waypoint, v, where);
     return true;
@@ -202,12 +204,12 @@ inline Tensor<float> parse_trajectory_csv(std::string_view text, const std::stri
 // JSON as written by trajectory_to_json: {"format": "epona-trajectory", "units": {...},
 // "steps": [[[x, y, yaw], ...], ...]} ("format" and "units" optional).
 inline Tensor<float> parse_trajectory_json(std::string_view text, const std::string& source) {
-  const nlohmann::json j = poses_detail::parse_json(text, source);
+  const nlohmann::json j = io::parse_json(text, source);
   EPONA_CHECK(j.is_object() && j.contains("steps"), source, ": expected an object with \"steps\": [[[x, y, yaw], ...], ...]");
   for (const auto& [key, value] : j.items())
-    EPONA_CHECK(key == "steps" || key == "units" || key == "format", source, ": unexpected key '", key, "'");
+    EPONA_CHECK(key == "steps" || key == "units" || key == "format", source, ": unexpected key '", printable(key), "'");
   if (j.contains("format"))
-    EPONA_CHECK(j["format"] == traj_detail::kFormat, source, ": \"format\" is ", j["format"].dump(), ", expected \"",
+    EPONA_CHECK(j["format"] == traj_detail::kFormat, source, ": \"format\" is ", json_brief(j["format"]), ", expected \"",
                 traj_detail::kFormat, "\"");
   const auto& steps = j["steps"];
   EPONA_CHECK(steps.is_array(), source, ": \"steps\" must be a list of steps");
@@ -217,7 +219,7 @@ inline Tensor<float> parse_trajectory_json(std::string_view text, const std::str
     for (std::size_t w = 0; w < steps[s].size(); ++w) {
       const std::string where = epona::detail::concat(source, ": step ", s, ", waypoint ", w);
       const auto& e = steps[s][w];
-      EPONA_CHECK(e.is_array() && e.size() == 3, where, ": expected [x, y, yaw], got ", e.dump());
+      EPONA_CHECK(e.is_array() && e.size() == 3, where, ": expected [x, y, yaw], got ", json_brief(e));
       const double v[3] = {poses_detail::json_number(e[0], "x", where), poses_detail::json_number(e[1], "y", where),
                            poses_detail::json_number(e[2], "yaw", where)};
       grid.add(static_cast<std::int64_t>(s), static_cast<std::int64_t>(w), v, [&] { return where; });
@@ -259,7 +261,7 @@ inline PoseSequence read_actions(const std::filesystem::path& path) {
   if (ext == ".csv") {
     planned = traj_detail::csv_starts_with_step(poses_detail::as_text(read_whole_file(path)));
   } else if (ext == ".json") {
-    const auto j = poses_detail::parse_json(poses_detail::as_text(read_whole_file(path)), path.string());
+    const auto j = io::parse_json(poses_detail::as_text(read_whole_file(path)), path.string());
     planned = j.is_object() && j.contains("steps");
   } else if (ext == ".npy") {
     const auto a = read_npy<float>(path).values;

@@ -4,6 +4,7 @@
 // size is checked against the file before use, so a truncated or hostile archive fails cleanly.
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <bit>
 #include <cstddef>
@@ -18,6 +19,7 @@
 #include <vector>
 
 #include "epona/core/error.hpp"
+#include "epona/core/printable.hpp"
 #include "epona/io/mmap.hpp"
 
 namespace epona::io {
@@ -103,6 +105,7 @@ class ZipArchive {
     const EndRecord end = locate_end_record();
     read_central_directory(end);
     for (auto& e : entries_) check_local_header(e, end.cd_offset);
+    check_no_overlap();
   }
 
   const std::string& name() const { return name_; }
@@ -357,6 +360,24 @@ class ZipArchive {
     EPONA_CHECK(e.compressed_size <= cd_offset - e.data_offset, name_, ": the data of entry '", e.name, "' (",
                 e.compressed_size, " bytes at offset ", e.data_offset,
                 ") runs into the central directory (truncated or corrupt archive)");
+  }
+
+  // Each entry (local header + data) must own its bytes: entries that overlap let one stretch of
+  // the file be read under two names (or an entry hide inside another's data), which no writer
+  // produces; a crafted archive used it to pass as well-formed.
+  void check_no_overlap() const {
+    std::vector<const ZipEntry*> order;
+    for (const auto& e : entries_) order.push_back(&e);
+    std::sort(order.begin(), order.end(),
+              [](const ZipEntry* a, const ZipEntry* b) { return a->header_offset < b->header_offset; });
+    for (std::size_t i = 1; i < order.size(); ++i) {
+      const ZipEntry& prev = *order[i - 1];
+      const ZipEntry& next = *order[i];
+      const std::uint64_t prev_end = prev.data_offset + prev.compressed_size;
+      EPONA_CHECK(next.header_offset >= prev_end, name_, ": entries '", printable(prev.name), "' (bytes ",
+                  prev.header_offset, " to ", prev_end, ") and '", printable(next.name), "' (from byte ",
+                  next.header_offset, ") overlap in the file (corrupt or crafted archive)");
+    }
   }
 
   std::span<const std::byte> bytes_;

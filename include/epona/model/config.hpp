@@ -61,6 +61,10 @@ inline constexpr int dcae_downsample = 32;
 // Largest model this library agrees to build (refused with the size it would need).
 inline constexpr double max_parameters = 1e11;
 inline constexpr double max_activation_bytes = 1e12;
+// Frame size of a configuration: 16x the released model's 512x1024 (2048x4096). Between that and
+// the terabyte activation limit, a 4096x8192 config was accepted and ran (2.4 GB, 56 s) for a
+// model that cannot have been trained at that size. (io/limits.hpp lists every limit.)
+inline constexpr std::int64_t max_image_pixels = std::int64_t{16} * 512 * 1024;
 // Most sampling steps / rollout frames accepted (the official runs use 100 steps, 54 frames);
 // a larger count is a typo or an attack, refused before the schedule or any output is allocated.
 inline constexpr std::int64_t max_sampling_steps = 100000;
@@ -123,6 +127,12 @@ inline void check_model_size(ConfigProblems& p, const char* model, double params
           human_count(constants::max_parameters));
   p.check(activations <= constants::max_activation_bytes, call, " would need about ", human_bytes(activations),
           " of activations; the limit is ", human_bytes(constants::max_activation_bytes));
+}
+
+// image_size within constants::max_image_pixels (h, w already checked positive).
+inline void check_image_pixels(ConfigProblems& p, std::int64_t h, std::int64_t w) {
+  p.check(h <= constants::max_image_pixels / w, "image_size (", h, ", ", w, ") is ", h * w,
+          " pixels per frame, more than the limit of ", constants::max_image_pixels, " (16x the released 512x1024)");
 }
 }  // namespace detail
 
@@ -260,6 +270,7 @@ struct WorldModelConfig {
     if (p.ok()) {
       detail::check_model_size(p, "the world model", parameter_count(), 2, "bf16", "one step",
                                activation_bytes_estimate());
+      detail::check_image_pixels(p, image_h, image_w);
     }
     p.throw_if_any();
   }
@@ -490,6 +501,7 @@ struct DcaeConfig {
     }
     if (p.ok()) {
       detail::check_model_size(p, "the DC-AE", parameter_count(), 4, "fp32", "one decode", activation_bytes_estimate());
+      detail::check_image_pixels(p, image_h, image_w);
     }
     p.throw_if_any();
   }
