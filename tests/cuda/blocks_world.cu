@@ -575,3 +575,23 @@ TEST_CASE("world-model steps on the GPU vs the CPU: plan and predict_next with a
   CHECK(r_gpu.trajectory.empty());
   expect_close("predict_next latent, given action (GPU f32 vs CPU)", r_gpu.latent, r_cpu.latent, 1e-4);
 }
+
+TEST_CASE("world-model steps with per-DiT solvers on the GPU vs the CPU (float32): the engine's --solver path") {
+  EPONA_REQUIRE_GPU();
+  const auto& c = config();
+  auto cpu_wm = WorldModel<Cpu, float>::load(weights(), c);
+  auto gpu_wm = WorldModel<Cuda, float>::load(weights(), c);
+  const History h{test::random_tensor({1, c.condition_frames, c.img_tokens(), c.token_dim()}, 61, -2.f, 2.f),
+                  scaled(test::random_tensor({1, c.condition_frames, 2}, 62, 0.f, 1.f), 4.f),
+                  test::random_tensor({1, c.condition_frames, 1}, 63)};
+  SampleOptions opt;
+  opt.seed = 9, opt.plan_solver = flow::SolverKind::midpoint, opt.plan_steps = 5;
+  opt.video_solver = flow::SolverKind::dpmpp2m, opt.video_steps = 7;
+  for (int run = 0; run < 2; ++run) {  // the second replays both DiTs' recorded loops
+    const auto r_cpu = cpu_wm.predict_next(h, std::nullopt, opt), r_gpu = gpu_wm.predict_next(h, std::nullopt, opt);
+    expect_close("self-predicted step, midpoint x 5 / dpmpp2m x 7, trajectory (GPU f32 vs CPU)", r_gpu.trajectory,
+                 r_cpu.trajectory, 1e-4);
+    expect_close("self-predicted step, midpoint x 5 / dpmpp2m x 7, latent (GPU f32 vs CPU)", r_gpu.latent, r_cpu.latent,
+                 1e-4);
+  }
+}
