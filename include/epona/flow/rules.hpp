@@ -17,6 +17,7 @@ namespace epona::flow {
 struct EulerRule {
   static constexpr const char* name = "euler";
   static constexpr int order = 1, scratch_states = 0;
+  static constexpr std::int64_t evaluations(std::int64_t steps) { return steps; }
   static void times(const std::vector<float>& grid, std::vector<float>& out) {
     out.assign(grid.begin(), grid.end() - 1);  // t_0 .. t_{N-1}: never t = 1
   }
@@ -34,6 +35,7 @@ struct EulerRule {
 struct HeunRule {
   static constexpr const char* name = "heun";
   static constexpr int order = 2, scratch_states = 1;  // the predictor state
+  static constexpr std::int64_t evaluations(std::int64_t steps) { return 2 * steps - 1; }
   static void times(const std::vector<float>& grid, std::vector<float>& out) {
     out.clear();
     const std::size_t n = grid.size() - 1;
@@ -61,6 +63,7 @@ struct HeunRule {
 struct MidpointRule {
   static constexpr const char* name = "midpoint";
   static constexpr int order = 2, scratch_states = 1;  // the midpoint state
+  static constexpr std::int64_t evaluations(std::int64_t steps) { return 2 * steps; }
   static float midpoint(const std::vector<float>& grid, std::size_t i) {
     return static_cast<float>(0.5 * (double(grid[i]) + double(grid[i + 1])));
   }
@@ -94,6 +97,7 @@ struct MidpointRule {
 struct DpmSolverPP2MRule {
   static constexpr const char* name = "dpmpp2m";
   static constexpr int order = 2, scratch_states = 2;  // m_i and m_{i-1}, alternating
+  static constexpr std::int64_t evaluations(std::int64_t steps) { return steps; }
   static void times(const std::vector<float>& grid, std::vector<float>& out) { EulerRule::times(grid, out); }
 
   static double lambda(double t) { return std::log(t) - std::log1p(-t); }

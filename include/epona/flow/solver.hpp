@@ -115,6 +115,7 @@ class StepIO {
 };
 
 // Rule concept (flow/rules.hpp): name, order (of the global error), scratch_states, and
+//   static std::int64_t evaluations(std::int64_t steps)                         — velocity calls of a sample
 //   static void times(const std::vector<float>& grid, std::vector<float>& out)  — every evaluation time, in order
 //   template <class IO> static void step(IO& io, std::int64_t i)               — one step t_i -> t_{i+1}
 template <class B, class Rule>
@@ -128,6 +129,8 @@ class FlowSolver {
   explicit FlowSolver(std::vector<float> time_grid) : grid(std::move(time_grid)) {
     EPONA_CHECK(grid.size() >= 2, "a flow solver needs at least 2 grid points, got ", grid.size());
     Rule::times(grid, times_);
+    EPONA_CHECK(evaluations() == Rule::evaluations(steps()), Rule::name, ": ", evaluations(),
+                " evaluation times for ", steps(), " steps, the rule counts ", Rule::evaluations(steps()));
   }
 
   std::vector<float> grid;  // t_0 = 0 (noise) .. t_N = 1 (data)

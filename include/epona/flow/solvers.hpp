@@ -22,14 +22,20 @@ enum class SolverKind { euler, heun, midpoint, dpmpp2m };
 inline constexpr std::array<SolverKind, 4> all_solver_kinds = {SolverKind::euler, SolverKind::heun,
                                                                SolverKind::midpoint, SolverKind::dpmpp2m};
 
-inline const char* solver_name(SolverKind k) {
-  switch (k) {
-    case SolverKind::euler: return EulerRule::name;
-    case SolverKind::heun: return HeunRule::name;
-    case SolverKind::midpoint: return MidpointRule::name;
-    case SolverKind::dpmpp2m: return DpmSolverPP2MRule::name;
+// The one dispatch from a kind to its rule: f(Rule{}) for the rule of `kind`.
+template <class F>
+decltype(auto) visit_rule(SolverKind kind, F&& f) {
+  switch (kind) {
+    case SolverKind::heun: return f(HeunRule{});
+    case SolverKind::midpoint: return f(MidpointRule{});
+    case SolverKind::dpmpp2m: return f(DpmSolverPP2MRule{});
+    case SolverKind::euler: break;
   }
-  return "?";
+  return f(EulerRule{});
+}
+
+inline const char* solver_name(SolverKind k) {
+  return visit_rule(k, [](auto rule) { return decltype(rule)::name; });
 }
 
 // "euler|heun|midpoint|dpmpp2m", for help texts and errors.
@@ -48,35 +54,19 @@ inline SolverKind parse_solver(std::string_view name) {
 // Runs f(FlowSolver<B, Rule>{grid}) for the rule of `kind`; returns what f returns.
 template <class B, class F>
 decltype(auto) with_solver(SolverKind kind, std::vector<float> grid, F&& f) {
-  switch (kind) {
-    case SolverKind::heun: return f(FlowSolver<B, HeunRule>(std::move(grid)));
-    case SolverKind::midpoint: return f(FlowSolver<B, MidpointRule>(std::move(grid)));
-    case SolverKind::dpmpp2m: return f(FlowSolver<B, DpmSolverPP2MRule>(std::move(grid)));
-    case SolverKind::euler: break;
-  }
-  return f(FlowSolver<B, EulerRule>(std::move(grid)));
+  return visit_rule(kind, [&](auto rule) -> decltype(auto) {
+    return f(FlowSolver<B, decltype(rule)>(std::move(grid)));
+  });
 }
 
 // Velocity evaluations of `steps` steps of `kind` (what a sample costs).
 inline std::int64_t solver_evaluations(SolverKind kind, std::int64_t steps) {
-  switch (kind) {
-    case SolverKind::heun: return 2 * steps - 1;
-    case SolverKind::midpoint: return 2 * steps;
-    case SolverKind::euler:
-    case SolverKind::dpmpp2m: break;
-  }
-  return steps;
+  return visit_rule(kind, [&](auto rule) { return decltype(rule)::evaluations(steps); });
 }
 
 // Scratch states (state-sized float32 buffers) `kind` needs.
 inline int solver_scratch_states(SolverKind kind) {
-  switch (kind) {
-    case SolverKind::heun: return HeunRule::scratch_states;
-    case SolverKind::midpoint: return MidpointRule::scratch_states;
-    case SolverKind::dpmpp2m: return DpmSolverPP2MRule::scratch_states;
-    case SolverKind::euler: break;
-  }
-  return EulerRule::scratch_states;
+  return visit_rule(kind, [](auto rule) { return decltype(rule)::scratch_states; });
 }
 
 // One DiT's sampler: which solver and how many steps (the step count checked by the model).
