@@ -24,13 +24,17 @@
 // FluxDiT::SamplerOptions, two rounds; --order-compare: the MST with its large row passes
 // walking the rows first to last and last to first, two rounds; --group-compare: the MST with
 // its key, value and query products one grouped product or three (set_pair_gemm), two rounds;
-// --mst-tune-compare: the MST with its large products' cuBLASLt candidates timed or not).
+// --mst-tune-compare: the MST with its large products' cuBLASLt candidates timed or not;
+// --sampler-compare SOLVER:PLAN:VIDEO (e.g. midpoint:10:10, `epona --sampler fast`): the step row
+// again with that flow solver and those planner / video steps, alternating with the official
+// sampler over two rounds, rows step_official_rN and step_SOLVER_PLAN_VIDEO_rN; docs/solvers.md).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <functional>
+#include <optional>
 #include <set>
 #include <sstream>
 #include <string>
@@ -41,6 +45,7 @@
 #include "epona/core/rng.hpp"
 #include "epona/cuda/backend.cuh"
 #include "epona/flow/schedule.hpp"
+#include "epona/flow/solvers.hpp"
 #include "epona/model/pose_tokenizer.hpp"
 #include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
@@ -64,6 +69,8 @@ struct Options {
   bool order_compare = false;     // the MST with its large row passes in forward and reverse row order
   bool group_compare = false;     // the MST with its key, value and query products grouped or not
   bool mst_tune_compare = false;  // the MST with its large products' cuBLASLt candidates timed or not
+  std::optional<DitSamplers> sampler_compare;  // the step again with these solvers and steps
+  std::string sampler_name;                    // its row suffix, SOLVER_PLAN_VIDEO
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
 };
 
@@ -97,13 +104,23 @@ Options parse(int argc, char** argv) {
     else if (a == "--order-compare") o.order_compare = true;
     else if (a == "--group-compare") o.group_compare = true;
     else if (a == "--mst-tune-compare") o.mst_tune_compare = true;
+    else if (a == "--sampler-compare") {
+      std::stringstream ss(next());
+      std::string solver, plan, video;
+      EPONA_CHECK(std::getline(ss, solver, ':') && std::getline(ss, plan, ':') && std::getline(ss, video),
+                  "--sampler-compare needs SOLVER:PLAN_STEPS:VIDEO_STEPS, e.g. midpoint:10:10");
+      const auto kind = flow::parse_solver(solver);
+      o.sampler_compare = DitSamplers{{kind, std::stoll(plan)}, {kind, std::stoll(video)}};
+      check_samplers(*o.sampler_compare);
+      o.sampler_name = solver + "_" + plan + "_" + video;
+    }
     else if (a == "--only") {
       std::stringstream ss(next());
       for (std::string s; std::getline(ss, s, ',');) o.only.insert(s);
     } else fail("unknown option ", a,
                 " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare, "
                 "--qk-norm-compare, --pdl-compare, --front-compare, --order-compare, --group-compare, "
-                "--mst-tune-compare)");
+                "--mst-tune-compare, --sampler-compare SOLVER:PLAN:VIDEO)");
   }
   return o;
 }
@@ -483,9 +500,31 @@ int run(const Options& o) {
     emit("step" + suffix, event_times_ms(ctx, std::max(3, R / 2), 1, [&] { (void)wm.predict_next(h, std::nullopt, opt); }),
          step_tflop);
   };
+  // The step with another sampler, alternating with the official one (drift shows as a round
+  // difference); FLOPs from each DiT's evaluation count.
+  const auto time_step_samplers = [&] {
+    for (const char* round : {"_r1", "_r2"})
+      for (const bool other : {false, true}) {
+        SampleOptions opt;
+        opt.seed = 7;
+        std::int64_t plan_evals = o.steps, video_evals = o.steps;
+        if (other) {
+          const auto& s = *o.sampler_compare;
+          opt.plan_solver = s.plan.kind, opt.plan_steps = s.plan.steps;
+          opt.video_solver = s.video.kind, opt.video_steps = s.video.steps;
+          plan_evals = s.plan.evaluations(), video_evals = s.video.evaluations();
+        }
+        const double tflop = mst_tflop + (double(plan_evals) * traj.forward_flops(traj_rows, false).total() +
+                                          double(video_evals) * vis.forward_flops(img_rows, false).total()) / 1e12;
+        (void)wm.predict_next(h, std::nullopt, opt);  // records this setting's sampler graphs
+        emit(std::string("step_") + (other ? o.sampler_name : "official") + round,
+             event_times_ms(ctx, std::max(3, R / 2), 1, [&] { (void)wm.predict_next(h, std::nullopt, opt); }), tflop);
+      }
+  };
   if (!o.tune_compare) {
     arena = Arena<Cuda>();  // the step uses the model's own arena
     time_step("");
+    if (o.sampler_compare && o.want("step")) time_step_samplers();
   } else {  // the component arena stays (the memory row then counts it too)
     time_step("");
     const auto was = cuda::gemm_tuning();

@@ -12,6 +12,7 @@
 #include "models.hpp"
 #include "output_paths.hpp"
 #include "epona/io/npy.hpp"
+#include "epona/flow/solvers.hpp"
 #include "epona/io/poses.hpp"
 #include "epona/model/world_model.hpp"
 
@@ -25,8 +26,22 @@ inline void add_clip_options(ArgParser& p) {
       .option("fit", "MODE", "frames not at the model's size: exact (refuse), resize, crop, cover", "exact")
       .option("max-pixels", "N", "refuse input frames (and resize steps) of more pixels", "33554432 (2^25)");
 }
+// `--sampler fast`: the few-step setting picked by the solver sweep on the bundled model
+// (scripts/solver_sweep.sh, docs/solvers.md): of the settings with at most 20 VisDiT evaluations
+// a frame, midpoint x 10 alone kept PSNR and planning L2 within 2 % of 100 Euler steps with
+// frames closer to them than 50 Euler steps'. Provisional (10 clips): re-measure on your model.
+inline constexpr flow::SolverKind kFastSolver = flow::SolverKind::midpoint;
+inline constexpr std::int64_t kFastPlanSteps = 10, kFastVideoSteps = 10;
+
 inline void add_sampling_options(ArgParser& p) {
-  p.option("steps", "N", "Euler sampling steps of each DiT", "the configuration's num_sampling_steps")
+  p.option("sampler", "NAME", "preset: official (Euler, the configuration's steps) or fast (" +
+           std::string(flow::solver_name(kFastSolver)) + ", " + std::to_string(kFastPlanSteps) + " planner / " +
+           std::to_string(kFastVideoSteps) + " video steps); the options below override it", "official")
+      .option("solver", "NAME", "flow solver of both DiTs: " + flow::solver_names() +
+              " (heun and midpoint evaluate the DiT twice a step)", "euler")
+      .option("steps", "N", "sampling steps of each DiT (1..100000)", "the configuration's num_sampling_steps")
+      .option("plan-steps", "N", "the planner's (TrajDiT) steps, overriding --steps", "--steps")
+      .option("video-steps", "N", "the video's (VisDiT) steps, overriding --steps", "--steps")
       .option("seed", "N", "noise seed (torch.manual_seed-compatible draws)", "0");
 }
 inline void add_output_options(ArgParser& p, const std::string& default_dir) {
@@ -57,11 +72,43 @@ inline Clip load_clip_for(const ParsedArgs& a, const ModelFiles& f, const Consol
   return clip;
 }
 
+// The sampling options: the preset, then --solver, --steps, --plan-steps and --video-steps over it.
+// Every field is set, so samplers_for(o, anything) gives what the model will run.
 inline SampleOptions sample_options(const ParsedArgs& a, const WorldModelConfig& w) {
   SampleOptions o;
-  o.steps = a.integer("steps", w.num_sampling_steps, 1, 100000);
+  const bool fast = a.choice("sampler", {"official", "fast"}, "official") == "fast";
+  o.solver = fast ? kFastSolver : flow::SolverKind::euler;
+  if (const auto name = a.get("solver")) {
+    try {
+      o.solver = flow::parse_solver(*name);
+    } catch (const Error& e) {
+      usage_fail("--solver: ", e.what());
+    }
+  }
+  const std::int64_t max = constants::max_sampling_steps;
+  o.steps = a.integer("steps", w.num_sampling_steps, 1, max);
+  o.plan_steps = a.maybe_integer("plan-steps", 1, max);
+  o.video_steps = a.maybe_integer("video-steps", 1, max);
+  if (fast && !a.has("steps")) {
+    if (!o.plan_steps) o.plan_steps = kFastPlanSteps;
+    if (!o.video_steps) o.video_steps = kFastVideoSteps;
+  }
+  if (!o.plan_steps) o.plan_steps = o.steps;
+  if (!o.video_steps) o.video_steps = o.steps;
   o.seed = static_cast<std::uint64_t>(a.integer("seed", 0, 0));
   return o;
+}
+
+inline DitSamplers samplers_of(const SampleOptions& o) { return samplers_for(o, *o.steps); }
+
+// "planner dpmpp2m x 10 steps (10 DiT evaluations), video euler x 100 steps (100 ...)".
+inline std::string describe(const DitSamplers& s, bool plan = true, bool video = true) {
+  const auto one = [](const char* what, const flow::SolverSetting& x) {
+    return std::string(what) + " " + flow::solver_name(x.kind) + " x " + std::to_string(x.steps) + " steps (" +
+           std::to_string(x.evaluations()) + " DiT evaluations)";
+  };
+  if (plan && video) return one("planner", s.plan) + ", " + one("video", s.video);
+  return plan ? one("planner", s.plan) : one("video", s.video);
 }
 
 // The --out folder, created and checked for writing before any work.

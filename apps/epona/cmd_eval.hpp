@@ -55,14 +55,17 @@ inline ArgParser eval_parser() {
       .flag("control", "score trajectory control: turn left vs turn right from each clip's window")
       .option("control-yaw", "DEG", "the turns' yaw per frame, degrees (1..7)", "5")
       .option("control-frames", "N", "frames rolled out per turn; the last one is compared", "1")
-      .option("fit", "MODE", "frames not at the model's size: exact (refuse), resize, crop, cover", "exact");
+      .option("fit", "MODE", "frames not at the model's size: exact (refuse), resize, crop, cover", "exact")
+      .option("save-frames", "DIR", "also write each clip's generated video frames to DIR/<clip>/frame_NNNN.png "
+              "(to compare samplers with each other, scripts/solver_sweep.sh)", "none");
   add_sampling_options(p);
   add_compute_options(p);
   p.flag("quiet", "no progress bars or notes on stderr", 'q');
   p.epilog("examples:\n"
            "  epona synth --out clips/ && epona eval --clips clips/ --json eval.json   # the bundled demo model\n"
            "  epona eval --weights world.pkl --dcae dcae_td_20000.pkl --clips clips/ --json eval.json \\\n"
-           "             --steps 100 --backend cuda");
+           "             --steps 100 --backend cuda\n"
+           "  epona eval --clips clips/ --json fast.json --solver dpmpp2m --plan-steps 10 --video-steps 15");
   return p;
 }
 
@@ -74,6 +77,8 @@ struct EvalOptions {
   std::int64_t control_yaw = 5, control_frames = 1;
   std::string fit = "exact";
   SampleOptions sample;
+  DitSamplers samplers;                       // what sample resolves to, per DiT
+  std::optional<std::filesystem::path> save_frames;
 };
 
 inline EvalOptions eval_options(const ParsedArgs& a, const WorldModelConfig& wc) {
@@ -91,6 +96,8 @@ inline EvalOptions eval_options(const ParsedArgs& a, const WorldModelConfig& wc)
   o.control_frames = a.integer("control-frames", 1, 1, 100);
   o.fit = a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact");
   o.sample = sample_options(a, wc);
+  o.samplers = samplers_of(o.sample);
+  if (const auto dir = a.get("save-frames")) o.save_frames = *dir;
   std::error_code ec;
   const auto parent = std::filesystem::absolute(o.json, ec).parent_path();
   EPONA_CHECK(std::filesystem::is_directory(parent, ec), "--json ", o.json.string(), ": the folder ", parent.string(),
@@ -120,6 +127,7 @@ struct ClipScores {
   std::optional<PlanScores> model, constant_velocity, constant_turn, ground_truth;
   std::vector<double> psnr, ssim, repeat_psnr, repeat_ssim, ae_psnr, ae_ssim;  // per horizon; empty: no video
   std::optional<ControlScore> control;
+  Tensor<float> plan;  // (traj_len, 3) the model's plan; empty without planning
 };
 
 inline PlanScores score_plan(const std::vector<eval::Pose2>& plan, const std::vector<eval::Pose2>& truth,
@@ -158,7 +166,9 @@ inline void score_planning(ClipScores& s, const eval::EvalClip& c, const History
   const auto truth = eval::cumulative_poses(*c.future_motions, eval::kPlanWaypoints);
   SampleOptions o = e.opt.sample;
   o.seed = seed;
-  s.model = score_plan(eval::poses_of(e.engine.plan(window, o)), truth, c);
+  const Tensor<float> plan = e.engine.plan(window, o);  // (1, traj_len, 3)
+  s.plan = plan[0].clone();
+  s.model = score_plan(eval::poses_of(plan), truth, c);
   const eval::Pose2 last = eval::motion_at(c.poses, c.poses.size() - 1);
   s.constant_velocity = score_plan(eval::constant_velocity(last, eval::kPlanWaypoints), truth, c);
   s.constant_turn = score_plan(eval::constant_turn(last, eval::kPlanWaypoints), truth, c);
@@ -169,7 +179,7 @@ inline void score_planning(ClipScores& s, const eval::EvalClip& c, const History
 inline std::vector<io::Image> roll_out_under(const History& window, io::PoseSequence actions, std::uint64_t seed,
                                              const EvalContext& e) {
   RolloutPlan plan;
-  plan.frames = static_cast<std::int64_t>(actions.size()), plan.steps = *e.opt.sample.steps, plan.seed = seed;
+  plan.frames = static_cast<std::int64_t>(actions.size()), plan.samplers = e.opt.samplers, plan.seed = seed;
   plan.clip_len = 1;
   plan.actions = std::move(actions);
   FrameCollector out;
@@ -177,11 +187,24 @@ inline std::vector<io::Image> roll_out_under(const History& window, io::PoseSequ
   return std::move(out.frames);
 }
 
+// frame_0000.png ... of a clip's generated frames, in `dir` (created).
+inline void save_frames(const std::filesystem::path& dir, const std::vector<io::Image>& frames) {
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  EPONA_CHECK(std::filesystem::is_directory(dir, ec), "--save-frames: cannot create ", dir.string());
+  for (std::size_t h = 0; h < frames.size(); ++h) {
+    char name[32];
+    std::snprintf(name, sizeof name, "frame_%04zu.png", h);
+    io::write_png((dir / name).string(), frames[h]);
+  }
+}
+
 inline void score_video(ClipScores& s, const eval::EvalClip& c, const History& window,
                         const std::vector<io::Image>& history, std::uint64_t seed, const EvalContext& e) {
   const auto N = static_cast<std::size_t>(e.opt.horizon);
   const std::vector<io::Image> generated = roll_out_under(window, c.future_motions->slice(0, N), seed, e);
   const std::vector<io::Image> truth = read_frames(c.future_frames, 0, N, e);
+  if (e.opt.save_frames) save_frames(*e.opt.save_frames / c.name, generated);
   const io::Image& last = eval::repeat_last_frame(history);
   for (std::size_t h = 0; h < N; ++h) {
     s.psnr.push_back(eval::psnr(generated[h], truth[h]));
@@ -217,7 +240,7 @@ inline void score_control(ClipScores& s, const eval::EvalClip& c, const History&
 }
 
 inline ClipScores evaluate_clip(const eval::EvalClip& c, std::uint64_t seed, const EvalContext& e) {
-  ClipScores s{c.name, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}};
+  ClipScores s{c.name, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}};
   const auto F = static_cast<std::size_t>(e.wc.condition_frames);
   const std::vector<io::Image> history = read_frames(c.frames, c.frames.size() - F, F, e);
   const io::PoseSequence poses = c.poses.slice(c.poses.size() - F, F);
@@ -327,12 +350,23 @@ inline nlohmann::ordered_json clip_json(const ClipScores& c) {
   j["repeat_last_psnr"] = numbers(c.repeat_psnr), j["repeat_last_ssim"] = numbers(c.repeat_ssim);
   j["autoencoder_psnr"] = numbers(c.ae_psnr), j["autoencoder_ssim"] = numbers(c.ae_ssim);
   j["control_shift_px"] = c.control ? nlohmann::ordered_json(c.control->shift.shift) : nullptr;
+  auto waypoints = nlohmann::ordered_json::array();  // the planned waypoints, to compare samplers
+  for (std::int64_t w = 0; w < c.plan.numel() / 3; ++w)
+    waypoints.push_back({c.plan.data()[3 * w], c.plan.data()[3 * w + 1], c.plan.data()[3 * w + 2]});
+  j["trajectory"] = c.plan.empty() ? nlohmann::ordered_json(nullptr) : waypoints;
   return j;
 }
 
 inline nlohmann::ordered_json settings_json(const ParsedArgs& a, const ModelFiles& f, const ComputeOptions& c,
                                             const EvalOptions& o, const WorldModelConfig& wc) {
+  const auto sampler = [](const flow::SolverSetting& s) {
+    return nlohmann::ordered_json{{"solver", flow::solver_name(s.kind)}, {"steps", s.steps}, {"evaluations", s.evaluations()}};
+  };
   return {{"steps", *o.sample.steps},
+          {"sampler", a.text("sampler", "official")},
+          {"solver", flow::solver_name(o.sample.solver)},
+          {"plan_sampler", sampler(o.samplers.plan)},
+          {"video_sampler", sampler(o.samplers.video)},
           {"seed", o.sample.seed},
           {"seed_rule", "clip i (0-based, in clip order) uses seed + i, for its plan, its rollout and both control rollouts"},
           {"horizon", o.horizon},
@@ -478,8 +512,8 @@ inline int run_eval(const ParsedArgs& a, const Console& con) {
   EPONA_CHECK(!opt.plan || wc.traj_len >= std::int64_t(eval::kPlanWaypoints), "eval: the model plans ", wc.traj_len,
               " waypoint(s); L2 at 1/2/3 s needs ", eval::kPlanWaypoints, " (or pass --no-plan)");
   const std::vector<eval::EvalClip> clips = read_clip_set(opt, wc);  // every clip checked before any work
-  con.note("evaluating ", clips.size(), " clip(s) from ", opt.clips.string(), ": ", *opt.sample.steps,
-           " sampling steps, seed ", opt.sample.seed, " + clip index",
+  con.note("evaluating ", clips.size(), " clip(s) from ", opt.clips.string(), ": ",
+           describe(opt.samplers, opt.plan, opt.video || opt.control), ", seed ", opt.sample.seed, " + clip index",
            opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"),
            opt.control ? ", control at +-" + std::to_string(opt.control_yaw) + " deg" : std::string());
 

@@ -145,8 +145,9 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   const ModelFiles files = resolve_models(a, true, true);
   const WorldModelConfig& wc = files.configs.world;
   RolloutPlan plan;
-  plan.steps = *sample_options(a, wc).steps;
-  plan.seed = sample_options(a, wc).seed;
+  const SampleOptions sample = sample_options(a, wc);
+  plan.samplers = samplers_of(sample);
+  plan.seed = sample.seed;
   plan.actions = read_step_actions(a);
   plan.frames = frames_to_generate(a, plan.actions);
   plan.keep_latents = a.flag("latents");
@@ -162,7 +163,7 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   engine->load_world(files, con);
   const DcaeConfig& dc = engine->dcae_config();
   plan.clip_len = clip_decode && dc.add_decoder_temporal ? dc.condition_frames : 1;
-  con.note("generating ", plan.frames, " frame(s): ", plan.steps, " sampling steps, seed ", plan.seed, ", ",
+  con.note("generating ", plan.frames, " frame(s): ", describe(plan.samplers, !plan.actions), ", seed ", plan.seed, ", ",
            plan.actions ? "actions from " + *a.get("trajectory") : std::string("self-predicted trajectory"), ", decoded ",
            plan.clip_len > 1 ? "in clips of " + std::to_string(plan.clip_len) : std::string("frame by frame"));
 

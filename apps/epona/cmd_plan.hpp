@@ -60,7 +60,7 @@ inline int run_plan(const ParsedArgs& a, const Console& con) {
   cpu::Context ctx(compute.threads);
   const History history = make_history(ctx, latents, clip.poses);
   engine->load_world(files, con);
-  con.note("planning: ", *sample.steps, " sampling steps, seed ", sample.seed);
+  con.note("planning: ", describe(samplers_of(sample), true, false), ", seed ", sample.seed);
   const auto t0 = std::chrono::steady_clock::now();
   const Tensor<float> plan = engine->plan(history, sample);  // (1, traj_len, 3)
   con.note("  planned in ", seconds_since(t0), " s");

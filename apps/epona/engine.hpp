@@ -33,8 +33,12 @@ class Engine {
   virtual Tensor<float> decode(const Tensor<float>& latents, bool is_video) = 0;
   // WorldModel::plan and WorldModel::run_step (one step drawing from `noise`; want_latent = true).
   virtual Tensor<float> plan(const History& window, const SampleOptions& opt) = 0;
-  virtual StepResult step(const History& window, const NextAction* action, std::int64_t steps,
+  virtual StepResult step(const History& window, const NextAction* action, const DitSamplers& samplers,
                           NoiseSource& noise) = 0;
+  // The official sampler: `steps` Euler steps for both DiTs.
+  StepResult step(const History& window, const NextAction* action, std::int64_t steps, NoiseSource& noise) {
+    return step(window, action, DitSamplers::euler(steps), noise);
+  }
 };
 
 template <class B, class W>
@@ -60,8 +64,10 @@ class ModelEngine final : public Engine {
     return to_host(dcae().decode(ctx_, BackendTraits<B>::upload(latents), is_video));
   }
   Tensor<float> plan(const History& window, const SampleOptions& opt) override { return world().plan(window, opt); }
-  StepResult step(const History& window, const NextAction* action, std::int64_t steps, NoiseSource& noise) override {
-    return world().run_step(window, action, true, steps, noise, {});
+  using Engine::step;
+  StepResult step(const History& window, const NextAction* action, const DitSamplers& samplers,
+                  NoiseSource& noise) override {
+    return world().run_step(window, action, true, samplers, noise, {});
   }
 
  private:

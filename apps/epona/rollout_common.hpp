@@ -49,7 +49,8 @@ inline NextAction action_at(const io::PoseSequence& p, std::size_t i) {
 
 // What drives a rollout, and what it keeps.
 struct RolloutPlan {
-  std::int64_t frames = 0, steps = 0, clip_len = 1;  // clip_len: latents decoded together
+  std::int64_t frames = 0, clip_len = 1;  // clip_len: latents decoded together
+  DitSamplers samplers;                   // each DiT's solver and steps
   std::uint64_t seed = 0;
   std::optional<io::PoseSequence> actions;  // one per step; none: self-predicted
   bool keep_latents = false;
@@ -74,7 +75,7 @@ inline RolloutLog roll_out(Engine& engine, cpu::Context& ctx, History window, co
   Progress bar(con, "generate", p.frames, "frame");
   for (std::int64_t i = 0; i < p.frames; ++i) {
     const auto act = p.actions ? std::optional(action_at(*p.actions, std::size_t(i))) : std::nullopt;
-    const StepResult r = engine.step(window, act ? &*act : nullptr, p.steps, noise);
+    const StepResult r = engine.step(window, act ? &*act : nullptr, p.samplers, noise);
     const Tensor<float> used = log.steps[i].reshape({1, W, 3});  // what drove this step
     if (act) {
       used.data()[0] = act->rel_pose.data()[0], used.data()[1] = act->rel_pose.data()[1];

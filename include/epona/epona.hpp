@@ -17,6 +17,7 @@
 
 #include "epona/flow/euler.hpp"
 #include "epona/flow/schedule.hpp"
+#include "epona/flow/solvers.hpp"
 
 #include "epona/io/config_json.hpp"
 #include "epona/io/image.hpp"

@@ -140,6 +140,11 @@ TEST_CASE("usage errors exit 1 with 'epona: error:' and name the problem") {
   check_error(cli({"plan", "--steps", "ten"}), "--steps needs an integer, got 'ten'");
   check_error(cli({"plan", "--steps=3x"}), "--steps needs an integer");
   check_error(cli({"plan", "--seed", "-1"}), "--seed must be at least 0, got -1");
+  check_error(cli({"plan", "--solver", "rk4"}), "--solver: unknown solver 'rk4' (one of euler, heun, midpoint, dpmpp2m)");
+  check_error(cli({"plan", "--sampler", "turbo"}), "--sampler must be one of official, fast; got 'turbo'");
+  check_error(cli({"plan", "--plan-steps", "0"}), "--plan-steps must be in [1, 100000], got 0");
+  check_error(cli({"generate", "--video-steps", "100001"}), "--video-steps must be in [1, 100000], got 100001");
+  check_error(cli({"eval", "--clips", ".", "--json", "r.json", "--solver", "Euler"}), "unknown solver 'Euler'");
   check_error(cli({"plan", "--seed", "1", "--seed", "2"}), "--seed given more than once");
   check_error(cli({"plan", "--quiet=yes"}), "--quiet takes no value");
   check_error(cli({"plan", "extra"}), "unexpected argument 'extra'");

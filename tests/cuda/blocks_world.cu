@@ -487,6 +487,54 @@ void dit_network(bool vis) {
   gpu_dit.set_sampler_options({});
 }
 
+// A whole DiT (batch 2) sampled with each higher-order flow solver, 6 steps: CPU float32 vs the
+// GPU's recorded graph (its scratch states taken before the capture), run twice (the second
+// replays the graph), one capture per solver; sample_bytes covers what sample takes.
+template <class W>
+void dit_solvers(bool vis) {
+  const auto& c = config();
+  const auto dc = vis ? model::FluxDitConfig::vis(c) : model::FluxDitConfig::traj(c);
+  const std::string prefix = vis ? "module.dit." : "module.traj_dit.", name = vis ? "vis" : "traj";
+  model::FluxDiT<Cpu, float> cpu_dit(dc);
+  model::FluxDiT<Cuda, W> gpu_dit(dc);
+  bind(cpu_dit, prefix);
+  bind(gpu_dit, prefix);
+  const auto ids = model::prepare_ids(kBatch, c.latent_h(), c.latent_w(), c.tokens_per_frame(), c.traj_len);
+  const auto& target_ids = vis ? ids.img : ids.traj;
+  const std::int64_t Lx = target_ids.size(1), steps = 6;
+  const model::JointRows rows{c.tokens_per_frame(), Lx};
+  const auto cond = test::random_tensor({kBatch, rows.cond, c.n_embd}, 41, -2.f, 2.f);
+  const auto y = test::random_tensor({kBatch, c.pose_emb_dim()}, 42, -2.f, 2.f);
+  const auto x = test::random_tensor({kBatch, Lx, dc.in_channels}, 43, -2.f, 2.f);
+  const auto grid = flow::get_schedule(steps, Lx);
+  const std::string tag = std::is_same_v<W, float> ? " (GPU f32 vs CPU)" : " (GPU bf16 vs CPU f32)";
+  const auto dcond = upload<float>(cond), dy = upload<float>(y);
+  for (const auto kind : {flow::SolverKind::heun, flow::SolverKind::midpoint, flow::SolverKind::dpmpp2m}) {
+    const std::string what = name + " DiT " + flow::solver_name(kind) + " x 6 steps, batch 2";
+    auto sample_cpu = x.clone();
+    {
+      Arena<Cpu> arena(cpu_dit.conditioning_bytes(kBatch, rows) + cpu_dit.sample_bytes(kBatch, rows, steps, kind));
+      const auto cc = cpu_dit.prepare(cpu_ctx(), arena, cond, ids.cond, target_ids, y);
+      cpu_dit.sample(cpu_ctx(), arena, cc, grid, sample_cpu, kind);
+    }
+    Arena<Cuda> arena(gpu_dit.conditioning_bytes(kBatch, rows) + gpu_dit.sample_bytes(kBatch, rows, steps, kind));
+    const auto captures_before = gpu_dit.sampler_graph().captures();
+    Tensor<float, Cpu> first;
+    for (int run = 0; run < 2; ++run) {
+      poison_arena(arena);
+      auto state = upload<float>(x);
+      ArenaScope<Cuda> scope(arena);
+      const auto gc = gpu_dit.prepare(gpu(), arena, dcond, ids.cond, target_ids, dy);
+      gpu_dit.sample(gpu(), arena, gc, grid, state, kind);
+      const auto sampled = download(state);
+      expect_close(what + ", run " + std::to_string(run) + tag, sampled, sample_cpu, bound<W>(name + ".sample.out", 1e-4));
+      if (run == 0) first = sampled;
+      else CHECK(test::count_bit_differences(first, sampled) == 0);  // the replay gives the recording's bits
+    }
+    if (cuda::graphs_enabled()) CHECK(gpu_dit.sampler_graph().captures() == captures_before + 1);
+  }
+}
+
 }  // namespace
 
 TEST_CASE("MST on the GPU vs the CPU, block by block (batch 2): float32 and bf16") {
@@ -500,6 +548,14 @@ TEST_CASE("VisDiT and TrajDiT networks on the GPU vs the CPU (batch 2): forward 
   for (const bool vis : {false, true}) {
     dit_network<float>(vis);
     dit_network<bf16>(vis);
+  }
+}
+
+TEST_CASE("VisDiT and TrajDiT sampled with Heun, midpoint and DPM-Solver++(2M) on the GPU vs the CPU") {
+  EPONA_REQUIRE_GPU();
+  for (const bool vis : {false, true}) {
+    dit_solvers<float>(vis);
+    dit_solvers<bf16>(vis);
   }
 }
 
@@ -518,4 +574,24 @@ TEST_CASE("world-model steps on the GPU vs the CPU: plan and predict_next with a
   const auto r_cpu = cpu_wm.predict_next(h, a, opt), r_gpu = gpu_wm.predict_next(h, a, opt);
   CHECK(r_gpu.trajectory.empty());
   expect_close("predict_next latent, given action (GPU f32 vs CPU)", r_gpu.latent, r_cpu.latent, 1e-4);
+}
+
+TEST_CASE("world-model steps with per-DiT solvers on the GPU vs the CPU (float32): the engine's --solver path") {
+  EPONA_REQUIRE_GPU();
+  const auto& c = config();
+  auto cpu_wm = WorldModel<Cpu, float>::load(weights(), c);
+  auto gpu_wm = WorldModel<Cuda, float>::load(weights(), c);
+  const History h{test::random_tensor({1, c.condition_frames, c.img_tokens(), c.token_dim()}, 61, -2.f, 2.f),
+                  scaled(test::random_tensor({1, c.condition_frames, 2}, 62, 0.f, 1.f), 4.f),
+                  test::random_tensor({1, c.condition_frames, 1}, 63)};
+  SampleOptions opt;
+  opt.seed = 9, opt.plan_solver = flow::SolverKind::midpoint, opt.plan_steps = 5;
+  opt.video_solver = flow::SolverKind::dpmpp2m, opt.video_steps = 7;
+  for (int run = 0; run < 2; ++run) {  // the second replays both DiTs' recorded loops
+    const auto r_cpu = cpu_wm.predict_next(h, std::nullopt, opt), r_gpu = gpu_wm.predict_next(h, std::nullopt, opt);
+    expect_close("self-predicted step, midpoint x 5 / dpmpp2m x 7, trajectory (GPU f32 vs CPU)", r_gpu.trajectory,
+                 r_cpu.trajectory, 1e-4);
+    expect_close("self-predicted step, midpoint x 5 / dpmpp2m x 7, latent (GPU f32 vs CPU)", r_gpu.latent, r_cpu.latent,
+                 1e-4);
+  }
 }

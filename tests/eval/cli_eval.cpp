@@ -3,8 +3,9 @@
 // motions, one with boxes.json), every required JSON key with finite values of the right
 // lengths, the constant-velocity L2 and collision rates against a hand computation, --limit not
 // changing a clip's result, collision_rate null without boxes, --control's block consistent with
-// its per-clip shifts (and a clip folder alone read as a set of one), and bad inputs failing with
-// the clip and file named and no report written.
+// its per-clip shifts (and a clip folder alone read as a set of one), bad inputs failing with
+// the clip and file named and no report written, and the sampling options: each DiT's solver and
+// steps in "settings", the plan per clip, --save-frames, Euler by name equal to the default.
 #include <doctest/doctest.h>
 
 #include <cmath>
@@ -254,3 +255,45 @@ TEST_CASE("eval: bad inputs fail naming the clip and file, and write no report")
 
 // The one translation unit of this test program that compiles stb.
 #include "epona/io/stb_implementation.hpp"
+
+TEST_CASE("eval --solver/--plan-steps/--video-steps: settings, plans per clip, saved frames; Euler by name is the default") {
+  TempDir t;
+  const fs::path set = make_clip_set(t), plain = t.path / "plain.json", named = t.path / "named.json",
+                 mid = t.path / "mid.json", frames = t.path / "frames";
+  REQUIRE(cli(eval_args(set, plain)).rc == 0);
+  auto args = eval_args(set, named);
+  args.insert(args.end(), {"--solver", "euler"});
+  REQUIRE(cli(args).rc == 0);
+  const json a = read_json(plain), b = read_json(named);
+  CHECK(a["model"] == b["model"]);
+  CHECK(a["per_clip"] == b["per_clip"]);
+  CHECK(a["settings"]["plan_sampler"] == json{{"solver", "euler"}, {"steps", 2}, {"evaluations", 2}});
+
+  args = eval_args(set, mid);
+  args.insert(args.end(), {"--solver", "midpoint", "--plan-steps", "3", "--video-steps", "1", "--save-frames", frames.string()});
+  const Result r = cli(args);
+  INFO(r.err);
+  REQUIRE(r.rc == 0);
+  const json m = read_json(mid);
+  CHECK(m["settings"]["solver"] == "midpoint");
+  CHECK(m["settings"]["sampler"] == "official");
+  CHECK(m["settings"]["plan_sampler"] == json{{"solver", "midpoint"}, {"steps", 3}, {"evaluations", 6}});
+  CHECK(m["settings"]["video_sampler"] == json{{"solver", "midpoint"}, {"steps", 1}, {"evaluations", 2}});
+  for (const auto& c : m["per_clip"]) {
+    REQUIRE(c["trajectory"].is_array());
+    CHECK(c["trajectory"].size() == 15);
+    for (int h = 0; h < 2; ++h)
+      CHECK(fs::exists(frames / c["name"].get<std::string>() / ("frame_000" + std::to_string(h) + ".png")));
+  }
+  CHECK(m["per_clip"][0]["trajectory"] != a["per_clip"][0]["trajectory"]);  // another sampler, another plan
+
+  // --sampler fast, its video steps overridden; the note says what runs
+  args = eval_args(set, mid);
+  args.pop_back();  // -q: keep the notes
+  args.insert(args.end(), {"--sampler", "fast", "--video-steps", "1", "--no-plan"});
+  const Result f = cli(args);
+  INFO(f.err);
+  REQUIRE(f.rc == 0);
+  CHECK(has(f.err, "video midpoint x 1 steps (2 DiT evaluations)"));
+  CHECK(read_json(mid)["settings"]["sampler"] == "fast");
+}

@@ -22,7 +22,7 @@
 #include "epona/core/env.hpp"
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
-#include "epona/flow/euler.hpp"
+#include "epona/flow/solvers.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
 #include "epona/model/dit_blocks.hpp"
@@ -148,13 +148,15 @@ class FluxDiT {
     plan_velocity(c, rows);
     return c.bytes();
   }
-  // Everything sample() takes on top of its conditioning.
-  std::size_t sample_bytes(std::int64_t batch, const JointRows& rows, std::int64_t steps) const {
+  // Everything sample() takes on top of its conditioning, for `steps` steps of `solver`.
+  std::size_t sample_bytes(std::int64_t batch, const JointRows& rows, std::int64_t steps,
+                           flow::SolverKind solver = flow::SolverKind::euler) const {
     ArenaCounter<B> v;
     v.template take<A>({batch, rows.target, cfg_.out_channels});
     if (kConvertInputs) v.template take<A>({batch, rows.target, cfg_.in_channels});
     plan_front(v, batch, rows);
-    const auto m = modulation_sizes(batch, steps);
+    for (int j = 0; j < flow::solver_scratch_states(solver); ++j) v.template take<float>({batch, rows.target, cfg_.in_channels});
+    const auto m = modulation_sizes(batch, flow::solver_evaluations(solver, steps));
     return m.kept + std::max(m.scratch, v.bytes() + velocity_bytes(rows));
   }
   // Everything forward() takes.
@@ -236,35 +238,13 @@ class FluxDiT {
     velocity(ctx, arena, c, m, 0, x, out);
   }
 
-  // Euler sampling from the noise in x (batch, Lx, in) to the sample, in place, over `grid`.
-  // The loop enqueues no host work: on the GPU it is recorded once and replayed as a graph.
+  // Samples from the noise in x (batch, Lx, in) to the sample, in place, over `grid` with
+  // `solver` (the official: Euler). The loop enqueues no host work: on the GPU it is recorded
+  // once and replayed as a graph; the solver's scratch states are taken before the recording.
   void sample(Context& ctx, Arena<B>& arena, const Conditioning& c, const std::vector<float>& grid,
-              Tensor<float, B>& x) const {
+              Tensor<float, B>& x, flow::SolverKind solver = flow::SolverKind::euler) const {
     EPONA_CHECK(cfg_.in_channels == cfg_.out_channels, "DiT sampling needs in_channels == out_channels");
-    const flow::RectifiedFlowEuler<B> euler(grid);
-    const std::int64_t steps = euler.steps();
-    ArenaScope<B> scope(arena);
-    Tensor<float, Cpu> t({c.batch, steps});
-    for (std::int64_t b = 0; b < c.batch; ++b) std::copy_n(grid.data(), steps, t[b].data());  // t_0 .. t_{N-1}
-    const Modulations m = modulations(ctx, arena, c, t);
-    auto v = arena.template take<A>({c.batch, c.rows.target, cfg_.out_channels});
-    Tensor<A, B> x_cast;  // the state rounded to the GEMM type, updated by each Euler step
-    if constexpr (kConvertInputs) x_cast = arena.template take<A>(x.shape());
-    ConditionFront front = plan_front(arena, c.batch, c.rows);
-    GraphKey key{address(this), address(x.data()), address(v.data()), address(c.cond.data()), address(m.table.data()),
-                 arena.mark(), static_cast<std::uint64_t>(c.batch), static_cast<std::uint64_t>(c.rows.cond),
-                 static_cast<std::uint64_t>(c.rows.target)};
-    for (float g : grid) key.push_back(std::bit_cast<std::uint32_t>(g));
-    graph_.run(ctx, key, [&] {
-      front.issued = -1;
-      const auto step = [&](std::int64_t i, float, const auto& state, Tensor<A, B>& vel) {
-        evaluate(ctx, arena, c, m, i, state, vel, front.qkv.empty() ? nullptr : &front);
-      };
-      if constexpr (kConvertInputs)
-        euler.sample_cast(ctx, x, x_cast, v, step);
-      else
-        euler.sample(ctx, x, v, step);
-    });
+    flow::with_solver<B>(solver, grid, [&](const auto& s) { sample_with(ctx, arena, c, s, solver, x); });
   }
 
   const SamplerOptions& sampler_options() const { return options_; }
@@ -297,6 +277,39 @@ class FluxDiT {
 
  private:
   using Scratch = DitScratch<B, A>;
+  // sample() for one solver: the modulations of every evaluation time (k of the velocity
+  // contract indexes them), the velocity, the cast state and the solver's scratch, then the loop.
+  template <class Solver>
+  void sample_with(Context& ctx, Arena<B>& arena, const Conditioning& c, const Solver& solver, flow::SolverKind kind,
+                   Tensor<float, B>& x) const {
+    const auto& times = solver.evaluation_times();
+    const auto evaluations = static_cast<std::int64_t>(times.size());
+    ArenaScope<B> scope(arena);
+    Tensor<float, Cpu> t({c.batch, evaluations});
+    for (std::int64_t b = 0; b < c.batch; ++b) std::copy_n(times.data(), evaluations, t[b].data());
+    const Modulations m = modulations(ctx, arena, c, t);
+    auto v = arena.template take<A>({c.batch, c.rows.target, cfg_.out_channels});
+    Tensor<A, B> x_cast;  // the state rounded to the GEMM type, updated by each step
+    if constexpr (kConvertInputs) x_cast = arena.template take<A>(x.shape());
+    ConditionFront front = plan_front(arena, c.batch, c.rows);
+    flow::SolverScratch<B> scratch;
+    for (int j = 0; j < Solver::scratch_states; ++j) scratch.states[j] = arena.template take<float>(x.shape());
+    GraphKey key{address(this), address(x.data()), address(v.data()), address(c.cond.data()), address(m.table.data()),
+                 arena.mark(), static_cast<std::uint64_t>(c.batch), static_cast<std::uint64_t>(c.rows.cond),
+                 static_cast<std::uint64_t>(c.rows.target), static_cast<std::uint64_t>(kind)};
+    for (float g : solver.grid) key.push_back(std::bit_cast<std::uint32_t>(g));
+    graph_.run(ctx, key, [&] {
+      front.issued = -1;
+      const auto velocity = [&](std::int64_t k, float, const auto& state, Tensor<A, B>& vel) {
+        evaluate(ctx, arena, c, m, k, state, vel, front.qkv.empty() ? nullptr : &front);
+      };
+      if constexpr (kConvertInputs)
+        solver.sample_cast(ctx, x, x_cast, v, velocity, scratch);
+      else
+        solver.sample(ctx, x, v, velocity, scratch);
+    });
+  }
+
   // Bytes a stage keeps (its result) and the scratch it releases on return.
   struct Sizes {
     std::size_t kept = 0, scratch = 0;

@@ -76,8 +76,8 @@ RolloutResult rollout(WorldModel<B, W>& wm, History window, const RolloutOptions
                       const std::type_identity_t<std::function<void(const RolloutFrame<B>&)>>& on_frame = {}) {
   EPONA_CHECK(opt.frames >= 1 && opt.frames <= constants::max_rollout_frames, "rollout frames must be in [1, ",
               constants::max_rollout_frames, "], got ", opt.frames);
-  const std::int64_t steps = wm.steps_of(opt.sample);
-  const std::int64_t Bt = wm.validate(window, nullptr, steps);
+  const DitSamplers samplers = wm.samplers_of(opt.sample);
+  const std::int64_t Bt = wm.validate(window, nullptr, samplers);
   NoiseSource noise = WorldModel<B, W>::noise_for(opt.sample);
   noise.require(opt.frames, wm.traj_noise_shape(Bt), opt.frames, wm.latent_noise_shape(Bt));
   const auto& cfg = wm.config();
@@ -85,7 +85,7 @@ RolloutResult rollout(WorldModel<B, W>& wm, History window, const RolloutOptions
                     Tensor<float, Cpu>({opt.frames, Bt, cfg.img_tokens(), cfg.token_dim()}), {}};
   for (std::int64_t i = 0; i < opt.frames; ++i) {
     StepDetails<B> details;
-    const StepResult r = wm.run_step(window, nullptr, true, steps, noise, [&](const StepDetails<B>& d) { details = d; });
+    const StepResult r = wm.run_step(window, nullptr, true, samplers, noise, [&](const StepDetails<B>& d) { details = d; });
     std::memcpy(out.trajectories[i].data(), r.trajectory.data(), r.trajectory.nbytes());
     std::memcpy(out.latents[i].data(), r.latent.data(), r.latent.nbytes());
     slide_window(window, r.latent, r.trajectory);

@@ -20,6 +20,7 @@
 #include "epona/core/rng.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/flow/schedule.hpp"
+#include "epona/flow/solvers.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
@@ -96,11 +97,37 @@ class NoiseSource {
   std::int64_t traj_drawn_ = 0, latent_drawn_ = 0;
 };
 
+// Which flow solver each DiT samples with, and how many steps (the planner's TrajDiT and the
+// video's VisDiT need not share them).
+struct DitSamplers {
+  flow::SolverSetting plan, video;
+  // The official sampler: `steps` Euler steps for both.
+  static DitSamplers euler(std::int64_t steps) { return {{flow::SolverKind::euler, steps}, {flow::SolverKind::euler, steps}}; }
+};
+
 struct SampleOptions {
-  std::optional<std::int64_t> steps;  // Euler steps of each DiT; default the config's num_sampling_steps
+  std::optional<std::int64_t> steps;  // steps of each DiT; default the config's num_sampling_steps
+  std::optional<std::int64_t> plan_steps, video_steps;  // one DiT's steps, overriding `steps`
+  flow::SolverKind solver = flow::SolverKind::euler;    // each DiT's solver (the official: Euler)
+  std::optional<flow::SolverKind> plan_solver, video_solver;  // one DiT's, overriding `solver`
   std::uint64_t seed = 0;             // noise from TorchGenerator(seed) ...
   std::optional<NoiseSource> noise;   // ... unless a source is given
 };
+
+// Each DiT's solver and steps: its own if given, else the shared ones (steps: else `default_steps`,
+// the config's num_sampling_steps). Throws on a step count outside [1, max_sampling_steps].
+inline void check_samplers(const DitSamplers& s) {
+  check_sampling_steps(s.plan.steps, "planner (TrajDiT) sampling steps");
+  check_sampling_steps(s.video.steps, "video (VisDiT) sampling steps");
+}
+inline DitSamplers samplers_for(const SampleOptions& opt, std::int64_t default_steps) {
+  const std::int64_t steps = opt.steps.value_or(default_steps);
+  check_sampling_steps(steps);
+  DitSamplers s{{opt.plan_solver.value_or(opt.solver), opt.plan_steps.value_or(steps)},
+                {opt.video_solver.value_or(opt.solver), opt.video_steps.value_or(steps)}};
+  check_samplers(s);
+  return s;
+}
 
 struct StepResult {
   Tensor<float, Cpu> trajectory;  // (Bt, traj_len, 3) metres/degrees; empty when the action was given
@@ -157,23 +184,28 @@ class WorldModel {
   // traj_only: the planned trajectory (Bt, traj_len, 3) in metres/degrees.
   Tensor<float, Cpu> plan(const History& h, const SampleOptions& opt = {}) {
     NoiseSource noise = noise_for(opt);
-    return run_step(h, nullptr, /*want_latent=*/false, steps_of(opt), noise, {}).trajectory;
+    return run_step(h, nullptr, /*want_latent=*/false, samplers_of(opt), noise, {}).trajectory;
   }
 
   // The next frame's latent. With `action`: the VisDiT is conditioned on it and no trajectory is
   // sampled; without: the TrajDiT plans first and its first waypoint is the action.
   StepResult predict_next(const History& h, const std::optional<NextAction>& action, const SampleOptions& opt = {}) {
     NoiseSource noise = noise_for(opt);
-    return run_step(h, action ? &*action : nullptr, true, steps_of(opt), noise, {});
+    return run_step(h, action ? &*action : nullptr, true, samplers_of(opt), noise, {});
   }
 
-  // One generation step drawing from `noise` (the rollout's shared source).
+  // One generation step drawing from `noise` (the rollout's shared source), `steps` Euler steps.
   StepResult run_step(const History& h, const NextAction* action, bool want_latent, std::int64_t steps,
                       NoiseSource& noise, const StepObserver& observe) {
-    const std::int64_t Bt = validate(h, action, steps);
+    return run_step(h, action, want_latent, DitSamplers::euler(steps), noise, observe);
+  }
+  // The same with each DiT's solver and steps.
+  StepResult run_step(const History& h, const NextAction* action, bool want_latent, const DitSamplers& samplers,
+                      NoiseSource& noise, const StepObserver& observe) {
+    const std::int64_t Bt = validate(h, action, samplers);
     const bool want_traj = action == nullptr;
     noise.require(want_traj ? 1 : 0, traj_noise_shape(Bt), want_latent ? 1 : 0, latent_noise_shape(Bt));
-    reserve_arena(Bt, steps);
+    reserve_arena(Bt, samplers);
     arena_.reset();
     StepResult result;
     StepDetails<B> details;
@@ -186,13 +218,13 @@ class WorldModel {
     const auto ids = prepare_ids(Bt, cfg_.latent_h(), cfg_.latent_w(), cfg_.tokens_per_frame(), cfg_.traj_len);
     if (want_traj) {
       result.trajectory = sample(traj_, details, ids.cond, ids.traj, noise.trajectory(traj_noise_shape(Bt)),
-                                 cfg_.traj_len, steps);
+                                 cfg_.traj_len, samplers.plan);
       TrajectoryScale::from(cfg_).denormalize(result.trajectory);
     }
     if (want_latent) {
       if (want_traj) embed_first_waypoint(result.trajectory, details);
       result.latent = sample(vis_, details, ids.cond, ids.img, noise.latent(latent_noise_shape(Bt)),
-                             cfg_.img_tokens(), steps);
+                             cfg_.img_tokens(), samplers.video);
     }
     if (observe) observe(details);
     return result;
@@ -203,6 +235,8 @@ class WorldModel {
     check_sampling_steps(steps);
     return steps;
   }
+  // Each DiT's solver and steps (samplers_for with the config's num_sampling_steps).
+  DitSamplers samplers_of(const SampleOptions& opt) const { return samplers_for(opt, cfg_.num_sampling_steps); }
   static NoiseSource noise_for(const SampleOptions& opt) {
     return opt.noise ? *opt.noise : NoiseSource::seeded(opt.seed);
   }
@@ -212,7 +246,10 @@ class WorldModel {
   // Checks a window (and action) against the configuration; returns the batch size. Throws
   // (naming the problem) on any wrong shape or non-finite value, before any work.
   std::int64_t validate(const History& h, const NextAction* action, std::int64_t steps) const {
-    check_sampling_steps(steps);
+    return validate(h, action, DitSamplers::euler(steps));
+  }
+  std::int64_t validate(const History& h, const NextAction* action, const DitSamplers& samplers) const {
+    check_samplers(samplers);
     EPONA_CHECK(!h.latents.empty() && h.latents.dim() == 4, "history latents must be (B, F, L, C), got ",
                 shape_str(h.latents.shape()));
     const std::int64_t Bt = h.latents.size(0), F = cfg_.condition_frames;
@@ -244,7 +281,7 @@ class WorldModel {
   }
 
   // Arena bytes of one step: the step's persistent tensors plus its largest stage.
-  std::size_t step_bytes(std::int64_t Bt, std::int64_t steps) const {
+  std::size_t step_bytes(std::int64_t Bt, const DitSamplers& s) const {
     ArenaCounter<B> persistent;
     persistent.template take<float>({Bt, cfg_.condition_frames, cfg_.img_tokens(), cfg_.token_dim()});
     persistent.template take<float>({Bt, cfg_.tokens_per_frame(), cfg_.n_embd});
@@ -254,16 +291,16 @@ class WorldModel {
     const JointRows traj_rows{cfg_.tokens_per_frame(), cfg_.traj_len}, img_rows{cfg_.tokens_per_frame(), cfg_.img_tokens()};
     const std::size_t stages[] = {
         mst_.evaluate_workspace_bytes(), mst_.pose_emb_workspace_bytes(),
-        traj_.conditioning_bytes(Bt, traj_rows) + traj_.sample_bytes(Bt, traj_rows, steps),
-        vis_.conditioning_bytes(Bt, img_rows) + vis_.sample_bytes(Bt, img_rows, steps)};
+        traj_.conditioning_bytes(Bt, traj_rows) + traj_.sample_bytes(Bt, traj_rows, s.plan.steps, s.plan.kind),
+        vis_.conditioning_bytes(Bt, img_rows) + vis_.sample_bytes(Bt, img_rows, s.video.steps, s.video.kind)};
     std::size_t largest = 0;
     for (auto s : stages) largest = std::max(largest, s);
     return persistent.bytes() + largest;
   }
-  // Grows the arena only when the batch or step count grows (never inside a sampling loop).
-  void reserve_arena(std::int64_t Bt, std::int64_t steps) {
+  // Grows the arena only when the batch or evaluation count grows (never inside a sampling loop).
+  void reserve_arena(std::int64_t Bt, const DitSamplers& s) {
     arena_.reset();
-    arena_.reserve(step_bytes(Bt, steps));
+    arena_.reserve(step_bytes(Bt, s));
   }
 
   // Indices of the F+1 action entries: the window's F, then the given action or (self-predicted,
@@ -298,15 +335,16 @@ class WorldModel {
     mst_.get_pose_emb(*ctx_, arena_, d.pred_pose_idx, d.pred_yaw_idx, d.pose_emb);
   }
 
-  // Samples one DiT from `noise` over get_schedule(steps, seq_len); returns the host result.
+  // Samples one DiT from `noise` over get_schedule(steps, seq_len) with the setting's solver;
+  // returns the host result.
   Tensor<float, Cpu> sample(const FluxDiT<B, W>& dit, const StepDetails<B>& d, const Tensor<float, Cpu>& cond_ids,
                             const Tensor<float, Cpu>& target_ids, const Tensor<float, Cpu>& noise,
-                            std::int64_t seq_len, std::int64_t steps) {
+                            std::int64_t seq_len, const flow::SolverSetting& setting) {
     auto state = arena_.template take<float>(noise.shape());
     BackendTraits<B>::upload_into(*ctx_, noise, state);
     ArenaScope<B> scope(arena_);
     const auto c = dit.prepare(*ctx_, arena_, d.stt_features, cond_ids, target_ids, d.pose_emb);
-    dit.sample(*ctx_, arena_, c, flow::get_schedule(steps, seq_len), state);
+    dit.sample(*ctx_, arena_, c, flow::get_schedule(setting.steps, seq_len), state, setting.kind);
     Tensor<float, Cpu> out(noise.shape());
     BackendTraits<B>::download_into(*ctx_, state, out);
     return out;
