@@ -23,6 +23,12 @@ epona=.device-build/pkg/epona
 export PYTHONUNBUFFERED=1 LD_LIBRARY_PATH=$PWD/.device-build/pkg/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
 train() { python3 training/train.py "$@" --official "$official" --work "$work" --data "$work/data"; }
 
+# Clips of the synthetic world as npy, for training: seed, clips, frames, folder[, --explore].
+synth_data() {
+  "$epona" synth --seed "$1" --clips "$2" --frames "$3" --future 0 --format npy --out "$4" --quiet "${@:5}"
+}
+gpu_name() { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true; }
+
 collect() {
   mkdir -p "$out"
   cp "$work"/small/* "$out"/ 2>/dev/null || true
@@ -32,10 +38,9 @@ collect() {
 case $phase in
   start)
     mkdir -p "$work"
-    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+    gpu_name
     t0=$(date +%s)
-    "$epona" synth --seed "${DATA_SEED:-1000}" --clips "${CLIPS:-600}" --frames "${FRAMES:-64}" --future 0 \
-      --format npy --out "$work/data" --quiet
+    synth_data "${DATA_SEED:-1000}" "${CLIPS:-600}" "${FRAMES:-64}" "$work/data"
     echo "synth: $(( $(date +%s) - t0 )) s, $(du -sh "$work/data" | cut -f1)"
     train dcae --seconds "${DCAE_SECONDS:-150}" --schedule-seconds "${DCAE_SECONDS:-150}" --batch 32 --lr 1e-3
     train encode
@@ -45,12 +50,10 @@ case $phase in
     ;;
   retrain)
     mkdir -p "$work"
-    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+    gpu_name
     t0=$(date +%s)
-    "$epona" synth --seed "${DATA_SEED:-1002}" --clips "${CLIPS:-350}" --frames "${FRAMES:-48}" --future 0 \
-      --format npy --out "$work/data" --quiet
-    "$epona" synth --seed "${EXPLORE_SEED:-1003}" --clips "${EXPLORE_CLIPS:-350}" --frames "${FRAMES:-48}" --future 0 \
-      --format npy --explore --out "$work/explore" --quiet
+    synth_data "${DATA_SEED:-1002}" "${CLIPS:-350}" "${FRAMES:-48}" "$work/data"
+    synth_data "${EXPLORE_SEED:-1003}" "${EXPLORE_CLIPS:-350}" "${FRAMES:-48}" "$work/explore" --explore
     echo "synth: $(( $(date +%s) - t0 )) s, $(du -sh "$work/data" "$work/explore" | cut -f1 | tr '\n' ' ')"
     train encode --init "${INIT:-models/small-synthetic}" --explore-data "$work/explore"
     train world --init "${INIT:-models/small-synthetic}" --seconds "${WORLD_SECONDS:-300}" \
