@@ -118,6 +118,9 @@ History history_of(cpu::Context& ctx, const Dc& dcae, const fs::path& clip, cons
   io::PoseSequence last;
   for (std::size_t i = poses.size() - static_cast<std::size_t>(F); i < poses.size(); ++i)
     last.x.push_back(poses.x[i]), last.y.push_back(poses.y[i]), last.yaw.push_back(poses.yaw[i]);
+  // The window's first frame has no motion, as get_rel_pose of the window's own poses gives it
+  // in the official training and test_traj.py.
+  last.x[0] = last.y[0] = last.yaw[0] = 0.0f;
   return {tokens.reshape({1, F, tokens.size(1), tokens.size(2)}), last.pose_tensor(), last.yaw_tensor()};
 }
 

@@ -28,6 +28,8 @@ struct Exploration {
   double min_duration = 0.2, max_duration = 0.8;  // s
 };
 
+inline constexpr double kMaxImpulseYawRate = 0.65;  // rad/s, steering and impulse together
+
 struct Impulse {
   double yaw_rate = 0, accel = 0, left = 0;  // left: seconds still to run
   bool active() const { return left > 0; }
@@ -101,7 +103,10 @@ class EgoController {
     const double v1 = std::max(0.0, e.v + a * dt);
     const double vm = 0.5 * (e.v + v1);
     double yaw_rate = vm * kappa;
-    if (e.impulse.active() && vm > 2) yaw_rate += e.impulse.yaw_rate;  // a car at a crawl cannot swerve
+    if (e.impulse.active() && vm > 2) {  // a car at a crawl cannot swerve
+      // At most 7.4 degrees a frame: Epona's yaw tokens cover +-8 (models/modules/tokenizer.py).
+      yaw_rate = std::clamp(yaw_rate + e.impulse.yaw_rate, -kMaxImpulseYawRate, kMaxImpulseYawRate);
+    }
     const double h_mid = e.pose.yaw + 0.5 * yaw_rate * dt;
     e.pose.x += std::cos(h_mid) * vm * dt;
     e.pose.y += std::sin(h_mid) * vm * dt;
