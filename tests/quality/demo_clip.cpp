@@ -5,10 +5,10 @@
 //   video:    the mean PSNR over horizons 1..5 of the model's rollout beats repeat-last's;
 //   planning: the model's L2 at 3 s beats constant velocity's.
 // docs/evaluation.md ("What it shows") gives the same comparison on 200 held-out clips. Only the
-// two means are asserted, never a single horizon: on this clip the model loses at h4 (21.4 vs
-// 23.1 dB), and the per-horizon order is not what the model promises. Margins measured (Release):
-// PSNR 23.47 vs 22.50 dB with seed 0 and 23.21..23.77 with seeds 1..4; L2 at 3 s 5.26 vs 6.96 m
-// with seed 0 and 1.19..4.40 with seeds 1..4.
+// two means are asserted, never a single horizon: on this clip the first bundled model lost at h4 (21.4 vs
+// 23.1 dB), and the per-horizon order is not what the model promises. Margins measured (Release,
+// seed 0): the first bundled model PSNR 23.47 vs 22.50 dB, L2 at 3 s 5.26 vs 6.96 m; run 2's
+// (bundled since 2026-11-28) 24.34 vs 22.50 dB and 1.01 vs 6.96 m.
 #include <doctest/doctest.h>
 
 #include <cmath>
