@@ -12,7 +12,7 @@
 #include "epona/core/rng.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
-#include "world_golden.hpp"
+#include "golden_world_model.hpp"
 
 using namespace epona;
 using epona::test::rel_max;
@@ -20,22 +20,8 @@ using epona::test::world_golden;
 
 namespace {
 
-WorldModel<Cpu, float>& world() {
-  static auto m = WorldModel<Cpu, float>::load(world_golden().weights, world_golden().world());
-  return m;
-}
-
-Tensor<float, Cpu> first_entries(const Tensor<float, Cpu>& t, std::int64_t n) {
-  Tensor<float, Cpu> out({t.size(0), n, t.size(2)});
-  for (std::int64_t b = 0; b < t.size(0); ++b) std::copy_n(t[b].data(), n * t.size(2), out[b].data());
-  return out;
-}
-
-History golden_history() {
-  const auto& g = world_golden();
-  const std::int64_t F = g.world().condition_frames;
-  return {g.tensor("mst.latents"), first_entries(g.tensor("mst.rel_pose"), F), first_entries(g.tensor("mst.rel_yaw"), F)};
-}
+WorldModel<Cpu, float>& world() { return epona::test::golden_world_model(); }
+using epona::test::golden_history;
 
 // Step 0 of a supplied per-step noise tensor as a one-step (1, ...) tensor.
 Tensor<float, Cpu> step0(const std::string& name) {
