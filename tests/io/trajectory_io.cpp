@@ -88,6 +88,27 @@ TEST_CASE("a single (W, 3) trajectory is one step; the files say what the number
   CHECK(js(R"({"steps": [[[1, 2, 3]]]})").at(0, 0, 2) == 3.f);
 }
 
+TEST_CASE("a plan written with its hypotheses reads back as the plan; the fan's keys are in the file") {
+  TempDir dir;
+  const auto fan = random_trajectory(4, 15, 3);
+  const Tensor<float> chosen = fan[2].clone();
+  std::vector<double> spread(15, 0.25);
+  io::write_trajectory_json(dir.path / "trajectory.json", chosen, {fan, "medoid", 2, spread});
+  const auto back = io::read_trajectory(dir.path / "trajectory.json");
+  CHECK(bit_equal(back, chosen.reshape({1, 15, 3})));
+  const auto j = nlohmann::json::parse(std::ifstream(dir.path / "trajectory.json"));
+  CHECK(j["choice"]["rule"] == "medoid");
+  CHECK(j["choice"]["index"] == 2);
+  CHECK(j["spread_m"].size() == 15);
+  REQUIRE(j["hypotheses"].size() == 4);
+  CHECK(j["hypotheses"][3][14][1].get<float>() == fan.at(3, 14, 1));
+  // The mean picks no hypothesis.
+  const std::string mean = io::trajectory_to_json(chosen, nullptr);
+  io::TrajectoryFan no_index{fan, "mean", std::nullopt, spread};
+  CHECK(io::trajectory_to_json(chosen, &no_index).find("\"index\": null") != std::string::npos);
+  CHECK(mean.find("hypotheses") == std::string::npos);
+}
+
 TEST_CASE("per-step actions: first waypoints of a planned trajectory, or the rows of a pose file") {
   TempDir dir;
   const auto t = random_trajectory(4, 15, 3);

@@ -13,6 +13,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <limits>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -79,12 +80,19 @@ inline std::string trajectory_to_csv(const Tensor<float>& traj) {
   return out;
 }
 
-inline std::string trajectory_to_json(const Tensor<float>& traj) {
-  const auto t = traj_detail::as_steps(traj, "trajectory_to_json");
-  std::string out = "{\"format\": \"";
-  out += traj_detail::kFormat;
-  out += "\",\n \"units\": {\"x\": \"m, forward\", \"y\": \"m, left\", \"yaw\": \"deg, left turn positive\"},\n";
-  out += " \"steps\": [";
+// The hypotheses a plan was chosen from (model::PlanFan, written beside the chosen plan).
+struct TrajectoryFan {
+  Tensor<float> hypotheses;                  // (K, W, 3)
+  std::string rule;                          // how the plan was chosen ("medoid", "mean")
+  std::optional<std::int64_t> chosen_index;  // the chosen hypothesis, where the rule picks one
+  std::vector<double> spread_m;              // per waypoint
+};
+
+namespace traj_detail {
+
+// (S, W, 3) as a JSON list of S lists of W [x, y, yaw].
+inline void append_steps(std::string& out, const Tensor<float>& t) {
+  out += "[";
   for (std::int64_t s = 0; s < t.size(0); ++s) {
     out += s ? ",\n  [" : "\n  [";
     for (std::int64_t w = 0; w < t.size(1); ++w) {
@@ -97,8 +105,40 @@ inline std::string trajectory_to_json(const Tensor<float>& traj) {
     }
     out += ']';
   }
-  out += "\n ]\n}\n";
+  out += "\n ]";
+}
+
+inline void append_fan(std::string& out, const TrajectoryFan& fan) {
+  out += ",\n \"hypotheses\": ";
+  append_steps(out, as_steps(fan.hypotheses, "trajectory hypotheses"));
+  out += ",\n \"choice\": {\"rule\": \"" + fan.rule + "\", \"index\": " +
+         (fan.chosen_index ? std::to_string(*fan.chosen_index) : std::string("null")) + "},\n \"spread_m\": [";
+  for (std::size_t w = 0; w < fan.spread_m.size(); ++w) {
+    if (w) out += ", ";
+    append_float(out, static_cast<float>(fan.spread_m[w]));
+  }
+  out += "]";
+}
+
+}  // namespace traj_detail
+
+// {"format", "units", "steps": [[[x, y, yaw], ...], ...]}, and with a fan its "hypotheses",
+// "choice" {"rule", "index"} and "spread_m".
+inline std::string trajectory_to_json(const Tensor<float>& traj, const TrajectoryFan* fan = nullptr) {
+  const auto t = traj_detail::as_steps(traj, "trajectory_to_json");
+  std::string out = "{\"format\": \"";
+  out += traj_detail::kFormat;
+  out += "\",\n \"units\": {\"x\": \"m, forward\", \"y\": \"m, left\", \"yaw\": \"deg, left turn positive\"},\n";
+  out += " \"steps\": ";
+  traj_detail::append_steps(out, t);
+  if (fan) traj_detail::append_fan(out, *fan);
+  out += "\n}\n";
   return out;
+}
+
+// trajectory.json with the hypotheses it was chosen from, atomically.
+inline void write_trajectory_json(const std::filesystem::path& path, const Tensor<float>& traj, const TrajectoryFan& fan) {
+  write_atomically(path, trajectory_to_json(traj, &fan));
 }
 
 // Writes (W, 3) or (S, W, 3) as .csv, .json or .npy (by extension), atomically.
@@ -201,13 +241,19 @@ inline Tensor<float> parse_trajectory_csv(std::string_view text, const std::stri
   return grid.finish(source);
 }
 
+namespace traj_detail {
+// The keys of a TrajectoryFan: a plan's hypotheses, read past (the plan is "steps").
+inline bool is_fan_key(const std::string& key) { return key == "hypotheses" || key == "choice" || key == "spread_m"; }
+}  // namespace traj_detail
+
 // JSON as written by trajectory_to_json: {"format": "epona-trajectory", "units": {...},
-// "steps": [[[x, y, yaw], ...], ...]} ("format" and "units" optional).
+// "steps": [[[x, y, yaw], ...], ...]} ("format" and "units" optional; a fan's keys are skipped).
 inline Tensor<float> parse_trajectory_json(std::string_view text, const std::string& source) {
   const nlohmann::json j = io::parse_json(text, source);
   EPONA_CHECK(j.is_object() && j.contains("steps"), source, ": expected an object with \"steps\": [[[x, y, yaw], ...], ...]");
   for (const auto& [key, value] : j.items())
-    EPONA_CHECK(key == "steps" || key == "units" || key == "format", source, ": unexpected key '", printable(key), "'");
+    EPONA_CHECK(key == "steps" || key == "units" || key == "format" || traj_detail::is_fan_key(key), source,
+                ": unexpected key '", printable(key), "'");
   if (j.contains("format"))
     EPONA_CHECK(j["format"] == traj_detail::kFormat, source, ": \"format\" is ", json_brief(j["format"]), ", expected \"",
                 traj_detail::kFormat, "\"");

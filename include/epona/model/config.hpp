@@ -69,6 +69,8 @@ inline constexpr std::int64_t max_image_pixels = std::int64_t{16} * 512 * 1024;
 // a larger count is a typo or an attack, refused before the schedule or any output is allocated.
 inline constexpr std::int64_t max_sampling_steps = 100000;
 inline constexpr std::int64_t max_rollout_frames = 1000000;
+// Plan hypotheses of one scene (WorldModel::plan_hypotheses): a bound on the batch it runs.
+inline constexpr std::int64_t max_hypotheses = 1024;
 }  // namespace constants
 
 // Throws (naming `what`) unless 1 <= steps <= constants::max_sampling_steps.

@@ -6,6 +6,7 @@
 // draws, trajectory noise then latent noise per step) or supplied by the caller.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <functional>
@@ -187,6 +188,36 @@ class WorldModel {
     return run_step(h, nullptr, /*want_latent=*/false, samplers_of(opt), noise, {}).trajectory;
   }
 
+  // K trajectories of one scene (a window of Bt = 1), (K, traj_len, 3): the MST runs once and
+  // its features condition one TrajDiT run over a batch of K noises. Hypothesis k draws the noise
+  // plan() draws with seed hypothesis_seed(opt.seed, k), so hypothesis 0 is plan()'s trajectory
+  // and each one is what a plan of its seed alone gives.
+  Tensor<float, Cpu> plan_hypotheses(const History& h, std::int64_t K, const SampleOptions& opt = {}) {
+    EPONA_CHECK(K >= 1 && K <= constants::max_hypotheses, "the number of plan hypotheses must be in [1, ",
+                constants::max_hypotheses, "], got ", K);
+    EPONA_CHECK(!opt.noise, "plan_hypotheses draws each hypothesis' noise from the seed; it takes no supplied noise");
+    const DitSamplers samplers = samplers_of(opt);
+    const std::int64_t Bt = validate(h, nullptr, samplers);
+    EPONA_CHECK(Bt == 1, "plan_hypotheses plans one scene; the window holds ", Bt);
+    arena_.reset();
+    arena_.reserve(hypotheses_bytes(K, samplers));
+    const StepDetails<B> scene = condition(h, nullptr, Bt);
+    StepDetails<B> fan;
+    fan.stt_features = repeat_batch(scene.stt_features, K);
+    fan.pose_emb = repeat_batch(scene.pose_emb, K);
+    const auto ids = prepare_ids(K, cfg_.latent_h(), cfg_.latent_w(), cfg_.tokens_per_frame(), cfg_.traj_len);
+    auto traj = sample(traj_, fan, ids.cond, ids.traj, hypothesis_noise(K, opt.seed), cfg_.traj_len, samplers.plan);
+    TrajectoryScale::from(cfg_).denormalize(traj);
+    return traj;
+  }
+  // The seed of hypothesis k: seed + k·0x9E3779B9. The generator keeps the low 32 bits (as
+  // torch.manual_seed does); golden-ratio steps keep the K seeds far apart in that space, so eval's
+  // seed + i for clip i meets no other clip's hypotheses below about a million clips.
+  static std::uint64_t hypothesis_seed(std::uint64_t seed, std::int64_t k) {
+    return seed + static_cast<std::uint64_t>(k) * kHypothesisSeedStep;
+  }
+  static constexpr std::uint64_t kHypothesisSeedStep = 0x9E3779B9u;
+
   // The next frame's latent. With `action`: the VisDiT is conditioned on it and no trajectory is
   // sampled; without: the TrajDiT plans first and its first waypoint is the action.
   StepResult predict_next(const History& h, const std::optional<NextAction>& action, const SampleOptions& opt = {}) {
@@ -208,13 +239,7 @@ class WorldModel {
     reserve_arena(Bt, samplers);
     arena_.reset();
     StepResult result;
-    StepDetails<B> details;
-    auto latents = arena_.template take<float>(h.latents.shape());
-    BackendTraits<B>::upload_into(*ctx_, h.latents, latents);
-    details.stt_features = arena_.template take<float>({Bt, cfg_.tokens_per_frame(), cfg_.n_embd});
-    details.pose_emb = arena_.template take<float>({Bt, cfg_.pose_emb_dim()});
-    const auto [pose_idx, yaw_idx] = window_indices(h, action);
-    mst_.evaluate(*ctx_, arena_, latents, pose_idx, yaw_idx, details.stt_features, details.pose_emb);
+    StepDetails<B> details = condition(h, action, Bt);
     const auto ids = prepare_ids(Bt, cfg_.latent_h(), cfg_.latent_w(), cfg_.tokens_per_frame(), cfg_.traj_len);
     if (want_traj) {
       result.trajectory = sample(traj_, details, ids.cond, ids.traj, noise.trajectory(traj_noise_shape(Bt)),
@@ -333,6 +358,58 @@ class WorldModel {
     d.pred_pose_idx = tok.poses_to_indices(pose);
     d.pred_yaw_idx = tok.yaws_to_indices(yaw);
     mst_.get_pose_emb(*ctx_, arena_, d.pred_pose_idx, d.pred_yaw_idx, d.pose_emb);
+  }
+
+  // The MST over the window (and action): the step's stt_features and pose_emb, in the arena.
+  StepDetails<B> condition(const History& h, const NextAction* action, std::int64_t Bt) {
+    StepDetails<B> details;
+    auto latents = arena_.template take<float>(h.latents.shape());
+    BackendTraits<B>::upload_into(*ctx_, h.latents, latents);
+    details.stt_features = arena_.template take<float>({Bt, cfg_.tokens_per_frame(), cfg_.n_embd});
+    details.pose_emb = arena_.template take<float>({Bt, cfg_.pose_emb_dim()});
+    const auto [pose_idx, yaw_idx] = window_indices(h, action);
+    mst_.evaluate(*ctx_, arena_, latents, pose_idx, yaw_idx, details.stt_features, details.pose_emb);
+    return details;
+  }
+
+  // `one` (1, ...) repeated K times along the batch, in the arena; through the host, as the
+  // conditioning is small (T·C + 3C floats).
+  Tensor<float, B> repeat_batch(const Tensor<float, B>& one, std::int64_t K) {
+    Tensor<float, Cpu> host(one.shape());
+    BackendTraits<B>::download_into(*ctx_, one, host);
+    Shape shape = one.shape();
+    shape[0] = K;
+    Tensor<float, Cpu> repeated(shape);
+    for (std::int64_t k = 0; k < K; ++k) std::copy_n(host.data(), host.numel(), repeated.data() + k * host.numel());
+    auto out = arena_.template take<float>(shape);
+    BackendTraits<B>::upload_into(*ctx_, repeated, out);
+    return out;
+  }
+
+  // Hypothesis k's trajectory noise in row k: the first draw of a plan with hypothesis_seed(seed, k).
+  Tensor<float, Cpu> hypothesis_noise(std::int64_t K, std::uint64_t seed) const {
+    Tensor<float, Cpu> noise(traj_noise_shape(K));
+    const std::int64_t row = noise.numel() / K;
+    for (std::int64_t k = 0; k < K; ++k) {
+      const auto draw = NoiseSource::seeded(hypothesis_seed(seed, k)).trajectory(traj_noise_shape(1));
+      std::copy_n(draw.data(), row, noise.data() + k * row);
+    }
+    return noise;
+  }
+
+  // Arena bytes of plan_hypotheses: one scene's window and conditioning, its K copies and
+  // noise, then the larger of the MST and the TrajDiT over K.
+  std::size_t hypotheses_bytes(std::int64_t K, const DitSamplers& s) const {
+    ArenaCounter<B> persistent;
+    persistent.template take<float>({1, cfg_.condition_frames, cfg_.img_tokens(), cfg_.token_dim()});
+    for (const std::int64_t rows : {std::int64_t{1}, K}) {
+      persistent.template take<float>({rows, cfg_.tokens_per_frame(), cfg_.n_embd});
+      persistent.template take<float>({rows, cfg_.pose_emb_dim()});
+    }
+    persistent.template take<float>(traj_noise_shape(K));
+    const JointRows traj_rows{cfg_.tokens_per_frame(), cfg_.traj_len};
+    const std::size_t traj = traj_.conditioning_bytes(K, traj_rows) + traj_.sample_bytes(K, traj_rows, s.plan.steps, s.plan.kind);
+    return persistent.bytes() + std::max({mst_.evaluate_workspace_bytes(), mst_.pose_emb_workspace_bytes(), traj});
   }
 
   // Samples one DiT from `noise` over get_schedule(steps, seq_len) with the setting's solver;
