@@ -14,6 +14,7 @@
 #include "epona/io/npy.hpp"
 #include "epona/flow/solvers.hpp"
 #include "epona/io/poses.hpp"
+#include "epona/model/plan_choice.hpp"
 #include "epona/model/world_model.hpp"
 
 namespace epona::app {
@@ -44,6 +45,24 @@ inline void add_sampling_options(ArgParser& p) {
       .option("video-steps", "N", "the video's (VisDiT) steps, overriding --steps", "--steps")
       .option("seed", "N", "noise seed (torch.manual_seed-compatible draws)", "0");
 }
+// Multi-hypothesis planning (WorldModel::plan_hypotheses, model/plan_choice.hpp).
+inline void add_hypothesis_options(ArgParser& p) {
+  p.option("hypotheses", "K", "plan K trajectories of the scene (hypothesis k draws with seed + k*0x9E3779B9; "
+           "the MST runs once) and choose one by --choose (1.." + std::to_string(constants::max_hypotheses) + ")", "1")
+      .option("choose", "RULE", "the plan chosen of the hypotheses: medoid (the one nearest all others) or mean "
+              "(the waypoint-wise mean)", "medoid");
+}
+struct HypothesisOptions {
+  std::int64_t count = 1;
+  model::PlanChoice choose = model::PlanChoice::medoid;
+};
+inline HypothesisOptions hypothesis_options(const ParsedArgs& a) {
+  HypothesisOptions h;
+  h.count = a.integer("hypotheses", 1, 1, constants::max_hypotheses);
+  h.choose = a.choice("choose", {"medoid", "mean"}, "medoid") == "mean" ? model::PlanChoice::mean : model::PlanChoice::medoid;
+  return h;
+}
+
 inline void add_output_options(ArgParser& p, const std::string& default_dir) {
   p.option("out", "DIR", "output folder", default_dir, 'o').flag("quiet", "no progress bars or notes on stderr", 'q');
 }

@@ -59,13 +59,16 @@ inline ArgParser eval_parser() {
       .option("save-frames", "DIR", "also write each clip's generated video frames to DIR/<clip>/frame_NNNN.png "
               "(to compare samplers with each other, scripts/solver_sweep.sh)", "none");
   add_sampling_options(p);
+  add_hypothesis_options(p);
   add_compute_options(p);
   p.flag("quiet", "no progress bars or notes on stderr", 'q');
   p.epilog("examples:\n"
            "  epona synth --out clips/ && epona eval --clips clips/ --json eval.json   # the bundled demo model\n"
            "  epona eval --weights world.pkl --dcae dcae_td_20000.pkl --clips clips/ --json eval.json \\\n"
            "             --steps 100 --backend cuda\n"
-           "  epona eval --clips clips/ --json fast.json --solver dpmpp2m --plan-steps 10 --video-steps 15");
+           "  epona eval --clips clips/ --json fast.json --solver dpmpp2m --plan-steps 10 --video-steps 15\n"
+           "  epona eval --clips clips/ --json k8.json --no-video --hypotheses 8 --choose mean   # the chosen plan and "
+           "the best of 8");
   return p;
 }
 
@@ -78,6 +81,7 @@ struct EvalOptions {
   std::string fit = "exact";
   SampleOptions sample;
   DitSamplers samplers;                       // what sample resolves to, per DiT
+  HypothesisOptions hypotheses;
   std::optional<std::filesystem::path> save_frames;
 };
 
@@ -97,6 +101,7 @@ inline EvalOptions eval_options(const ParsedArgs& a, const WorldModelConfig& wc)
   o.fit = a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact");
   o.sample = sample_options(a, wc);
   o.samplers = samplers_of(o.sample);
+  o.hypotheses = hypothesis_options(a);
   if (const auto dir = a.get("save-frames")) o.save_frames = *dir;
   std::error_code ec;
   const auto parent = std::filesystem::absolute(o.json, ec).parent_path();
@@ -125,6 +130,8 @@ struct ControlScore {
 struct ClipScores {
   std::string name;
   std::optional<PlanScores> model, constant_velocity, constant_turn, ground_truth;
+  std::optional<PlanScores> best_of_k;  // per horizon the least error of the K hypotheses (no collisions)
+  std::vector<double> spread_m;         // per waypoint, of the K hypotheses; empty with one
   std::vector<double> psnr, ssim, repeat_psnr, repeat_ssim, ae_psnr, ae_ssim;  // per horizon; empty: no video
   std::optional<ControlScore> control;
   Tensor<float> plan;  // (traj_len, 3) the model's plan; empty without planning
@@ -161,14 +168,29 @@ inline std::vector<io::Image> read_frames(const std::vector<std::filesystem::pat
   return out;
 }
 
+// The least L2 error of the hypotheses (K, W, 3), at and up to each horizon separately (minFDE and
+// minADE style); collisions are not scored.
+inline PlanScores best_of(const Tensor<float>& plans, const std::vector<eval::Pose2>& truth) {
+  PlanScores best{eval::l2_errors(eval::poses_of(plans[0]), truth), {}};
+  for (std::int64_t k = 1; k < plans.size(0); ++k) {
+    const eval::L2Errors e = eval::l2_errors(eval::poses_of(plans[k]), truth);
+    for (std::size_t t = 0; t < eval::kPlanSeconds; ++t)
+      best.l2.at[t] = std::min(best.l2.at[t], e.at[t]), best.l2.avg[t] = std::min(best.l2.avg[t], e.avg[t]);
+  }
+  return best;
+}
+
 inline void score_planning(ClipScores& s, const eval::EvalClip& c, const History& window, std::uint64_t seed,
                            const EvalContext& e) {
   const auto truth = eval::cumulative_poses(*c.future_motions, eval::kPlanWaypoints);
   SampleOptions o = e.opt.sample;
   o.seed = seed;
-  const Tensor<float> plan = e.engine.plan(window, o);  // (1, traj_len, 3)
-  s.plan = plan[0].clone();
-  s.model = score_plan(eval::poses_of(plan), truth, c);
+  const std::int64_t K = e.opt.hypotheses.count;
+  const Tensor<float> plans = K > 1 ? e.engine.plan_hypotheses(window, K, o) : e.engine.plan(window, o);  // (K, W, 3)
+  const model::PlanFan fan = model::choose_plan(plans, e.opt.hypotheses.choose);
+  s.plan = fan.chosen;
+  s.model = score_plan(eval::poses_of(fan.chosen), truth, c);
+  if (K > 1) s.best_of_k = best_of(plans, truth), s.spread_m = fan.spread_m;
   const eval::Pose2 last = eval::motion_at(c.poses, c.poses.size() - 1);
   s.constant_velocity = score_plan(eval::constant_velocity(last, eval::kPlanWaypoints), truth, c);
   s.constant_turn = score_plan(eval::constant_turn(last, eval::kPlanWaypoints), truth, c);
@@ -240,7 +262,7 @@ inline void score_control(ClipScores& s, const eval::EvalClip& c, const History&
 }
 
 inline ClipScores evaluate_clip(const eval::EvalClip& c, std::uint64_t seed, const EvalContext& e) {
-  ClipScores s{c.name, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}};
+  ClipScores s{c.name, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}};
   const auto F = static_cast<std::size_t>(e.wc.condition_frames);
   const std::vector<io::Image> history = read_frames(c.frames, c.frames.size() - F, F, e);
   const io::PoseSequence poses = c.poses.slice(c.poses.size() - F, F);
@@ -346,6 +368,7 @@ inline nlohmann::ordered_json clip_json(const ClipScores& c) {
   plan("", c.model);
   plan("constant_velocity_", c.constant_velocity);
   plan("constant_turn_", c.constant_turn);
+  if (c.best_of_k) plan("best_of_k_", c.best_of_k), j["spread_m"] = numbers(c.spread_m);
   j["psnr"] = numbers(c.psnr), j["ssim"] = numbers(c.ssim);
   j["repeat_last_psnr"] = numbers(c.repeat_psnr), j["repeat_last_ssim"] = numbers(c.repeat_ssim);
   j["autoencoder_psnr"] = numbers(c.ae_psnr), j["autoencoder_ssim"] = numbers(c.ae_ssim);
@@ -368,7 +391,10 @@ inline nlohmann::ordered_json settings_json(const ParsedArgs& a, const ModelFile
           {"plan_sampler", sampler(o.samplers.plan)},
           {"video_sampler", sampler(o.samplers.video)},
           {"seed", o.sample.seed},
-          {"seed_rule", "clip i (0-based, in clip order) uses seed + i, for its plan, its rollout and both control rollouts"},
+          {"seed_rule", "clip i (0-based, in clip order) uses seed + i, for its plan, its rollout and both control rollouts; "
+                        "with hypotheses, hypothesis k of clip i uses seed + i + k*0x9E3779B9 (the generator keeps the low 32 bits)"},
+          {"hypotheses", o.hypotheses.count},
+          {"choose", model::plan_choice_name(o.hypotheses.choose)},
           {"horizon", o.horizon},
           {"limit", o.limit ? nlohmann::ordered_json(*o.limit) : nullptr},
           {"plan", o.plan},
@@ -396,6 +422,9 @@ inline nlohmann::ordered_json notes_json() {
                    "vehicles' boxes of the matching future frame, separating-axis test, touching counts; "
                    "collision_rate_Ns: fraction of clips with boxes whose plan collides at any waypoint up to N s; "
                    "collision_rate = collision_rate_3s";
+  j["hypotheses"] = "with --hypotheses K: `model` scores the plan --choose picks of the K (model/plan_choice.hpp); "
+                    "model_best_of_k: per clip and horizon the least L2 of the K (minFDE at N s, minADE up to N s), "
+                    "no collisions; spread_Ns: RMS distance of the K waypoint positions at N s from their mean";
   j["psnr"] = "8-bit RGB, MAX 255, MSE over all pixels and channels; identical frames reported as " +
               std::to_string(int(eval::kPsnrCap)) + " dB";
   j["ssim"] = "Wang et al. 2004: 11x11 Gaussian window sigma 1.5, K1 0.01, K2 0.03, L 255, valid positions, mean "
@@ -411,6 +440,18 @@ inline nlohmann::ordered_json notes_json() {
   return j;
 }
 
+// K, the rule, and the mean spread of the hypotheses at 1, 2 and 3 s.
+inline nlohmann::ordered_json hypotheses_summary(const std::vector<ClipScores>& clips, const EvalOptions& o) {
+  nlohmann::ordered_json j{{"count", o.hypotheses.count}, {"choose", model::plan_choice_name(o.hypotheses.choose)}};
+  for (std::size_t k = 0; k < eval::kPlanSeconds; ++k) {
+    Mean m;
+    for (const auto& c : clips)
+      if (c.spread_m.size() >= eval::kPlanWaypoints) m.add(c.spread_m[(k + 1) * eval::kWaypointsPerSecond - 1]);
+    j["spread_" + std::to_string(k + 1) + "s"] = number(m.value());
+  }
+  return j;
+}
+
 inline nlohmann::ordered_json report_json(const std::vector<ClipScores>& clips, const nlohmann::ordered_json& settings,
                                           const EvalOptions& o) {
   const std::int64_t horizon = o.horizon;
@@ -421,6 +462,10 @@ inline nlohmann::ordered_json report_json(const std::vector<ClipScores>& clips, 
   if (video) model.update(video_summary(clips, &ClipScores::psnr, &ClipScores::ssim, horizon));
   for (const auto& m : eval::uncomputed_feature_metrics()) model[m.name] = number(m.value);
   j["model"] = model;
+  if (o.hypotheses.count > 1) {
+    j["model_best_of_k"] = plan_summary(clips, &ClipScores::best_of_k);
+    j["hypotheses"] = hypotheses_summary(clips, o);
+  }
   j["constant_velocity"] = plan_summary(clips, &ClipScores::constant_velocity);
   j["constant_turn"] = plan_summary(clips, &ClipScores::constant_turn);
   j["ground_truth"] = plan_summary(clips, &ClipScores::ground_truth);
@@ -450,7 +495,8 @@ inline void print_eval_table(std::ostream& out, const nlohmann::ordered_json& r,
   char line[256];
   if (plan) {
     out << "planning (metres; collision rate)  L2@1s   L2@2s   L2@3s  avgL2@3s  coll@1s coll@2s coll@3s\n";
-    for (const char* name : {"model", "constant_velocity", "constant_turn", "ground_truth"}) {
+    for (const char* name : {"model", "model_best_of_k", "constant_velocity", "constant_turn", "ground_truth"}) {
+      if (!r.contains(name)) continue;
       const auto& m = r[name];
       std::snprintf(line, sizeof line, "  %-32s %6s  %6s  %6s  %8s  %7s %7s %7s\n", name,
                     cell(m["l2_1s"], "%.3f").c_str(), cell(m["l2_2s"], "%.3f").c_str(),
@@ -515,7 +561,9 @@ inline int run_eval(const ParsedArgs& a, const Console& con) {
   con.note("evaluating ", clips.size(), " clip(s) from ", opt.clips.string(), ": ",
            describe(opt.samplers, opt.plan, opt.video || opt.control), ", seed ", opt.sample.seed, " + clip index",
            opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"),
-           opt.control ? ", control at +-" + std::to_string(opt.control_yaw) + " deg" : std::string());
+           opt.control ? ", control at +-" + std::to_string(opt.control_yaw) + " deg" : std::string(),
+           opt.hypotheses.count > 1 ? ", " + std::to_string(opt.hypotheses.count) + " plan hypotheses (the " +
+                                          model::plan_choice_name(opt.hypotheses.choose) + " chosen)" : std::string());
 
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);

@@ -24,16 +24,20 @@ inline ArgParser plan_parser() {
               "Plans the ego trajectory from the last F frames and their ego motions (F = condition_frames,\n"
               "10 for the released model): traj_len waypoints (15 = 3 s at 5 Hz). Writes trajectory.json,\n"
               "trajectory.csv and plan.png (the plan drawn top-down over the last frame) into the output folder.\n"
-              "Without --weights it runs the bundled model (models/small-synthetic) on its demo clip.");
+              "Without --weights it runs the bundled model (models/small-synthetic) on its demo clip.\n"
+              "With --hypotheses K it plans K trajectories of the scene, writes the one --choose picks as the plan\n"
+              "and all K (with their spread) into trajectory.json, and draws the fan under the plan.");
   add_model_options(p, true, true);
   add_clip_options(p);
   add_sampling_options(p);
+  add_hypothesis_options(p);
   add_compute_options(p);
   add_output_options(p, "out/plan");
   p.epilog("examples:\n"
            "  epona plan                                  # the bundled model and clip\n"
            "  epona plan --weights world.pkl --dcae dcae_td_20000.pkl \\\n"
-           "             --frames clip/ --poses clip/poses.csv --out out/plan");
+           "             --frames clip/ --poses clip/poses.csv --out out/plan\n"
+           "  epona plan --hypotheses 8 --choose mean        # 8 plans, their mean written as the plan");
   return p;
 }
 
@@ -47,10 +51,26 @@ inline void print_waypoints(std::ostream& out, const Tensor<float>& traj) {  // 
   }
 }
 
+// "8 hypotheses, the medoid chosen (hypothesis 3); spread (RMS from their mean): 0.21 m at 1 s, ..."
+// at every whole second of the 5 Hz waypoints.
+inline void print_spread(std::ostream& out, const model::PlanFan& fan, model::PlanChoice rule) {
+  out << fan.hypotheses.size(0) << " hypotheses, the " << model::plan_choice_name(rule) << " chosen";
+  if (fan.chosen_index) out << " (hypothesis " << *fan.chosen_index << ")";
+  out << "; spread (RMS from their mean):";
+  for (std::size_t w = 4; w < fan.spread_m.size(); w += 5) {
+    char item[48];
+    std::snprintf(item, sizeof item, "%s %.2f m at %zu s", w > 4 ? "," : "", fan.spread_m[w], (w + 1) / 5);
+    out << item;
+  }
+  if (fan.spread_m.size() < 5 && !fan.spread_m.empty()) out << " " << fan.spread_m.back() << " m at the last waypoint";
+  out << "\n";
+}
+
 inline int run_plan(const ParsedArgs& a, const Console& con) {
   const ComputeOptions compute = compute_options(a);
   const ModelFiles files = resolve_models(a, true, true);
   const SampleOptions sample = sample_options(a, files.configs.world);
+  const HypothesisOptions hyp = hypothesis_options(a);
   const Clip clip = load_clip_for(a, files, con);
   const auto dir = output_dir(a, "out/plan");
   const auto engine = make_engine(compute);
@@ -60,19 +80,27 @@ inline int run_plan(const ParsedArgs& a, const Console& con) {
   cpu::Context ctx(compute.threads);
   const History history = make_history(ctx, latents, clip.poses);
   engine->load_world(files, con);
-  con.note("planning: ", describe(samplers_of(sample), true, false), ", seed ", sample.seed);
+  con.note("planning: ", describe(samplers_of(sample), true, false), ", seed ", sample.seed,
+           hyp.count > 1 ? ", " + std::to_string(hyp.count) + " hypotheses, the " + model::plan_choice_name(hyp.choose) +
+                               " chosen" : std::string());
   const auto t0 = std::chrono::steady_clock::now();
-  const Tensor<float> plan = engine->plan(history, sample);  // (1, traj_len, 3)
+  const Tensor<float> plans = hyp.count > 1 ? engine->plan_hypotheses(history, hyp.count, sample)  // (K, traj_len, 3)
+                                            : engine->plan(history, sample);                       // (1, traj_len, 3)
   con.note("  planned in ", seconds_since(t0), " s");
-
-  const Tensor<float> waypoints = plan[0];  // (traj_len, 3)
-  io::write_trajectory(dir / "trajectory.json", plan);
-  io::write_trajectory(dir / "trajectory.csv", plan);
+  const model::PlanFan fan = model::choose_plan(plans, hyp.choose);
+  const Tensor<float>& waypoints = fan.chosen;  // (traj_len, 3)
+  if (hyp.count > 1)
+    io::write_trajectory_json(dir / "trajectory.json", waypoints,
+                              {plans, model::plan_choice_name(hyp.choose), fan.chosen_index, fan.spread_m});
+  else
+    io::write_trajectory(dir / "trajectory.json", waypoints);
+  io::write_trajectory(dir / "trajectory.csv", waypoints);
   TopDownView view;
-  const io::Image picture = draw_plan(clip.frames.back(), waypoints, &view);
+  const io::Image picture = draw_plan(clip.frames.back(), waypoints, &view, &plans);
   io::write_png((dir / "plan.png").string(), picture);
 
   print_waypoints(con.out, waypoints);
+  if (hyp.count > 1) print_spread(con.out, fan, hyp.choose);
   con.out << "wrote " << (dir / "trajectory.json").string() << ", " << (dir / "trajectory.csv").string() << "\n"
           << "wrote " << (dir / "plan.png").string() << " (" << size_text(picture) << ", top-down: "
           << view.pixels_per_metre << " px per metre, ego at the bottom centre)\n";

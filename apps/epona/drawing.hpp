@@ -93,22 +93,37 @@ inline Rgb waypoint_colour(std::int64_t i, std::int64_t n) {
   return {static_cast<std::uint8_t>(40 + 215 * t), static_cast<std::uint8_t>(230 - 190 * t), 40};
 }
 
+// The polyline from the ego through waypoints (W, 3), in pixels.
+inline std::vector<std::array<double, 2>> plan_points(const TopDownView& view, const Tensor<float>& waypoints) {
+  std::vector<std::array<double, 2>> pts{{view.origin_x, view.origin_y}};
+  for (std::int64_t i = 0; i < waypoints.size(0); ++i)
+    pts.push_back({view.px(waypoints.at(i, 0), waypoints.at(i, 1)), view.py(waypoints.at(i, 0), waypoints.at(i, 1))});
+  return pts;
+}
+
+inline void draw_polyline(io::Image& frame, const std::vector<std::array<double, 2>>& pts, double half_width, Rgb colour) {
+  for (std::size_t i = 0; i + 1 < pts.size(); ++i)
+    draw_segment(frame, pts[i][0], pts[i][1], pts[i + 1][0], pts[i + 1][1], half_width, colour);
+}
+
 // The frame (enlarged to at least kPlanMinHeight rows) with the planned waypoints (W, 3)
-// (metres forward, metres left, degrees) drawn on it.
-inline io::Image draw_plan(const io::Image& last_frame, const Tensor<float>& waypoints, TopDownView* view_out = nullptr) {
+// (metres forward, metres left, degrees) drawn on it; with `hypotheses` (K, W, 3), the fan the
+// plan was chosen from goes under it in thin light-blue lines (the view then fits them all).
+inline io::Image draw_plan(const io::Image& last_frame, const Tensor<float>& waypoints, TopDownView* view_out = nullptr,
+                           const Tensor<float>* hypotheses = nullptr) {
   io::Image frame = enlarge(last_frame, (kPlanMinHeight + last_frame.height - 1) / last_frame.height);
-  const TopDownView view = TopDownView::fit(frame, waypoints);
+  const bool fan = hypotheses && hypotheses->size(0) > 1;
+  const TopDownView view = TopDownView::fit(
+      frame, fan ? hypotheses->reshape({hypotheses->size(0) * hypotheses->size(1), 3}) : waypoints);
   if (view_out) *view_out = view;
   const double r = std::max(1.0, std::round(double(frame.height) / 96.0));  // line half-width
+  const Rgb outline{20, 20, 20}, path{255, 220, 40}, ego{255, 255, 255}, alternative{150, 200, 255};
+  if (fan)
+    for (std::int64_t k = 0; k < hypotheses->size(0); ++k) draw_polyline(frame, plan_points(view, (*hypotheses)[k]), r * 0.35, alternative);
+  const auto pts = plan_points(view, waypoints);
   const std::int64_t n = waypoints.size(0);
-  std::vector<std::array<double, 2>> pts{{view.origin_x, view.origin_y}};
-  for (std::int64_t i = 0; i < n; ++i)
-    pts.push_back({view.px(waypoints.at(i, 0), waypoints.at(i, 1)), view.py(waypoints.at(i, 0), waypoints.at(i, 1))});
-  const Rgb outline{20, 20, 20}, path{255, 220, 40}, ego{255, 255, 255};
-  for (std::size_t i = 0; i + 1 < pts.size(); ++i)  // a dark outline first keeps the path visible on any ground
-    draw_segment(frame, pts[i][0], pts[i][1], pts[i + 1][0], pts[i + 1][1], r + 1, outline);
-  for (std::size_t i = 0; i + 1 < pts.size(); ++i)
-    draw_segment(frame, pts[i][0], pts[i][1], pts[i + 1][0], pts[i + 1][1], r * 0.5, path);
+  draw_polyline(frame, pts, r + 1, outline);  // a dark outline first keeps the path visible on any ground
+  draw_polyline(frame, pts, r * 0.5, path);
   for (std::int64_t i = 0; i < n; ++i) {
     fill_disc(frame, pts[i + 1][0], pts[i + 1][1], r + 1.5, outline);
     fill_disc(frame, pts[i + 1][0], pts[i + 1][1], r + 0.5, waypoint_colour(i, n));

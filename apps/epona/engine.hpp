@@ -33,6 +33,8 @@ class Engine {
   virtual Tensor<float> decode(const Tensor<float>& latents, bool is_video) = 0;
   // WorldModel::plan and WorldModel::run_step (one step drawing from `noise`; want_latent = true).
   virtual Tensor<float> plan(const History& window, const SampleOptions& opt) = 0;
+  // WorldModel::plan_hypotheses: K plans of one scene (K, traj_len, 3).
+  virtual Tensor<float> plan_hypotheses(const History& window, std::int64_t K, const SampleOptions& opt) = 0;
   virtual StepResult step(const History& window, const NextAction* action, const DitSamplers& samplers,
                           NoiseSource& noise) = 0;
   // The official sampler: `steps` Euler steps for both DiTs.
@@ -64,6 +66,9 @@ class ModelEngine final : public Engine {
     return to_host(dcae().decode(ctx_, BackendTraits<B>::upload(latents), is_video));
   }
   Tensor<float> plan(const History& window, const SampleOptions& opt) override { return world().plan(window, opt); }
+  Tensor<float> plan_hypotheses(const History& window, std::int64_t K, const SampleOptions& opt) override {
+    return world().plan_hypotheses(window, K, opt);
+  }
   using Engine::step;
   StepResult step(const History& window, const NextAction* action, const DitSamplers& samplers,
                   NoiseSource& noise) override {

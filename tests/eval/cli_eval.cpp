@@ -297,3 +297,32 @@ TEST_CASE("eval --solver/--plan-steps/--video-steps: settings, plans per clip, s
   CHECK(has(f.err, "video midpoint x 1 steps (2 DiT evaluations)"));
   CHECK(read_json(mid)["settings"]["sampler"] == "fast");
 }
+
+TEST_CASE("eval --hypotheses 3: the chosen plan, the best of the three, the spread") {
+  TempDir t;
+  const fs::path set = make_clip_set(t), one = t.path / "one.json", three = t.path / "three.json";
+  auto args = eval_args(set, one);
+  args.push_back("--no-video");
+  REQUIRE(cli(args).rc == 0);
+  args = eval_args(set, three);
+  for (const char* a : {"--no-video", "--hypotheses", "3"}) args.push_back(a);
+  const Result r = cli(args);
+  INFO(r.err);
+  REQUIRE(r.rc == 0);
+  CHECK(has(r.out, "model_best_of_k"));
+  const json j1 = read_json(one), j3 = read_json(three);
+  CHECK(j3["settings"]["hypotheses"] == 3);
+  CHECK(j3["settings"]["choose"] == "medoid");
+  CHECK(j3["hypotheses"]["count"] == 3);
+  for (const char* key : {"spread_1s", "spread_2s", "spread_3s"}) check_number(j3["hypotheses"], key);
+  for (const char* key : {"l2_1s", "l2_2s", "l2_3s", "l2_avg_3s"}) {
+    check_number(j3["model_best_of_k"], key);
+    // The best of three includes hypothesis 0, the plan of the one-hypothesis run, and the chosen one.
+    CHECK(j3["model_best_of_k"][key].get<double>() <= j1["model"][key].get<double>() + 1e-9);
+    CHECK(j3["model_best_of_k"][key].get<double>() <= j3["model"][key].get<double>() + 1e-9);
+  }
+  CHECK(j3["model_best_of_k"]["collision_rate"].is_null());
+  CHECK(j3["per_clip"][0].contains("best_of_k_l2_3s"));
+  CHECK(j3["per_clip"][0]["spread_m"].size() == 15);
+  CHECK(!j1.contains("model_best_of_k"));
+}
