@@ -768,6 +768,12 @@ def weights_metadata(path):
         return json.loads(f.read(n)).get("__metadata__", {})
 
 
+def copy_unless_same(src, dst):
+    """tests/data/trained/configs.json links to the bundled model's: copying a file onto itself fails."""
+    if not (os.path.exists(dst) and os.path.samefile(src, dst)):
+        shutil.copyfile(src, dst)
+
+
 def write_set(a, configs, set_name, x, out, expect, tolerance, reload_check, bf16, provenance):
     from safetensors.torch import save_file
     os.makedirs(a.out, exist_ok=True)
@@ -815,7 +821,7 @@ def write_set(a, configs, set_name, x, out, expect, tolerance, reload_check, bf1
         del manifest["tolerance_official_bf16_recipe"]
     with open(os.path.join(a.out, "manifest.json"), "w") as f:
         json.dump(manifest, f, indent=1)
-    shutil.copyfile(os.path.join(a.model, "configs.json"), os.path.join(a.out, "configs.json"))
+    copy_unless_same(os.path.join(a.model, "configs.json"), os.path.join(a.out, "configs.json"))
     if a.copy_weights:
         for n in ("weights_world.safetensors", "weights_dcae.safetensors"):
             shutil.copyfile(os.path.join(a.model, n), os.path.join(a.out, n))
