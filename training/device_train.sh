@@ -11,6 +11,9 @@
 #                                         # clips of the exploring driver, the first world chunk
 #                                         # (then `resume` with the same knobs)
 #
+# A device call returns at most 8 files from its output folder: fetch the exported weights in a
+# call of their own before anything else writes there (run 3's weights were lost that way).
+#
 # Both copy the exported model (bf16 safetensors + configs.json), the loss curves and the
 # preview into OUT. Knobs (environment): CLIPS, FRAMES, DATA_SEED, DCAE_SECONDS, WORLD_SECONDS,
 # WORLD_SCHEDULE (the world model's planned total seconds over all chunks), BATCH, and for retrain
