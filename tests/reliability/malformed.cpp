@@ -85,4 +85,40 @@ TEST_CASE("jpeg: a scan cut short before an end-of-image marker is refused; whol
   }
 }
 
+namespace {
+
+std::size_t scan_data_start(const std::vector<std::uint8_t>& jpg) {
+  std::size_t sos = 0;
+  for (std::size_t i = 2; i + 1 < jpg.size(); ++i)
+    if (jpg[i] == 0xFF && jpg[i + 1] == 0xDA) sos = i;
+  return sos + 2 + ((std::size_t{jpg[sos + 2]} << 8) | jpg[sos + 3]);
+}
+
+}  // namespace
+
+TEST_CASE("jpeg: bytes between segments are stepped over as stb does, so the scan is still checked") {
+  // Finding 11 (docs/reliability.md): junk after a segment made the walk give up, and stb met a
+  // scan whose data ran out with undefined behaviour inside it.
+  io::ImageReadOptions opt;
+  opt.size = io::SizePolicy::Resize, opt.height = 32, opt.width = 32;
+  auto jpg = jpeg_of(64, 32, 80);
+  const std::vector<std::uint8_t> junk{0x00, 0x01, 0x00, 0x7F};
+  jpg.insert(jpg.begin() + 2 + 2 + ((jpg[4] << 8) | jpg[5]), junk.begin(), junk.end());  // after APP0
+  CHECK(io::decode_image(jpg, "junk.jpg", opt).width == 32);  // stb reads it: so does epona
+  CHECK_THROWS_WITH_AS(io::decode_image(cut_scan(jpg, 0.5), "junk_cut.jpg", opt),
+                       doctest::Contains("junk_cut.jpg: truncated JPEG (scan 1 ends after"), Error);
+}
+
+TEST_CASE("jpeg: a scan holding a code its Huffman tables lack is refused before stb sees it") {
+  io::ImageReadOptions opt;
+  opt.size = io::SizePolicy::Resize, opt.height = 32, opt.width = 32;
+  auto jpg = jpeg_of(64, 64, 80);
+  // No Huffman table holds the 16-bit all-ones code (JPEG reserves it): a run of data bytes 0xFF
+  // (stuffed as 0xFF 0x00) is an invalid code wherever the next code begins inside it.
+  const std::size_t data = scan_data_start(jpg);
+  for (std::size_t i = data + 8; i < data + 40; i += 2) jpg[i] = 0xFF, jpg[i + 1] = 0x00;
+  CHECK_THROWS_WITH_AS(io::decode_image(jpg, "bad_code.jpg", opt),
+                       doctest::Contains("bad_code.jpg: corrupt JPEG (scan 1, MCU "), Error);
+}
+
 #include "epona/io/stb_implementation.hpp"

@@ -141,7 +141,10 @@ inline void check_jpeg_scans_complete(std::span<const std::uint8_t> b, const std
   int hmax = 1, vmax = 1, restart_interval = 0, scan_no = 0;
   bool sequential = false;
   for (std::size_t pos = 2; pos + 3 < b.size();) {
-    if (b[pos] != 0xFF) return;  // not at a marker: odd structure
+    if (b[pos] != 0xFF) {  // bytes between segments: stb skips to the next 0xFF, and so does this walk
+      ++pos;
+      continue;
+    }
     const std::uint8_t m = b[pos + 1];
     if (m == 0xFF) {
       ++pos;
@@ -210,7 +213,8 @@ inline void check_jpeg_scans_complete(std::span<const std::uint8_t> b, const std
         for (const auto& [c, tables] : in_scan) {
           const int blocks = ns == 1 ? 1 : c->h * c->v;
           for (int k = 0; k < blocks; ++k)
-            if (!skip_block(r, dc[tables >> 4], ac[tables & 15])) return;  // corrupt: stb decides
+            EPONA_CHECK(skip_block(r, dc[tables >> 4], ac[tables & 15]), source, ": corrupt JPEG (scan ", scan_no,
+                        ", MCU ", mcu, " of ", mcus, ": a code its Huffman tables do not hold)");
         }
         EPONA_CHECK(!r.ended(), source, ": truncated JPEG (scan ", scan_no, " ends after ", mcu, " of ", mcus,
                     " MCUs of its ", height, "x", width, " image; the rest would decode as grey)");
