@@ -118,8 +118,13 @@ inline io::Image draw_plan(const io::Image& last_frame, const Tensor<float>& way
   if (view_out) *view_out = view;
   const double r = std::max(1.0, std::round(double(frame.height) / 96.0));  // line half-width
   const Rgb outline{20, 20, 20}, path{255, 220, 40}, ego{255, 255, 255}, alternative{150, 200, 255};
-  if (fan)
-    for (std::int64_t k = 0; k < hypotheses->size(0); ++k) draw_polyline(frame, plan_points(view, (*hypotheses)[k]), r * 0.35, alternative);
+  if (fan)  // each hypothesis a thin line ending in a disc, so a tight fan still shows at its far end
+    for (std::int64_t k = 0; k < hypotheses->size(0); ++k) {
+      const auto hp = plan_points(view, (*hypotheses)[k]);
+      draw_polyline(frame, hp, r * 0.4, alternative);
+      fill_disc(frame, hp.back()[0], hp.back()[1], r + 1, outline);
+      fill_disc(frame, hp.back()[0], hp.back()[1], r, alternative);
+    }
   const auto pts = plan_points(view, waypoints);
   const std::int64_t n = waypoints.size(0);
   draw_polyline(frame, pts, r + 1, outline);  // a dark outline first keeps the path visible on any ground

@@ -16,6 +16,7 @@
 #include "../cuda/cuda_test_util.cuh"
 #include "epona/cuda/backend.cuh"
 #include "epona/cuda/dcae_ops.cuh"
+#include "epona/cuda/scratch.hpp"
 #include "epona/model/rollout.hpp"
 
 using namespace epona;
@@ -127,6 +128,27 @@ TEST_CASE("CUDA engine, bf16: runs end to end with finite results") {
       gpu_engine->decode(tokens_to_latent(ctx, r.latent, w.latent_h(), w.latent_w()), false);
   CHECK(images.shape() == Shape{1, 3, w.image_h, w.image_w});
   CHECK(all_finite(images));
+}
+
+TEST_CASE("CUDA engine, float32: plan hypotheses match the CPU engine's, and hypothesis k its seed's plan") {
+  EPONA_REQUIRE_GPU();
+  const auto files = golden_files();
+  auto cpu_engine = loaded("cpu", false, files);
+  auto gpu_engine = loaded("cuda", false, files);
+  const History h = window_of(*cpu_engine, files.configs.world);
+  SampleOptions opt;
+  opt.seed = 5;
+  opt.steps = 3;
+  const std::int64_t K = 6;
+  cuda::set_poison_new_buffers(true);  // scratch handed out as NaN: an unwritten element shows
+  const Tensor<float> gpu = gpu_engine->plan_hypotheses(h, K, opt);
+  cuda::set_poison_new_buffers(false);
+  CHECK(gpu.shape() == Shape{K, files.configs.world.traj_len, 3});
+  CHECK(all_finite(gpu));
+  CHECK(rel_max(gpu, cpu_engine->plan_hypotheses(h, K, opt)) <= 1e-4);
+  SampleOptions last = opt;
+  last.seed = WorldModel<Cpu, float>::hypothesis_seed(opt.seed, K - 1);
+  CHECK(rel_max(gpu.slice(K - 1, K), gpu_engine->plan(h, last)) <= 1e-4);
 }
 
 // The one translation unit of this program that compiles stb (after every other include).
