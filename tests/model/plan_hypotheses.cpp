@@ -6,6 +6,7 @@
 #include <string>
 
 #include "epona/model/world_model.hpp"
+#include "../error_text.hpp"
 #include "golden_world_model.hpp"
 
 using namespace epona;
@@ -26,15 +27,8 @@ History one_scene() {
   return {first(h.latents), first(h.rel_pose), first(h.rel_yaw)};
 }
 
-std::string error_of(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.what();
-  }
-  return "";
-}
-bool contains(const std::string& s, const std::string& part) { return s.find(part) != std::string::npos; }
+using epona::test::contains;
+using epona::test::error_of;
 
 }  // namespace
 

@@ -12,6 +12,7 @@
 #include "epona/core/rng.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
+#include "../error_text.hpp"
 #include "golden_world_model.hpp"
 
 using namespace epona;
@@ -31,15 +32,8 @@ Tensor<float, Cpu> step0(const std::string& name) {
   return t.slice(0, 1).clone().reshape(s);
 }
 
-std::string error_of(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.what();
-  }
-  return "";
-}
-bool contains(const std::string& s, const std::string& part) { return s.find(part) != std::string::npos; }
+using epona::test::contains;
+using epona::test::error_of;
 
 }  // namespace
 
