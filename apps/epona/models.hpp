@@ -119,8 +119,13 @@ inline void add_model_options(ArgParser& p, bool world, bool dcae) {
   if (world) p.option("weights", "FILE", "world-model checkpoint: official .pkl or .safetensors", "the bundled model");
   if (dcae) p.option("dcae", "FILE", "DC-AE checkpoint: official .pkl (dcae_td_*.pkl) or .safetensors",
                      world ? "the bundled DC-AE, or --weights when it holds the DC-AE too" : "the bundled DC-AE");
-  p.option("config", "FILE", "model configuration JSON (configs.json layout, or the world_model_config keys)",
-           "with --weights/--dcae: the shipped Epona configuration");
+  // The default names only the options this command has (encode/decode have no --weights).
+  if (world)
+    p.option("config", "FILE", "model configuration JSON (configs.json layout, or the world_model_config keys)",
+             "the bundled configuration; with --weights/--dcae: the shipped Epona configuration");
+  else
+    p.option("config", "FILE", "model configuration JSON (configs.json layout; its dcae part is used)",
+             "the bundled configuration; with --dcae: the shipped Epona configuration");
 }
 
 struct ModelFiles {
