@@ -211,7 +211,8 @@ WorldModel<B, W> load_world(const ModelFiles& f, const ComputeOptions& c, const 
     auto wm = WorldModel<B, W>::load(weights, f.configs.world);
     if constexpr (std::is_same_v<B, Cpu>)
       if (c.threads > 0) wm.context().set_threads(c.threads);
-    con.note("  ", std::int64_t(f.configs.world.parameter_count()), " parameters in ", seconds_since(t0), " s");
+    con.note("  ", grouped(std::int64_t(f.configs.world.parameter_count())), " parameters in ",
+             duration_text(seconds_since(t0)));
     return wm;
   } catch (const Error& e) {
     const auto d = detect_configuration(weights, f.configs);
@@ -238,7 +239,8 @@ Dcae<B, T> load_dcae(const ModelFiles& f, const Console& con) {
          "); give the DC-AE checkpoint with --dcae FILE");
   try {
     auto model = Dcae<B, T>::load(weights, f.configs.dcae);
-    con.note("  ", std::int64_t(f.configs.dcae.parameter_count()), " parameters in ", seconds_since(t0), " s");
+    con.note("  ", grouped(std::int64_t(f.configs.dcae.parameter_count())), " parameters in ",
+             duration_text(seconds_since(t0)));
     return model;
   } catch (const Error& e) {
     const auto d = detect_configuration(weights, f.configs);
