@@ -86,7 +86,7 @@ inline std::int64_t max_pixels_option(const ParsedArgs& a, std::int64_t fallback
 inline void add_compute_options(ArgParser& p) {
   p.option("backend", "NAME", "cpu or cuda", "cpu")
       .option("dtype", "TYPE", "weight precision: float32 (exact) or bfloat16 (half the memory)", "float32")
-      .option("threads", "N", "CPU threads", "all");
+      .option("threads", "N", "CPU threads; 0 or all: every hardware thread", "all");
 }
 
 // Refuses a backend this program cannot run, naming why. The epona program gets its CUDA engine
@@ -108,9 +108,17 @@ inline ComputeOptions compute_options(const ParsedArgs& a) {
   c.backend = a.choice("backend", {"cpu", "cuda"}, "cpu");
   const std::string dtype = a.choice("dtype", {"float32", "fp32", "bfloat16", "bf16"}, "float32");
   c.bf16_weights = dtype == "bfloat16" || dtype == "bf16";
-  if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 1, max_threads()));
+  if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 0, max_threads()));
   check_backend(c.backend);
   return c;
+}
+
+inline int hardware_threads() { return std::max(1, static_cast<int>(std::thread::hardware_concurrency())); }
+
+// "epona: cpu, float32, 2 threads": what a run computes with, so a log says it without guessing.
+inline void announce_compute(const Console& con, const ComputeOptions& c) {
+  con.note("epona: ", c.backend, ", ", c.bf16_weights ? "bfloat16" : "float32", ", ",
+           counted(c.threads > 0 ? c.threads : hardware_threads(), "thread"));
 }
 
 // ---- which files ------------------------------------------------------------------------
