@@ -200,14 +200,33 @@ inline std::string join(const std::vector<std::string>& v, const std::string& se
   return s;
 }
 
+// "329 weight problem(s), e.g. 'a' has shape ...; 'b' ...; ..." from the binding's message
+// "<file>: 329 weight problem(s): p1; p2; ...": the count and the first `keep` problems.
+inline std::string weight_problem_examples(const std::string& what, std::size_t keep) {
+  const std::string tag = " weight problem(s): ";
+  const auto at = what.find(tag);
+  if (at == std::string::npos) return what;
+  const auto count_at = what.find_last_not_of("0123456789", at - 1) + 1;
+  std::string s = what.substr(count_at, at - count_at) + " weight problem(s), e.g. ";
+  std::size_t pos = at + tag.size();
+  for (std::size_t shown = 0; shown < keep && pos < what.size(); ++shown) {
+    const auto end = std::min(what.find("; ", pos), what.size());
+    s += (shown ? "; " : "") + what.substr(pos, end - pos);
+    pos = end == what.size() ? end : end + 2;
+  }
+  return pos < what.size() ? s + "; ..." : s;
+}
+
 // Re-throws a binding error with the configuration the checkpoint's shapes imply, when it
-// differs from the one used.
+// differs from the one used: what is wrong and what to do first, then a few of the keys (the
+// binding's list of 20 buried the advice).
 [[noreturn]] inline void explain_bind_failure(const Error& e, const std::vector<std::string>& differences,
                                               const ModelFiles& f, const std::string& path) {
   if (differences.empty()) throw e;
-  fail(e.what(), "\n  the checkpoint's shapes differ from ", f.config_source, " in: ", join(differences, "; "),
-       "\n  (write a configuration with `epona info ", path, " --write-config FILE`, check its assumed values, "
-       "and pass it with --config FILE)");
+  fail(path, ": the checkpoint's shapes differ from ", f.config_source, " in: ", join(differences, "; "),
+       "\n  to fix: write the configuration they imply with `epona info ", path,
+       " --write-config FILE`, check its assumed values, and pass it with --config FILE",
+       "\n  ", weight_problem_examples(e.what(), 3));
 }
 
 template <class B, class W>
