@@ -151,6 +151,7 @@ inline int run_decode(const ParsedArgs& a, const Console& con) {
     EPONA_CHECK(std::isfinite(latents.data()[i]), path, ": non-finite latent value at flat index ", i);
   const auto dir = output_dir(a, "out/decode");
   IncompleteMarker incomplete(dir, "epona decode");
+  remove_stale_frames(dir, latents.size(0));
   const auto engine = make_engine(compute);
   engine->load_dcae(files, con);
   const DcaeConfig& dc = engine->dcae_config();

@@ -155,6 +155,8 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   const Clip clip = load_clip_for(a, files, con);
   const auto dir = output_dir(a, "out/generate");
   IncompleteMarker incomplete(dir, "epona generate");
+  if (!plan.keep_latents) remove_stale_output(dir / "latents.npy");
+  remove_stale_frames(dir / "frames", plan.frames);
 
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);
