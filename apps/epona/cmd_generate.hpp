@@ -131,7 +131,8 @@ inline void print_generate_summary(std::ostream& out, const std::filesystem::pat
                                    std::size_t shown, bool given_actions, bool latents) {
   char last[32];
   std::snprintf(last, sizeof last, "frame_%04lld.png", static_cast<long long>(N - 1));
-  out << "generated " << N << " frame(s) of " << wc.image_h << "x" << wc.image_w << " in " << seconds << " s\n"
+  out << "generated " << counted(N, "frame") << " of " << wc.image_h << "x" << wc.image_w << " in "
+      << duration_text(seconds) << "\n"
       << "wrote " << (dir / "frames" / "frame_0000.png").string() << (N > 1 ? std::string(" ... ") + last : "") << "\n"
       << "wrote " << (dir / "contact_sheet.png").string() << " (" << size_text(sheet) << ": " << inputs
       << " input frame(s) framed blue, " << shown << " generated framed orange)\n"
