@@ -166,7 +166,8 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   engine->load_world(files, con);
   const DcaeConfig& dc = engine->dcae_config();
   plan.clip_len = clip_decode && dc.add_decoder_temporal ? dc.condition_frames : 1;
-  con.note("generating ", plan.frames, " frame(s): ", describe(plan.samplers, !plan.actions), ", seed ", plan.seed, ", ",
+  con.note("generating ", counted(plan.frames, "frame"), ": ", describe(plan.samplers, !plan.actions), ", seed ",
+           plan.seed, ", ",
            plan.actions ? "actions from " + *a.get("trajectory") : std::string("self-predicted trajectory"), ", decoded ",
            plan.clip_len > 1 ? "in clips of " + std::to_string(plan.clip_len) : std::string("frame by frame"));
 

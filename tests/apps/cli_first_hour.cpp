@@ -169,8 +169,9 @@ TEST_CASE("12. a run into an earlier run's folder leaves none of that run's file
     fs::create_directories(gen / "frames");
     std::ofstream(gen / "latents.npy") << "stale";
     write_png_of(gen / "frames" / "frame_0003.png", 32, 32);
-    const auto r = cli({"generate", "-n", "1", "--steps", "1", "-o", gen.string(), "-q"});
+    const auto r = cli({"generate", "-n", "1", "--steps", "1", "-o", gen.string()});
     REQUIRE(r.rc == 0);
+    CHECK(has(r.err, "generating 1 frame: "));  // 8.
     CHECK(has(r.out, "generated 1 frame of "));  // 8. (and its time in ms or s, not 0.1234567 s)
     CHECK_FALSE(has(r.out.substr(0, r.out.find('\n')), "e-0"));
     CHECK(fs::exists(gen / "frames" / "frame_0000.png"));
