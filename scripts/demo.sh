@@ -8,15 +8,18 @@
 #                   --frames clip/ --poses clip/poses.csv    # the released model
 #
 # Options of its own: --out DIR (default out/demo), -n/--num-frames N (frames to generate,
-# default 6). Every other option goes to both commands (--steps, --seed, --dtype, --threads,
-# --fit, --config, --quiet; see `epona plan --help`). Paths are relative to where it is run.
-# EPONA_BUILD_DIR picks the build folder (default: build, inside the repository).
+# default 6), --cuda / --no-cuda (build the CUDA engine too, or not; default: only when
+# `nvidia-smi -L` finds a GPU). Every other option goes to both commands (--steps, --seed,
+# --dtype, --threads, --fit, --config, --quiet; see `epona plan --help`). Paths are relative
+# to where it is run. EPONA_BUILD_DIR picks the build folder (default: build, inside the
+# repository).
 set -euo pipefail
 caller=$(pwd)
 root=$(cd "$(dirname "$0")/.." && pwd)
 
 out=out/demo
 frames=6
+cuda=auto
 pass=()
 while (($#)); do
   case "$1" in
@@ -24,16 +27,25 @@ while (($#)); do
     --out=*) out=${1#--out=}; shift ;;
     -n|--num-frames) frames=${2:?"$1 needs a number"}; shift 2 ;;
     --num-frames=*) frames=${1#--num-frames=}; shift ;;
-    -h|--help) sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    --cuda) cuda=ON; shift ;;
+    --no-cuda) cuda=OFF; shift ;;
+    # The help is the comment block under the #! line, up to the first line of code.
+    -h|--help) awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"; exit 0 ;;
     *) pass+=("$1"); shift ;;
   esac
 done
+
+# nvcc without a GPU would compile the CUDA engine for nothing (it doubles the first build).
+if [[ $cuda == auto ]]; then
+  cuda=OFF
+  if command -v nvidia-smi >/dev/null && nvidia-smi -L >/dev/null 2>&1; then cuda=ON; fi
+fi
 
 cd "$root"
 scripts/setup.sh
 build=${EPONA_BUILD_DIR:-build}
 cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DEPONA_TESTS=OFF -DEPONA_BENCHMARKS=OFF \
-      -DEPONA_EXAMPLES=ON >/dev/null
+      -DEPONA_EXAMPLES=ON -DEPONA_CUDA="$cuda" >/dev/null
 cmake --build "$build" -j "$(nproc)" --target epona_cli
 epona=$(cd "$build" && pwd)/apps/epona
 

@@ -52,6 +52,13 @@ inline const std::vector<Subcommand>& subcommands() {
   return list;
 }
 
+// The commands that load a network, which take --backend, --dtype and --threads.
+inline bool runs_a_model(const std::string& name) {
+  for (const char* c : {"plan", "generate", "encode", "decode", "eval"})
+    if (name == c) return true;
+  return false;
+}
+
 inline std::string main_help() {
   std::string s =
       "usage: epona <command> [options]\n\n"
@@ -101,6 +108,7 @@ inline int run(const std::vector<std::string>& args, std::ostream& out, std::ost
       }
       const Console con{out, err, parsed.flag("quiet"), interactive};
       current_activity() = c.name;
+      if (runs_a_model(c.name)) announce_compute(con, compute_options(parsed));
       return c.run(parsed, con);
     }
     usage_fail("unknown command '", args[0], "' (commands: plan, generate, eval, encode, decode, info, convert, synth; see epona --help)");

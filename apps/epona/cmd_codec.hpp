@@ -105,7 +105,9 @@ inline int run_encode(const ParsedArgs& a, const Console& con) {
   const std::int64_t read_limit = std::max(io::limits::kPixels, max_pixels);
   std::vector<io::Image> images;
   for (const auto& f : inputs) {
-    images.push_back(read_frame(f, H, W, policy, read_limit));
+    images.push_back(read_frame(f, H, W, policy, read_limit,
+                                a.has("size") ? "; pass --fit resize|crop|cover to convert it to --size"
+                                              : "; give --size HxW with --fit resize|crop|cover to convert it"));
     if (H == 0) {  // the first image sets the size
       H = images.back().height, W = images.back().width;
       EPONA_CHECK(H <= max_pixels / W, f.string(), ": encoding at its size ", H, "x", W, " (", H * W,
@@ -149,6 +151,7 @@ inline int run_decode(const ParsedArgs& a, const Console& con) {
     EPONA_CHECK(std::isfinite(latents.data()[i]), path, ": non-finite latent value at flat index ", i);
   const auto dir = output_dir(a, "out/decode");
   IncompleteMarker incomplete(dir, "epona decode");
+  remove_stale_frames(dir, latents.size(0));
   const auto engine = make_engine(compute);
   engine->load_dcae(files, con);
   const DcaeConfig& dc = engine->dcae_config();

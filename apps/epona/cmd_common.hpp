@@ -123,8 +123,8 @@ inline DitSamplers samplers_of(const SampleOptions& o) { return samplers_for(o, 
 // "planner dpmpp2m x 10 steps (10 DiT evaluations), video euler x 100 steps (100 ...)".
 inline std::string describe(const DitSamplers& s, bool plan = true, bool video = true) {
   const auto one = [](const char* what, const flow::SolverSetting& x) {
-    return std::string(what) + " " + flow::solver_name(x.kind) + " x " + std::to_string(x.steps) + " steps (" +
-           std::to_string(x.evaluations()) + " DiT evaluations)";
+    return std::string(what) + " " + flow::solver_name(x.kind) + " x " + counted(x.steps, "step") + " (" +
+           counted(x.evaluations(), "DiT evaluation") + ")";
   };
   if (plan && video) return one("planner", s.plan) + ", " + one("video", s.video);
   return plan ? one("planner", s.plan) : one("video", s.video);

@@ -131,7 +131,8 @@ inline void print_generate_summary(std::ostream& out, const std::filesystem::pat
                                    std::size_t shown, bool given_actions, bool latents) {
   char last[32];
   std::snprintf(last, sizeof last, "frame_%04lld.png", static_cast<long long>(N - 1));
-  out << "generated " << N << " frame(s) of " << wc.image_h << "x" << wc.image_w << " in " << seconds << " s\n"
+  out << "generated " << counted(N, "frame") << " of " << wc.image_h << "x" << wc.image_w << " in "
+      << duration_text(seconds) << "\n"
       << "wrote " << (dir / "frames" / "frame_0000.png").string() << (N > 1 ? std::string(" ... ") + last : "") << "\n"
       << "wrote " << (dir / "contact_sheet.png").string() << " (" << size_text(sheet) << ": " << inputs
       << " input frame(s) framed blue, " << shown << " generated framed orange)\n"
@@ -155,6 +156,8 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   const Clip clip = load_clip_for(a, files, con);
   const auto dir = output_dir(a, "out/generate");
   IncompleteMarker incomplete(dir, "epona generate");
+  if (!plan.keep_latents) remove_stale_output(dir / "latents.npy");
+  remove_stale_frames(dir / "frames", plan.frames);
 
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);
@@ -163,7 +166,8 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   engine->load_world(files, con);
   const DcaeConfig& dc = engine->dcae_config();
   plan.clip_len = clip_decode && dc.add_decoder_temporal ? dc.condition_frames : 1;
-  con.note("generating ", plan.frames, " frame(s): ", describe(plan.samplers, !plan.actions), ", seed ", plan.seed, ", ",
+  con.note("generating ", counted(plan.frames, "frame"), ": ", describe(plan.samplers, !plan.actions), ", seed ",
+           plan.seed, ", ",
            plan.actions ? "actions from " + *a.get("trajectory") : std::string("self-predicted trajectory"), ", decoded ",
            plan.clip_len > 1 ? "in clips of " + std::to_string(plan.clip_len) : std::string("frame by frame"));
 

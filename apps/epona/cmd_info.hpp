@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdio>
+#include <filesystem>
 #include <string>
 #include <vector>
 
@@ -32,7 +33,8 @@ inline ArgParser info_parser() {
       .flag("keys", "list every tensor: name, dtype, shape")
       .option("depth", "N", "module prefix depth of the parameter table", "2")
       .option("key", "NAME", "state dict inside a .pkl (e.g. model_state_dict, model)", "automatic")
-      .option("config", "FILE", "configuration to compare with", "the shipped Epona configuration")
+      .option("config", "FILE", "configuration to compare with",
+              "configs.json beside the first file, else the shipped Epona configuration")
       .option("write-config", "FILE", "write the detected configuration (assumed values from --config) as JSON")
       .flag("quiet", "no notes on stderr", 'q')
       .epilog("example:\n  epona info world.pkl dcae_td_20000.pkl --write-config nuplan.json");
@@ -139,10 +141,21 @@ inline void print_detection(std::ostream& out, const io::TensorMap& m, const Det
   for (const auto& p : d.problems) out << "  cannot read: " << printable(p, 4 * kNameCut) << "\n";
 }
 
+// The configuration to compare with: --config, else a configs.json beside the first file (how
+// a trained model ships, e.g. models/small-synthetic), else the released model's.
+inline std::string info_base_path(const ParsedArgs& a) {
+  if (a.has("config")) return *a.get("config");
+  const auto beside = std::filesystem::path(a.positionals().front()).parent_path() / "configs.json";
+  std::error_code ec;
+  return std::filesystem::is_regular_file(beside, ec) ? beside.string() : "";
+}
+
 inline int run_info(const ParsedArgs& a, const Console& con) {
   const int depth = static_cast<int>(a.integer("depth", 2, 1, 64));
-  const io::ModelConfigs base = a.has("config") ? io::load_configs(*a.get("config")) : io::ModelConfigs{};
-  const std::string base_name = a.has("config") ? *a.get("config") : "the shipped Epona configuration";
+  const std::string base_path = info_base_path(a);
+  if (!base_path.empty() && !a.has("config")) con.note("comparing with ", base_path, " (beside the weights)");
+  const io::ModelConfigs base = base_path.empty() ? io::ModelConfigs{} : io::load_configs(base_path);
+  const std::string base_name = base_path.empty() ? "the shipped Epona configuration" : base_path;
   io::ModelConfigs combined = base;  // world part from the file holding it, DC-AE from the other
   for (const auto& path : a.positionals()) {
     check_file(path, "checkpoint");
@@ -159,7 +172,10 @@ inline int run_info(const ParsedArgs& a, const Console& con) {
     try {
       std::string(what) == "DC-AE" ? combined.dcae.validate() : combined.world.validate();
     } catch (const Error& e) {
-      con.out << "note: the detected " << what << " configuration is not valid as it stands: " << e.what() << "\n";
+      // The shapes are what they are: what does not fit is a value assumed from the base.
+      con.out << "note: the " << what << " read from the shapes does not fit the values assumed from " << base_name
+              << ": " << e.what() << "\n      give the model's configs.json with --config (or write one with "
+              << "--write-config, fix the assumed values, and pass it)\n";
     }
   }
   if (a.has("write-config")) {

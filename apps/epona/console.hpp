@@ -28,6 +28,37 @@ struct Console {
   }
 };
 
+// "1 step", "2 steps": notes read as sentences.
+inline std::string counted(std::int64_t n, const std::string& word) {
+  return std::to_string(n) + " " + word + (n == 1 ? "" : "s");
+}
+
+// "769,476": digits grouped by thousands, as people read counts.
+inline std::string grouped(std::int64_t n) {
+  const std::string s = std::to_string(n < 0 ? -n : n);
+  std::string out = n < 0 ? "-" : "";
+  for (std::size_t i = 0; i < s.size(); ++i) {
+    if (i && (s.size() - i) % 3 == 0) out += ',';
+    out += s[i];
+  }
+  return out;
+}
+
+// "2.9 ms", "340 ms", "1.4 s", "12 s": a duration at a precision worth reading.
+inline std::string duration_text(double seconds) {
+  char buf[32];
+  if (!(seconds >= 0)) return "-- s";
+  if (seconds < 0.01)
+    std::snprintf(buf, sizeof buf, "%.1f ms", seconds * 1e3);
+  else if (seconds < 1)
+    std::snprintf(buf, sizeof buf, "%.0f ms", seconds * 1e3);
+  else if (seconds < 10)
+    std::snprintf(buf, sizeof buf, "%.1f s", seconds);
+  else
+    std::snprintf(buf, sizeof buf, "%.0f s", seconds);
+  return buf;
+}
+
 // "00:07", "12:03", "1:02:03".
 inline std::string clock_text(double seconds) {
   if (!(seconds >= 0) || seconds > 1e8) return "--:--";

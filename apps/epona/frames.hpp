@@ -43,17 +43,28 @@ inline io::SizePolicy size_policy(const std::string& name) {
 }
 
 // Reads a frame, converting grayscale/RGBA/16-bit to 8-bit RGB and fitting it to height x width.
+// The library's size errors name its types (SizePolicy::Resize, "a resize or crop policy"); the
+// user knows the options, --fit and (for encode) --size.
+inline std::string in_option_words(std::string what, const std::string& fit_hint) {
+  const auto replace = [&](const std::string& from, const std::string& to) {
+    if (const auto at = what.find(from); at != std::string::npos) what.replace(at, from.size(), to);
+  };
+  replace("; choose SizePolicy::Resize, CenterCrop or ResizeCover to convert it", fit_hint);
+  replace("; ask for a target size with a resize or crop policy", "; give --size HxW with --fit resize|crop|cover");
+  return what;
+}
+
 inline io::Image read_frame(const std::filesystem::path& file, std::int64_t height, std::int64_t width,
-                            io::SizePolicy policy, std::int64_t max_pixels = io::limits::kPixels) {
+                            io::SizePolicy policy, std::int64_t max_pixels = io::limits::kPixels,
+                            const std::string& fit_hint = "; pass --fit resize|crop|cover to convert it") {
   io::ImageReadOptions opt;
   opt.height = height, opt.width = width, opt.size = policy, opt.convert_to_rgb8 = true, opt.max_pixels = max_pixels;
   const Activity doing("reading " + file.string());
   try {
     return io::read_image(file.string(), opt);
   } catch (const Error& e) {
-    const std::string what = e.what();
-    if (policy == io::SizePolicy::Exact && what.find("the model takes") != std::string::npos)
-      fail(what, " (or pass --fit resize|crop|cover)");
+    const std::string what = in_option_words(e.what(), fit_hint);
+    if (what != e.what()) fail(what);
     if (what.find("pixels") != std::string::npos && what.find("limit") != std::string::npos)
       fail(what, "; --max-pixels raises the limit");
     throw;

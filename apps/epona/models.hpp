@@ -86,7 +86,7 @@ inline std::int64_t max_pixels_option(const ParsedArgs& a, std::int64_t fallback
 inline void add_compute_options(ArgParser& p) {
   p.option("backend", "NAME", "cpu or cuda", "cpu")
       .option("dtype", "TYPE", "weight precision: float32 (exact) or bfloat16 (half the memory)", "float32")
-      .option("threads", "N", "CPU threads", "all");
+      .option("threads", "N", "CPU threads; 0 or all: every hardware thread", "all");
 }
 
 // Refuses a backend this program cannot run, naming why. The epona program gets its CUDA engine
@@ -108,9 +108,17 @@ inline ComputeOptions compute_options(const ParsedArgs& a) {
   c.backend = a.choice("backend", {"cpu", "cuda"}, "cpu");
   const std::string dtype = a.choice("dtype", {"float32", "fp32", "bfloat16", "bf16"}, "float32");
   c.bf16_weights = dtype == "bfloat16" || dtype == "bf16";
-  if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 1, max_threads()));
+  if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 0, max_threads()));
   check_backend(c.backend);
   return c;
+}
+
+inline int hardware_threads() { return std::max(1, static_cast<int>(std::thread::hardware_concurrency())); }
+
+// "epona: cpu, float32, 2 threads": what a run computes with, so a log says it without guessing.
+inline void announce_compute(const Console& con, const ComputeOptions& c) {
+  con.note("epona: ", c.backend, ", ", c.bf16_weights ? "bfloat16" : "float32", ", ",
+           counted(c.threads > 0 ? c.threads : hardware_threads(), "thread"));
 }
 
 // ---- which files ------------------------------------------------------------------------
@@ -119,8 +127,13 @@ inline void add_model_options(ArgParser& p, bool world, bool dcae) {
   if (world) p.option("weights", "FILE", "world-model checkpoint: official .pkl or .safetensors", "the bundled model");
   if (dcae) p.option("dcae", "FILE", "DC-AE checkpoint: official .pkl (dcae_td_*.pkl) or .safetensors",
                      world ? "the bundled DC-AE, or --weights when it holds the DC-AE too" : "the bundled DC-AE");
-  p.option("config", "FILE", "model configuration JSON (configs.json layout, or the world_model_config keys)",
-           "with --weights/--dcae: the shipped Epona configuration");
+  // The default names only the options this command has (encode/decode have no --weights).
+  if (world)
+    p.option("config", "FILE", "model configuration JSON (configs.json layout, or the world_model_config keys)",
+             "the bundled configuration; with --weights/--dcae: the shipped Epona configuration");
+  else
+    p.option("config", "FILE", "model configuration JSON (configs.json layout; its dcae part is used)",
+             "the bundled configuration; with --dcae: the shipped Epona configuration");
 }
 
 struct ModelFiles {
@@ -187,14 +200,33 @@ inline std::string join(const std::vector<std::string>& v, const std::string& se
   return s;
 }
 
+// "329 weight problem(s), e.g. 'a' has shape ...; 'b' ...; ..." from the binding's message
+// "<file>: 329 weight problem(s): p1; p2; ...": the count and the first `keep` problems.
+inline std::string weight_problem_examples(const std::string& what, std::size_t keep) {
+  const std::string tag = " weight problem(s): ";
+  const auto at = what.find(tag);
+  if (at == std::string::npos) return what;
+  const auto count_at = what.find_last_not_of("0123456789", at - 1) + 1;
+  std::string s = what.substr(count_at, at - count_at) + " weight problem(s), e.g. ";
+  std::size_t pos = at + tag.size();
+  for (std::size_t shown = 0; shown < keep && pos < what.size(); ++shown) {
+    const auto end = std::min(what.find("; ", pos), what.size());
+    s += (shown ? "; " : "") + what.substr(pos, end - pos);
+    pos = end == what.size() ? end : end + 2;
+  }
+  return pos < what.size() ? s + "; ..." : s;
+}
+
 // Re-throws a binding error with the configuration the checkpoint's shapes imply, when it
-// differs from the one used.
+// differs from the one used: what is wrong and what to do first, then a few of the keys (the
+// binding's list of 20 buried the advice).
 [[noreturn]] inline void explain_bind_failure(const Error& e, const std::vector<std::string>& differences,
                                               const ModelFiles& f, const std::string& path) {
   if (differences.empty()) throw e;
-  fail(e.what(), "\n  the checkpoint's shapes differ from ", f.config_source, " in: ", join(differences, "; "),
-       "\n  (write a configuration with `epona info ", path, " --write-config FILE`, check its assumed values, "
-       "and pass it with --config FILE)");
+  fail(path, ": the checkpoint's shapes differ from ", f.config_source, " in: ", join(differences, "; "),
+       "\n  to fix: write the configuration they imply with `epona info ", path,
+       " --write-config FILE`, check its assumed values, and pass it with --config FILE",
+       "\n  ", weight_problem_examples(e.what(), 3));
 }
 
 template <class B, class W>
@@ -206,7 +238,8 @@ WorldModel<B, W> load_world(const ModelFiles& f, const ComputeOptions& c, const 
     auto wm = WorldModel<B, W>::load(weights, f.configs.world);
     if constexpr (std::is_same_v<B, Cpu>)
       if (c.threads > 0) wm.context().set_threads(c.threads);
-    con.note("  ", std::int64_t(f.configs.world.parameter_count()), " parameters in ", seconds_since(t0), " s");
+    con.note("  ", grouped(std::int64_t(f.configs.world.parameter_count())), " parameters in ",
+             duration_text(seconds_since(t0)));
     return wm;
   } catch (const Error& e) {
     const auto d = detect_configuration(weights, f.configs);
@@ -233,7 +266,8 @@ Dcae<B, T> load_dcae(const ModelFiles& f, const Console& con) {
          "); give the DC-AE checkpoint with --dcae FILE");
   try {
     auto model = Dcae<B, T>::load(weights, f.configs.dcae);
-    con.note("  ", std::int64_t(f.configs.dcae.parameter_count()), " parameters in ", seconds_since(t0), " s");
+    con.note("  ", grouped(std::int64_t(f.configs.dcae.parameter_count())), " parameters in ",
+             duration_text(seconds_since(t0)));
     return model;
   } catch (const Error& e) {
     const auto d = detect_configuration(weights, f.configs);

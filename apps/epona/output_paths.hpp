@@ -11,6 +11,7 @@
 #include <filesystem>
 #include <string>
 #include <system_error>
+#include <vector>
 
 #include "epona/core/error.hpp"
 #include "epona/io/atomic_file.hpp"
@@ -66,6 +67,29 @@ inline void prepare_output_file(const std::filesystem::path& file, const std::st
   EPONA_CHECK(!std::filesystem::is_directory(file, ec), what, ": ", file.string(), " is a folder, not a file name");
   const auto parent = file.parent_path();
   prepare_output_dir(parent.empty() ? std::filesystem::path(".") : parent, what);
+}
+
+// Outputs of an earlier run into the same folder that this run will not write: a stale
+// latents.npy or frame_0059.png beside this run's files would pass for this run's (issue #37).
+// Removed before the work starts, so an interrupted run does not leave a mix either.
+inline void remove_stale_output(const std::filesystem::path& file) {
+  std::error_code ec;
+  if (std::filesystem::is_regular_file(file, ec)) std::filesystem::remove(file, ec);
+}
+
+// frame_NNNN.png files of `dir` numbered `first` and up (a longer earlier run's tail).
+inline void remove_stale_frames(const std::filesystem::path& dir, std::int64_t first) {
+  std::error_code ec;
+  if (!std::filesystem::is_directory(dir, ec)) return;
+  std::vector<std::filesystem::path> stale;
+  for (const auto& e : std::filesystem::directory_iterator(dir, ec)) {
+    const std::string name = e.path().filename().string();
+    if (name.size() < 14 || name.rfind("frame_", 0) != 0 || e.path().extension() != ".png") continue;
+    const std::string digits = name.substr(6, name.size() - 10);
+    if (digits.empty() || digits.size() > 9 || digits.find_first_not_of("0123456789") != std::string::npos) continue;
+    if (std::stoll(digits) >= first) stale.push_back(e.path());
+  }
+  for (const auto& p : stale) remove_stale_output(p);
 }
 
 // An INCOMPLETE note in an output folder while a long run fills it: written before the first

@@ -294,7 +294,7 @@ TEST_CASE("eval --solver/--plan-steps/--video-steps: settings, plans per clip, s
   const Result f = cli(args);
   INFO(f.err);
   REQUIRE(f.rc == 0);
-  CHECK(has(f.err, "video midpoint x 1 steps (2 DiT evaluations)"));
+  CHECK(has(f.err, "video midpoint x 1 step (2 DiT evaluations)"));
   CHECK(read_json(mid)["settings"]["sampler"] == "fast");
 }
 

@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <cstdio>
 #include <cstring>
 #include <map>
 #include <memory>
@@ -61,6 +62,27 @@ inline std::uint64_t read_u64_le(const std::byte* p) {
   std::uint64_t v = 0;
   for (int i = 7; i >= 0; --i) v = (v << 8) | static_cast<std::uint8_t>(p[i]);
   return v;
+}
+
+// What a file that is no weight file looks like, from its first bytes: "text, starting
+// \"...\"" or "binary, starting with bytes 89 50 4e 47 ...", for an error a user can act on.
+inline std::string describe_start(std::span<const std::byte> bytes) {
+  const std::size_t n = std::min<std::size_t>(bytes.size(), 24);
+  std::string text;
+  bool is_text = true;
+  for (std::size_t i = 0; i < n; ++i) {
+    const auto c = static_cast<unsigned char>(bytes[i]);
+    is_text = is_text && (c >= 0x20 ? c < 0x7f || c >= 0x80 : c == '\n' || c == '\r' || c == '\t');
+    text += static_cast<char>(c);
+  }
+  if (is_text) return "text, starting \"" + printable(text, 24) + "\"";
+  std::string hex = "binary, starting with bytes";
+  for (std::size_t i = 0; i < std::min<std::size_t>(n, 8); ++i) {
+    char b[4];
+    std::snprintf(b, sizeof b, " %02x", static_cast<unsigned>(bytes[i]));
+    hex += b;
+  }
+  return hex;
 }
 
 // Parses the header; duplicate tensor names are an error (a JSON object would keep only one).
@@ -162,6 +184,11 @@ inline SafetensorsFile parse_safetensors(std::span<const std::byte> bytes, const
   EPONA_CHECK(bytes.size() >= 8, source, ": truncated: ", bytes.size(),
               " bytes, shorter than the 8-byte header length");
   const std::uint64_t header_len = sd::read_u64_le(bytes.data());
+  // A safetensors header is JSON, so byte 8 is '{': without it the file is no weight file at all
+  // (a text file's first 8 bytes read as a header length of 10^18), and saying so is the help.
+  EPONA_CHECK(header_len <= bytes.size() - 8 || bytes.size() <= 8 || bytes[8] == std::byte{'{'}, source,
+              ": not a checkpoint: neither safetensors (8-byte length, JSON header) nor a PyTorch .pkl (ZIP or "
+              "pickle); the file is ", sd::describe_start(bytes));
   EPONA_CHECK(header_len <= bytes.size() - 8, source, ": header length ", header_len,
               " runs past the end of the file (", bytes.size(), " bytes; truncated or not safetensors)");
   EPONA_CHECK(header_len <= sd::max_header_bytes, source, ": header length ", header_len,
