@@ -31,6 +31,7 @@
 #include "epona/model/config.hpp"
 #include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
+#include "epona/model/plan_choice.hpp"
 #include "epona/model/relative_pose.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"

@@ -14,6 +14,7 @@
 #include "epona/io/poses.hpp"
 #include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
+#include "epona/model/plan_choice.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
 
@@ -41,6 +42,8 @@ inline void planning_snippet(WorldModel<Cpu, float>& wm, const History& window, 
   Tensor<float> plan = wm.plan(window, opt);
   StepResult next = wm.predict_next(window, std::nullopt, opt);
   StepResult ctrl = wm.predict_next(window, NextAction{action.rel_pose, action.rel_yaw}, opt);
+  Tensor<float> fan = wm.plan_hypotheses(window, 8, opt);
+  model::PlanFan pick = model::choose_plan(fan, model::PlanChoice::medoid);
 
   RolloutOptions ro;
   ro.frames = 54;
@@ -53,7 +56,7 @@ inline void planning_snippet(WorldModel<Cpu, float>& wm, const History& window, 
   History slid = window;
   model::slide_window(slid, step.latent, waypoint0);
   wm.context().set_threads(2);
-  (void)plan, (void)next, (void)ctrl, (void)out;
+  (void)plan, (void)next, (void)ctrl, (void)out, (void)pick;
 }
 
 // "Decoding"
