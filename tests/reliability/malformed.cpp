@@ -121,4 +121,21 @@ TEST_CASE("jpeg: a scan holding a code its Huffman tables lack is refused before
                        doctest::Contains("bad_code.jpg: corrupt JPEG (scan 1, MCU "), Error);
 }
 
+TEST_CASE("jpeg: a scan that names a Huffman table the file does not define is refused") {
+  // Finding 12 (docs/reliability.md): stb decoded with the undefined table and its bit reader
+  // went below zero bits.
+  io::ImageReadOptions opt;
+  opt.size = io::SizePolicy::Resize, opt.height = 32, opt.width = 32;
+  auto jpg = jpeg_of(64, 32, 80);
+  // SOS: FF DA, length, Ns = 3, then (id, tables) per component, then 3 bytes before the data.
+  const std::size_t sos_tables = scan_data_start(jpg) - 3 - 2 * 3 + 1;  // component 1's table byte
+  REQUIRE(jpg[sos_tables - 2] == 3);                                   // Ns
+  REQUIRE(jpg[sos_tables - 1] == 1);                                   // component id 1
+  jpg[sos_tables] = 0x22;  // DC 2 / AC 2: stb_image_write defines tables 0 and 1 only
+  CHECK_THROWS_WITH_AS(io::decode_image(jpg, "undefined_table.jpg", opt),
+                       doctest::Contains("undefined_table.jpg: corrupt JPEG (scan 1 codes component 1 with Huffman "
+                                         "tables DC 2 and AC 2, and the file does not define the DC one)"),
+                       Error);
+}
+
 #include "epona/io/stb_implementation.hpp"

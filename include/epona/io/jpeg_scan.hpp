@@ -190,8 +190,11 @@ inline void check_jpeg_scans_complete(std::span<const std::uint8_t> b, const std
         for (const auto& x : comps)
           if (x.id == seg[1 + 2 * i]) c = &x;
         const int tables = seg[2 + 2 * i];
-        if (!c || (tables >> 4) > 3 || (tables & 15) > 3 || !dc[tables >> 4].present || !ac[tables & 15].present)
-          return;
+        if (!c || (tables >> 4) > 3 || (tables & 15) > 3) return;  // stb refuses these itself
+        // stb decodes with whatever an undefined table holds (finding 12 of docs/reliability.md).
+        EPONA_CHECK(dc[tables >> 4].present && ac[tables & 15].present, source, ": corrupt JPEG (scan ", scan_no + 1,
+                    " codes component ", c->id, " with Huffman tables DC ", tables >> 4, " and AC ", tables & 15,
+                    ", and the file does not define ", dc[tables >> 4].present ? "the AC one" : "the DC one", ")");
         in_scan.emplace_back(c, tables);
       }
       // Blocks per MCU and MCU count: interleaved scans cover the frame in hmax x vmax MCUs;
