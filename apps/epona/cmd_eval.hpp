@@ -186,7 +186,7 @@ inline void score_planning(ClipScores& s, const eval::EvalClip& c, const History
   SampleOptions o = e.opt.sample;
   o.seed = seed;
   const std::int64_t K = e.opt.hypotheses.count;
-  const Tensor<float> plans = K > 1 ? e.engine.plan_hypotheses(window, K, o) : e.engine.plan(window, o);  // (K, W, 3)
+  const Tensor<float> plans = e.engine.plans(window, K, o);  // (K, W, 3)
   const model::PlanFan fan = model::choose_plan(plans, e.opt.hypotheses.choose);
   s.plan = fan.chosen;
   s.model = score_plan(eval::poses_of(fan.chosen), truth, c);
@@ -446,7 +446,7 @@ inline nlohmann::ordered_json hypotheses_summary(const std::vector<ClipScores>& 
   for (std::size_t k = 0; k < eval::kPlanSeconds; ++k) {
     Mean m;
     for (const auto& c : clips)
-      if (c.spread_m.size() >= eval::kPlanWaypoints) m.add(c.spread_m[(k + 1) * eval::kWaypointsPerSecond - 1]);
+      if (c.spread_m.size() >= eval::kPlanWaypoints) m.add(c.spread_m[eval::waypoint_at(k + 1)]);
     j["spread_" + std::to_string(k + 1) + "s"] = number(m.value());
   }
   return j;

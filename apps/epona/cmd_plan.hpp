@@ -84,8 +84,7 @@ inline int run_plan(const ParsedArgs& a, const Console& con) {
            hyp.count > 1 ? ", " + std::to_string(hyp.count) + " hypotheses, the " + model::plan_choice_name(hyp.choose) +
                                " chosen" : std::string());
   const auto t0 = std::chrono::steady_clock::now();
-  const Tensor<float> plans = hyp.count > 1 ? engine->plan_hypotheses(history, hyp.count, sample)  // (K, traj_len, 3)
-                                            : engine->plan(history, sample);                       // (1, traj_len, 3)
+  const Tensor<float> plans = engine->plans(history, hyp.count, sample);  // (K, traj_len, 3)
   con.note("  planned in ", duration_text(seconds_since(t0)));
   const model::PlanFan fan = model::choose_plan(plans, hyp.choose);
   const Tensor<float>& waypoints = fan.chosen;  // (traj_len, 3)

@@ -35,6 +35,10 @@ class Engine {
   virtual Tensor<float> plan(const History& window, const SampleOptions& opt) = 0;
   // WorldModel::plan_hypotheses: K plans of one scene (K, traj_len, 3).
   virtual Tensor<float> plan_hypotheses(const History& window, std::int64_t K, const SampleOptions& opt) = 0;
+  // K plans (K, traj_len, 3); one is plan() itself, the official path.
+  Tensor<float> plans(const History& window, std::int64_t K, const SampleOptions& opt) {
+    return K > 1 ? plan_hypotheses(window, K, opt) : plan(window, opt);
+  }
   virtual StepResult step(const History& window, const NextAction* action, const DitSamplers& samplers,
                           NoiseSource& noise) = 0;
   // The official sampler: `steps` Euler steps for both DiTs.

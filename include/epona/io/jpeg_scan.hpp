@@ -182,6 +182,7 @@ inline void check_jpeg_scans_complete(std::span<const std::uint8_t> b, const std
       restart_interval = (seg[0] << 8) | seg[1];
     } else if (m == 0xDA) {  // SOS: walk the scan
       if (!sequential || seg.empty()) return;
+      ++scan_no;
       const int ns = seg[0];
       if (ns < 1 || seg.size() < 1 + 2 * std::size_t(ns)) return;
       std::vector<std::pair<const Component*, int>> in_scan;  // component, table byte
@@ -192,7 +193,7 @@ inline void check_jpeg_scans_complete(std::span<const std::uint8_t> b, const std
         const int tables = seg[2 + 2 * i];
         if (!c || (tables >> 4) > 3 || (tables & 15) > 3) return;  // stb refuses these itself
         // stb decodes with whatever an undefined table holds (finding 12 of docs/reliability.md).
-        EPONA_CHECK(dc[tables >> 4].present && ac[tables & 15].present, source, ": corrupt JPEG (scan ", scan_no + 1,
+        EPONA_CHECK(dc[tables >> 4].present && ac[tables & 15].present, source, ": corrupt JPEG (scan ", scan_no,
                     " codes component ", c->id, " with Huffman tables DC ", tables >> 4, " and AC ", tables & 15,
                     ", and the file does not define ", dc[tables >> 4].present ? "the AC one" : "the DC one", ")");
         in_scan.emplace_back(c, tables);
@@ -207,7 +208,6 @@ inline void check_jpeg_scans_complete(std::span<const std::uint8_t> b, const std
       } else {
         mcus = ((width + 8 * hmax - 1) / (8 * hmax)) * ((height + 8 * vmax - 1) / (8 * vmax));
       }
-      ++scan_no;
       BitReader r(b, pos + 2 + len);
       for (std::int64_t mcu = 0; mcu < mcus; ++mcu) {
         const bool at_restart = restart_interval > 0 && mcu > 0 && mcu % restart_interval == 0;

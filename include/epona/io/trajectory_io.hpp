@@ -154,6 +154,9 @@ inline void write_trajectory(const std::filesystem::path& path, const Tensor<flo
 
 namespace traj_detail {
 
+// The keys of a TrajectoryFan: a plan's hypotheses, read past (the plan is "steps").
+inline bool is_fan_key(const std::string& key) { return key == "hypotheses" || key == "choice" || key == "spread_m"; }
+
 // Collects rows in file order and checks the (step, waypoint) grid is complete and ordered.
 struct GridBuilder {
   std::vector<float> values;
@@ -240,11 +243,6 @@ inline Tensor<float> parse_trajectory_csv(std::string_view text, const std::stri
   EPONA_CHECK(header_seen, source, ": empty file (expected the header '", traj_detail::kCsvHeader, "')");
   return grid.finish(source);
 }
-
-namespace traj_detail {
-// The keys of a TrajectoryFan: a plan's hypotheses, read past (the plan is "steps").
-inline bool is_fan_key(const std::string& key) { return key == "hypotheses" || key == "choice" || key == "spread_m"; }
-}  // namespace traj_detail
 
 // JSON as written by trajectory_to_json: {"format": "epona-trajectory", "units": {...},
 // "steps": [[[x, y, yaw], ...], ...]} ("format" and "units" optional; a fan's keys are skipped).
