@@ -45,22 +45,32 @@ inline void add_sampling_options(ArgParser& p) {
       .option("video-steps", "N", "the video's (VisDiT) steps, overriding --steps", "--steps")
       .option("seed", "N", "noise seed (torch.manual_seed-compatible draws)", "0");
 }
-// Multi-hypothesis planning (WorldModel::plan_hypotheses, model/plan_choice.hpp).
+// Multi-hypothesis planning (WorldModel::plan_hypotheses, model/plan_choice.hpp). Without the flags
+// the model's recommended rule applies (configs.json "planner"; 1 plan when it has none).
 inline void add_hypothesis_options(ArgParser& p) {
   p.option("hypotheses", "K", "plan K trajectories of the scene (hypothesis k draws with seed + k*0x9E3779B9; "
-           "the MST runs once) and choose one by --choose (1.." + std::to_string(constants::max_hypotheses) + ")", "1")
+           "the MST runs once) and choose one by --choose (1.." + std::to_string(constants::max_hypotheses) +
+           "; 1 = the official single sample)", "the model's configs.json planner.hypotheses, else 1")
       .option("choose", "RULE", "the plan chosen of the hypotheses: medoid (the one nearest all others) or mean "
-              "(the waypoint-wise mean)", "medoid");
+              "(the waypoint-wise mean)", "the model's planner.choose, else medoid");
 }
 struct HypothesisOptions {
   std::int64_t count = 1;
   model::PlanChoice choose = model::PlanChoice::medoid;
+  bool from_model = false;  // the model's recommended rule, not the command line's
 };
-inline HypothesisOptions hypothesis_options(const ParsedArgs& a) {
+inline HypothesisOptions hypothesis_options(const ParsedArgs& a, const model::PlanningRule& recommended) {
   HypothesisOptions h;
-  h.count = a.integer("hypotheses", 1, 1, constants::max_hypotheses);
-  h.choose = a.choice("choose", {"medoid", "mean"}, "medoid") == "mean" ? model::PlanChoice::mean : model::PlanChoice::medoid;
+  h.count = a.integer("hypotheses", recommended.hypotheses, 1, constants::max_hypotheses);
+  h.choose = model::parse_plan_choice(a.choice("choose", {"medoid", "mean"}, model::plan_choice_name(recommended.choose)));
+  h.from_model = recommended != model::PlanningRule{} && !a.has("hypotheses") && !a.has("choose");
   return h;
+}
+// "8 hypotheses, the mean chosen (the model's recommended rule)" for the notes.
+inline std::string describe(const HypothesisOptions& h) {
+  if (h.count == 1) return "1 plan";
+  return std::to_string(h.count) + " hypotheses, the " + model::plan_choice_name(h.choose) + " chosen" +
+         (h.from_model ? " (the model's recommended rule; --hypotheses 1 for the official single sample)" : "");
 }
 
 inline void add_output_options(ArgParser& p, const std::string& default_dir) {

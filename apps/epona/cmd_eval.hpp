@@ -85,7 +85,8 @@ struct EvalOptions {
   std::optional<std::filesystem::path> save_frames;
 };
 
-inline EvalOptions eval_options(const ParsedArgs& a, const WorldModelConfig& wc) {
+inline EvalOptions eval_options(const ParsedArgs& a, const io::ModelConfigs& configs) {
+  const WorldModelConfig& wc = configs.world;
   EvalOptions o;
   if (!a.has("clips")) usage_fail("eval: --clips DIR is needed (the clip set to evaluate)");
   if (!a.has("json")) usage_fail("eval: --json FILE is needed (where the report goes)");
@@ -101,7 +102,7 @@ inline EvalOptions eval_options(const ParsedArgs& a, const WorldModelConfig& wc)
   o.fit = a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact");
   o.sample = sample_options(a, wc);
   o.samplers = samplers_of(o.sample);
-  o.hypotheses = hypothesis_options(a);
+  o.hypotheses = hypothesis_options(a, configs.planner);
   if (const auto dir = a.get("save-frames")) o.save_frames = *dir;
   std::error_code ec;
   const auto parent = std::filesystem::absolute(o.json, ec).parent_path();
@@ -395,6 +396,7 @@ inline nlohmann::ordered_json settings_json(const ParsedArgs& a, const ModelFile
                         "with hypotheses, hypothesis k of clip i uses seed + i + k*0x9E3779B9 (the generator keeps the low 32 bits)"},
           {"hypotheses", o.hypotheses.count},
           {"choose", model::plan_choice_name(o.hypotheses.choose)},
+          {"planning_rule_from", o.hypotheses.from_model ? "the model's configs.json (planner)" : "the command line or the default"},
           {"horizon", o.horizon},
           {"limit", o.limit ? nlohmann::ordered_json(*o.limit) : nullptr},
           {"plan", o.plan},
@@ -422,7 +424,7 @@ inline nlohmann::ordered_json notes_json() {
                    "vehicles' boxes of the matching future frame, separating-axis test, touching counts; "
                    "collision_rate_Ns: fraction of clips with boxes whose plan collides at any waypoint up to N s; "
                    "collision_rate = collision_rate_3s";
-  j["hypotheses"] = "with --hypotheses K: `model` scores the plan --choose picks of the K (model/plan_choice.hpp); "
+  j["hypotheses"] = "with --hypotheses K (or the model's configs.json \"planner\" rule): `model` scores the plan --choose picks of the K (model/plan_choice.hpp); "
                     "model_best_of_k: per clip and horizon the least L2 of the K (minFDE at N s, minADE up to N s), "
                     "no collisions; spread_Ns: RMS distance of the K waypoint positions at N s from their mean";
   j["psnr"] = "8-bit RGB, MAX 255, MSE over all pixels and channels; identical frames reported as " +
@@ -554,7 +556,7 @@ inline int run_eval(const ParsedArgs& a, const Console& con) {
   const ComputeOptions compute = compute_options(a);
   const ModelFiles files = resolve_models(a, true, true);
   const WorldModelConfig& wc = files.configs.world;
-  const EvalOptions opt = eval_options(a, wc);
+  const EvalOptions opt = eval_options(a, files.configs);
   EPONA_CHECK(!opt.plan || wc.traj_len >= std::int64_t(eval::kPlanWaypoints), "eval: the model plans ", wc.traj_len,
               " waypoint(s); L2 at 1/2/3 s needs ", eval::kPlanWaypoints, " (or pass --no-plan)");
   const std::vector<eval::EvalClip> clips = read_clip_set(opt, wc);  // every clip checked before any work
@@ -562,8 +564,7 @@ inline int run_eval(const ParsedArgs& a, const Console& con) {
            describe(opt.samplers, opt.plan, opt.video || opt.control), ", seed ", opt.sample.seed, " + clip index",
            opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"),
            opt.control ? ", control at +-" + std::to_string(opt.control_yaw) + " deg" : std::string(),
-           opt.hypotheses.count > 1 ? ", " + std::to_string(opt.hypotheses.count) + " plan hypotheses (the " +
-                                          model::plan_choice_name(opt.hypotheses.choose) + " chosen)" : std::string());
+           opt.plan && opt.hypotheses.count > 1 ? ", " + describe(opt.hypotheses) : std::string());
 
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);

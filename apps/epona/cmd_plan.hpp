@@ -70,7 +70,7 @@ inline int run_plan(const ParsedArgs& a, const Console& con) {
   const ComputeOptions compute = compute_options(a);
   const ModelFiles files = resolve_models(a, true, true);
   const SampleOptions sample = sample_options(a, files.configs.world);
-  const HypothesisOptions hyp = hypothesis_options(a);
+  const HypothesisOptions hyp = hypothesis_options(a, files.configs.planner);
   const Clip clip = load_clip_for(a, files, con);
   const auto dir = output_dir(a, "out/plan");
   const auto engine = make_engine(compute);
@@ -81,8 +81,7 @@ inline int run_plan(const ParsedArgs& a, const Console& con) {
   const History history = make_history(ctx, latents, clip.poses);
   engine->load_world(files, con);
   con.note("planning: ", describe(samplers_of(sample), true, false), ", seed ", sample.seed,
-           hyp.count > 1 ? ", " + std::to_string(hyp.count) + " hypotheses, the " + model::plan_choice_name(hyp.choose) +
-                               " chosen" : std::string());
+           hyp.count > 1 ? ", " + describe(hyp) : std::string());
   const auto t0 = std::chrono::steady_clock::now();
   const Tensor<float> plans = engine->plans(history, hyp.count, sample);  // (K, traj_len, 3)
   con.note("  planned in ", duration_text(seconds_since(t0)));

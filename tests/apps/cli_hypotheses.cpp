@@ -58,9 +58,9 @@ TEST_CASE("plan --hypotheses 3: all three in trajectory.json, the medoid written
   for (std::int64_t i = 0; i < csv.numel(); ++i) CHECK(csv.data()[i] == from_json.data()[i]);
   CHECK(fs::file_size(t.path / "k3/plan.png") > 0);
 
-  // Hypothesis 0 is the plan without --hypotheses, up to rounding: the GEMMs block K rows other
+  // Hypothesis 0 is the single plan (--hypotheses 1), up to rounding: the GEMMs block K rows other
   // than one.
-  REQUIRE(cli({"plan", "--seed", "7", "--steps", "4", "--out", t / "k1", "-q"}).rc == 0);
+  REQUIRE(cli({"plan", "--hypotheses", "1", "--seed", "7", "--steps", "4", "--out", t / "k1", "-q"}).rc == 0);
   const json alone = read_json(t.path / "k1/trajectory.json");
   CHECK(!alone.contains("hypotheses"));
   double scale = 0, worst = 0;
@@ -84,6 +84,39 @@ TEST_CASE("plan --choose mean: the waypoint-wise mean, no index") {
       for (const auto& hyp : h) sum += hyp[w][c].get<double>();
       CHECK(j["steps"][0][w][c].get<double>() == doctest::Approx(sum / 4).epsilon(1e-5));
     }
+}
+
+TEST_CASE("without the flags, the model's recommended rule applies (configs.json planner: 8, mean)") {
+  TempDir t;
+  // The demo model's configuration plus the planner block the bundled trained model carries.
+  json configs = read_json(fs::path(app::demo_model_dir()) / "configs.json");
+  configs["planner"] = {{"hypotheses", 8}, {"choose", "mean"}};
+  std::ofstream(t / "configs.json") << configs.dump();
+  const std::string config = t / "configs.json";
+  const auto plan = [&](std::vector<std::string> extra, const std::string& out) {
+    std::vector<std::string> args{"plan", "--config", config, "--seed", "5", "--steps", "3", "--out", t / out};
+    args.insert(args.end(), extra.begin(), extra.end());
+    return cli(args);
+  };
+  const auto r = plan({}, "d");
+  INFO(r.err);
+  REQUIRE(r.rc == 0);
+  CHECK(has(r.err + r.out, "8 hypotheses, the mean chosen (the model's recommended rule"));
+  const json d = read_json(t.path / "d/trajectory.json");
+  REQUIRE(d["hypotheses"].size() == 8);
+  CHECK(d["choice"]["rule"] == "mean");
+  // The same as asking for it; the command line overrides either part.
+  REQUIRE(plan({"--hypotheses", "8", "--choose", "mean", "-q"}, "e").rc == 0);
+  CHECK(read_json(t.path / "e/trajectory.json")["steps"] == d["steps"]);
+  REQUIRE(plan({"--choose", "medoid", "-q"}, "f").rc == 0);
+  const json f = read_json(t.path / "f/trajectory.json");
+  CHECK(f["hypotheses"].size() == 8);
+  CHECK(f["choice"]["rule"] == "medoid");
+  REQUIRE(plan({"--hypotheses", "1", "-q"}, "g").rc == 0);
+  CHECK(!read_json(t.path / "g/trajectory.json").contains("hypotheses"));
+  // Without the block (the demo model's own configuration), one plan.
+  REQUIRE(cli({"plan", "--seed", "5", "--steps", "3", "--out", t / "h", "-q"}).rc == 0);
+  CHECK(!read_json(t.path / "h/trajectory.json").contains("hypotheses"));
 }
 
 TEST_CASE("bad --hypotheses and --choose are refused, naming the option") {

@@ -347,6 +347,23 @@ TEST_CASE("to_json round-trips, and a plain world_model_config object is accepte
   CHECK(plain.dcae.encoder_width_list == DcaeConfig{}.encoder_width_list);
 }
 
+TEST_CASE("the optional planner block: absent = one plan; read, written and round-tripped") {
+  json j = golden_configs();
+  j.erase("planner");  // the trained set's configuration carries one
+  const auto without = io::parse_configs(j.dump(), "configs.json");
+  CHECK(without.planner == model::PlanningRule{});
+  CHECK(!io::to_json(without).contains("planner"));  // the default is not written
+  j["planner"] = {{"hypotheses", 8}, {"choose", "mean"}};
+  const auto c = io::parse_configs(j.dump(), "configs.json");
+  CHECK(c.planner.hypotheses == 8);
+  CHECK(c.planner.choose == model::PlanChoice::mean);
+  CHECK(c.world == golden().world);
+  CHECK(io::configs_from_json(io::to_json(c), "roundtrip") == c);
+  j["planner"] = {{"hypotheses", 4}};  // either key alone; the other keeps its default
+  const auto k4 = io::parse_configs(j.dump(), "configs.json").planner;
+  CHECK(k4 == model::PlanningRule{4, model::PlanChoice::medoid});
+}
+
 TEST_CASE("malformed JSON, missing keys and wrong types give errors naming the key") {
   const std::string broken = error_of([] { io::parse_configs("{\"a\": ", "broken.json"); });
   CHECK(broken.find("broken.json: invalid JSON") != std::string::npos);
@@ -386,6 +403,13 @@ TEST_CASE("malformed JSON, missing keys and wrong types give errors naming the k
       {[](json& j) { j["dcae"]["temporal_block"]["n_heads"] = 3; }, "dcae.temporal_block.head_dim"},
       {[](json& j) { j["world_model_config"]["vae_embed_dim"] = 16; }, "vae_embed_dim (16) must equal"},
       {[](json& j) { j["dcae"]["config"]["encoder"]["depth_list"][0] = 1; }, "configs.json: DcaeConfig: invalid"},
+      {[](json& j) { j["planner"] = 8; }, "planner must be a JSON object"},
+      {[](json& j) { j["planner"] = {{"hypotheses", 0}}; }, "planner.hypotheses must be 1..1024, got 0"},
+      {[](json& j) { j["planner"] = {{"hypotheses", 1025}}; }, "planner.hypotheses must be 1..1024, got 1025"},
+      {[](json& j) { j["planner"] = {{"hypotheses", 2.5}}; }, "planner.hypotheses must be an integer"},
+      {[](json& j) { j["planner"] = {{"choose", "best"}}; }, "planner.choose must be \"medoid\" or \"mean\", got \"best\""},
+      {[](json& j) { j["planner"] = {{"choose", 1}}; }, "planner.choose must be a string"},
+      {[](json& j) { j["planner"] = {{"hypothesis", 8}}; }, "planner: unknown key \"hypothesis\""},
   };
   for (const auto& e : edits) {
     json j = golden_configs();

@@ -4,7 +4,9 @@
 // world-model keys. Every key used must be present with the right type; errors name the key.
 #pragma once
 
+#include <algorithm>
 #include <filesystem>
+#include <initializer_list>
 #include <fstream>
 #include <sstream>
 #include <string>
@@ -16,6 +18,7 @@
 #include "epona/core/printable.hpp"
 #include "epona/io/json_reader.hpp"
 #include "epona/model/config.hpp"
+#include "epona/model/plan_choice.hpp"
 
 namespace epona::io {
 
@@ -23,6 +26,7 @@ namespace epona::io {
 struct ModelConfigs {
   WorldModelConfig world;
   DcaeConfig dcae;
+  model::PlanningRule planner;  // optional "planner" block: the model's recommended planning rule
   bool operator==(const ModelConfigs&) const = default;
 };
 
@@ -95,6 +99,12 @@ class JsonObject {
     } catch (const Error& e) {
       fail(where(key), ": ", e.what());
     }
+  }
+  // Refuses any key outside `known` (a misspelt optional key would otherwise be ignored silently).
+  void only_keys(std::initializer_list<std::string_view> known) const {
+    for (auto it = j_.begin(); it != j_.end(); ++it)
+      EPONA_CHECK(std::find(known.begin(), known.end(), std::string_view(it.key())) != known.end(), where(),
+                  ": unknown key ", json_brief(json(it.key())));
   }
   std::string where(const char* key = nullptr) const {
     return source_ + ": " + (key ? name(key) : (path_.empty() ? std::string("top level") : path_));
@@ -276,6 +286,22 @@ inline DcaeConfig dcae_config_from_json(const nlohmann::json& j, const std::stri
   return c;
 }
 
+// The optional "planner" block: {"hypotheses": K (1..max_hypotheses), "choose": "medoid" | "mean"}.
+inline model::PlanningRule planning_rule_from_json(const config_detail::JsonObject& p) {
+  p.only_keys({"hypotheses", "choose"});
+  model::PlanningRule r;
+  if (p.has("hypotheses")) r.hypotheses = p.integer("hypotheses");
+  EPONA_CHECK(r.hypotheses >= 1 && r.hypotheses <= constants::max_hypotheses, p.where("hypotheses"),
+              " must be 1..", constants::max_hypotheses, ", got ", r.hypotheses);
+  if (p.has("choose")) {
+    const std::string rule = p.string("choose");
+    EPONA_CHECK(rule == "medoid" || rule == "mean", p.where("choose"), " must be \"medoid\" or \"mean\", got ",
+                json_brief(nlohmann::json(rule)));
+    r.choose = model::parse_plan_choice(rule);
+  }
+  return r;
+}
+
 // Either the golden layout (has "world_model_config") or a plain world-model object, from
 // which the DC-AE gets its image size, latent width, clip length and temporal flag. Validated.
 inline ModelConfigs configs_from_json(const nlohmann::json& j, const std::string& source) {
@@ -291,6 +317,7 @@ inline ModelConfigs configs_from_json(const nlohmann::json& j, const std::string
     c.world = world_model_config_from_json(j, source, "");
     c.dcae = config_detail::dcae_from_world(top, c.world);
   }
+  if (top.has("planner")) c.planner = planning_rule_from_json(top.object("planner"));
   auto validate = [&](auto& cfg) {
     try {
       cfg.validate();
@@ -408,7 +435,10 @@ inline nlohmann::json to_json(const ModelConfigs& c) {
   world["add_encoder_temporal"] = false;
   world["add_decoder_temporal"] = c.dcae.add_decoder_temporal;
   world["temporal_patch_size"] = c.dcae.condition_frames;
-  return {{"world_model_config", world}, {"dcae", to_json(c.dcae)}};
+  nlohmann::json j{{"world_model_config", world}, {"dcae", to_json(c.dcae)}};
+  if (c.planner != model::PlanningRule{})
+    j["planner"] = {{"hypotheses", c.planner.hypotheses}, {"choose", model::plan_choice_name(c.planner.choose)}};
+  return j;
 }
 
 }  // namespace epona::io

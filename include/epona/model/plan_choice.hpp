@@ -23,6 +23,22 @@ enum class PlanChoice { medoid, mean };
 
 inline const char* plan_choice_name(PlanChoice c) { return c == PlanChoice::medoid ? "medoid" : "mean"; }
 
+inline PlanChoice parse_plan_choice(const std::string& name) {
+  if (name == "medoid") return PlanChoice::medoid;
+  if (name == "mean") return PlanChoice::mean;
+  fail("unknown plan choice '", name, "' (medoid or mean)");
+}
+
+// How a planner turns one scene into one plan: K hypotheses and the rule that picks one. K = 1 is the
+// official model's single sample. A model may recommend another rule in its configs.json
+// ("planner": {"hypotheses": K, "choose": RULE}, read by io/config_json.hpp), as a model card
+// recommends its sampling settings; the bundled model does (docs/evaluation.md says why).
+struct PlanningRule {
+  std::int64_t hypotheses = 1;
+  PlanChoice choose = PlanChoice::medoid;
+  bool operator==(const PlanningRule&) const = default;
+};
+
 struct PlanFan {
   Tensor<float> hypotheses;             // (K, W, 3) x m, y m, yaw deg
   Tensor<float> chosen;                 // (W, 3)
