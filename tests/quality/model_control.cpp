@@ -3,8 +3,9 @@
 // measurement itself on rendered turns) are each rolled out one frame turning left (+5 deg) and
 // one frame turning right (-5 deg) from the same history and noise, by `epona eval --control` in
 // process; the road must shift the matching way (the right turn's frame against the left turn's,
-// eval/control_metrics.hpp) in at least 90 % of the scenes. Measured (Release, 100 steps, the run-2
-// weights): 48 of 50, median 62 px, the same shifts clip by clip as on the H100; a camera really
+// eval/control_metrics.hpp) in at least 90 % of the scenes. Measured (Release, 100 steps): the run-2
+// weights 48 of 50, median 62 px, the same shifts clip by clip as on the H100; run 4's (bundled
+// since 2026-11-28) 49 of 50, median 64 px; a camera really
 // turned by 5 deg shifts the scene by 59 px (docs/evaluation.md, "Trajectory control"). 438 s on
 // two cores shared with a build, so its timeout is 900 s.
 #include <doctest/doctest.h>
