@@ -3,7 +3,8 @@
 // and thin wrappers over the library — encode, decode, plan, predict_next, rollout and
 // WorldSession — with NumPy arrays in and out. Float inputs are viewed in place when they are
 // C-contiguous float32 (else NumPy converts them once); images are copied (uint8 HxWx3 -> the
-// model's float NCHW); results go to NumPy without a copy (the array owns the tensor). The GIL is
+// model's float NCHW); results go to NumPy without a copy (the array owns the tensor; decoded
+// images are gathered once into one (N, H, W, 3) buffer). The GIL is
 // released while the model computes; one call at a time runs on a model (a mutex), so threads may
 // share it. epona::Error becomes epona.Error (a RuntimeError) with the library's message.
 #include <pybind11/numpy.h>

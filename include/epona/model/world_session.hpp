@@ -120,8 +120,8 @@ class WorldSession {
     StepResult r = world_.run_step(window_, action ? &action_ : nullptr, true, samplers_, noise_, {});
     out.motion = action ? *action : Motion{r.trajectory.at(0, 0, 0), r.trajectory.at(0, 0, 1), r.trajectory.at(0, 0, 2)};
     used_.data()[0] = out.motion.x, used_.data()[1] = out.motion.y, used_.data()[2] = out.motion.yaw;
+    out.frame = decode_frame(r.latent);  // before the slide: a failed decode leaves the window as it was
     shift_window(window_, window_, r.latent, used_);
-    out.frame = decode_frame(r.latent);
     if (!action) out.trajectory = r.trajectory.reshape({r.trajectory.size(1), r.trajectory.size(2)});
     out.latent = r.latent.reshape({r.latent.size(1), r.latent.size(2)});
     ++steps_;
