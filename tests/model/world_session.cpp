@@ -5,6 +5,7 @@
 // refused with an epona::Error naming the problem.
 #include <doctest/doctest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <string>
@@ -136,6 +137,24 @@ TEST_CASE("repeated steps reuse the window's buffers and the model's arena") {
   s.reset(l.frames, l.poses);
   CHECK(s.steps_taken() == 0);
   CHECK(s.window().rel_pose.at(0, 0, 0) == 0.0f);  // make_window: the first frame gets no motion
+}
+
+TEST_CASE("a session over bf16 weights steps like the float32 one, within bf16's rounding") {
+  auto& l = loaded();
+  auto world = WorldModel<Cpu, bf16>::load_file(kGolden + "/weights_world.safetensors", l.cfg.world);
+  const auto dcae = Dcae<Cpu, bf16>::load(io::load_weights(kGolden + "/weights_dcae.safetensors"), l.cfg.dcae);
+  WorldSession<Cpu, bf16> s(world, dcae, few_steps(5));
+  WorldSession<> f(l.world, l.dcae, few_steps(5));
+  s.reset(l.frames, l.poses);
+  f.reset(l.frames, l.poses);
+  const SessionStep a = s.step(), b = f.step();
+  REQUIRE(a.trajectory.shape() == b.trajectory.shape());
+  double worst = 0;
+  for (std::int64_t i = 0; i < a.trajectory.numel(); ++i)
+    worst = std::max(worst, double(std::abs(a.trajectory.data()[i] - b.trajectory.data()[i])));
+  MESSAGE("bf16 vs float32 plan, largest difference: ", worst);
+  CHECK(worst < 0.5);  // metres/degrees; the golden weights are random, so only a loose bound
+  CHECK(a.frame.height == b.frame.height);
 }
 
 TEST_CASE("a session refuses bad input, naming the problem") {
