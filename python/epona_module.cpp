@@ -142,16 +142,21 @@ struct Model {
   }
   cpu::Context& ctx() { return world->context(); }
 
-  // The window (batch 1) from latents (F, C, h, w) and motions (F, 3), as the CLI makes it.
-  History window(const FloatIn& latents, const FloatIn& poses) {
+  // The window's inputs, checked and viewed (with the GIL: they are the caller's arrays).
+  struct WindowInput {
+    Tensor<float, Cpu> latents;  // (F, C, h, w), a view of the array
+    io::PoseSequence poses;
+  };
+  WindowInput window_input(const FloatIn& latents, const FloatIn& poses) const {
     const auto& c = config();
-    const Tensor<float, Cpu> z = view(latents, 4, "latents", "float32 (F, C, h, w)");
-    check_shape(z, {c.condition_frames, c.token_dim(), c.latent_h(), c.latent_w()}, "latents");
-    const io::PoseSequence p = poses_of(poses);
-    EPONA_CHECK(static_cast<std::int64_t>(p.size()) == c.condition_frames, "poses hold ", p.size(),
+    WindowInput in{view(latents, 4, "latents", "float32 (F, C, h, w)"), poses_of(poses)};
+    check_shape(in.latents, {c.condition_frames, c.token_dim(), c.latent_h(), c.latent_w()}, "latents");
+    EPONA_CHECK(static_cast<std::int64_t>(in.poses.size()) == c.condition_frames, "poses hold ", in.poses.size(),
                 " row(s); the window needs one per frame, ", c.condition_frames);
-    return model::make_window(ctx(), z, p);
+    return in;
   }
+  // The window (batch 1) as the CLI makes it; inside locked() (it uses the model's context).
+  History window(const WindowInput& in) { return model::make_window(ctx(), in.latents, in.poses); }
 };
 
 // Loads through the CLI's loaders: the same defaults, files and messages as `epona plan`.
@@ -192,15 +197,15 @@ py::array decode_latents(Model& m, const FloatIn& latents, bool video) {
 
 py::array plan_trajectory(Model& m, const FloatIn& latents, const FloatIn& poses, std::optional<std::int64_t> steps,
                std::uint64_t seed) {
-  const History h = m.window(latents, poses);
-  const Tensor<float, Cpu> traj = m.locked([&] { return m.world->plan(h, sampling(steps, seed)); });  // (1, traj_len, 3)
+  const auto in = m.window_input(latents, poses);
+  const Tensor<float, Cpu> traj = m.locked([&] { return m.world->plan(m.window(in), sampling(steps, seed)); });  // (1, T, 3)
   return to_numpy(traj[0]);
 }
 
 // The next latent (C, h, w) and the plan that drove it (None when the action was given).
 py::tuple predict_latent(Model& m, const FloatIn& latents, const FloatIn& poses, const std::optional<FloatIn>& action,
                        std::optional<std::int64_t> steps, std::uint64_t seed) {
-  const History h = m.window(latents, poses);
+  const auto in = m.window_input(latents, poses);
   const std::optional<Motion> a = motion_of(action);
   const StepResult r = m.locked([&] {
     std::optional<NextAction> next;
@@ -208,7 +213,7 @@ py::tuple predict_latent(Model& m, const FloatIn& latents, const FloatIn& poses,
       next.emplace(NextAction{Tensor<float, Cpu>({1, 1, 2}), Tensor<float, Cpu>({1, 1, 1})});
       next->rel_pose.data()[0] = a->x, next->rel_pose.data()[1] = a->y, next->rel_yaw.data()[0] = a->yaw;
     }
-    StepResult out = m.world->predict_next(h, next, sampling(steps, seed));
+    StepResult out = m.world->predict_next(m.window(in), next, sampling(steps, seed));
     out.latent = tokens_to_latent(m.ctx(), out.latent, m.config().latent_h(), m.config().latent_w())[0];
     return out;
   });
@@ -218,9 +223,9 @@ py::tuple predict_latent(Model& m, const FloatIn& latents, const FloatIn& poses,
 // model::rollout (self-predicted): trajectories (N, traj_len, 3) and latents (N, C, h, w).
 py::tuple roll_out_frames(Model& m, const FloatIn& latents, const FloatIn& poses, std::int64_t frames,
                   std::optional<std::int64_t> steps, std::uint64_t seed) {
-  const History h = m.window(latents, poses);
+  const auto in = m.window_input(latents, poses);
   const RolloutResult r = m.locked([&] {
-    RolloutResult out = rollout(*m.world, h, RolloutOptions{frames, sampling(steps, seed)});
+    RolloutResult out = rollout(*m.world, m.window(in), RolloutOptions{frames, sampling(steps, seed)});
     out.latents = tokens_to_latent(m.ctx(), out.latents, m.config().latent_h(), m.config().latent_w());
     return out;
   });
