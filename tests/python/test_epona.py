@@ -9,6 +9,7 @@ import math
 import os
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +154,22 @@ def test_threads_share_a_model(model, clip, latents):
     for t in threads:
         t.join()
     assert all(np.array_equal(r, expected) for r in results)
+
+
+def test_the_gil_is_released_while_the_model_computes(model, clip, latents):
+    # A rollout in a thread; this thread keeps running meanwhile. Holding the GIL through the call
+    # would stop it for the whole rollout; released, it waits at most a few switch intervals.
+    t0 = time.perf_counter()
+    model.rollout(latents, clip[1], frames=4, steps=10)
+    alone = time.perf_counter() - t0
+    worker = threading.Thread(target=lambda: model.rollout(latents, clip[1], frames=4, steps=10))
+    longest, last = 0.0, time.perf_counter()
+    worker.start()
+    while worker.is_alive():
+        now = time.perf_counter()
+        longest, last = max(longest, now - last), now
+    worker.join()
+    assert longest < alone / 2, f"this thread stopped for {longest:.3f} s of a {alone:.3f} s rollout"
 
 
 def test_errors_carry_the_library_message(model, clip, latents):
