@@ -8,6 +8,7 @@ Run by ctest as the test `python` (PYTHONPATH at the built module; EPONA_CLI at 
 import math
 import os
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -220,3 +221,14 @@ def test_bundled_model_loads_by_default(clip):
     # A planning step on a still window: 10 copies of the last frame, standing.
     plan = bundled.plan(np.repeat(z, 10, axis=0), np.zeros((10, 3), np.float32), steps=2)
     assert plan.shape == (15, 3) and np.isfinite(plan).all()
+
+
+def test_the_session_example_runs(tmp_path):
+    # examples/python/session.py on the bundled model, one sampling step a frame (seconds).
+    out = tmp_path / "session.png"
+    run = subprocess.run([sys.executable, str(SOURCE / "examples/python/session.py"), str(out), "--steps", "1",
+                          "--frames", "2"], capture_output=True, text=True, env=dict(os.environ))
+    assert run.returncode == 0, run.stderr
+    assert "step 0: planned" in run.stdout and "step 1: drove the given action" in run.stdout
+    strip = epona.read_image(str(out))
+    assert strip.shape == (256, 3 * 512, 3)
