@@ -100,7 +100,8 @@ inline void loading_snippet() {
 TEST_CASE("docs/api.md: the snippets compile (see the functions above)") {
   // Taking their addresses keeps every snippet compiled.
   namespace s = epona::api_snippets;
-  const bool taken = &s::window_snippet && &s::planning_snippet && &s::decoding_snippet && &s::loading_snippet;
+  const bool taken = &s::window_snippet && &s::planning_snippet && &s::decoding_snippet && &s::loading_snippet &&
+                     &s::session_snippet;
   CHECK(taken);
 }
 
