@@ -3,7 +3,8 @@
 # apt-get when a package is missing. The CUDA toolkit is used when present, never installed.
 set -euo pipefail
 packages=(g++ cmake ninja-build pkg-config libeigen3-dev libxsimd-dev doctest-dev libstb-dev
-          nlohmann-json3-dev libbenchmark-dev clang libclang-rt-14-dev)
+          nlohmann-json3-dev libbenchmark-dev clang libclang-rt-14-dev
+          python3-dev pybind11-dev python3-numpy python3-pytest)
 missing=()
 for p in "${packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -21,6 +21,7 @@
 #include "epona/io/poses.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/world_model.hpp"
+#include "epona/model/world_session.hpp"
 
 namespace epona::app {
 
@@ -113,16 +114,9 @@ inline Tensor<float> encode_frames(Engine& engine, const std::vector<io::Image>&
   return out;
 }
 
-// The world model's window (batch 1) from encoded frames (F, C, h, w) and their motions. The
-// window's first frame gets no motion: the official code makes a window's motions with
-// get_rel_pose of its own poses, which gives the first frame the identity, in training and in its
-// planning test (scripts/test/test_traj.py), so the model has never seen a motion there (a real
-// one there cost the bundled model 60% more planning error at 1 s; docs/evaluation.md).
+// The world model's window (batch 1) from encoded frames and their motions.
 inline History make_history(cpu::Context& ctx, const Tensor<float>& latents, const io::PoseSequence& poses) {
-  const Tensor<float> tokens = latent_to_tokens(ctx, latents);  // (F, L, C)
-  History h{tokens.reshape({1, tokens.size(0), tokens.size(1), tokens.size(2)}), poses.pose_tensor(), poses.yaw_tensor()};
-  if (h.rel_pose.numel() > 0) h.rel_pose.data()[0] = h.rel_pose.data()[1] = h.rel_yaw.data()[0] = 0.0f;
-  return h;
+  return model::make_window(ctx, latents, poses);
 }
 
 }  // namespace epona::app

@@ -35,3 +35,4 @@
 #include "epona/model/relative_pose.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
+#include "epona/model/world_session.hpp"

@@ -17,6 +17,7 @@
 #include "epona/model/plan_choice.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
+#include "epona/model/world_session.hpp"
 
 namespace epona::api_snippets {
 
@@ -33,6 +34,23 @@ inline History window_snippet(const Dcae<Cpu, float>& dcae, std::int64_t F, std:
   io::PoseSequence p = all.slice(all.size() - F, F);
   History window{tokens.reshape({1, F, L, 32}), p.pose_tensor(), p.yaw_tensor()};
   return window;
+}
+
+// "An interactive session: WorldSession"
+inline void session_snippet(WorldModel<Cpu, float>& wm, const Dcae<Cpu, float>& dcae, const std::vector<io::Image>& frames,
+                            const io::PoseSequence& poses) {
+  SampleOptions opt;
+  opt.steps = 20;
+  WorldSession<Cpu, float> session(wm, dcae, opt);
+  session.reset(frames, poses);
+  SessionStep s = session.step();
+  SessionStep t = session.step(Motion{2.0f, 0.0f, 1.5f});
+  io::write_png("next.png", t.frame);
+  const History& w = session.window();
+  cpu::Context ctx;
+  History made = model::make_window(ctx, dcae.encode(ctx, io::images_to_tensor(frames)), poses);
+  session.reset_latents(dcae.encode(ctx, io::images_to_tensor(frames)), poses);
+  (void)s, (void)w, (void)made, (void)session.arena_capacity();
 }
 
 // "Planning, one step, a rollout"
@@ -82,7 +100,8 @@ inline void loading_snippet() {
 TEST_CASE("docs/api.md: the snippets compile (see the functions above)") {
   // Taking their addresses keeps every snippet compiled.
   namespace s = epona::api_snippets;
-  const bool taken = &s::window_snippet && &s::planning_snippet && &s::decoding_snippet && &s::loading_snippet;
+  const bool taken = &s::window_snippet && &s::planning_snippet && &s::decoding_snippet && &s::loading_snippet &&
+                     &s::session_snippet;
   CHECK(taken);
 }
 

@@ -39,24 +39,31 @@ struct RolloutResult {
 
 namespace model {
 
-// Drops the oldest frame: latents += new latent, actions += waypoint 0 of the trajectory.
+// Drops the oldest frame of `from` into `to` (same shapes; `to` may be `from`: the slide is then
+// in place, no allocation): latents += new latent, actions += waypoint 0 of the trajectory.
+inline void shift_window(const History& from, History& to, const Tensor<float, Cpu>& latent,
+                         const Tensor<float, Cpu>& trajectory) {
+  const std::int64_t Bt = from.latents.size(0), F = from.latents.size(1);
+  const std::int64_t frame = from.latents.numel() / (Bt * F);
+  for (std::int64_t b = 0; b < Bt; ++b) {
+    std::memmove(to.latents[b].data(), from.latents[b][1].data(), sizeof(float) * (F - 1) * frame);
+    std::memcpy(to.latents[b][F - 1].data(), latent[b].data(), sizeof(float) * frame);
+    for (std::int64_t f = 0; f + 1 < F; ++f) {  // ascending: reads f + 1 before an in-place write reaches it
+      to.rel_pose.at(b, f, 0) = from.rel_pose.at(b, f + 1, 0);
+      to.rel_pose.at(b, f, 1) = from.rel_pose.at(b, f + 1, 1);
+      to.rel_yaw.at(b, f, 0) = from.rel_yaw.at(b, f + 1, 0);
+    }
+    to.rel_pose.at(b, F - 1, 0) = trajectory.at(b, 0, 0);
+    to.rel_pose.at(b, F - 1, 1) = trajectory.at(b, 0, 1);
+    to.rel_yaw.at(b, F - 1, 0) = trajectory.at(b, 0, 2);
+  }
+}
+
+// The same into new tensors: the caller's window may share its storage with other tensors.
 inline void slide_window(History& h, const Tensor<float, Cpu>& latent, const Tensor<float, Cpu>& trajectory) {
-  const std::int64_t Bt = h.latents.size(0), F = h.latents.size(1);
   History next{Tensor<float, Cpu>(h.latents.shape()), Tensor<float, Cpu>(h.rel_pose.shape()),
                Tensor<float, Cpu>(h.rel_yaw.shape())};
-  const std::int64_t frame = h.latents.numel() / (Bt * F);
-  for (std::int64_t b = 0; b < Bt; ++b) {
-    std::memcpy(next.latents[b].data(), h.latents[b][1].data(), sizeof(float) * (F - 1) * frame);
-    std::memcpy(next.latents[b][F - 1].data(), latent[b].data(), sizeof(float) * frame);
-    for (std::int64_t f = 0; f + 1 < F; ++f) {
-      next.rel_pose.at(b, f, 0) = h.rel_pose.at(b, f + 1, 0);
-      next.rel_pose.at(b, f, 1) = h.rel_pose.at(b, f + 1, 1);
-      next.rel_yaw.at(b, f, 0) = h.rel_yaw.at(b, f + 1, 0);
-    }
-    next.rel_pose.at(b, F - 1, 0) = trajectory.at(b, 0, 0);
-    next.rel_pose.at(b, F - 1, 1) = trajectory.at(b, 0, 1);
-    next.rel_yaw.at(b, F - 1, 0) = trajectory.at(b, 0, 2);
-  }
+  shift_window(h, next, latent, trajectory);
   h = std::move(next);
 }
 

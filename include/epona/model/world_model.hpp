@@ -181,6 +181,9 @@ class WorldModel {
   const SpatialTemporalTransformer<B, W>& mst() const { return mst_; }
   const FluxDiT<B, W>& vis_dit() const { return vis_; }
   const FluxDiT<B, W>& traj_dit() const { return traj_; }
+  // The step workspace's size: set by the first step, grown only for a larger batch or more
+  // sampling steps (WorldSession checks that its steps leave it alone).
+  std::size_t arena_capacity() const { return arena_.capacity(); }
 
   // traj_only: the planned trajectory (Bt, traj_len, 3) in metres/degrees.
   Tensor<float, Cpu> plan(const History& h, const SampleOptions& opt = {}) {

@@ -1,0 +1,234 @@
+"""The `epona` Python module against the C++ paths, on the conformance model (tests/data/golden:
+64x128 frames, 3 condition frames) and its 3-frame demo clip (tests/data/demo), with few sampling
+steps so the suite takes seconds: a plan equals the CLI's for the same seed, a session's steps
+equal `rollout`'s and `predict_next`'s, frames equal `decode` of the latents, arrays have the
+documented dtype and shape, and bad input raises epona.Error carrying the library's message.
+Run by ctest as the test `python` (PYTHONPATH at the built module; EPONA_CLI at the CLI if built).
+"""
+import math
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import epona
+
+SOURCE = Path(os.environ.get("EPONA_SOURCE_DIR", Path(__file__).resolve().parents[2]))
+GOLDEN = SOURCE / "tests/data/golden"
+CLIP = SOURCE / "tests/data/demo"
+STEPS = 3
+
+
+@pytest.fixture(scope="module")
+def model():
+    return epona.load(weights=str(GOLDEN / "weights_world.safetensors"),
+                      dcae=str(GOLDEN / "weights_dcae.safetensors"), config=str(GOLDEN / "configs.json"))
+
+
+@pytest.fixture(scope="module")
+def clip():
+    frames = np.stack([epona.read_image(str(CLIP / f"frame_0{i}.png")) for i in range(3)])
+    return frames, epona.load_poses(str(CLIP / "poses.csv"))
+
+
+@pytest.fixture(scope="module")
+def latents(model, clip):
+    return model.encode(clip[0])
+
+
+def test_shapes_and_dtypes(model, clip, latents):
+    frames, poses = clip
+    assert frames.dtype == np.uint8 and frames.shape == (3, 64, 128, 3)
+    assert poses.dtype == np.float32 and poses.shape == (3, 3)
+    assert model.image_size == (64, 128) and model.condition_frames == 3 and model.traj_len == 15
+    assert latents.dtype == np.float32 and latents.shape == (3,) + model.latent_shape == (3, 32, 2, 4)
+    assert np.isfinite(latents).all()
+    images = model.decode(latents)
+    assert images.dtype == np.uint8 and images.shape == (3, 64, 128, 3)
+    assert model.decode(latents[:2], video=True).shape == (2, 64, 128, 3)  # one clip of the DC-AE's 2 frames
+    plan = model.plan(latents, poses, steps=STEPS, seed=1)
+    assert plan.dtype == np.float32 and plan.shape == (15, 3)
+    latent, traj = model.predict_next(latents, poses, steps=STEPS)
+    assert latent.shape == model.latent_shape and traj.shape == (15, 3)
+    trajs, lats = model.rollout(latents, poses, frames=2, steps=STEPS)
+    assert trajs.shape == (2, 15, 3) and lats.shape == (2, 32, 2, 4)
+
+
+def test_encode_accepts_one_image_and_other_layouts(model, clip, latents):
+    frames = clip[0]
+    assert np.array_equal(model.encode(frames[1]), latents[1:2])
+    # A non-contiguous view is converted, not misread.
+    assert np.array_equal(model.encode(np.ascontiguousarray(frames[::-1])[::-1]), latents)
+
+
+def test_plan_is_the_seeds_and_the_steps_first_draw(model, clip, latents):
+    poses = clip[1]
+    a = model.plan(latents, poses, steps=STEPS, seed=5)
+    assert np.array_equal(a, model.plan(latents, poses, steps=STEPS, seed=5))
+    assert not np.array_equal(a, model.plan(latents, poses, steps=STEPS, seed=6))
+    # step_eval draws the trajectory noise first: predict_next's plan is plan()'s.
+    _, traj = model.predict_next(latents, poses, steps=STEPS, seed=5)
+    assert np.array_equal(a, traj)
+
+
+def test_plan_equals_the_cli(model, clip, latents, tmp_path):
+    cli = os.environ.get("EPONA_CLI")
+    if not cli or not Path(cli).exists():
+        pytest.skip("the epona CLI is not built in this build (EPONA_CLI unset)")
+    subprocess.run([cli, "plan", "--weights", str(GOLDEN / "weights_world.safetensors"),
+                    "--dcae", str(GOLDEN / "weights_dcae.safetensors"), "--config", str(GOLDEN / "configs.json"),
+                    "--frames", str(CLIP), "--poses", str(CLIP / "poses.csv"), "--steps", str(STEPS),
+                    "--seed", "5", "--out", str(tmp_path), "--quiet"], check=True, capture_output=True)
+    rows = [line.split(",") for line in (tmp_path / "trajectory.csv").read_text().splitlines()
+            if line and line[0].isdigit()]
+    cli_plan = np.array([[float(v) for v in r[2:5]] for r in rows], dtype=np.float32)
+    # The CSV holds each float's shortest round-trip text: the two paths agree bit for bit.
+    assert np.array_equal(model.plan(latents, clip[1], steps=STEPS, seed=5), cli_plan)
+
+
+def test_session_steps_equal_rollout(model, clip):
+    frames, poses = clip
+    latents = model.encode(frames)
+    trajs, lats = model.rollout(latents, poses, frames=3, steps=STEPS, seed=7)
+    session = epona.WorldSession(model, steps=STEPS, seed=7)
+    session.reset(frames, poses)
+    decoded = model.decode(lats)  # each latent alone, as a session decodes its frame
+    for i in range(3):
+        frame, traj = session.step()
+        assert frame.dtype == np.uint8 and frame.shape == (64, 128, 3)
+        assert np.array_equal(traj, trajs[i])
+        assert np.array_equal(frame, decoded[i])
+    assert session.steps_taken == 3
+    window_latents, window_poses = session.window()
+    assert np.array_equal(window_latents, lats)  # three steps replaced the whole window
+    assert np.array_equal(window_poses, trajs[:, 0, :])  # slid in: waypoint 0 of each plan
+
+
+def test_session_step_with_an_action_equals_predict_next(model, clip, latents):
+    frames, poses = clip
+    session = epona.WorldSession(model, steps=STEPS, seed=3)
+    session.reset(frames, poses)
+    window_latents, window_poses = session.window()
+    assert np.array_equal(window_latents, latents)
+    assert window_poses[0].tolist() == [0, 0, 0]  # the window's first frame gets no motion (as the CLI)
+    assert np.array_equal(window_poses[1:], poses[1:])
+    action = np.array([1.5, 0.2, 3.0], dtype=np.float32)
+    latent, traj = model.predict_next(latents, poses, action=action, steps=STEPS, seed=3)
+    assert traj is None
+    frame, traj = session.step([1.5, 0.2, 3.0])  # a list works as well as an array
+    assert traj is None
+    assert np.array_equal(frame, model.decode(latent[None])[0])
+    window_latents, window_poses = session.window()
+    assert np.array_equal(window_latents[-1], latent)
+    assert np.array_equal(window_poses[-1], action)
+    assert np.array_equal(window_latents[:-1], latents[1:])
+
+
+def test_session_steps_keep_the_workspace(model, clip):
+    session = epona.WorldSession(model, steps=STEPS)
+    session.reset(*clip)
+    session.step()
+    capacity = session.arena_capacity
+    assert capacity > 0
+    for action in (None, (2.0, 0.0, 0.0), None):
+        session.step(action)
+        assert session.arena_capacity == capacity
+    session.reset(*clip)
+    assert session.steps_taken == 0
+
+
+def test_threads_share_a_model(model, clip, latents):
+    expected = model.plan(latents, clip[1], steps=STEPS, seed=9)
+    results = [None] * 4
+
+    def run(i):
+        results[i] = model.plan(latents, clip[1], steps=STEPS, seed=9)
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(np.array_equal(r, expected) for r in results)
+
+
+def test_the_gil_is_released_while_the_model_computes(model, clip, latents):
+    # A rollout in a thread; this thread keeps running meanwhile. Holding the GIL through the call
+    # would stop it for the whole rollout; released, it waits at most a few switch intervals.
+    t0 = time.perf_counter()
+    model.rollout(latents, clip[1], frames=4, steps=10)
+    alone = time.perf_counter() - t0
+    worker = threading.Thread(target=lambda: model.rollout(latents, clip[1], frames=4, steps=10))
+    longest, last = 0.0, time.perf_counter()
+    worker.start()
+    while worker.is_alive():
+        now = time.perf_counter()
+        longest, last = max(longest, now - last), now
+    worker.join()
+    assert longest < alone / 2, f"this thread stopped for {longest:.3f} s of a {alone:.3f} s rollout"
+
+
+def test_errors_carry_the_library_message(model, clip, latents):
+    frames, poses = clip
+    assert issubclass(epona.Error, RuntimeError)
+    session = epona.WorldSession(model, steps=STEPS)
+    with pytest.raises(epona.Error, match=r"call reset\(\)"):
+        session.step()
+    with pytest.raises(epona.Error, match=r"2 frame\(s\) given; the model needs 3"):
+        session.reset(frames[:2], poses)
+    with pytest.raises(epona.Error, match="frame 0 is 32x64; the model takes 64x128"):
+        session.reset(np.zeros((3, 32, 64, 3), np.uint8), poses)
+    with pytest.raises(epona.Error, match=r"uint8 \(N, H, W, 3\)"):
+        session.reset(np.zeros((3, 64, 128), np.uint8), poses)
+    bad = poses.copy()
+    bad[1, 2] = math.nan
+    with pytest.raises(epona.Error, match="pose 1 .* non-finite"):
+        session.reset(frames, bad)
+    with pytest.raises(epona.Error, match=r"poses must be float \(F, 3\)"):
+        session.reset(frames, poses[:, :2])
+    session.reset(frames, poses)
+    with pytest.raises(epona.Error, match="3 values"):
+        session.step([1.0, 2.0])
+    with pytest.raises(epona.Error, match="non-finite"):
+        session.step([1.0, math.inf, 0.0])
+    assert session.steps_taken == 0
+    with pytest.raises(epona.Error, match="latents"):
+        model.plan(latents[:, :16], poses)
+    with pytest.raises(epona.Error, match=r"poses hold 2 row\(s\)"):
+        model.plan(latents, poses[:2])
+    with pytest.raises(epona.Error, match="sampling steps"):
+        model.plan(latents, poses, steps=0)
+    with pytest.raises(epona.Error, match="no such file"):
+        epona.load(weights=str(GOLDEN / "missing.safetensors"), dcae=str(GOLDEN / "weights_dcae.safetensors"))
+    with pytest.raises(epona.Error, match="float32 weights only"):
+        epona.load(dtype="bfloat16")
+
+
+def test_bundled_model_loads_by_default(clip):
+    bundled = epona.load()
+    assert Path(bundled.world_file).parent == Path(epona.bundled_model_dir)
+    assert bundled.image_size == (256, 512) and bundled.condition_frames == 10
+    demo = Path(epona.bundled_model_dir) / "demo"
+    frame = epona.read_image(str(sorted((demo / "frames").glob("*.png"))[-1]))
+    assert frame.shape == (256, 512, 3)
+    z = bundled.encode(frame)
+    assert z.shape == (1,) + bundled.latent_shape
+    # A planning step on a still window: 10 copies of the last frame, standing.
+    plan = bundled.plan(np.repeat(z, 10, axis=0), np.zeros((10, 3), np.float32), steps=2)
+    assert plan.shape == (15, 3) and np.isfinite(plan).all()
+
+
+def test_the_session_example_runs(tmp_path):
+    # examples/python/session.py on the bundled model, one sampling step a frame (seconds).
+    out = tmp_path / "session.png"
+    run = subprocess.run([sys.executable, str(SOURCE / "examples/python/session.py"), str(out), "--steps", "1",
+                          "--frames", "2"], capture_output=True, text=True, env=dict(os.environ))
+    assert run.returncode == 0, run.stderr
+    assert "step 0: planned" in run.stdout and "step 1: drove the given action" in run.stdout
+    strip = epona.read_image(str(out))
+    assert strip.shape == (256, 3 * 512, 3)
