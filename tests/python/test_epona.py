@@ -80,7 +80,7 @@ def test_plan_equals_the_cli(model, clip, latents, tmp_path):
     cli = os.environ.get("EPONA_CLI")
     if not cli or not Path(cli).exists():
         pytest.skip("the epona CLI is not built in this build (EPONA_CLI unset)")
-    subprocess.run([cli, "plan", "--weights", str(GOLDEN / "weights_world.safetensors"),
+    subprocess.run([cli, "plan", "--hypotheses", "1", "--weights", str(GOLDEN / "weights_world.safetensors"),
                     "--dcae", str(GOLDEN / "weights_dcae.safetensors"), "--config", str(GOLDEN / "configs.json"),
                     "--frames", str(CLIP), "--poses", str(CLIP / "poses.csv"), "--steps", str(STEPS),
                     "--seed", "5", "--out", str(tmp_path), "--quiet"], check=True, capture_output=True)
