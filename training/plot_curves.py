@@ -4,9 +4,12 @@ PNG for docs/training.md.
 
     python3 training/plot_curves.py training/runs/2026-11-27 docs/images/training-loss.png
     python3 training/plot_curves.py --run2 training/runs/2026-11-28 docs/images/training-loss-run2.png
+    python3 training/plot_curves.py --chunks "Run 4: from run 2's weights, 840 s" \
+        docs/images/training-loss-run4.png training/runs/2026-11-28-run4/world_loss.jsonl
 
 --run2 plots the second run (two chunks from the first run's weights, natural and exploring-driver
-batches, lambda_yaw_pose 2): world_loss_chunk1.jsonl then world_loss_chunk2.jsonl.
+batches, lambda_yaw_pose 2): world_loss_chunk1.jsonl then world_loss_chunk2.jsonl. --chunks plots
+any run of that kind from its world-model loss files, one per chunk, in order.
 """
 import json
 import os
@@ -31,8 +34,8 @@ def smooth(values, k=9):
     return out
 
 
-def plot_run2(run, dest, trajectory_weight=2.0):
-    chunks = [rows(os.path.join(run, f"world_loss_chunk{i}.jsonl")) for i in (1, 2)]
+def plot_chunks(files, dest, title, trajectory_weight=2.0):
+    chunks = [rows(f) for f in files]
     world, offset = [], 0
     for chunk in chunks:
         world += [dict(r, step=r["step"] + offset) for r in chunk]
@@ -44,11 +47,13 @@ def plot_run2(run, dest, trajectory_weight=2.0):
     ax.plot([r["step"] for r in exploring], smooth([r["loss_diff"] for r in exploring]), label="VisDiT, exploring-driver batches", lw=1)
     ax.plot([r["step"] for r in natural], smooth([r["loss_traj"] / trajectory_weight for r in natural]),
             label="TrajDiT (natural batches only)", lw=1)
-    ax.axvline(chunks[0][-1]["step"], color="grey", lw=0.8, ls="--")
+    ends = [c[-1]["step"] for c in chunks]
+    for end in [sum(ends[:i + 1]) for i in range(len(ends) - 1)]:
+        ax.axvline(end, color="grey", lw=0.8, ls="--")
     ax.set_yscale("log")
-    ax.set_xlabel("world-model step of run 2 (batch 48); dashed: second chunk, fresh optimiser")
+    ax.set_xlabel("world-model step (batch 48)" + ("; dashed: next chunk, fresh optimiser" if len(ends) > 1 else ""))
     ax.set_ylabel("velocity MSE (running mean of 9 logged points)")
-    ax.set_title("Run 2: from run 1's weights, natural + exploring-driver drives")
+    ax.set_title(title)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(dest, dpi=110)
@@ -57,7 +62,10 @@ def plot_run2(run, dest, trajectory_weight=2.0):
 
 def main():
     if sys.argv[1] == "--run2":
-        return plot_run2(sys.argv[2], sys.argv[3])
+        files = [os.path.join(sys.argv[2], f"world_loss_chunk{i}.jsonl") for i in (1, 2)]
+        return plot_chunks(files, sys.argv[3], "Run 2: from run 1's weights, natural + exploring-driver drives")
+    if sys.argv[1] == "--chunks":
+        return plot_chunks(sys.argv[4:], sys.argv[3], sys.argv[2])
     run, dest = sys.argv[1], sys.argv[2]
     dcae, world = rows(os.path.join(run, "dcae_loss.jsonl")), rows(os.path.join(run, "world_loss.jsonl"))
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 3.8))
