@@ -62,7 +62,7 @@ void run(benchmark::State& state, double flops_per_iteration, Body body) {
   state.counters["threads"] = context().threads();
 }
 
-const Dcae<Cpu, float>& model() {
+const Dcae<Cpu, float>& shared_dcae() {
   static const std::unique_ptr<Dcae<Cpu, float>> m = [] {
     auto p = std::make_unique<Dcae<Cpu, float>>(DcaeConfig{});
     p->randomize(1);
@@ -74,23 +74,23 @@ const Dcae<Cpu, float>& model() {
 void BM_DcaeEncode(benchmark::State& state) {
   const auto [h, w] = bench_size();
   const HostTensor image = random_tensor({1, 3, h, w}, 2);
-  run(state, dcae_flops(model().config(), h, w).encode,
-      [&] { benchmark::DoNotOptimize(model().encode(context(), image).data()); });
+  run(state, dcae_flops(shared_dcae().config(), h, w).encode,
+      [&] { benchmark::DoNotOptimize(shared_dcae().encode(context(), image).data()); });
 }
 
 void BM_DcaeDecodeFrame(benchmark::State& state) {
   const auto [h, w] = bench_size();
   const HostTensor z = random_tensor({1, 32, h / 32, w / 32}, 3);
-  run(state, dcae_flops(model().config(), h, w, 1).decode_total(),
-      [&] { benchmark::DoNotOptimize(model().decode(context(), z, false).data()); });
+  run(state, dcae_flops(shared_dcae().config(), h, w, 1).decode_total(),
+      [&] { benchmark::DoNotOptimize(shared_dcae().decode(context(), z, false).data()); });
 }
 
 void BM_DcaeDecodeClip(benchmark::State& state) {
   const auto [h, w] = bench_size();
-  const std::int64_t frames = model().config().condition_frames;
+  const std::int64_t frames = shared_dcae().config().condition_frames;
   const HostTensor z = random_tensor({frames, 32, h / 32, w / 32}, 4);
-  run(state, double(frames) * dcae_flops(model().config(), h, w, frames).decode_total(),
-      [&] { benchmark::DoNotOptimize(model().decode(context(), z, true).data()); });
+  run(state, double(frames) * dcae_flops(shared_dcae().config(), h, w, frames).decode_total(),
+      [&] { benchmark::DoNotOptimize(shared_dcae().decode(context(), z, true).data()); });
 }
 
 // Decoder stage 2 at the bench size: 512 -> 512 channels, 3x3, at (H/4, W/4).

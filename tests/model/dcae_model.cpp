@@ -37,7 +37,7 @@ const DcaeConfig& config() {
   static const DcaeConfig c = io::load_configs(golden_dir() + "/configs.json").dcae;
   return c;
 }
-const Dcae<Cpu, float>& model() {
+const Dcae<Cpu, float>& shared_dcae() {
   static const Dcae<Cpu, float> m = Dcae<Cpu, float>::load(weights(), config());
   return m;
 }
@@ -115,10 +115,10 @@ TEST_CASE("clip decode: frame 0 equals its single-frame decode; causal inside a 
   const std::int64_t Tc = config().condition_frames;
   REQUIRE(Tc >= 2);
   HostTensor clips = random_latents(2 * Tc, 11);
-  const HostTensor video = model().decode(ctx, clips, true);
-  const HostTensor alone = model().decode(ctx, clips.slice(0, 1), false);
+  const HostTensor video = shared_dcae().decode(ctx, clips, true);
+  const HostTensor alone = shared_dcae().decode(ctx, clips.slice(0, 1), false);
   CHECK(rel_max(video.slice(0, 1), alone) <= 1e-5);  // same function, other GEMM row blocking
-  const HostTensor single1 = model().decode(ctx, clips.slice(1, 2), false);
+  const HostTensor single1 = shared_dcae().decode(ctx, clips.slice(1, 2), false);
   const double rel_seen = rel_max(video.slice(1, 2), single1);  // infinite on a NaN or Inf
   CHECK(std::isfinite(rel_seen));
   CHECK(rel_seen > 1e-3);  // frame 1 sees frame 0 through the time attention
@@ -126,7 +126,7 @@ TEST_CASE("clip decode: frame 0 equals its single-frame decode; causal inside a 
   HostTensor changed = clips.clone();
   HostTensor last = changed.slice(Tc - 1, Tc);  // last frame of clip 0
   for (std::int64_t i = 0; i < last.numel(); ++i) last.data()[i] += 0.5f;
-  const HostTensor video2 = model().decode(ctx, changed, true);
+  const HostTensor video2 = shared_dcae().decode(ctx, changed, true);
   for (std::int64_t n = 0; n < 2 * Tc; ++n) {
     INFO("frame " << n);
     const bool affected = n == Tc - 1;
@@ -144,8 +144,8 @@ TEST_CASE("observer: encoder points in order 1..5, decoder 5..1, one call per im
     if (image == 0) seen.emplace_back(p, s);
   };
   const HostTensor z = random_latents(1, 3);
-  const HostTensor image = model().decode(ctx, z, false, obs);
-  const HostTensor back = model().encode(ctx, image, obs);
+  const HostTensor image = shared_dcae().decode(ctx, z, false, obs);
+  const HostTensor back = shared_dcae().encode(ctx, image, obs);
   using P = DcaePoint;
   const std::vector<std::pair<DcaePoint, int>> expected = {
       {P::DecoderTemporal, 0}, {P::DecoderProjectIn, 0}, {P::DecoderStage, 5}, {P::DecoderStage, 4},
@@ -160,9 +160,9 @@ TEST_CASE("bf16 weights: same model, bf16-level error against the float32 weight
   cpu::Context ctx;
   const auto m16 = Dcae<Cpu, bf16>::load(weights(), config());
   const HostTensor z = random_latents(1, 5);
-  const double decode_rel = rel_max(m16.decode(ctx, z, false), model().decode(ctx, z, false));
-  const HostTensor image = model().decode(ctx, z, false);
-  const double encode_rel = rel_max(m16.encode(ctx, image), model().encode(ctx, image));
+  const double decode_rel = rel_max(m16.decode(ctx, z, false), shared_dcae().decode(ctx, z, false));
+  const HostTensor image = shared_dcae().decode(ctx, z, false);
+  const double encode_rel = rel_max(m16.encode(ctx, image), shared_dcae().encode(ctx, image));
   MESSAGE("bf16 weights vs fp32 weights: decode rel_max " << decode_rel << ", encode rel_max " << encode_rel);
   CHECK(decode_rel > 0);
   CHECK(decode_rel < 5e-2);
@@ -172,13 +172,13 @@ TEST_CASE("bf16 weights: same model, bf16-level error against the float32 weight
 TEST_CASE("bad inputs are refused with the problem named") {
   cpu::Context ctx;
   const std::int64_t Tc = config().condition_frames;
-  CHECK_THROWS_WITH_AS(model().decode(ctx, random_latents(Tc + 1, 1), true),
+  CHECK_THROWS_WITH_AS(shared_dcae().decode(ctx, random_latents(Tc + 1, 1), true),
                        doctest::Contains("not whole clips of condition_frames"), Error);
-  CHECK_THROWS_WITH_AS(model().decode(ctx, HostTensor::zeros({1, 3, 2, 2}), false), doctest::Contains("latents must be"),
+  CHECK_THROWS_WITH_AS(shared_dcae().decode(ctx, HostTensor::zeros({1, 3, 2, 2}), false), doctest::Contains("latents must be"),
                        Error);
-  CHECK_THROWS_WITH_AS(model().encode(ctx, HostTensor::zeros({1, 3, 48, 64})), doctest::Contains("not a multiple of 32"),
+  CHECK_THROWS_WITH_AS(shared_dcae().encode(ctx, HostTensor::zeros({1, 3, 48, 64})), doctest::Contains("not a multiple of 32"),
                        Error);
-  CHECK_THROWS_WITH_AS(model().encode(ctx, HostTensor::zeros({1, 4, 64, 64})), doctest::Contains("images must be"),
+  CHECK_THROWS_WITH_AS(shared_dcae().encode(ctx, HostTensor::zeros({1, 4, 64, 64})), doctest::Contains("images must be"),
                        Error);
   DcaeConfig broken = config();
   broken.encoder_width_list[5] = 33;

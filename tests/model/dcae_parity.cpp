@@ -50,7 +50,7 @@ const Golden& golden() {
   return g;
 }
 
-const Dcae<Cpu, float>& model() {
+const Dcae<Cpu, float>& shared_dcae() {
   static const Dcae<Cpu, float> m = Dcae<Cpu, float>::load(golden().weights, golden().config);
   return m;
 }
@@ -119,13 +119,13 @@ TEST_CASE("dcae parity: config and weights bind strictly") {
   std::printf("  image %lldx%lld, widths [%lld..%lld], clip %lld frames\n", (long long)c.image_h,
               (long long)c.image_w, (long long)c.encoder_width_list.front(), (long long)c.encoder_width_list.back(),
               (long long)c.condition_frames);
-  CHECK_NOTHROW(model());
+  CHECK_NOTHROW(shared_dcae());
 }
 
 TEST_CASE("dcae parity: single-frame decode (is_video = false) with its intermediates") {
   Recorder rec;
   const HostTensor latent = golden().input("dcae.decode.latent_in");
-  const HostTensor image = model().decode(context(), latent, false, rec.observer("dcae.decode"));
+  const HostTensor image = shared_dcae().decode(context(), latent, false, rec.observer("dcae.decode"));
   rec.compare_all();
   compare("dcae.image", image);
 }
@@ -133,7 +133,7 @@ TEST_CASE("dcae parity: single-frame decode (is_video = false) with its intermed
 TEST_CASE("dcae parity: encode of the stored image with its intermediates") {
   Recorder rec;
   const HostTensor image = golden().input("dcae.image");
-  const HostTensor latent = model().encode(context(), image, rec.observer("dcae.encode"));
+  const HostTensor latent = shared_dcae().encode(context(), image, rec.observer("dcae.encode"));
   rec.compare_all();
   compare("dcae.encode.latent_out", latent);
 }
@@ -142,7 +142,7 @@ TEST_CASE("dcae parity: clip decode (is_video = true) through the causal tempora
   Recorder rec;
   const HostTensor clip = golden().input("dcae.clip.latent_in");
   REQUIRE(clip.size(0) % golden().config.condition_frames == 0);
-  const HostTensor images = model().decode(context(), clip, true, rec.observer("dcae.clip"));
+  const HostTensor images = shared_dcae().decode(context(), clip, true, rec.observer("dcae.clip"));
   CHECK(images.size(0) == clip.size(0));
   rec.compare_all();
 }
