@@ -16,6 +16,7 @@
 #include "epona/io/poses.hpp"
 #include "epona/model/plan_choice.hpp"
 #include "epona/model/world_model.hpp"
+#include "epona/model/world_session.hpp"
 
 namespace epona::app {
 
@@ -54,22 +55,22 @@ inline void add_hypothesis_options(ArgParser& p) {
       .option("choose", "RULE", "the plan chosen of the hypotheses: medoid (the one nearest all others) or mean "
               "(the waypoint-wise mean)", "the model's planner.choose, else medoid");
 }
-struct HypothesisOptions {
-  std::int64_t count = 1;
-  model::PlanChoice choose = model::PlanChoice::medoid;
+// The planning rule the command runs, and whether it is the model's recommendation.
+struct HypothesisOptions : model::PlanningRule {
   bool from_model = false;  // the model's recommended rule, not the command line's
 };
 inline HypothesisOptions hypothesis_options(const ParsedArgs& a, const model::PlanningRule& recommended) {
   HypothesisOptions h;
-  h.count = a.integer("hypotheses", recommended.hypotheses, 1, constants::max_hypotheses);
-  h.choose = model::parse_plan_choice(a.choice("choose", {"medoid", "mean"}, model::plan_choice_name(recommended.choose)));
+  h.hypotheses = a.integer("hypotheses", recommended.hypotheses, 1, constants::max_hypotheses);
+  // choice() accepts only the listed names, so the lookup finds one.
+  h.choose = *model::plan_choice_named(a.choice("choose", {"medoid", "mean"}, model::plan_choice_name(recommended.choose)));
   h.from_model = recommended != model::PlanningRule{} && !a.has("hypotheses") && !a.has("choose");
   return h;
 }
 // "8 hypotheses, the mean chosen (the model's recommended rule)" for the notes.
 inline std::string describe(const HypothesisOptions& h) {
-  if (h.count == 1) return "1 plan";
-  return std::to_string(h.count) + " hypotheses, the " + model::plan_choice_name(h.choose) + " chosen" +
+  if (h.hypotheses == 1) return "1 plan";
+  return std::to_string(h.hypotheses) + " hypotheses, the " + model::plan_choice_name(h.choose) + " chosen" +
          (h.from_model ? " (the model's recommended rule; --hypotheses 1 for the official single sample)" : "");
 }
 

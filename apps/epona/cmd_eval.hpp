@@ -81,7 +81,7 @@ struct EvalOptions {
   std::string fit = "exact";
   SampleOptions sample;
   DitSamplers samplers;                       // what sample resolves to, per DiT
-  HypothesisOptions hypotheses;
+  HypothesisOptions planning;  // hypotheses per scene and the rule that picks one
   std::optional<std::filesystem::path> save_frames;
 };
 
@@ -102,7 +102,7 @@ inline EvalOptions eval_options(const ParsedArgs& a, const io::ModelConfigs& con
   o.fit = a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact");
   o.sample = sample_options(a, wc);
   o.samplers = samplers_of(o.sample);
-  o.hypotheses = hypothesis_options(a, configs.planner);
+  o.planning = hypothesis_options(a, configs.planner);
   if (const auto dir = a.get("save-frames")) o.save_frames = *dir;
   std::error_code ec;
   const auto parent = std::filesystem::absolute(o.json, ec).parent_path();
@@ -186,9 +186,9 @@ inline void score_planning(ClipScores& s, const eval::EvalClip& c, const History
   const auto truth = eval::cumulative_poses(*c.future_motions, eval::kPlanWaypoints);
   SampleOptions o = e.opt.sample;
   o.seed = seed;
-  const std::int64_t K = e.opt.hypotheses.count;
+  const std::int64_t K = e.opt.planning.hypotheses;
   const Tensor<float> plans = e.engine.plans(window, K, o);  // (K, W, 3)
-  const model::PlanFan fan = model::choose_plan(plans, e.opt.hypotheses.choose);
+  const model::PlanFan fan = model::choose_plan(plans, e.opt.planning.choose);
   s.plan = fan.chosen;
   s.model = score_plan(eval::poses_of(fan.chosen), truth, c);
   if (K > 1) s.best_of_k = best_of(plans, truth), s.spread_m = fan.spread_m;
@@ -267,7 +267,7 @@ inline ClipScores evaluate_clip(const eval::EvalClip& c, std::uint64_t seed, con
   const auto F = static_cast<std::size_t>(e.wc.condition_frames);
   const std::vector<io::Image> history = read_frames(c.frames, c.frames.size() - F, F, e);
   const io::PoseSequence poses = c.poses.slice(c.poses.size() - F, F);
-  const History window = make_history(e.ctx, encode_frames(e.engine, history, e.silent), poses);
+  const History window = model::make_window(e.ctx, encode_frames(e.engine, history, e.silent), poses);
   if (e.opt.plan && c.future_motions) score_planning(s, c, window, seed, e);
   if (e.opt.video && !c.future_frames.empty()) score_video(s, c, window, history, seed, e);
   if (e.opt.control) score_control(s, c, window, seed, e);
@@ -394,9 +394,9 @@ inline nlohmann::ordered_json settings_json(const ParsedArgs& a, const ModelFile
           {"seed", o.sample.seed},
           {"seed_rule", "clip i (0-based, in clip order) uses seed + i, for its plan, its rollout and both control rollouts; "
                         "with hypotheses, hypothesis k of clip i uses seed + i + k*0x9E3779B9 (the generator keeps the low 32 bits)"},
-          {"hypotheses", o.hypotheses.count},
-          {"choose", model::plan_choice_name(o.hypotheses.choose)},
-          {"planning_rule_from", o.hypotheses.from_model ? "the model's configs.json (planner)" : "the command line or the default"},
+          {"hypotheses", o.planning.hypotheses},
+          {"choose", model::plan_choice_name(o.planning.choose)},
+          {"planning_rule_from", o.planning.from_model ? "the model's configs.json (planner)" : "the command line or the default"},
           {"horizon", o.horizon},
           {"limit", o.limit ? nlohmann::ordered_json(*o.limit) : nullptr},
           {"plan", o.plan},
@@ -444,7 +444,7 @@ inline nlohmann::ordered_json notes_json() {
 
 // K, the rule, and the mean spread of the hypotheses at 1, 2 and 3 s.
 inline nlohmann::ordered_json hypotheses_summary(const std::vector<ClipScores>& clips, const EvalOptions& o) {
-  nlohmann::ordered_json j{{"count", o.hypotheses.count}, {"choose", model::plan_choice_name(o.hypotheses.choose)}};
+  nlohmann::ordered_json j{{"count", o.planning.hypotheses}, {"choose", model::plan_choice_name(o.planning.choose)}};
   for (std::size_t k = 0; k < eval::kPlanSeconds; ++k) {
     Mean m;
     for (const auto& c : clips)
@@ -464,7 +464,7 @@ inline nlohmann::ordered_json report_json(const std::vector<ClipScores>& clips, 
   if (video) model.update(video_summary(clips, &ClipScores::psnr, &ClipScores::ssim, horizon));
   for (const auto& m : eval::uncomputed_feature_metrics()) model[m.name] = number(m.value);
   j["model"] = model;
-  if (o.hypotheses.count > 1) {
+  if (o.planning.hypotheses > 1) {
     j["model_best_of_k"] = plan_summary(clips, &ClipScores::best_of_k);
     j["hypotheses"] = hypotheses_summary(clips, o);
   }
@@ -564,7 +564,7 @@ inline int run_eval(const ParsedArgs& a, const Console& con) {
            describe(opt.samplers, opt.plan, opt.video || opt.control), ", seed ", opt.sample.seed, " + clip index",
            opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"),
            opt.control ? ", control at +-" + std::to_string(opt.control_yaw) + " deg" : std::string(),
-           opt.plan && opt.hypotheses.count > 1 ? ", " + describe(opt.hypotheses) : std::string());
+           opt.plan && opt.planning.hypotheses > 1 ? ", " + describe(opt.planning) : std::string());
 
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);

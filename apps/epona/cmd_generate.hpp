@@ -162,7 +162,7 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);
   engine->load_dcae(files, con);
-  const History window = make_history(ctx, encode_frames(*engine, clip.frames, con), clip.poses);
+  const History window = model::make_window(ctx, encode_frames(*engine, clip.frames, con), clip.poses);
   engine->load_world(files, con);
   const DcaeConfig& dc = engine->dcae_config();
   plan.clip_len = clip_decode && dc.add_decoder_temporal ? dc.condition_frames : 1;

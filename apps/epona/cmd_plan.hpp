@@ -78,16 +78,16 @@ inline int run_plan(const ParsedArgs& a, const Console& con) {
   const Tensor<float> latents = encode_frames(*engine, clip.frames, con);
   engine->release_dcae();
   cpu::Context ctx(compute.threads);
-  const History history = make_history(ctx, latents, clip.poses);
+  const History history = model::make_window(ctx, latents, clip.poses);
   engine->load_world(files, con);
   con.note("planning: ", describe(samplers_of(sample), true, false), ", seed ", sample.seed,
-           hyp.count > 1 ? ", " + describe(hyp) : std::string());
+           hyp.hypotheses > 1 ? ", " + describe(hyp) : std::string());
   const auto t0 = std::chrono::steady_clock::now();
-  const Tensor<float> plans = engine->plans(history, hyp.count, sample);  // (K, traj_len, 3)
+  const Tensor<float> plans = engine->plans(history, hyp.hypotheses, sample);  // (K, traj_len, 3)
   con.note("  planned in ", duration_text(seconds_since(t0)));
   const model::PlanFan fan = model::choose_plan(plans, hyp.choose);
   const Tensor<float>& waypoints = fan.chosen;  // (traj_len, 3)
-  if (hyp.count > 1)
+  if (hyp.hypotheses > 1)
     io::write_trajectory_json(dir / "trajectory.json", waypoints,
                               {plans, model::plan_choice_name(hyp.choose), fan.chosen_index, fan.spread_m});
   else
@@ -98,7 +98,7 @@ inline int run_plan(const ParsedArgs& a, const Console& con) {
   io::write_png((dir / "plan.png").string(), picture);
 
   print_waypoints(con.out, waypoints);
-  if (hyp.count > 1) print_spread(con.out, fan, hyp.choose);
+  if (hyp.hypotheses > 1) print_spread(con.out, fan, hyp.choose);
   con.out << "wrote " << (dir / "trajectory.json").string() << ", " << (dir / "trajectory.csv").string() << "\n"
           << "wrote " << (dir / "plan.png").string() << " (" << size_text(picture) << ", top-down: "
           << view.pixels_per_metre << " px per metre, ego at the bottom centre)\n";

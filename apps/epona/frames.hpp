@@ -1,6 +1,7 @@
 // apps/epona/frames.hpp — the input clip of plan/generate: a folder of frames (PNG/JPEG, in
 // natural name order) and a poses file with one motion per frame; the last F frames of the
-// model's window are fitted to the model's image size and encoded into the History.
+// model's window are fitted to the model's image size and encoded (model::make_window, in
+// model/world_session.hpp, makes the window from them).
 #pragma once
 
 #include <algorithm>
@@ -19,9 +20,6 @@
 #include "epona/io/image_folder.hpp"
 #include "epona/io/limits.hpp"
 #include "epona/io/poses.hpp"
-#include "epona/model/latent_layout.hpp"
-#include "epona/model/world_model.hpp"
-#include "epona/model/world_session.hpp"
 
 namespace epona::app {
 
@@ -112,11 +110,6 @@ inline Tensor<float> encode_frames(Engine& engine, const std::vector<io::Image>&
     bar.advance();
   }
   return out;
-}
-
-// The world model's window (batch 1) from encoded frames and their motions.
-inline History make_history(cpu::Context& ctx, const Tensor<float>& latents, const io::PoseSequence& poses) {
-  return model::make_window(ctx, latents, poses);
 }
 
 }  // namespace epona::app

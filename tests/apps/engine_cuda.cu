@@ -18,6 +18,7 @@
 #include "epona/cuda/dcae_ops.cuh"
 #include "epona/cuda/scratch.hpp"
 #include "epona/model/rollout.hpp"
+#include "epona/model/world_session.hpp"
 
 using namespace epona;
 using epona::test::rel_max;
@@ -68,7 +69,7 @@ History window_of(app::Engine& e, const WorldModelConfig& w) {
   }
   std::ostringstream sink;
   cpu::Context ctx;
-  return app::make_history(ctx, app::encode_frames(e, frames, app::Console{sink, sink, true, false}), poses);
+  return model::make_window(ctx, app::encode_frames(e, frames, app::Console{sink, sink, true, false}), poses);
 }
 
 }  // namespace

@@ -295,9 +295,9 @@ inline model::PlanningRule planning_rule_from_json(const config_detail::JsonObje
               " must be 1..", constants::max_hypotheses, ", got ", r.hypotheses);
   if (p.has("choose")) {
     const std::string rule = p.string("choose");
-    EPONA_CHECK(rule == "medoid" || rule == "mean", p.where("choose"), " must be \"medoid\" or \"mean\", got ",
-                json_brief(nlohmann::json(rule)));
-    r.choose = model::parse_plan_choice(rule);
+    const std::optional<model::PlanChoice> choice = model::plan_choice_named(rule);
+    EPONA_CHECK(choice, p.where("choose"), " must be \"medoid\" or \"mean\", got ", json_brief(nlohmann::json(rule)));
+    r.choose = *choice;
   }
   return r;
 }

@@ -23,10 +23,11 @@ enum class PlanChoice { medoid, mean };
 
 inline const char* plan_choice_name(PlanChoice c) { return c == PlanChoice::medoid ? "medoid" : "mean"; }
 
-inline PlanChoice parse_plan_choice(const std::string& name) {
-  if (name == "medoid") return PlanChoice::medoid;
-  if (name == "mean") return PlanChoice::mean;
-  fail("unknown plan choice '", name, "' (medoid or mean)");
+// The rule of that name; none for any other (the caller's error names where the name came from).
+inline std::optional<PlanChoice> plan_choice_named(const std::string& name) {
+  for (const PlanChoice c : {PlanChoice::medoid, PlanChoice::mean})
+    if (name == plan_choice_name(c)) return c;
+  return std::nullopt;
 }
 
 // How a planner turns one scene into one plan: K hypotheses and the rule that picks one. K = 1 is the
