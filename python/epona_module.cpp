@@ -209,10 +209,7 @@ py::tuple predict_latent(Model& m, const FloatIn& latents, const FloatIn& poses,
   const std::optional<Motion> a = motion_of(action);
   const StepResult r = m.locked([&] {
     std::optional<NextAction> next;
-    if (a) {
-      next.emplace(NextAction{Tensor<float, Cpu>({1, 1, 2}), Tensor<float, Cpu>({1, 1, 1})});
-      next->rel_pose.data()[0] = a->x, next->rel_pose.data()[1] = a->y, next->rel_yaw.data()[0] = a->yaw;
-    }
+    if (a) next = action_of(*a);
     StepResult out = m.world->predict_next(m.window(in), next, sampling(steps, seed));
     out.latent = tokens_to_latent(m.ctx(), out.latent, m.config().latent_h(), m.config().latent_w())[0];
     return out;

@@ -18,6 +18,7 @@
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
+#include "epona/model/world_session.hpp"
 
 namespace epona::app {
 
@@ -40,12 +41,7 @@ inline void decode_group(cpu::Context& ctx, Engine& engine, const WorldModelConf
   for (std::int64_t i = 0; i < n; ++i) sink.put(io::tensor_to_image(images, i));
 }
 
-inline NextAction action_at(const io::PoseSequence& p, std::size_t i) {
-  NextAction act{Tensor<float>({1, 1, 2}), Tensor<float>({1, 1, 1})};
-  act.rel_pose.data()[0] = p.x[i], act.rel_pose.data()[1] = p.y[i];
-  act.rel_yaw.data()[0] = p.yaw[i];
-  return act;
-}
+inline NextAction action_at(const io::PoseSequence& p, std::size_t i) { return action_of({p.x[i], p.y[i], p.yaw[i]}); }
 
 // What drives a rollout, and what it keeps.
 struct RolloutPlan {

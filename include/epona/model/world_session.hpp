@@ -28,6 +28,17 @@ struct Motion {
   float x = 0, y = 0, yaw = 0;
 };
 
+// A one-scene action (1, 1, 2) + (1, 1, 1) holding `m`: written into `a`'s tensors, or new ones.
+inline void set_action(NextAction& a, const Motion& m) {
+  a.rel_pose.data()[0] = m.x, a.rel_pose.data()[1] = m.y;
+  a.rel_yaw.data()[0] = m.yaw;
+}
+inline NextAction action_of(const Motion& m) {
+  NextAction a{Tensor<float, Cpu>({1, 1, 2}), Tensor<float, Cpu>({1, 1, 1})};
+  set_action(a, m);
+  return a;
+}
+
 // What one session step made.
 struct SessionStep {
   io::Image frame;                // the generated frame, 8-bit RGB, image_h x image_w (decoded alone)
@@ -69,7 +80,7 @@ class WorldSession {
   WorldSession(WorldModel<B, W>& world, const Dcae<B, W>& dcae, const SampleOptions& options = {})
       : world_(world), dcae_(dcae), options_(options), samplers_(world.samplers_of(options)),
         noise_(WorldModel<B, W>::noise_for(options)),
-        action_{Tensor<float, Cpu>({1, 1, 2}), Tensor<float, Cpu>({1, 1, 1})}, used_({1, 1, 3}) {
+        action_(action_of({})), used_({1, 1, 3}) {
     EPONA_CHECK(dcae.config().latent_channels == world.config().token_dim(), "WorldSession: the DC-AE's ",
                 dcae.config().latent_channels, " latent channels differ from the world model's ",
                 world.config().token_dim());
@@ -113,8 +124,7 @@ class WorldSession {
       EPONA_CHECK(std::isfinite(action->x) && std::isfinite(action->y) && std::isfinite(action->yaw),
                   "WorldSession::step: the action (", action->x, ", ", action->y, ", ", action->yaw,
                   ") has a non-finite value");
-      action_.rel_pose.data()[0] = action->x, action_.rel_pose.data()[1] = action->y;
-      action_.rel_yaw.data()[0] = action->yaw;
+      set_action(action_, *action);
     }
     SessionStep out;
     StepResult r = world_.run_step(window_, action ? &action_ : nullptr, true, samplers_, noise_, {});
