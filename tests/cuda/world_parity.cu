@@ -3,11 +3,12 @@
 // vis.*, rollout.*) with the CPU test's tolerances (golden README: rel_max <= 1e-4, 1e-3 for
 // rollout.*); in bf16 (bf16 weights and activations, float32 MST residual stream), every
 // stage within twice the error of the official bf16 recipe (manifest.json), and the rollout's
-// first step likewise (later steps diverge in bf16, README: reported, checked finite). The
-// whole arena and every output are poisoned (0xFF: NaN) before each GPU call, so a value the
-// model reads or returns without writing it fails.
+// first step likewise, in the manifest's units (later steps diverge in bf16, README: reported,
+// checked finite). The whole arena and every output are poisoned (0xFF: NaN) before each GPU
+// call, so a value the model reads or returns without writing it fails.
 #include <doctest/doctest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -72,6 +73,32 @@ void expect_bf16(const std::string& name, const Tensor<float, Cpu>& ours, const 
 }
 void expect_bf16(const std::string& name, const Tensor<float, Cpu>& ours) {
   expect_bf16(name, ours, world_golden().tensor(name), name);
+}
+
+// max |a − b| (b empty: max |a|).
+double max_abs(const Tensor<float, Cpu>& a, const Tensor<float, Cpu>* b = nullptr) {
+  double m = 0;
+  for (std::int64_t i = 0; i < a.numel(); ++i)
+    m = std::max(m, std::abs(double(a.data()[i]) - (b ? double(b->data()[i]) : 0.0)));
+  return m;
+}
+
+// The first rollout step against twice the official recipe's error, in the manifest's units. The
+// manifest measures a rollout tensor over every step: max |recipe − golden| over all steps, over
+// max |golden| over all steps. Step 0 alone is therefore scaled by the same max |golden| of all
+// steps. (Scaled by step 0's own max, a step whose golden values are small — the first
+// waypoint's yaw, a window of slow motions — turns the same error into a larger figure: on 12
+// conformance sets of other sizes the official recipe's own step 0 measured that way reached
+// 4.1x its manifest figure; docs/world-model.md, "bf16 margins of the rollout".)
+void expect_bf16_first_step(const std::string& name, const Tensor<float, Cpu>& ours, const Tensor<float, Cpu>& golden) {
+  REQUIRE(ours[0].shape() == golden[0].shape());
+  const auto ours0 = ours[0], golden0 = golden[0];
+  const double scale = max_abs(golden), err = max_abs(ours0, &golden0);
+  const double rel = scale > 0 ? err / scale : err, recipe = official_bf16_error(name), limit = 2 * recipe;
+  MESSAGE(name, "[step 0] (GPU bf16): rel ", rel, " (official bf16 recipe ", recipe, ", limit ", limit,
+          ", margin ", rel > 0 ? limit / rel : INFINITY, "x; over step 0's own max |golden|: ",
+          test::rel_max(ours[0], golden[0]), ")");
+  CHECK(rel <= limit);
 }
 
 std::int64_t batch() { return world_golden().tensor("mst.latents").size(0); }
@@ -267,7 +294,7 @@ TEST_CASE("GPU bf16: rollout — first step within twice the official bf16 recip
     const auto& ours = out.at(name);
     CHECK_MESSAGE(all_finite(ours), std::string(name), " has non-finite values");
     const auto golden = world_golden().tensor(name);
-    expect_bf16(std::string(name) + "[step 0]", ours[0], golden[0], name);
+    expect_bf16_first_step(name, ours, golden);
     MESSAGE(std::string(name), " (GPU bf16, all steps): rel vs golden ", test::rel_max(ours, golden), ", vs the GPU float32 run ",
             test::rel_max(ours, reference.at(name)), " (official bf16 recipe ", official_bf16_error(name), ")");
   }
