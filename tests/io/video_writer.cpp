@@ -147,4 +147,17 @@ TEST_CASE("the temporary file is listed for the signal handler while the video i
   CHECK_FALSE(has_temporary(t.path));
 }
 
+// The snippet of docs/api.md ("Video"), on decoder-shaped output: (N, 3, H, W) in [-1, 1].
+TEST_CASE("the docs/api.md snippet writes the decoded frames") {
+  test::TempDir t("epona_video");
+  const fs::path previous = fs::current_path();
+  fs::current_path(t.path);
+  const Tensor<float> images = Tensor<float>::zeros({3, 3, 32, 64});
+  io::VideoWriter video("clip.mp4", images.size(2), images.size(3), {.fps = 5});
+  for (std::int64_t i = 0; i < images.size(0); ++i) video.add(io::tensor_to_image(images, i));
+  video.finish();  // clip.mp4 appears only now, complete
+  fs::current_path(previous);
+  CHECK(test::read_video(t / "clip.mp4").frames.size() == 3);
+}
+
 #include "epona/io/stb_implementation.hpp"
