@@ -2,7 +2,7 @@
 // (tests/video_reading.hpp): frame count, size, frame rate, H.264 in yuv420p, colours within
 // 4:2:0 rounding of the written ones; odd sizes padded by one pixel; a video written only at its
 // end (no temporary file left, nothing at the destination after an error, an unwritable folder or
-// no frames); frames of the wrong size refused.
+// no frames); frames of the wrong size refused; the snippet of docs/api.md.
 #include <doctest/doctest.h>
 
 #include <array>
