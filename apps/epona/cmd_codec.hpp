@@ -1,6 +1,6 @@
 // apps/epona/cmd_codec.hpp — `epona encode` (images -> DC-AE latents (N, C, H/32, W/32) as .npy)
-// and `epona decode` (such latents -> PNG frames, one by one or as temporal clips). Latents are
-// the raw DC-AE values the world model works on (no scaling, no shift).
+// and `epona decode` (such latents -> PNG frames, one by one or as temporal clips, and with
+// --video an MP4). Latents are the raw DC-AE values the world model works on (no scaling, no shift).
 #pragma once
 
 #include <algorithm>
@@ -161,8 +161,8 @@ inline int run_decode(const ParsedArgs& a, const Console& con) {
   const auto engine = make_engine(compute);
   engine->load_dcae(files, con);
   const DcaeConfig& dc = engine->dcae_config();
-  const bool video = clip_decode && dc.add_decoder_temporal;
-  const std::int64_t N = latents.size(0), group = video ? dc.condition_frames : 1;
+  const bool temporal = clip_decode && dc.add_decoder_temporal;
+  const std::int64_t N = latents.size(0), group = temporal ? dc.condition_frames : 1;
   EPONA_CHECK(N % group == 0, path, ": ", N, " latents are not whole clips of ", group, " frames (--decode clip)");
   std::optional<VideoOut> mp4;
   if (video_to) mp4.emplace(*video_to, 32 * latents.size(2), 32 * latents.size(3));
@@ -170,7 +170,7 @@ inline int run_decode(const ParsedArgs& a, const Console& con) {
   const Activity doing("decoding " + std::to_string(N) + " frame(s) of " + std::to_string(32 * latents.size(2)) + "x" +
                        std::to_string(32 * latents.size(3)));
   for (std::int64_t first = 0; first < N; first += group) {
-    const Tensor<float> images = engine->decode(latents.slice(first, first + group), video);
+    const Tensor<float> images = engine->decode(latents.slice(first, first + group), temporal);
     for (std::int64_t i = 0; i < group; ++i) {
       char name[32];
       std::snprintf(name, sizeof name, "frame_%04lld.png", static_cast<long long>(first + i));
