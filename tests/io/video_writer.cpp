@@ -125,6 +125,9 @@ TEST_CASE("nothing is written without frames, into a missing folder, or at bad s
   opt.fps = 0;
   CHECK_THROWS_WITH_AS(io::write_video(t / "zero.mp4", {flat(32, 64, kColours[0])}, opt),
                        doctest::Contains("frame rate 0 fps is outside 1..120"), Error);
+  opt = {};
+  opt.crf = 52;
+  CHECK_THROWS_WITH_AS(io::VideoWriter(t / "crf.mp4", 32, 64, opt), doctest::Contains("crf 52 is outside"), Error);
   {
     io::VideoWriter w(t / "mixed.mp4", 32, 64);
     w.add(flat(32, 64, kColours[0]));
@@ -134,6 +137,7 @@ TEST_CASE("nothing is written without frames, into a missing folder, or at bad s
   CHECK_FALSE(fs::exists(t / "none.mp4"));
   CHECK_FALSE(fs::exists(t / "empty.mp4"));
   CHECK_FALSE(fs::exists(t / "zero.mp4"));
+  CHECK_FALSE(fs::exists(t / "crf.mp4"));
   CHECK_FALSE(fs::exists(t / "mixed.mp4"));
   CHECK_FALSE(has_temporary(t.path));
 }

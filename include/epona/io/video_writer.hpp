@@ -160,6 +160,7 @@ class VideoWriter {
   void check_arguments(const VideoOptions& opt) const {
     EPONA_CHECK(opt.fps >= 1 && opt.fps <= kMaxVideoFps, destination_, ": frame rate ", opt.fps,
                 " fps is outside 1..", kMaxVideoFps);
+    EPONA_CHECK(opt.crf >= 0 && opt.crf <= 51, destination_, ": crf ", opt.crf, " is outside libx264's 0..51");
     EPONA_CHECK(height_ > 0 && width_ > 0, destination_, ": frames of ", height_, "x", width_, " cannot make a video");
     EPONA_CHECK(height_ <= 16384 && width_ <= 16384, destination_, ": frames of ", height_, "x", width_,
                 " are larger than H.264 takes (16384 per side)");
