@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The main job: installs dependencies, builds the `epona` program, then runs `epona generate`
 # and `epona plan` on the bundled model (a small Epona trained on the synthetic driving world,
-# models/small-synthetic) and its held-out demo clip, writing PNG/JSON/CSV into ./out/demo.
+# models/small-synthetic) and its held-out demo clip, writing PNG/JSON/CSV (and, when the build
+# has FFmpeg's libraries, an MP4 of the clip) into ./out/demo.
 #
 #   scripts/demo.sh                                   # the bundled model and clip
 #   scripts/demo.sh --weights world.pkl --dcae dcae_td_20000.pkl \
@@ -48,18 +49,22 @@ cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DEPONA_TESTS=OFF -DE
       -DEPONA_EXAMPLES=ON -DEPONA_CUDA="$cuda" >/dev/null
 cmake --build "$build" -j "$(nproc)" --target epona_cli
 epona=$(cd "$build" && pwd)/apps/epona
+# The clip as a video too when the build has FFmpeg's libraries (scripts/setup.sh installs them).
+video=()
+if grep -q '^EPONA_FFMPEG:BOOL=ON' "$build/CMakeCache.txt"; then video=(--video "$out/generate/demo.mp4"); fi
 
 cd "$caller"
 echo
 echo "== epona generate: roll out $frames frame(s) under the model's own plan"
-"$epona" generate "${pass[@]}" --num-frames "$frames" --out "$out/generate"
+"$epona" generate "${pass[@]}" --num-frames "$frames" --out "$out/generate" ${video[@]+"${video[@]}"}
 echo
 echo "== epona plan: the trajectory from the last frames"
 "$epona" plan "${pass[@]}" --out "$out/plan"
 echo
 echo "demo outputs are in $(cd "$out" && pwd):"
 echo "  generate/frames/frame_*.png   generated frames"
-echo "  generate/contact_sheet.png    input frames (blue) and generated frames (orange)"
+echo "  generate/contact_sheet.png    input frames (blue) and generated frames (orange), numbered"
+((${#video[@]})) && echo "  generate/demo.mp4             the input frames then the generated ones, H.264 at 5 fps"
 echo "  generate/trajectory.csv/.json each step's planned trajectory; generate/poses.csv the motion into each frame"
 echo "  plan/plan.png                 the planned trajectory drawn top-down over the last frame"
 echo "  plan/trajectory.csv/.json     the planned waypoints (x m forward, y m left, yaw deg)"

@@ -1,6 +1,6 @@
 // apps/epona/cmd_codec.hpp — `epona encode` (images -> DC-AE latents (N, C, H/32, W/32) as .npy)
-// and `epona decode` (such latents -> PNG frames, one by one or as temporal clips). Latents are
-// the raw DC-AE values the world model works on (no scaling, no shift).
+// and `epona decode` (such latents -> PNG frames, one by one or as temporal clips, and with
+// --video an MP4). Latents are the raw DC-AE values the world model works on (no scaling, no shift).
 #pragma once
 
 #include <algorithm>
@@ -17,6 +17,7 @@
 #include "engine.hpp"
 #include "frames.hpp"
 #include "models.hpp"
+#include "video_output.hpp"
 #include "epona/core/printable.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/limits.hpp"
@@ -44,11 +45,13 @@ inline ArgParser encode_parser() {
 inline ArgParser decode_parser() {
   ArgParser p("epona decode", "LATENTS.npy [options]",
               "Decodes DC-AE latents (N, C, h, w) (as `epona encode` or `epona generate --latents` write them)\n"
-              "into PNG frames of (32h, 32w): frame_0000.png ... in the output folder.");
+              "into PNG frames of (32h, 32w): frame_0000.png ... in the output folder, and with --video an MP4.");
   p.positionals(1, 1, "latents file");
   add_model_options(p, false, true);
-  p.flag("video", "decode clips of the DC-AE's temporal length together (N must be a multiple of it)")
+  p.option("decode", "MODE", "clip: clips of the DC-AE's temporal length decoded together (N must be a multiple "
+           "of it); frame: each frame alone", "frame")
       .option("max-pixels", "N", "refuse latent grids that decode to larger images", "8388608 (2048x4096)");
+  add_video_options(p, "the frames");
   add_compute_options(p);
   add_output_options(p, "out/decode");
   return p;
@@ -149,30 +152,39 @@ inline int run_decode(const ParsedArgs& a, const Console& con) {
   check_latent_grid(latents, path, max_pixels_option(a, io::limits::kCodecPixels));
   for (std::int64_t i = 0; i < latents.numel(); ++i)
     EPONA_CHECK(std::isfinite(latents.data()[i]), path, ": non-finite latent value at flat index ", i);
+  const bool clip_decode = a.choice("decode", {"clip", "frame"}, "frame") == "clip";
   const auto dir = output_dir(a, "out/decode");
+  const std::optional<VideoRequest> video_to =
+      video_request(a, " (decoding in clips, the former --video flag, is --decode clip)");
   IncompleteMarker incomplete(dir, "epona decode");
   remove_stale_frames(dir, latents.size(0));
   const auto engine = make_engine(compute);
   engine->load_dcae(files, con);
   const DcaeConfig& dc = engine->dcae_config();
-  const bool video = a.flag("video") && dc.add_decoder_temporal;
-  const std::int64_t N = latents.size(0), group = video ? dc.condition_frames : 1;
-  EPONA_CHECK(N % group == 0, path, ": ", N, " latents are not whole clips of ", group, " frames (--video)");
+  const bool temporal = clip_decode && dc.add_decoder_temporal;
+  const std::int64_t N = latents.size(0), group = temporal ? dc.condition_frames : 1;
+  EPONA_CHECK(N % group == 0, path, ": ", N, " latents are not whole clips of ", group, " frames (--decode clip)");
+  std::optional<VideoOut> mp4;
+  if (video_to) mp4.emplace(*video_to, 32 * latents.size(2), 32 * latents.size(3));
   Progress bar(con, "decode  ", N, "frame");
   const Activity doing("decoding " + std::to_string(N) + " frame(s) of " + std::to_string(32 * latents.size(2)) + "x" +
                        std::to_string(32 * latents.size(3)));
   for (std::int64_t first = 0; first < N; first += group) {
-    const Tensor<float> images = engine->decode(latents.slice(first, first + group), video);
+    const Tensor<float> images = engine->decode(latents.slice(first, first + group), temporal);
     for (std::int64_t i = 0; i < group; ++i) {
       char name[32];
       std::snprintf(name, sizeof name, "frame_%04lld.png", static_cast<long long>(first + i));
-      io::write_png((dir / name).string(), io::tensor_to_image(images, i));
+      const io::Image frame = io::tensor_to_image(images, i);
+      io::write_png((dir / name).string(), frame);
+      if (mp4) mp4->put(frame);
     }
     bar.advance(group);
   }
+  const std::string video_line = mp4 ? mp4->finish() : std::string();
   incomplete.done();
   con.out << "decoded " << N << " frame(s) of " << 32 * latents.size(2) << "x" << 32 * latents.size(3) << " into "
           << dir.string() << "/frame_0000.png ...\n";
+  if (mp4) con.out << video_line << "\n";
   return 0;
 }
 

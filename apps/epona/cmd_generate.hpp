@@ -18,6 +18,7 @@
 #include "frames.hpp"
 #include "models.hpp"
 #include "rollout_common.hpp"
+#include "video_output.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/trajectory_io.hpp"
@@ -34,7 +35,8 @@ inline ArgParser generate_parser() {
               "motion into it, then the window slides. The motion is the model's own plan (waypoint 0 of\n"
               "each step's trajectory) or, with --trajectory, one action per step from a file. Writes\n"
               "frames/frame_NNNN.png, contact_sheet.png, trajectory.json/.csv (each step's plan, or the\n"
-              "actions used) and poses.csv (the motion into each generated frame) into the output folder.\n"
+              "actions used) and poses.csv (the motion into each generated frame) into the output folder;\n"
+              "with --video also an MP4 of the input frames followed by the generated ones.\n"
               "Without --weights it runs the bundled model (models/small-synthetic) on its demo clip.");
   add_model_options(p, true, true);
   add_clip_options(p);
@@ -45,6 +47,7 @@ inline ArgParser generate_parser() {
       .option("decode", "MODE", "clip: clips of the DC-AE's temporal length (video mode, as test_nuplan.py); "
               "frame: each frame alone", "clip")
       .flag("latents", "also write latents.npy, (N, C, h, w), for `epona decode`");
+  add_video_options(p, "the input frames followed by the generated ones");
   add_sampling_options(p);
   add_compute_options(p);
   add_output_options(p, "out/generate");
@@ -52,15 +55,17 @@ inline ArgParser generate_parser() {
            "  epona generate -n 4                          # the bundled model and clip\n"
            "  epona generate --weights world.pkl --dcae dcae_td_20000.pkl --frames clip/ \\\n"
            "                 --poses clip/poses.csv -n 60 --steps 100 --out out/drive\n"
-           "  epona generate ... --trajectory out/drive/trajectory.csv   # replay the same actions");
+           "  epona generate ... --trajectory out/drive/trajectory.csv   # replay the same actions\n"
+           "  epona generate -n 20 --video out/drive.mp4 --fps 10         # and a video of it all");
   return p;
 }
 
-// Writes decoded frames as they complete and keeps the ones the contact sheet shows.
+// Writes decoded frames as they complete (into the video too, when one is written) and keeps
+// the ones the contact sheet shows.
 class FrameSink final : public FrameConsumer {
  public:
-  FrameSink(std::filesystem::path dir, std::vector<std::int64_t> sheet_picks)
-      : dir_(std::move(dir)), picks_(std::move(sheet_picks)) {
+  FrameSink(std::filesystem::path dir, std::vector<std::int64_t> sheet_picks, VideoOut* video = nullptr)
+      : dir_(std::move(dir)), picks_(std::move(sheet_picks)), video_(video) {
     std::error_code ec;
     std::filesystem::create_directories(dir_, ec);
     EPONA_CHECK(std::filesystem::is_directory(dir_, ec), dir_.string(), ": cannot create the frames folder");
@@ -70,14 +75,15 @@ class FrameSink final : public FrameConsumer {
     char name[32];
     std::snprintf(name, sizeof name, "frame_%04lld.png", static_cast<long long>(written_));
     io::write_png((dir_ / name).string(), img);
+    if (video_) video_->put(img);
     if (next_pick_ < picks_.size() && picks_[next_pick_] == written_) {
-      kept_.push_back(img);
+      kept_.push_back({img, false, written_});
       ++next_pick_;
     }
     ++written_;
   }
   std::int64_t written() const { return written_; }
-  const std::vector<io::Image>& kept() const { return kept_; }
+  const std::vector<SheetTile>& kept() const { return kept_; }
   const std::filesystem::path& dir() const { return dir_; }
 
  private:
@@ -97,8 +103,9 @@ class FrameSink final : public FrameConsumer {
   std::filesystem::path dir_;
   std::vector<std::int64_t> picks_;
   std::size_t next_pick_ = 0;
+  VideoOut* video_;
   std::int64_t written_ = 0;
-  std::vector<io::Image> kept_;
+  std::vector<SheetTile> kept_;
 };
 
 // The per-step actions of --trajectory, or none (self-predicted).
@@ -128,17 +135,18 @@ inline std::int64_t frames_to_generate(const ParsedArgs& a, const std::optional<
 
 inline void print_generate_summary(std::ostream& out, const std::filesystem::path& dir, const WorldModelConfig& wc,
                                    std::int64_t N, double seconds, const io::Image& sheet, std::size_t inputs,
-                                   std::size_t shown, bool given_actions, bool latents) {
+                                   std::size_t shown, bool given_actions, bool latents, const std::string& video) {
   char last[32];
   std::snprintf(last, sizeof last, "frame_%04lld.png", static_cast<long long>(N - 1));
   out << "generated " << counted(N, "frame") << " of " << wc.image_h << "x" << wc.image_w << " in "
       << duration_text(seconds) << "\n"
       << "wrote " << (dir / "frames" / "frame_0000.png").string() << (N > 1 ? std::string(" ... ") + last : "") << "\n"
       << "wrote " << (dir / "contact_sheet.png").string() << " (" << size_text(sheet) << ": " << inputs
-      << " input frame(s) framed blue, " << shown << " generated framed orange)\n"
+      << " input frame(s) framed blue, " << shown << " generated framed orange, numbered)\n"
       << "wrote " << (dir / "trajectory.json").string() << ", " << (dir / "trajectory.csv").string() << " ("
       << (given_actions ? "the action of each step" : "each step's plan") << "), " << (dir / "poses.csv").string() << "\n";
   if (latents) out << "wrote " << (dir / "latents.npy").string() << "\n";
+  if (!video.empty()) out << video << "\n";
 }
 
 inline int run_generate(const ParsedArgs& a, const Console& con) {
@@ -153,6 +161,7 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   plan.frames = frames_to_generate(a, plan.actions);
   plan.keep_latents = a.flag("latents");
   const bool clip_decode = a.choice("decode", {"clip", "frame"}, "clip") == "clip";
+  const std::optional<VideoRequest> video_to = video_request(a);
   const Clip clip = load_clip_for(a, files, con);
   const auto dir = output_dir(a, "out/generate");
   IncompleteMarker incomplete(dir, "epona generate");
@@ -172,14 +181,20 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
            plan.clip_len > 1 ? "in clips of " + std::to_string(plan.clip_len) : std::string("frame by frame"));
 
   const auto slots = std::max<std::int64_t>(kSheetTiles - static_cast<std::int64_t>(clip.frames.size()), 5);
-  FrameSink sink(dir / "frames", sheet_picks(plan.frames, slots));
+  std::optional<VideoOut> video;
+  if (video_to) {
+    video.emplace(*video_to, wc.image_h, wc.image_w);
+    for (const auto& f : clip.frames) video->put(f);
+  }
+  FrameSink sink(dir / "frames", sheet_picks(plan.frames, slots), video ? &*video : nullptr);
   const auto t0 = std::chrono::steady_clock::now();
   const RolloutLog log = roll_out(*engine, ctx, window, wc, plan, sink, con);
   const double seconds = seconds_since(t0);
 
   std::vector<SheetTile> tiles;
-  for (const auto& f : clip.frames) tiles.push_back({f, true});
-  for (const auto& f : sink.kept()) tiles.push_back({f, false});
+  const auto inputs = static_cast<std::int64_t>(clip.frames.size());
+  for (std::int64_t i = 0; i < inputs; ++i) tiles.push_back({clip.frames[static_cast<std::size_t>(i)], true, i - inputs});
+  tiles.insert(tiles.end(), sink.kept().begin(), sink.kept().end());
   const io::Image sheet = contact_sheet(tiles);
   io::write_png((dir / "contact_sheet.png").string(), sheet);
   io::write_trajectory(dir / "trajectory.json", log.steps);
@@ -187,9 +202,10 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   write_pose_csv(dir / "poses.csv", log.motions);
   if (plan.keep_latents)
     io::write_npy(dir / "latents.npy", tokens_to_latent(ctx, log.latents, wc.latent_h(), wc.latent_w()));
+  const std::string video_line = video ? video->finish() : std::string();
   incomplete.done();
   print_generate_summary(con.out, dir, wc, plan.frames, seconds, sheet, clip.frames.size(), sink.kept().size(),
-                         plan.actions.has_value(), plan.keep_latents);
+                         plan.actions.has_value(), plan.keep_latents, video_line);
   return 0;
 }
 

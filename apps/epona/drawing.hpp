@@ -1,12 +1,14 @@
 // apps/epona/drawing.hpp — pictures the program writes besides the frames: a planned trajectory
 // drawn top-down over the last input frame (plan.png), and a contact sheet of input and
-// generated frames. Plain drawing into the RGB buffer (discs along segments), no font.
+// generated frames, each tile numbered. Plain drawing into the RGB buffer (discs along
+// segments), digits from a built-in 5x7 bitmap font.
 #pragma once
 
 #include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "epona/core/tensor.hpp"
@@ -138,11 +140,65 @@ inline io::Image draw_plan(const io::Image& last_frame, const Tensor<float>& way
   return frame;
 }
 
+// ---- numbers: a 5x7 bitmap font of the digits and the minus sign ---------------------
+
+// One row a byte, the 5 low bits from left (bit 4) to right (bit 0); top row first.
+inline constexpr std::array<std::array<std::uint8_t, 7>, 11> kGlyphs = {{
+    {0x0E, 0x11, 0x13, 0x15, 0x19, 0x11, 0x0E},  // 0
+    {0x04, 0x0C, 0x04, 0x04, 0x04, 0x04, 0x0E},  // 1
+    {0x0E, 0x11, 0x01, 0x02, 0x04, 0x08, 0x1F},  // 2
+    {0x1F, 0x02, 0x04, 0x02, 0x01, 0x11, 0x0E},  // 3
+    {0x02, 0x06, 0x0A, 0x12, 0x1F, 0x02, 0x02},  // 4
+    {0x1F, 0x10, 0x1E, 0x01, 0x01, 0x11, 0x0E},  // 5
+    {0x06, 0x08, 0x10, 0x1E, 0x11, 0x11, 0x0E},  // 6
+    {0x1F, 0x01, 0x02, 0x04, 0x08, 0x08, 0x08},  // 7
+    {0x0E, 0x11, 0x11, 0x0E, 0x11, 0x11, 0x0E},  // 8
+    {0x0E, 0x11, 0x11, 0x0F, 0x01, 0x02, 0x0C},  // 9
+    {0x00, 0x00, 0x00, 0x1F, 0x00, 0x00, 0x00},  // -
+}};
+inline constexpr int kGlyphW = 5, kGlyphH = 7;
+
+inline const std::array<std::uint8_t, 7>& glyph(char c) { return kGlyphs[c == '-' ? 10 : c - '0']; }
+
+// A clipping rectangle: what is drawn outside it is dropped.
+struct Box {
+  std::int64_t top = 0, left = 0, height = 0, width = 0;
+  bool holds(std::int64_t y, std::int64_t x) const { return y >= top && y < top + height && x >= left && x < left + width; }
+};
+
+inline void fill_box(io::Image& img, const Box& b, const Box& clip, Rgb colour) {
+  for (std::int64_t y = b.top; y < b.top + b.height; ++y)
+    for (std::int64_t x = b.left; x < b.left + b.width; ++x)
+      if (clip.holds(y, x) && y >= 0 && y < img.height && x >= 0 && x < img.width)
+        for (int c = 0; c < 3; ++c) img.at(y, x, c) = colour[c];
+}
+
+// `number` in white digits `scale` pixels a font pixel, on a dark box whose top-left corner is
+// (top, left), all within `clip`: legible on any image.
+inline void draw_number(io::Image& img, std::int64_t number, std::int64_t top, std::int64_t left, int scale,
+                        const Box& clip) {
+  const std::string text = std::to_string(number);
+  const std::int64_t pad = scale, advance = (kGlyphW + 1) * scale;
+  const auto n = static_cast<std::int64_t>(text.size());
+  fill_box(img, {top, left, kGlyphH * scale + 2 * pad, n * advance - scale + 2 * pad}, clip, Rgb{16, 16, 16});
+  for (std::int64_t i = 0; i < n; ++i) {
+    const auto& rows = glyph(text[static_cast<std::size_t>(i)]);
+    for (int gy = 0; gy < kGlyphH; ++gy)
+      for (int gx = 0; gx < kGlyphW; ++gx)
+        if (rows[gy] >> (kGlyphW - 1 - gx) & 1)
+          fill_box(img, {top + pad + gy * scale, left + pad + i * advance + gx * scale, scale, scale}, clip,
+                   Rgb{255, 255, 255});
+  }
+}
+
 // ---- contact sheet --------------------------------------------------------------------
 
 struct SheetTile {
   io::Image image;
   bool is_input = false;  // input frames get a blue frame, generated ones an orange one
+  // Drawn in the tile's top-left corner: generate numbers the inputs -F .. -1 (the last input is
+  // -1) and the generated frames as their files (0 is frames/frame_0000.png).
+  std::int64_t number = 0;
 };
 
 struct SheetLayout {
@@ -162,6 +218,9 @@ struct SheetLayout {
   }
 };
 
+// Image pixels per font pixel of a tile's number: one per 64 rows of the tile, at least one.
+inline int label_scale(std::int64_t tile_h) { return static_cast<int>(std::max<std::int64_t>(1, tile_h / 64)); }
+
 inline io::Image contact_sheet(const std::vector<SheetTile>& tiles) {
   EPONA_CHECK(!tiles.empty(), "contact sheet: no frames");
   const auto& first = tiles.front().image;
@@ -178,6 +237,8 @@ inline io::Image contact_sheet(const std::vector<SheetTile>& tiles) {
       std::copy_n(tile.rgb.data() + y * l.tile_w * 3, l.tile_w * 3, &sheet.at(top + y, left, 0));
     draw_rect_outline(sheet, top, left, l.tile_h, l.tile_w, border,
                       tiles[i].is_input ? Rgb{60, 130, 255} : Rgb{255, 150, 30});
+    draw_number(sheet, tiles[i].number, top + border, left + border, label_scale(l.tile_h),
+                {top + border, left + border, l.tile_h - 2 * border, l.tile_w - 2 * border});
   }
   return sheet;
 }

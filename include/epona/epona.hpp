@@ -27,6 +27,7 @@
 #include "epona/io/safetensors.hpp"
 #include "epona/io/torch_checkpoint.hpp"
 #include "epona/io/trajectory_io.hpp"
+// epona/io/video_writer.hpp is left out: it needs FFmpeg's libraries (CMake: epona_ffmpeg).
 
 #include "epona/model/config.hpp"
 #include "epona/model/dcae.hpp"

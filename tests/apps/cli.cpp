@@ -155,6 +155,11 @@ TEST_CASE("usage errors exit 1 with 'epona: error:' and name the problem") {
   check_error(cli({"plan", "--dtype", "int8"}), "--dtype must be one of");
   check_error(cli({"generate", "-n", "0"}), "--num-frames must be at least 1, got 0");
   check_error(cli({"generate", "--decode", "gif"}), "--decode must be one of clip, frame");
+  // This program is built without EPONA_HAS_FFMPEG (tests/CMakeLists.txt gives FFmpeg to the video
+  // tests only), as epona is where libavcodec is missing: --video says so before any work.
+  check_error(cli({"generate", "--video", "clip.mp4"}),
+              "--video: this epona was built without FFmpeg (libavcodec); install libavcodec-dev");
+  check_error(cli({"decode", "z.npy", "--video"}), "--video needs a value (FILE)");
   check_error(cli({"info"}), "missing checkpoint file(s)");
   check_error(cli({"decode"}), "missing latents file");
   check_error(cli({"encode", "x.png", "--size", "100x200"}), "--size must be HxW with positive multiples of 32");

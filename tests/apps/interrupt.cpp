@@ -2,6 +2,7 @@
 // a signal needs a process of its own) is sent SIGINT in the middle of its work.
 // - convert: the handler removes the "<out>.tmp-*" file being written; nothing else is left.
 // - generate: the output folder says INCOMPLETE (written before the work, removed at the end).
+// - generate --video (a program built with FFmpeg): the video's temporary file is removed too.
 #include <doctest/doctest.h>
 
 #include <fcntl.h>
@@ -129,6 +130,30 @@ TEST_CASE("SIGINT during generate leaves the folder marked INCOMPLETE") {
   CHECK_FALSE(fs::exists(dir / "trajectory.json"));
   CHECK(temporaries(dir).empty());
 }
+
+#ifdef EPONA_CLI_HAS_FFMPEG
+TEST_CASE("SIGINT during generate --video removes the video's temporary file") {
+  epona::test::TempDir t("epona_interrupt");
+  const fs::path dir = t.path / "gen", video = dir / "clip.mp4";
+  const pid_t pid = spawn({"generate", "-n", "50", "--steps", "1", "--out", dir.string(), "--video", video.string(), "-q"},
+                          t.path / "log");
+  // The video's temporary file exists from before the first frame until the last.
+  const auto writing_video = [&] {
+    for (const auto& p : temporaries(dir))
+      if (p.filename().string().rfind("clip.mp4.tmp-", 0) == 0) return true;
+    return false;
+  };
+  if (!wait_for(pid, writing_video, 120)) {
+    const int status = wait_status(pid);
+    FAIL("generate ended (status ", status, ") before its video's temporary file was seen: ", read_text(t.path / "log"));
+  }
+  ::kill(pid, SIGINT);
+  const int status = wait_status(pid);
+  CHECK(WIFSIGNALED(status));
+  CHECK(temporaries(dir).empty());
+  CHECK_FALSE(fs::exists(video));
+}
+#endif
 #else
 TEST_CASE("interrupt tests need the epona program (EPONA_EXAMPLES)") { MESSAGE("skipped: no epona program built"); }
 #endif
