@@ -142,6 +142,7 @@ model::PlanChoice plan_choice(const std::string& name) {
 struct Model {
   std::mutex mutex;
   std::string world_file, dcae_file;
+  model::PlanningRule planner;  // the rule the model's configs.json recommends ("planner"), as the CLI reads it
   std::unique_ptr<python::ModelApi> api;
 
   const WorldModelConfig& config() const { return api->config(); }
@@ -217,6 +218,7 @@ std::shared_ptr<Model> load_model(std::optional<std::string> weights, std::optio
   py::gil_scoped_release unlocked;
   m->api = make_model(files, compute, con);
   m->world_file = files.world, m->dcae_file = files.dcae;
+  m->planner = files.configs.planner;
   return m;
 }
 
@@ -379,6 +381,9 @@ PYBIND11_MODULE(epona, m) {
         return py::make_tuple(x.config().token_dim(), x.config().latent_h(), x.config().latent_w());
       })
       .def_property_readonly("sampling_steps", [](const Model& x) { return x.config().num_sampling_steps; })
+      .def_property_readonly("recommended_planning", [](const Model& x) {
+        return py::make_tuple(x.planner.hypotheses, std::string(model::plan_choice_name(x.planner.choose)));
+      }, "(hypotheses, choose) of the model's configs.json \"planner\" (the CLI's plan default); (1, 'medoid') if none")
       .def_readonly("world_file", &Model::world_file)
       .def_readonly("dcae_file", &Model::dcae_file)
       .def("encode", &encode_images, py::arg("images"), "uint8 images (N, H, W, 3) or (H, W, 3) -> float32 latents (N, C, h, w)")

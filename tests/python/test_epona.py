@@ -229,6 +229,7 @@ def test_bundled_model_loads_by_default(clip):
     # A planning step on a still window: 10 copies of the last frame, standing.
     plan = bundled.plan(np.repeat(z, 10, axis=0), np.zeros((10, 3), np.float32), steps=2)
     assert plan.shape == (15, 3) and np.isfinite(plan).all()
+    assert bundled.recommended_planning == (8, "mean")  # its configs.json "planner", as the CLI's plan uses
 
 
 def test_the_session_example_runs(tmp_path):
@@ -271,6 +272,7 @@ def model_bf16():
 
 def test_the_model_says_its_backend_and_dtype(model, model_bf16):
     assert (model.backend, model.dtype) == ("cpu", "float32")
+    assert model.recommended_planning == (1, "medoid")  # the conformance model recommends none
     assert (model_bf16.backend, model_bf16.dtype) == ("cpu", "bfloat16")
     assert load_golden(dtype="bf16").dtype == "bfloat16"  # the CLI's short name too
 
