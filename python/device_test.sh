@@ -6,9 +6,11 @@
 # EPONA_DEVICE_DEPS: the headers the machine may lack (xsimd, nlohmann-json, stb), as
 #   python/make_device_deps.sh packs them: the .tar.xz, or the folder it unpacks to
 #   (epona-device-deps/). Without it the machine's own headers are used.
-# PYTHON: the interpreter (default python3; it needs numpy, pytest, pybind11 and Python.h).
+# PYTHON: the interpreter (default python3; it needs numpy, pytest and Python.h; pybind11 as its
+#   pip package, or the system's pybind11-dev).
 # EPONA_PY_BUILD: the build folder (default /tmp/epona-py).
 # CUDA_ARCH: CMAKE_CUDA_ARCHITECTURES (default 90a, the project's: Hopper with wgmma).
+# EPONA_PY_JOBS: build jobs (default every core).
 set -euo pipefail
 say() { echo "== device_test: $*"; }
 die() { echo "device_test: FAILED: $*" >&2; exit 1; }
@@ -18,6 +20,7 @@ root=$(pwd)
 build=${EPONA_PY_BUILD:-/tmp/epona-py}
 python=$(command -v "${PYTHON:-python3}") || die "no ${PYTHON:-python3} on PATH"
 arch=${CUDA_ARCH:-90a}
+jobs=${EPONA_PY_JOBS:-$(nproc)}
 export PATH="$PATH:/usr/local/cuda/bin"
 
 say "checking the machine"
@@ -25,15 +28,21 @@ command -v nvcc >/dev/null || die "nvcc not found (PATH or /usr/local/cuda/bin)"
 command -v cmake >/dev/null || die "cmake not found"
 command -v ninja >/dev/null || die "ninja not found"
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>/dev/null || say "nvidia-smi gave no GPU"
-"$python" -c "import numpy, pytest, pybind11" 2>/dev/null || die "$python lacks numpy, pytest or pybind11"
+"$python" -c "import numpy, pytest" 2>/dev/null || die "$python lacks numpy or pytest"
 "$python" -c "import os, sysconfig; assert os.path.exists(os.path.join(sysconfig.get_paths()['include'], 'Python.h'))" \
   2>/dev/null || die "$python has no Python.h (install python3-dev)"
-pybind11_dir=$("$python" -c "import pybind11; print(pybind11.get_cmake_dir())")
 say "python $python ($("$python" --version 2>&1)), nvcc $(nvcc --version | grep -o 'release [0-9.]*'), arch $arch"
 
 args=(-S "$root" -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DEPONA_PYTHON=ON -DEPONA_CUDA=ON
       -DEPONA_TESTS=OFF -DEPONA_EXAMPLES=OFF -DEPONA_BENCHMARKS=OFF -DCMAKE_CUDA_ARCHITECTURES="$arch"
-      -DPython_EXECUTABLE="$python" -Dpybind11_DIR="$pybind11_dir")
+      -DPython_EXECUTABLE="$python")
+# pybind11: the interpreter's pip package, else the system's CMake config (pybind11-dev).
+if pybind11_dir=$("$python" -c "import pybind11; print(pybind11.get_cmake_dir())" 2>/dev/null); then
+  args+=(-Dpybind11_DIR="$pybind11_dir")
+  say "pybind11 from $pybind11_dir"
+else
+  say "pybind11: no Python package in $python; CMake looks for the system's"
+fi
 if [[ -n ${EPONA_DEVICE_DEPS:-} ]]; then
   deps=$EPONA_DEVICE_DEPS
   if [[ -f $deps ]]; then
@@ -54,9 +63,9 @@ fi
 
 say "configuring $build"
 cmake "${args[@]}" >"$build.configure.log" 2>&1 || { tail -40 "$build.configure.log"; die "configure (log: $build.configure.log)"; }
-say "building the module (epona_python) on $(nproc) cores: the CUDA unit takes minutes"
+say "building the module (epona_python) with $jobs jobs: the CUDA unit takes minutes"
 start=$(date +%s)
-cmake --build "$build" --target epona_python -j "$(nproc)" || die "build"
+cmake --build "$build" --target epona_python -j "$jobs" || die "build"
 say "built in $(( $(date +%s) - start )) s"
 
 # cuBLASLt and cuDNN (cuDNN is opened at run time): the first found, as tests/cuda/device_env.sh.
@@ -66,8 +75,9 @@ export LD_LIBRARY_PATH="${lt:+$(dirname "$lt"):}${dnn:+$(dirname "$dnn"):}/usr/l
 say "cuDNN: ${dnn:-not found (the convolutions use the GEMM engine)}"
 
 export PYTHONPATH="$build/python" EPONA_SOURCE_DIR="$root"
+"$python" -c "import epona" || die "the built module does not import (above: why)"
 "$python" -c "import epona, sys; sys.exit(0 if epona.cuda_available() else 1)" \
-  || die "the module was built but sees no CUDA device (epona.cuda_available() is False)"
+  || die "the module was built but sees no CUDA device (epona.cuda_available() is False): the CUDA tests would only skip"
 say "running tests/python"
 "$python" -m pytest -q -p no:cacheprovider -rs tests/python || die "tests/python"
 say "passed"
