@@ -6,8 +6,8 @@
 # EPONA_DEVICE_DEPS: the headers the machine may lack (xsimd, nlohmann-json, stb), as
 #   python/make_device_deps.sh packs them: the .tar.xz, or the folder it unpacks to
 #   (epona-device-deps/). Without it the machine's own headers are used.
-# PYTHON: the interpreter (default python3; it needs numpy, pytest and Python.h; pybind11 as its
-#   pip package, or the system's pybind11-dev).
+# PYTHON: the interpreter (default: python3, else /opt/torch/.venv/bin/python3, the first with
+#   numpy and pytest; it needs Python.h too, and pybind11 as its pip package or pybind11-dev).
 # EPONA_PY_BUILD: the build folder (default /tmp/epona-py).
 # CUDA_ARCH: CMAKE_CUDA_ARCHITECTURES (default 90a, the project's: Hopper with wgmma).
 # EPONA_PY_JOBS: build jobs (default every core).
@@ -18,7 +18,6 @@ die() { echo "device_test: FAILED: $*" >&2; exit 1; }
 [[ -f python/epona_module.cpp && -f CMakeLists.txt ]] || die "run it from the repository root"
 root=$(pwd)
 build=${EPONA_PY_BUILD:-/tmp/epona-py}
-python=$(command -v "${PYTHON:-python3}") || die "no ${PYTHON:-python3} on PATH"
 arch=${CUDA_ARCH:-90a}
 jobs=${EPONA_PY_JOBS:-$(nproc)}
 export PATH="$PATH:/usr/local/cuda/bin"
@@ -28,7 +27,15 @@ command -v nvcc >/dev/null || die "nvcc not found (PATH or /usr/local/cuda/bin)"
 command -v cmake >/dev/null || die "cmake not found"
 command -v ninja >/dev/null || die "ninja not found"
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>/dev/null || say "nvidia-smi gave no GPU"
-"$python" -c "import numpy, pytest" 2>/dev/null || die "$python lacks numpy or pytest"
+# The interpreter: PYTHON, else the first of python3 and the machine's venv with NumPy and pytest.
+candidates=("${PYTHON:-python3}")
+[[ -n ${PYTHON:-} ]] || candidates+=(/opt/torch/.venv/bin/python3)
+python=""
+for c in "${candidates[@]}"; do
+  p=$(command -v "$c" 2>/dev/null) || continue
+  "$p" -c "import numpy, pytest" 2>/dev/null && { python=$p; break; }
+done
+[[ -n $python ]] || die "no interpreter with numpy and pytest among: ${candidates[*]} (set PYTHON)"
 "$python" -c "import os, sysconfig; assert os.path.exists(os.path.join(sysconfig.get_paths()['include'], 'Python.h'))" \
   2>/dev/null || die "$python has no Python.h (install python3-dev)"
 say "python $python ($("$python" --version 2>&1)), nvcc $(nvcc --version | grep -o 'release [0-9.]*'), arch $arch"
