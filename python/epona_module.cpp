@@ -326,7 +326,12 @@ struct Session {
   std::unique_ptr<python::SessionApi> session;
   Session(std::shared_ptr<Model> m, std::optional<std::int64_t> steps, std::uint64_t seed,
           const std::optional<std::string>& solver)
-      : model(m), session(m->api->session(sampling(steps, seed, solver))) {}
+      : model(m), session(make(*m, sampling(steps, seed, solver))) {}
+  // Under the model's lock: a session on a device backend makes a host context, which sets the
+  // process's thread count while another thread may be computing.
+  static std::unique_ptr<python::SessionApi> make(Model& m, const SampleOptions& opt) {
+    return m.locked([&] { return m.api->session(opt); });
+  }
 
   void reset(const ByteIn& frames, const FloatIn& poses) {
     const auto images = images_of(frames, "frames");
