@@ -76,7 +76,7 @@ History make_window(Ctx& ctx, const Tensor<float, Cpu>& latents, const io::PoseS
 // (WorldModel::reserve_arena grows it only for a larger batch or more sampling steps, and a
 // session keeps both fixed; arena_capacity() shows it). Each step's results (trajectory, latent,
 // frame) are new tensors the caller keeps, and the DC-AE decoder allocates its feature maps per
-// call (Dcae has no arena).
+// call (Dcae has no arena; on a device backend also the latent it uploads and the frame it downloads).
 //
 // On a device backend (Cuda) the DC-AE runs on the world model's context (its stream), and the
 // latent layout changes (tokens <-> NCHW) run on the host, where the window lives.
