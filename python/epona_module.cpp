@@ -1,12 +1,14 @@
 // python/epona_module.cpp — the `epona` Python module (pybind11): the world model and DC-AE loaded
-// by the CLI's loaders (apps/epona/models.hpp: the bundled model, safetensors or official .pkl),
-// and thin wrappers over the library — encode, decode, plan, predict_next, rollout and
-// WorldSession — with NumPy arrays in and out. Float inputs are viewed in place when they are
-// C-contiguous float32 (else NumPy converts them once); images are copied (uint8 HxWx3 -> the
-// model's float NCHW); results go to NumPy without a copy (the array owns the tensor; decoded
-// images are gathered once into one (N, H, W, 3) buffer). The GIL is
-// released while the model computes; one call at a time runs on a model (a mutex), so threads may
-// share it. epona::Error becomes epona.Error (a RuntimeError) with the library's message.
+// by the CLI's loaders (apps/epona/models.hpp: the bundled model, safetensors or official .pkl) on
+// the CPU or on CUDA, with float32 or bf16 weights, and thin wrappers over the library — encode,
+// decode, plan, predict_next, rollout and WorldSession — with NumPy arrays in and out. The model
+// is a python::ModelApi (python/model_api.hpp): ModelOf<Cpu, float|bf16> here, ModelOf<Cuda, …>
+// from python/cuda_model.cu (nvcc) when built with CUDA, so this file stays plain C++.
+// Float inputs are viewed in place when they are C-contiguous float32 (else NumPy converts them
+// once); images are copied (uint8 HxWx3 -> the model's float NCHW); results go to NumPy without a
+// copy (the array owns the tensor; decoded images are gathered once into one (N, H, W, 3) buffer).
+// The GIL is released while the model computes; one call at a time runs on a model (a mutex), so
+// threads may share it. epona::Error becomes epona.Error (a RuntimeError) with the library's message.
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
@@ -22,14 +24,17 @@
 
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/flow/solvers.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/poses.hpp"
-#include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
+#include "epona/model/plan_choice.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
 #include "epona/model/world_session.hpp"
 #include "epona/models.hpp"
+#include "model_api.hpp"
+#include "model_of.hpp"
 
 namespace py = pybind11;
 using namespace epona;
@@ -115,11 +120,20 @@ auto without_gil(F&& f) {
   return f();
 }
 
-SampleOptions sampling(std::optional<std::int64_t> steps, std::uint64_t seed) {
+// steps: each DiT's (default the config's); solver: each DiT's flow solver by name (default Euler,
+// the official), as the CLI's --steps and --solver.
+SampleOptions sampling(std::optional<std::int64_t> steps, std::uint64_t seed, const std::optional<std::string>& solver) {
   SampleOptions o;
   o.steps = steps;
   o.seed = seed;
+  if (solver) o.solver = flow::parse_solver(*solver);
   return o;
+}
+
+model::PlanChoice plan_choice(const std::string& name) {
+  const auto rule = model::plan_choice_named(name);
+  EPONA_CHECK(rule.has_value(), "choose '", name, "': one of 'medoid', 'mean'");
+  return *rule;
 }
 
 // ---- the model ---------------------------------------------------------------------------
@@ -128,10 +142,10 @@ SampleOptions sampling(std::optional<std::int64_t> steps, std::uint64_t seed) {
 struct Model {
   std::mutex mutex;
   std::string world_file, dcae_file;
-  std::optional<Dcae<Cpu, float>> dcae;
-  std::optional<WorldModel<Cpu, float>> world;
+  model::PlanningRule planner;  // the rule the model's configs.json recommends ("planner"), as the CLI reads it
+  std::unique_ptr<python::ModelApi> api;
 
-  const WorldModelConfig& config() const { return world->config(); }
+  const WorldModelConfig& config() const { return api->config(); }
   // `f()` with the GIL released and the model to itself; results become arrays after it returns.
   template <class F>
   auto locked(F&& f) {
@@ -140,7 +154,6 @@ struct Model {
       return f();
     });
   }
-  cpu::Context& ctx() { return world->context(); }
 
   // The window's inputs, checked and viewed (with the GIL: they are the caller's arrays).
   struct WindowInput {
@@ -155,63 +168,111 @@ struct Model {
                 " row(s); the window needs one per frame, ", c.condition_frames);
     return in;
   }
-  // The window (batch 1) as the CLI makes it; inside locked() (it uses the model's context).
-  History window(const WindowInput& in) { return model::make_window(ctx(), in.latents, in.poses); }
+  // The window (batch 1) as the CLI makes it, on the host; inside locked() (it uses the host context).
+  History window(const WindowInput& in) { return model::make_window(api->host(), in.latents, in.poses); }
+  // Tokens (N, L, C) -> latents (N, C, h, w); inside locked().
+  Tensor<float> latents_of(const Tensor<float>& tokens) {
+    return tokens_to_latent(api->host(), tokens, config().latent_h(), config().latent_w());
+  }
 };
+
+// The backend and weight type by name (checked before any file is read).
+app::ComputeOptions compute_options(const std::string& backend, const std::string& dtype, int threads) {
+  EPONA_CHECK(backend == "cpu" || backend == "cuda", "backend '", backend, "': one of 'cpu', 'cuda'");
+  const bool bf16 = dtype == "bfloat16" || dtype == "bf16";
+  EPONA_CHECK(bf16 || dtype == "float32" || dtype == "fp32", "dtype '", dtype, "': one of 'float32', 'bfloat16'");
+  EPONA_CHECK(threads >= 0, "threads must be 0 (every hardware thread) or more, got ", threads);
+  app::ComputeOptions c;
+  c.backend = backend, c.bf16_weights = bf16, c.threads = threads;
+  return c;
+}
+
+// The models on the chosen backend: bf16 weights are the CLI's --dtype bfloat16 (stored in bf16;
+// on the CPU activations stay float32, on the GPU they are bf16).
+std::unique_ptr<python::ModelApi> make_model(const app::ModelFiles& f, const app::ComputeOptions& c,
+                                             const app::Console& con) {
+  if (c.backend == "cuda") {
+#if defined(EPONA_PYTHON_CUDA)
+    return python::make_cuda_model(f, c, con);
+#else
+    fail("backend 'cuda': this epona module was built without CUDA (build it with -DEPONA_CUDA=ON -DEPONA_PYTHON=ON "
+         "on a machine with nvcc, docs/python.md); use backend='cpu'");
+#endif
+  }
+  if (c.bf16_weights) return std::make_unique<python::ModelOf<Cpu, bf16>>(f, c, con);
+  return std::make_unique<python::ModelOf<Cpu, float>>(f, c, con);
+}
 
 // Loads through the CLI's loaders: the same defaults, files and messages as `epona plan`.
 std::shared_ptr<Model> load_model(std::optional<std::string> weights, std::optional<std::string> dcae,
-                            std::optional<std::string> config, int threads, const std::string& dtype, bool verbose) {
-  EPONA_CHECK(dtype == "float32", "dtype '", dtype, "': the Python module runs float32 weights only (the CLI's "
-              "--dtype bfloat16 is not bound yet)");
+                                  std::optional<std::string> config, int threads, const std::string& dtype,
+                                  bool verbose, const std::string& backend) {
+  const app::ComputeOptions compute = compute_options(backend, dtype, threads);
   std::map<std::string, std::string> options;
   if (weights) options["weights"] = *weights;
   if (dcae) options["dcae"] = *dcae;
   if (config) options["config"] = *config;
   const app::ModelFiles files = app::resolve_models(app::ParsedArgs("epona.load", options, {}), true, true);
-  app::ComputeOptions compute;
-  compute.threads = threads;
   const app::Console con{std::cout, std::cerr, !verbose};
   auto m = std::make_shared<Model>();
   py::gil_scoped_release unlocked;
-  m->dcae.emplace(app::load_dcae<Cpu, float>(files, con));
-  m->world.emplace(app::load_world<Cpu, float>(files, compute, con));
+  m->api = make_model(files, compute, con);
   m->world_file = files.world, m->dcae_file = files.dcae;
+  m->planner = files.configs.planner;
   return m;
+}
+
+// Built with CUDA and a CUDA device present: backend="cuda" can load.
+bool cuda_available() {
+#if defined(EPONA_PYTHON_CUDA)
+  return python::cuda_device_present();
+#else
+  return false;
+#endif
 }
 
 py::array encode_images(Model& m, const ByteIn& images) {
   const auto frames = images_of(images, "images");
-  return to_numpy(m.locked([&] { return m.dcae->encode(m.ctx(), io::images_to_tensor(frames)); }));
+  return to_numpy(m.locked([&] { return m.api->encode(frames); }));
 }
 
 py::array decode_latents(Model& m, const FloatIn& latents, bool video) {
   const Tensor<float, Cpu> z = view(latents, 4, "latents", "float32 (N, C, h, w)");
+  return to_numpy(m.locked([&] { return m.api->decode(z, video); }));
+}
+
+// One plan (traj_len, 3): plan() itself for one hypothesis, else the one `choose` picks of K.
+py::array plan_trajectory(Model& m, const FloatIn& latents, const FloatIn& poses, std::optional<std::int64_t> steps,
+                          std::uint64_t seed, std::int64_t hypotheses, const std::string& choose,
+                          const std::optional<std::string>& solver) {
+  const auto in = m.window_input(latents, poses);
+  const model::PlanChoice rule = plan_choice(choose);
+  const SampleOptions opt = sampling(steps, seed, solver);
   return to_numpy(m.locked([&] {
-    const Tensor<float, Cpu> x = m.dcae->decode(m.ctx(), z, video);
-    std::vector<io::Image> images;
-    for (std::int64_t i = 0; i < x.size(0); ++i) images.push_back(io::tensor_to_image(x, i));
-    return images;
+    const Tensor<float> plans = m.api->plans(m.window(in), hypotheses, opt);  // (K, traj_len, 3)
+    return hypotheses == 1 ? plans[0] : model::choose_plan(plans, rule).chosen;
   }));
 }
 
-py::array plan_trajectory(Model& m, const FloatIn& latents, const FloatIn& poses, std::optional<std::int64_t> steps,
-               std::uint64_t seed) {
+// All K plans (K, traj_len, 3); hypothesis k draws with seed + k*0x9E3779B9 (row 0 is plan()'s).
+py::array plan_hypotheses(Model& m, const FloatIn& latents, const FloatIn& poses, std::int64_t hypotheses,
+                          std::optional<std::int64_t> steps, std::uint64_t seed, const std::optional<std::string>& solver) {
   const auto in = m.window_input(latents, poses);
-  const Tensor<float, Cpu> traj = m.locked([&] { return m.world->plan(m.window(in), sampling(steps, seed)); });  // (1, T, 3)
-  return to_numpy(traj[0]);
+  const SampleOptions opt = sampling(steps, seed, solver);
+  return to_numpy(m.locked([&] { return m.api->plans(m.window(in), hypotheses, opt); }));
 }
 
 // The next latent (C, h, w) and the plan that drove it (None when the action was given).
 py::tuple predict_latent(Model& m, const FloatIn& latents, const FloatIn& poses, const std::optional<FloatIn>& action,
-                       std::optional<std::int64_t> steps, std::uint64_t seed) {
+                         std::optional<std::int64_t> steps, std::uint64_t seed, const std::optional<std::string>& solver) {
   const auto in = m.window_input(latents, poses);
   const std::optional<Motion> a = motion_of(action);
+  const SampleOptions opt = sampling(steps, seed, solver);
   const StepResult r = m.locked([&] {
     std::optional<NextAction> next;
     if (a) next = action_of(*a);
-    StepResult out = m.world->predict_next(m.window(in), next, sampling(steps, seed));
-    out.latent = tokens_to_latent(m.ctx(), out.latent, m.config().latent_h(), m.config().latent_w())[0];
+    StepResult out = m.api->predict_next(m.window(in), next, opt);
+    out.latent = m.latents_of(out.latent)[0];
     return out;
   });
   return py::make_tuple(to_numpy(r.latent), a ? py::object(py::none()) : py::object(to_numpy(r.trajectory[0])));
@@ -219,11 +280,12 @@ py::tuple predict_latent(Model& m, const FloatIn& latents, const FloatIn& poses,
 
 // model::rollout (self-predicted): trajectories (N, traj_len, 3) and latents (N, C, h, w).
 py::tuple roll_out_frames(Model& m, const FloatIn& latents, const FloatIn& poses, std::int64_t frames,
-                  std::optional<std::int64_t> steps, std::uint64_t seed) {
+                          std::optional<std::int64_t> steps, std::uint64_t seed, const std::optional<std::string>& solver) {
   const auto in = m.window_input(latents, poses);
+  const SampleOptions opt = sampling(steps, seed, solver);
   const RolloutResult r = m.locked([&] {
-    RolloutResult out = rollout(*m.world, m.window(in), RolloutOptions{frames, sampling(steps, seed)});
-    out.latents = tokens_to_latent(m.ctx(), out.latents, m.config().latent_h(), m.config().latent_w());
+    RolloutResult out = m.api->rollout(m.window(in), RolloutOptions{frames, opt});
+    out.latents = m.latents_of(out.latents);
     return out;
   });
   const auto& c = m.config();
@@ -261,20 +323,26 @@ py::array load_poses(const std::string& path) {
 
 struct Session {
   std::shared_ptr<Model> model;  // keeps the model the session refers to alive
-  WorldSession<Cpu, float> session;
-  Session(std::shared_ptr<Model> m, std::optional<std::int64_t> steps, std::uint64_t seed)
-      : model(m), session(*m->world, *m->dcae, sampling(steps, seed)) {}
+  std::unique_ptr<python::SessionApi> session;
+  Session(std::shared_ptr<Model> m, std::optional<std::int64_t> steps, std::uint64_t seed,
+          const std::optional<std::string>& solver)
+      : model(m), session(make(*m, sampling(steps, seed, solver))) {}
+  // Under the model's lock: a session on a device backend makes a host context, which sets the
+  // process's thread count while another thread may be computing.
+  static std::unique_ptr<python::SessionApi> make(Model& m, const SampleOptions& opt) {
+    return m.locked([&] { return m.api->session(opt); });
+  }
 
   void reset(const ByteIn& frames, const FloatIn& poses) {
     const auto images = images_of(frames, "frames");
     const io::PoseSequence p = poses_of(poses);
-    model->locked([&] { session.reset(images, p); });
+    model->locked([&] { session->reset(images, p); });
   }
 
   // (frame (H, W, 3) uint8, trajectory (traj_len, 3) or None when the action was given).
   py::tuple step(const std::optional<FloatIn>& action) {
     const std::optional<Motion> a = motion_of(action);
-    SessionStep s = model->locked([&] { return session.step(a); });
+    SessionStep s = model->locked([&] { return session->step(a); });
     py::object traj = s.trajectory.empty() ? py::object(py::none()) : py::object(to_numpy(s.trajectory));
     return py::make_tuple(to_numpy(std::move(s.frame)), traj);
   }
@@ -282,24 +350,35 @@ struct Session {
   // The window the next step sees: latents (F, C, h, w) and motions (F, 3).
   py::tuple window() {
     std::lock_guard lock(model->mutex);
-    const History& h = session.window();
-    const auto& c = session.config();
-    const std::int64_t F = c.condition_frames;
+    const History& h = session->window();
+    const std::int64_t F = model->config().condition_frames;
     Tensor<float, Cpu> poses({F, 3});
     for (std::int64_t f = 0; f < F; ++f)
       poses.at(f, 0) = h.rel_pose.at(0, f, 0), poses.at(f, 1) = h.rel_pose.at(0, f, 1), poses.at(f, 2) = h.rel_yaw.at(0, f, 0);
-    Tensor<float, Cpu> tokens = h.latents[0].clone();  // a copy: the window slides in place
-    return py::make_tuple(to_numpy(tokens_to_latent(model->ctx(), tokens, c.latent_h(), c.latent_w())), to_numpy(poses));
+    return py::make_tuple(to_numpy(model->latents_of(h.latents[0])), to_numpy(poses));  // a copy: the window slides in place
   }
 };
 
 }  // namespace
 
+constexpr const char* kModuleDoc = R"(epona: the Epona driving world model — plan, predict the next frame, roll out, encode and
+decode — on the CPU or on CUDA, with float32 or bfloat16 weights.
+
+    model = epona.load(backend="cpu", dtype="float32")   # or backend="cuda", dtype="bfloat16"
+    latents = model.encode(frames)                        # uint8 (F, H, W, 3) -> (F, C, h, w)
+    plan = model.plan(latents, poses, hypotheses=8, choose="medoid")
+
+backend="cuda" needs a module built with CUDA (-DEPONA_CUDA=ON -DEPONA_PYTHON=ON) and a GPU:
+epona.cuda_available() says whether both hold. Inputs and results are NumPy arrays on the host
+whatever the backend. Errors are epona.Error (a RuntimeError) with the library's message.)";
+
 PYBIND11_MODULE(epona, m) {
-  m.doc() = "epona: the Epona driving world model (plan, predict, roll out, decode) on the CPU";
+  m.doc() = kModuleDoc;
   py::register_exception<Error>(m, "Error", PyExc_RuntimeError);
 
-  py::class_<Model, std::shared_ptr<Model>>(m, "Model", "A loaded world model and DC-AE (float32, CPU)")
+  py::class_<Model, std::shared_ptr<Model>>(m, "Model", "A loaded world model and DC-AE on one backend (see epona.load)")
+      .def_property_readonly("backend", [](const Model& x) { return std::string(x.api->backend()); })
+      .def_property_readonly("dtype", [](const Model& x) { return std::string(x.api->dtype()); })
       .def_property_readonly("image_size", [](const Model& x) { return py::make_tuple(x.config().image_h, x.config().image_w); })
       .def_property_readonly("condition_frames", [](const Model& x) { return x.config().condition_frames; })
       .def_property_readonly("traj_len", [](const Model& x) { return x.config().traj_len; })
@@ -307,23 +386,41 @@ PYBIND11_MODULE(epona, m) {
         return py::make_tuple(x.config().token_dim(), x.config().latent_h(), x.config().latent_w());
       })
       .def_property_readonly("sampling_steps", [](const Model& x) { return x.config().num_sampling_steps; })
+      .def_property_readonly("recommended_planning", [](const Model& x) {
+        return py::make_tuple(x.planner.hypotheses, std::string(model::plan_choice_name(x.planner.choose)));
+      }, "(hypotheses, choose) of the model's configs.json \"planner\" (the CLI's plan default); (1, 'medoid') if none")
       .def_readonly("world_file", &Model::world_file)
       .def_readonly("dcae_file", &Model::dcae_file)
       .def("encode", &encode_images, py::arg("images"), "uint8 images (N, H, W, 3) or (H, W, 3) -> float32 latents (N, C, h, w)")
       .def("decode", &decode_latents, py::arg("latents"), py::arg("video") = false,
            "float32 latents (N, C, h, w) -> uint8 images (N, H, W, 3); video=True: the temporal decoder over clips")
       .def("plan", &plan_trajectory, py::arg("latents"), py::arg("poses"), py::arg("steps") = py::none(), py::arg("seed") = 0,
-           "latents (F, C, h, w) and motions (F, 3) -> the planned trajectory (traj_len, 3): x, y metres, yaw degrees")
+           py::arg("hypotheses") = 1, py::arg("choose") = "medoid", py::arg("solver") = py::none(),
+           "latents (F, C, h, w) and motions (F, 3) -> the planned trajectory (traj_len, 3): x, y metres, yaw degrees.\n"
+           "hypotheses=K > 1: K plans of the scene and the one `choose` picks ('medoid' or 'mean'), as the CLI's\n"
+           "plan --hypotheses K --choose RULE; solver: the flow solver by name (default 'euler', the official)")
+      .def("plan_hypotheses", &plan_hypotheses, py::arg("latents"), py::arg("poses"), py::arg("hypotheses"),
+           py::arg("steps") = py::none(), py::arg("seed") = 0, py::arg("solver") = py::none(),
+           "K plans of the scene (K, traj_len, 3); hypothesis k draws with seed + k*0x9E3779B9 (row 0 is plan()'s)")
       .def("predict_next", &predict_latent, py::arg("latents"), py::arg("poses"), py::arg("action") = py::none(),
-           py::arg("steps") = py::none(), py::arg("seed") = 0,
+           py::arg("steps") = py::none(), py::arg("seed") = 0, py::arg("solver") = py::none(),
            "the next latent (C, h, w) and the plan that drove it (None when `action` (x, y, yaw) is given)")
       .def("rollout", &roll_out_frames, py::arg("latents"), py::arg("poses"), py::arg("frames"), py::arg("steps") = py::none(),
-           py::arg("seed") = 0, "self-predicted rollout: (trajectories (N, traj_len, 3), latents (N, C, h, w))");
+           py::arg("seed") = 0, py::arg("solver") = py::none(),
+           "self-predicted rollout: (trajectories (N, traj_len, 3), latents (N, C, h, w))");
 
   m.def("load", &load_model, py::arg("weights") = py::none(), py::arg("dcae") = py::none(), py::arg("config") = py::none(),
-        py::arg("threads") = 0, py::arg("dtype") = "float32", py::arg("verbose") = false,
+        py::arg("threads") = 0, py::arg("dtype") = "float32", py::arg("verbose") = false, py::arg("backend") = "cpu",
         "Loads the world model and DC-AE as the CLI does: without files the bundled model (models/small-synthetic);\n"
-        "weights/dcae: official .pkl or .safetensors; config: a configs.json (default: the shipped Epona one).");
+        "weights/dcae: official .pkl or .safetensors; config: a configs.json (default: the shipped Epona one).\n"
+        "backend: 'cpu' or 'cuda' (the CLI's --backend); dtype: 'float32' or 'bfloat16' weights (the CLI's --dtype).");
+  m.def("cuda_available", &cuda_available,
+        "True when this module was built with CUDA and a CUDA device is present (backend='cuda' can load)");
+#if defined(EPONA_PYTHON_CUDA)
+  m.attr("built_with_cuda") = true;
+#else
+  m.attr("built_with_cuda") = false;
+#endif
 
   m.def("read_image", &read_image, py::arg("path"), "a PNG/JPEG file -> uint8 (H, W, 3) RGB");
   m.def("write_png", &write_png, py::arg("path"), py::arg("image"), "uint8 (H, W, 3) RGB -> a PNG file");
@@ -331,16 +428,16 @@ PYBIND11_MODULE(epona, m) {
         "a poses file (as the CLI's --poses) -> float32 (N, 3): x metres forward, y metres left, yaw degrees");
   m.attr("bundled_model_dir") = app::bundled_model().dir;
 
-  py::class_<Session>(m, "WorldSession", "An autoregressive driving session over a loaded model")
-      .def(py::init<std::shared_ptr<Model>, std::optional<std::int64_t>, std::uint64_t>(), py::arg("model"),
-           py::arg("steps") = py::none(), py::arg("seed") = 0)
+  py::class_<Session>(m, "WorldSession", "An autoregressive driving session over a loaded model (its backend)")
+      .def(py::init<std::shared_ptr<Model>, std::optional<std::int64_t>, std::uint64_t, const std::optional<std::string>&>(),
+           py::arg("model"), py::arg("steps") = py::none(), py::arg("seed") = 0, py::arg("solver") = py::none())
       .def("reset", &Session::reset, py::arg("frames"), py::arg("poses"),
            "the last F frames, uint8 (F, H, W, 3), and the motion into each, float (F, 3): encoded once")
       .def("step", &Session::step, py::arg("action") = py::none(),
            "one step: (frame uint8 (H, W, 3), the plan (traj_len, 3) or None when `action` (x, y, yaw) is given)")
       .def("window", &Session::window, "the window the next step sees: (latents (F, C, h, w), motions (F, 3))")
-      .def_property_readonly("steps_taken", [](const Session& s) { return s.session.steps_taken(); })
-      .def_property_readonly("arena_capacity", [](const Session& s) { return s.session.arena_capacity(); });
+      .def_property_readonly("steps_taken", [](const Session& s) { return s.session->steps_taken(); })
+      .def_property_readonly("arena_capacity", [](const Session& s) { return s.session->arena_capacity(); });
 }
 
 // stb is compiled in exactly one translation unit, after every other include.

@@ -205,8 +205,16 @@ def test_errors_carry_the_library_message(model, clip, latents):
         model.plan(latents, poses, steps=0)
     with pytest.raises(epona.Error, match="no such file"):
         epona.load(weights=str(GOLDEN / "missing.safetensors"), dcae=str(GOLDEN / "weights_dcae.safetensors"))
-    with pytest.raises(epona.Error, match="float32 weights only"):
-        epona.load(dtype="bfloat16")
+    with pytest.raises(epona.Error, match="dtype 'int8': one of 'float32', 'bfloat16'"):
+        epona.load(dtype="int8")
+    with pytest.raises(epona.Error, match="backend 'tpu': one of 'cpu', 'cuda'"):
+        epona.load(backend="tpu")
+    with pytest.raises(epona.Error, match="choose 'best': one of 'medoid', 'mean'"):
+        model.plan(latents, poses, steps=STEPS, hypotheses=2, choose="best")
+    with pytest.raises(epona.Error, match="unknown solver 'rk4'"):
+        model.plan(latents, poses, steps=STEPS, solver="rk4")
+    with pytest.raises(epona.Error, match=r"plan hypotheses must be in \[1, 1024\], got 0"):
+        model.plan(latents, poses, steps=STEPS, hypotheses=0)
 
 
 def test_bundled_model_loads_by_default(clip):
@@ -221,6 +229,7 @@ def test_bundled_model_loads_by_default(clip):
     # A planning step on a still window: 10 copies of the last frame, standing.
     plan = bundled.plan(np.repeat(z, 10, axis=0), np.zeros((10, 3), np.float32), steps=2)
     assert plan.shape == (15, 3) and np.isfinite(plan).all()
+    assert bundled.recommended_planning == (8, "mean")  # its configs.json "planner", as the CLI's plan uses
 
 
 def test_the_session_example_runs(tmp_path):
@@ -232,3 +241,184 @@ def test_the_session_example_runs(tmp_path):
     assert "step 0: planned" in run.stdout and "step 1: drove the given action" in run.stdout
     strip = epona.read_image(str(out))
     assert strip.shape == (256, 3 * 512, 3)
+
+
+# ---- backends and weight types -------------------------------------------------------------
+
+def relative(a, b):
+    """The relative L2 difference of a from b."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-12))
+
+
+def load_golden(**kwargs):
+    return epona.load(weights=str(GOLDEN / "weights_world.safetensors"),
+                      dcae=str(GOLDEN / "weights_dcae.safetensors"), config=str(GOLDEN / "configs.json"), **kwargs)
+
+
+# CPU bf16 weights against float32 (activations stay float32 on the CPU): the plan within 1e-2
+# relative (L2 over the trajectory), the latents within 2e-2, the decoded images within 1 grey
+# level on average. Measured on this model: 1.2e-3..1.7e-3 (plans of seeds 0-5), 3.9e-3, 0.16.
+BF16_PLAN, BF16_LATENT, BF16_IMAGE_MEAN = 1e-2, 2e-2, 1.0
+# The GPU's bf16 keeps activations in bf16 as well (docs/cuda.md): five times the bounds, but
+# the plan still within 5e-2 relative of the CPU's float32 plan.
+CUDA_BF16_PLAN, CUDA_BF16_LATENT, CUDA_BF16_IMAGE_MEAN = 5 * BF16_PLAN, 5 * BF16_LATENT, 5 * BF16_IMAGE_MEAN
+
+
+@pytest.fixture(scope="module")
+def model_bf16():
+    return load_golden(dtype="bfloat16")
+
+
+def test_the_model_says_its_backend_and_dtype(model, model_bf16):
+    assert (model.backend, model.dtype) == ("cpu", "float32")
+    assert model.recommended_planning == (1, "medoid")  # the conformance model recommends none
+    assert (model_bf16.backend, model_bf16.dtype) == ("cpu", "bfloat16")
+    assert load_golden(dtype="bf16").dtype == "bfloat16"  # the CLI's short name too
+
+
+def test_cpu_bf16_is_close_to_float32(model, model_bf16, clip, latents):
+    frames, poses = clip
+    z = model_bf16.encode(frames)
+    assert z.dtype == np.float32 and z.shape == latents.shape and np.isfinite(z).all()
+    assert relative(z, latents) < BF16_LATENT
+    plan = model_bf16.plan(latents, poses, steps=STEPS, seed=5)
+    assert np.isfinite(plan).all()
+    assert relative(plan, model.plan(latents, poses, steps=STEPS, seed=5)) < BF16_PLAN
+    images = model_bf16.decode(latents)
+    assert np.abs(images.astype(np.int16) - model.decode(latents)).mean() < BF16_IMAGE_MEAN
+
+
+def test_cpu_bf16_session_steps(model_bf16, clip):
+    session = epona.WorldSession(model_bf16, steps=STEPS, seed=2)
+    session.reset(*clip)
+    frame, traj = session.step()
+    assert frame.shape == (64, 128, 3) and traj.shape == (15, 3) and np.isfinite(traj).all()
+    frame, traj = session.step((1.0, 0.0, 0.0))
+    assert traj is None and session.steps_taken == 2
+
+
+def test_plan_hypotheses_and_the_chosen_plan(model, clip, latents):
+    poses = clip[1]
+    fan = model.plan_hypotheses(latents, poses, 4, steps=STEPS, seed=5)
+    assert fan.shape == (4, 15, 3) and np.isfinite(fan).all()
+    # Row 0 draws plan()'s noise; the K plans run as one batch, so equal within float rounding.
+    np.testing.assert_allclose(fan[0], model.plan(latents, poses, steps=STEPS, seed=5), rtol=1e-5, atol=1e-5)
+    assert not np.array_equal(fan[0], fan[1])
+    mean = model.plan(latents, poses, steps=STEPS, seed=5, hypotheses=4, choose="mean")
+    np.testing.assert_allclose(mean, fan.astype(np.float64).mean(axis=0), rtol=1e-6, atol=1e-6)
+    medoid = model.plan(latents, poses, steps=STEPS, seed=5, hypotheses=4)  # the default rule
+    assert any(np.array_equal(medoid, row) for row in fan)
+
+
+def test_the_solver_is_chosen_by_name(model, clip, latents):
+    poses = clip[1]
+    euler = model.plan(latents, poses, steps=STEPS, seed=5)
+    assert np.array_equal(euler, model.plan(latents, poses, steps=STEPS, seed=5, solver="euler"))
+    heun = model.plan(latents, poses, steps=STEPS, seed=5, solver="heun")
+    assert np.isfinite(heun).all() and not np.array_equal(heun, euler)
+    session = epona.WorldSession(model, steps=STEPS, seed=5, solver="midpoint")
+    session.reset(*clip)
+    assert np.isfinite(session.step()[1]).all()
+
+
+# ---- CUDA ----------------------------------------------------------------------------------
+
+def cuda_missing():
+    """Why backend="cuda" cannot run here, or None."""
+    if not epona.built_with_cuda:
+        return "the epona module was built without CUDA (configure with -DEPONA_CUDA=ON -DEPONA_PYTHON=ON)"
+    if not epona.cuda_available():
+        return "no CUDA device is present"
+    return None
+
+
+# CUDA float32 against the CPU's: 1e-4 relative for one step (the GPU matches the CPU within 1e-5
+# per stage, docs/cuda.md); steps after the first see generated frames: the golden set's rollout
+# tolerance, 1e-3.
+ROLLOUT = 1e-3
+
+needs_cuda = pytest.mark.skipif(cuda_missing() is not None, reason=f"backend='cuda': {cuda_missing()}")
+
+
+def test_cuda_without_it_is_an_epona_error():
+    if cuda_missing() is None:
+        pytest.skip("CUDA is available here: nothing to refuse")
+    with pytest.raises(epona.Error, match="built without CUDA" if not epona.built_with_cuda else "no CUDA device"):
+        load_golden(backend="cuda")
+
+
+@pytest.fixture(scope="module")
+def cuda_model():
+    return load_golden(backend="cuda")
+
+
+@pytest.fixture(scope="module")
+def cuda_bf16():
+    return load_golden(backend="cuda", dtype="bfloat16")
+
+
+@needs_cuda
+def test_cuda_float32_equals_the_cpu(model, cuda_model, clip, latents):
+    frames, poses = clip
+    assert (cuda_model.backend, cuda_model.dtype) == ("cuda", "float32")
+    # The GPU's float32 matches the CPU within 1e-5 per stage (docs/cuda.md); 1e-4 over the chain.
+    z = cuda_model.encode(frames)
+    assert relative(z, latents) < 1e-4
+    for seed in (1, 5):
+        assert relative(cuda_model.plan(latents, poses, steps=STEPS, seed=seed),
+                        model.plan(latents, poses, steps=STEPS, seed=seed)) < 1e-4
+    latent, traj = cuda_model.predict_next(latents, poses, steps=STEPS, seed=3)
+    cpu_latent, cpu_traj = model.predict_next(latents, poses, steps=STEPS, seed=3)
+    assert relative(latent, cpu_latent) < 1e-4 and relative(traj, cpu_traj) < 1e-4
+    latent, _ = cuda_model.predict_next(latents, poses, action=(1.0, 0.1, 2.0), steps=STEPS, seed=3)
+    assert relative(latent, model.predict_next(latents, poses, action=(1.0, 0.1, 2.0), steps=STEPS, seed=3)[0]) < 1e-4
+    # Later steps see generated frames: 1e-3, the golden set's rollout tolerance (tests/cuda/world_parity.cu).
+    trajs, lats = cuda_model.rollout(latents, poses, frames=2, steps=STEPS, seed=7)
+    cpu_trajs, cpu_lats = model.rollout(latents, poses, frames=2, steps=STEPS, seed=7)
+    assert relative(trajs[0], cpu_trajs[0]) < 1e-4 and relative(lats[0], cpu_lats[0]) < 1e-4
+    assert relative(trajs, cpu_trajs) < ROLLOUT and relative(lats, cpu_lats) < ROLLOUT
+    # Images: a float difference of 1e-5 may move a value across a rounding boundary.
+    for video in (False, True):
+        diff = np.abs(cuda_model.decode(latents[:2], video=video).astype(np.int16) - model.decode(latents[:2], video=video))
+        assert diff.max() <= 2 and diff.mean() < 0.05
+
+
+@needs_cuda
+def test_cuda_hypotheses_equal_the_cpu(model, cuda_model, clip, latents):
+    poses = clip[1]
+    fan = cuda_model.plan_hypotheses(latents, poses, 4, steps=STEPS, seed=5)
+    assert relative(fan, model.plan_hypotheses(latents, poses, 4, steps=STEPS, seed=5)) < 1e-4
+
+
+@needs_cuda
+def test_cuda_session_steps_as_the_cpu(model, cuda_model, clip):
+    sessions = [epona.WorldSession(m, steps=STEPS, seed=7) for m in (cuda_model, model)]
+    for s in sessions:
+        s.reset(*clip)
+    for i, action in enumerate((None, (1.5, 0.2, 3.0), None)):
+        (frame, traj), (cpu_frame, cpu_traj) = (s.step(action) for s in sessions)
+        assert frame.shape == (64, 128, 3) and frame.dtype == np.uint8
+        assert np.abs(frame.astype(np.int16) - cpu_frame).max() <= (2 if i == 0 else 4)
+        assert (traj is None) == (action is not None)
+        if traj is not None:
+            assert relative(traj, cpu_traj) < (1e-4 if i == 0 else ROLLOUT)
+    assert sessions[0].steps_taken == 3
+    assert relative(sessions[0].window()[0], sessions[1].window()[0]) < ROLLOUT
+
+
+@needs_cuda
+def test_cuda_bf16_runs_and_is_close(model, cuda_bf16, clip, latents):
+    frames, poses = clip
+    assert (cuda_bf16.backend, cuda_bf16.dtype) == ("cuda", "bfloat16")
+    z = cuda_bf16.encode(frames)
+    assert np.isfinite(z).all() and relative(z, latents) < CUDA_BF16_LATENT
+    plan = cuda_bf16.plan(latents, poses, steps=STEPS, seed=5)
+    assert np.isfinite(plan).all()
+    assert relative(plan, model.plan(latents, poses, steps=STEPS, seed=5)) < CUDA_BF16_PLAN
+    images = cuda_bf16.decode(latents)
+    assert np.abs(images.astype(np.int16) - model.decode(latents)).mean() < CUDA_BF16_IMAGE_MEAN
+    session = epona.WorldSession(cuda_bf16, steps=STEPS, seed=2)
+    session.reset(frames, poses)
+    frame, traj = session.step()
+    assert frame.shape == (64, 128, 3) and np.isfinite(traj).all()

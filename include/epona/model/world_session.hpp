@@ -2,23 +2,28 @@
 // DC-AE: reset() encodes the last F frames once; each step() plans (or takes the given action),
 // predicts the next latent, decodes it to a frame and slides the window by one — the step of the
 // CLI's rollout (apps/epona/rollout_common.hpp) and of model::rollout, one call at a time, with
-// one noise generator for the whole session (the official draw order). CPU backend.
+// one noise generator for the whole session (the official draw order). Any backend: the window,
+// the actions and every result stay on the host (the WorldModel's interface); only the DC-AE's
+// images and latents cross to the backend's memory, as the CLI's engine does (apps/epona/engine.hpp).
 #pragma once
 
 #include <cmath>
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <type_traits>
 #include <vector>
 
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/cpu/context.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/poses.hpp"
 #include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
+#include "epona/nn/backend_context.hpp"
 
 namespace epona {
 
@@ -71,15 +76,16 @@ History make_window(Ctx& ctx, const Tensor<float, Cpu>& latents, const io::PoseS
 // (WorldModel::reserve_arena grows it only for a larger batch or more sampling steps, and a
 // session keeps both fixed; arena_capacity() shows it). Each step's results (trajectory, latent,
 // frame) are new tensors the caller keeps, and the DC-AE decoder allocates its feature maps per
-// call (Dcae has no arena).
+// call (Dcae has no arena; on a device backend also the latent it uploads and the frame it downloads).
+//
+// On a device backend (Cuda) the DC-AE runs on the world model's context (its stream), and the
+// latent layout changes (tokens <-> NCHW) run on the host, where the window lives.
 template <class B = Cpu, class W = float>
 class WorldSession {
-  static_assert(is_host_backend<B>, "WorldSession runs on the CPU backend (the DC-AE and window stay on the host)");
-
  public:
   WorldSession(WorldModel<B, W>& world, const Dcae<B, W>& dcae, const SampleOptions& options = {})
-      : world_(world), dcae_(dcae), options_(options), samplers_(world.samplers_of(options)),
-        noise_(WorldModel<B, W>::noise_for(options)),
+      : world_(world), dcae_(dcae), host_(make_host_context()), options_(options),
+        samplers_(world.samplers_of(options)), noise_(WorldModel<B, W>::noise_for(options)),
         action_(action_of({})), used_({1, 1, 3}) {
     EPONA_CHECK(dcae.config().latent_channels == world.config().token_dim(), "WorldSession: the DC-AE's ",
                 dcae.config().latent_channels, " latent channels differ from the world model's ",
@@ -100,7 +106,8 @@ class WorldSession {
       EPONA_CHECK(frames[i].height == c.image_h && frames[i].width == c.image_w, "WorldSession::reset: frame ", i,
                   " is ", frames[i].height, "x", frames[i].width, "; the model takes ", c.image_h, "x", c.image_w);
     check_poses(poses);
-    reset_latents(dcae_.encode(world_.context(), io::images_to_tensor(frames)), poses);
+    const Tensor<float, B> images = BackendTraits<B>::upload(io::images_to_tensor(frames));
+    reset_latents(host_tensor(world_.context(), dcae_.encode(world_.context(), images)), poses);
   }
 
   // The same from frames already encoded: latents (F, C, h, w) as Dcae::encode gives them.
@@ -108,7 +115,7 @@ class WorldSession {
     const auto& c = config();
     check_shape(latents, {c.condition_frames, c.token_dim(), c.latent_h(), c.latent_w()}, "WorldSession latents");
     check_poses(poses);
-    History h = make_window(world_.context(), latents, poses);
+    History h = make_window(host(), latents, poses);
     world_.validate(h, nullptr, samplers_);  // non-finite latents
     window_ = History{h.latents.clone(), h.rel_pose.clone(), h.rel_yaw.clone()};  // owned: slid in place
     noise_ = WorldModel<B, W>::noise_for(options_);
@@ -159,12 +166,29 @@ class WorldSession {
   // Tokens (1, L, C) -> the frame, decoded alone (the CLI's --decode frame).
   io::Image decode_frame(const Tensor<float, Cpu>& tokens) {
     const auto& c = config();
-    const Tensor<float, Cpu> latent = tokens_to_latent(world_.context(), tokens, c.latent_h(), c.latent_w());
-    return io::tensor_to_image(dcae_.decode(world_.context(), latent, false), 0);
+    const Tensor<float, Cpu> latent = tokens_to_latent(host(), tokens, c.latent_h(), c.latent_w());
+    const Tensor<float, B> image = dcae_.decode(world_.context(), BackendTraits<B>::upload(latent), false);
+    return io::tensor_to_image(host_tensor(world_.context(), image), 0);
+  }
+
+  // The CPU's own context (its thread count); a device backend gets a host context of its own,
+  // made with the process's current thread count (making a cpu::Context sets it process-wide).
+  static std::unique_ptr<cpu::Context> make_host_context() {
+    if constexpr (std::is_same_v<B, Cpu>)
+      return nullptr;
+    else
+      return std::make_unique<cpu::Context>(Eigen::nbThreads());
+  }
+  cpu::Context& host() {
+    if constexpr (std::is_same_v<B, Cpu>)
+      return world_.context();
+    else
+      return *host_;
   }
 
   WorldModel<B, W>& world_;
   const Dcae<B, W>& dcae_;
+  std::unique_ptr<cpu::Context> host_;  // null on the CPU (host() is the world model's context)
   SampleOptions options_;
   DitSamplers samplers_;
   NoiseSource noise_;

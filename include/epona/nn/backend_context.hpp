@@ -83,6 +83,19 @@ template <class B> using BackendEpilogue = typename BackendTraits<B>::Epilogue;
 // on the GPU the weight type (bf16 GEMMs read and write bf16, as PyTorch's autocast).
 template <class B, class W> using Activation = typename BackendTraits<B>::template Activation<W>;
 
+// A backend tensor's values in host memory: the tensor itself on a host backend, else a copy
+// (synchronous: the context's queued work finishes first).
+template <class B, class T>
+Tensor<T, Cpu> host_tensor(BackendContext<B>& ctx, const Tensor<T, B>& t) {
+  if constexpr (is_host_backend<B>) {
+    return t;
+  } else {
+    Tensor<T, Cpu> host(t.shape());
+    BackendTraits<B>::download_into(ctx, t, host);
+    return host;
+  }
+}
+
 // A host tensor converted element by element to T (bf16 rounds to nearest even).
 template <class T>
 Tensor<T, Cpu> host_as(const Tensor<float, Cpu>& src) {
