@@ -193,6 +193,10 @@ inline std::string file_sha256(const std::string& path, std::uint64_t size, cons
 // --expect-sha256, a mismatch is an error naming both digests. The tensors are not read: a
 // truncated download fails here with its digest rather than with a parse error.
 inline int run_info_sha256(const ParsedArgs& a, const Console& con) {
+  for (const char* other : {"keys", "write-config", "config", "key", "depth"})
+    if (a.has(other))
+      usage_fail("--", other, " describes the tensors, which --sha256/--expect-sha256 do not read; run epona info "
+                 "again without them");
   const std::string expected = a.has("expect-sha256") ? expected_sha256(a) : "";
   for (const auto& path : a.positionals()) check_file(path, "checkpoint");
   for (const auto& path : a.positionals()) {

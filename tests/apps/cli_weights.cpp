@@ -111,6 +111,8 @@ TEST_CASE("info --expect-sha256: a malformed digest is refused before any hashin
   check_error(cli({"info", t / "hello.txt", "--expect-sha256", kHelloSha.substr(1) + "g"}), "64 hex digits");
   check_error(cli({"info", t / "hello.txt", t / "hello.txt", "--expect-sha256", kHelloSha}), "checks one file");
   check_error(cli({"info", "--sha256", t / "absent.pkl"}), "no such file");
+  check_error(cli({"info", "--sha256", t / "hello.txt", "--write-config", t / "c.json"}),
+              "--write-config describes the tensors");
 }
 
 TEST_CASE("--help of info and convert lists the options of issue #37") {
