@@ -46,7 +46,7 @@ inline const std::vector<Subcommand>& subcommands() {
       {"decode", "DC-AE latents (.npy) -> PNG frames", decode_parser, run_decode},
       {"info", "what a checkpoint holds and the configuration its shapes imply", info_parser, run_info},
       {"eval", "scores the model on a clip set: planning L2/collisions, video PSNR/SSIM, with baselines", eval_parser, run_eval},
-      {"convert", "a checkpoint (.pkl or .safetensors) -> .safetensors, same tensors", convert_parser, run_convert},
+      {"convert", "a checkpoint (.pkl or .safetensors) -> .safetensors, same tensors or --dtype bfloat16", convert_parser, run_convert},
       {"synth", "driving clips from a procedural world (frames, poses, boxes) for training and evaluation", synth_parser, run_synth},
   };
   return list;

@@ -3,11 +3,15 @@
 // the configuration the other commands would use; optionally written out as a --config file.
 #pragma once
 
+#include <algorithm>
+#include <cctype>
+#include <cstdint>
 #include <cstdio>
 #include <filesystem>
 #include <string>
 #include <vector>
 
+#include "activity.hpp"
 #include "args.hpp"
 #include "console.hpp"
 #include "inspect.hpp"
@@ -17,6 +21,7 @@
 #include "epona/io/load_weights.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
+#include "epona/io/sha256.hpp"
 
 namespace epona::app {
 
@@ -36,8 +41,12 @@ inline ArgParser info_parser() {
       .option("config", "FILE", "configuration to compare with",
               "configs.json beside the first file, else the shipped Epona configuration")
       .option("write-config", "FILE", "write the detected configuration (assumed values from --config) as JSON")
+      .flag("sha256", "only print each file's SHA-256 (hex, as sha256sum prints it) and size; the tensors are not read")
+      .option("expect-sha256", "HEX", "check the one FILE's SHA-256 against HEX (64 hex digits); fails when they differ")
       .flag("quiet", "no notes on stderr", 'q')
-      .epilog("example:\n  epona info world.pkl dcae_td_20000.pkl --write-config nuplan.json");
+      .epilog("examples:\n  epona info world.pkl dcae_td_20000.pkl --write-config nuplan.json\n"
+              "  epona info --sha256 pretrained/epona_nuplan.pkl\n"
+              "  epona info pretrained/dcae_td_20000.pkl --expect-sha256 <the digest on the hub's file page>");
   return p;
 }
 
@@ -150,7 +159,63 @@ inline std::string info_base_path(const ParsedArgs& a) {
   return std::filesystem::is_regular_file(beside, ec) ? beside.string() : "";
 }
 
+// --expect-sha256 as lowercase hex, refused (before any hashing) unless it is 64 hex digits.
+inline std::string expected_sha256(const ParsedArgs& a) {
+  std::string hex = *a.get("expect-sha256");
+  const bool digits = std::all_of(hex.begin(), hex.end(), [](unsigned char c) { return std::isxdigit(c) != 0; });
+  if (hex.size() != 64 || !digits)
+    usage_fail("--expect-sha256 needs a SHA-256 digest, 64 hex digits; got '", printable(hex, 100), "' (",
+               hex.size(), " characters)");
+  for (auto& c : hex) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  if (a.positionals().size() != 1)
+    usage_fail("--expect-sha256 checks one file; got ", a.positionals().size(), " files");
+  return hex;
+}
+
+// Files from this size on show progress while hashed (a second or more on a fast disk).
+inline constexpr std::uint64_t kHashProgressBytes = std::uint64_t{256} << 20;
+
+// The SHA-256 of one file, streamed, with progress on stderr (in MB) for large files.
+inline std::string file_sha256(const std::string& path, std::uint64_t size, const Console& con) {
+  const Activity doing("hashing " + path);
+  if (size < kHashProgressBytes) return io::hex(io::sha256_file(path));
+  constexpr std::uint64_t kMB = 1'000'000;
+  Progress bar(con, "sha256 " + std::filesystem::path(path).filename().string(),
+               static_cast<std::int64_t>((size + kMB - 1) / kMB), "MB");
+  std::int64_t shown = 0;
+  return io::hex(io::sha256_file(path, [&](std::uint64_t done, std::uint64_t) {
+    const auto mb = static_cast<std::int64_t>(done == size ? (size + kMB - 1) / kMB : done / kMB);
+    if (mb > shown) bar.advance(mb - shown), shown = mb;
+  }));
+}
+
+// --sha256 / --expect-sha256: "<hex>  <path>  <bytes> bytes (<size>)" per file; with
+// --expect-sha256, a mismatch is an error naming both digests. The tensors are not read: a
+// truncated download fails here with its digest rather than with a parse error.
+inline int run_info_sha256(const ParsedArgs& a, const Console& con) {
+  for (const char* other : {"keys", "write-config", "config", "key", "depth"})
+    if (a.has(other))
+      usage_fail("--", other, " describes the tensors, which --sha256/--expect-sha256 do not read; run epona info "
+                 "again without them");
+  const std::string expected = a.has("expect-sha256") ? expected_sha256(a) : "";
+  for (const auto& path : a.positionals()) check_file(path, "checkpoint");
+  for (const auto& path : a.positionals()) {
+    const auto size = static_cast<std::uint64_t>(std::filesystem::file_size(path));
+    const std::string digest = file_sha256(path, size, con);
+    con.out << digest << "  " << path << "  " << grouped(static_cast<std::int64_t>(size)) << " bytes ("
+            << human_bytes_text(double(size)) << ")\n";
+    con.out.flush();
+    EPONA_CHECK(expected.empty() || digest == expected, path, ": SHA-256 mismatch: the file's is ", digest,
+                ", --expect-sha256 gave ", expected,
+                " (an incomplete or damaged download, or another file: fetch it again, and check the digest is "
+                "the one of this file)");
+    if (!expected.empty()) con.note("SHA-256 matches --expect-sha256: ", path, " is intact");
+  }
+  return 0;
+}
+
 inline int run_info(const ParsedArgs& a, const Console& con) {
+  if (a.flag("sha256") || a.has("expect-sha256")) return run_info_sha256(a, con);
   const int depth = static_cast<int>(a.integer("depth", 2, 1, 64));
   const std::string base_path = info_base_path(a);
   if (!base_path.empty() && !a.has("config")) con.note("comparing with ", base_path, " (beside the weights)");

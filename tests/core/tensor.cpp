@@ -66,3 +66,23 @@ TEST_CASE("float16 to float32 is exact") {
   CHECK(std::isinf(half_to_float(0x7c00)));
   CHECK(std::isnan(half_to_float(0x7e00)));
 }
+
+TEST_CASE("float_to_half rounds to nearest even and inverts half_to_float") {
+  for (std::uint32_t h = 0; h < 0x10000; ++h) {  // every half that is not NaN comes back unchanged
+    const auto bits = static_cast<std::uint16_t>(h);
+    if ((bits & 0x7c00u) == 0x7c00u && (bits & 0x3ffu)) continue;
+    REQUIRE_MESSAGE(float_to_half(half_to_float(bits)) == bits, "half bits ", h);
+  }
+  // Halfway between two halves goes to the even one; a hair above goes up.
+  CHECK(float_to_half(1.0f + std::ldexp(1.0f, -11)) == 0x3c00);
+  CHECK(float_to_half(1.0f + 3 * std::ldexp(1.0f, -11)) == 0x3c02);
+  CHECK(float_to_half(1.0f + std::ldexp(1.0f, -11) + std::ldexp(1.0f, -20)) == 0x3c01);
+  CHECK(float_to_half(std::ldexp(1.0f, -25)) == 0x0000);      // halfway to the smallest subnormal: even
+  CHECK(float_to_half(std::ldexp(3.0f, -26)) == 0x0001);      // above halfway
+  CHECK(float_to_half(std::ldexp(3.0f, -25)) == 0x0002);      // 1.5 units: even (2)
+  CHECK(float_to_half(65519.0f) == 0x7bff);                   // below the halfway point to 2^16
+  CHECK(float_to_half(65520.0f) == 0x7c00);                   // halfway: rounds to even, which is inf
+  CHECK(float_to_half(-1e30f) == 0xfc00);
+  CHECK(float_to_half(-0.0f) == 0x8000);
+  CHECK(std::isnan(half_to_float(float_to_half(std::numeric_limits<float>::quiet_NaN()))));
+}

@@ -1,5 +1,5 @@
 // epona/core/dtype.hpp — element types: float32, bfloat16 (round-to-nearest-even),
-// float16 (read-only, for checkpoints) and int64, plus the run-time DType tag that
+// float16 (for checkpoints: read, and written by `epona convert --dtype float16`) and int64, plus the run-time DType tag that
 // file readers report.
 #pragma once
 
@@ -70,6 +70,28 @@ inline float half_to_float(std::uint16_t h) {
   float f;
   std::memcpy(&f, &u, sizeof f);
   return f;
+}
+
+// float -> IEEE half, rounded to nearest even (as the hardware and torch's .half() do): beyond
+// half's range (|f| >= 65520) it becomes inf; NaN stays NaN (quiet). For writing fp16 checkpoints.
+inline std::uint16_t float_to_half(float f) {
+  std::uint32_t u;
+  std::memcpy(&u, &f, sizeof u);
+  const auto sign = static_cast<std::uint16_t>((u >> 16) & 0x8000u);
+  const std::uint32_t a = u & 0x7fffffffu;
+  if (a > 0x7f800000u) return static_cast<std::uint16_t>(sign | 0x7e00u | ((a >> 13) & 0x3ffu));
+  if (a >= 0x47800000u) return static_cast<std::uint16_t>(sign | 0x7c00u);  // >= 2^16, and inf
+  const std::uint32_t e = a >> 23;
+  std::uint32_t h, rem, halfway;
+  if (e >= 113) {  // a normal half: rebias the exponent (127 -> 15), drop 13 mantissa bits
+    h = (a - 0x38000000u) >> 13, rem = a & 0x1fffu, halfway = 0x1000u;
+  } else {  // a subnormal half (units of 2^-24), or zero below 2^-25
+    if (e < 102) return sign;
+    const std::uint32_t m = (a & 0x7fffffu) | 0x800000u, shift = 126 - e;
+    h = m >> shift, rem = m & ((1u << shift) - 1), halfway = 1u << (shift - 1);
+  }
+  if (rem > halfway || (rem == halfway && (h & 1u))) ++h;  // a carry into the exponent is right (up to inf)
+  return static_cast<std::uint16_t>(sign | h);
 }
 
 enum class DType : std::uint8_t { F32, BF16, F16, I64 };

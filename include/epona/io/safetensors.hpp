@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
+#include <functional>
 #include <map>
 #include <memory>
 #include <span>
@@ -233,21 +234,33 @@ RawTensor raw_view(const Tensor<T, Cpu>& t) {
                    std::span<const std::byte>(reinterpret_cast<const std::byte*>(t.data()), t.nbytes())};
 }
 
+// How save_safetensors stores tensors in another dtype (epona convert --dtype): `dtype` gives the
+// dtype a tensor is stored as, `write` writes its bytes in that dtype (streamed, so a conversion
+// needs no second copy of the weights in memory). Empty: every tensor as it is.
+struct SafetensorsEncoding {
+  std::function<DType(const std::string& name, const RawTensor& t)> dtype;
+  std::function<void(const std::string& name, const RawTensor& t, DType to, AtomicFileSink& out)> write;
+};
+
 // Writes `tensors` (in name order, packed) and `metadata`; the header is padded with spaces
 // to a multiple of 8 so that data starts aligned. Written atomically (io/atomic_file.hpp), so
-// a failure or a crash never leaves a half-written file under `path`.
+// a failure or a crash (also one thrown by `encoding.write`) never leaves a half-written file
+// under `path`.
 inline void save_safetensors(const std::string& path, const TensorMap& tensors,
-                             const SafetensorsMetadata& metadata = {}) {
+                             const SafetensorsMetadata& metadata = {}, const SafetensorsEncoding& encoding = {}) {
   namespace sd = safetensors_detail;
+  const auto stored = [&](const std::string& name, const RawTensor& t) {
+    return encoding.dtype ? encoding.dtype(name, t) : t.dtype;
+  };
   nlohmann::json header = nlohmann::json::object();
   if (!metadata.empty()) header["__metadata__"] = metadata;
   std::uint64_t offset = 0;
   for (const auto& [name, t] : tensors.entries()) {
     EPONA_CHECK(name != "__metadata__", path, ": a tensor may not be named __metadata__");
-    header[name] = {{"dtype", sd::dtype_code(t.dtype)},
-                    {"shape", t.shape},
-                    {"data_offsets", {offset, offset + t.bytes.size()}}};
-    offset += t.bytes.size();
+    const DType d = stored(name, t);
+    const std::uint64_t bytes = static_cast<std::uint64_t>(t.numel()) * dtype_size(d);
+    header[name] = {{"dtype", sd::dtype_code(d)}, {"shape", t.shape}, {"data_offsets", {offset, offset + bytes}}};
+    offset += bytes;
   }
   std::string text = header.dump();
   text.resize((text.size() + 7) / 8 * 8, ' ');
@@ -257,7 +270,18 @@ inline void save_safetensors(const std::string& path, const TensorMap& tensors,
     for (int i = 0; i < 8; ++i) len[i] = static_cast<unsigned char>((std::uint64_t(text.size()) >> (8 * i)) & 0xff);
     out.write(len, 8);
     out.write(text);
-    for (const auto& [name, t] : tensors.entries()) out.write(t.bytes.data(), t.bytes.size());
+    for (const auto& [name, t] : tensors.entries()) {
+      const DType d = stored(name, t);
+      if (d == t.dtype) {
+        out.write(t.bytes.data(), t.bytes.size());
+        continue;
+      }
+      const std::uint64_t before = out.bytes_written();
+      encoding.write(name, t, d, out);
+      EPONA_CHECK(out.bytes_written() - before == static_cast<std::uint64_t>(t.numel()) * dtype_size(d), path,
+                  ": the encoding wrote ", out.bytes_written() - before, " bytes for '", printable(name, 200),
+                  "' as ", dtype_name(d), ", its header says ", static_cast<std::uint64_t>(t.numel()) * dtype_size(d));
+    }
   });
 }
 
