@@ -10,12 +10,12 @@
 #include <span>
 #include <string>
 
-#include <fcntl.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
 #include "epona/core/error.hpp"
+#include "epona/io/read_only_file.hpp"
 
 namespace epona::io {
 
@@ -23,23 +23,12 @@ class MappedFile {
  public:
   // Maps `path` read-only. Throws epona::Error naming the file and the reason.
   static std::shared_ptr<const MappedFile> open(const std::string& path) {
-    const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-    if (fd < 0) {
-      const int err = errno;
-      if (err == ENOENT) fail(path, ": file does not exist");
-      fail(path, ": cannot open: ", std::strerror(err));
-    }
-    struct FdCloser {
-      int fd;
-      ~FdCloser() { ::close(fd); }
-    } closer{fd};  // the mapping stays valid after close
-    struct stat st {};
-    if (::fstat(fd, &st) != 0) fail(path, ": cannot stat: ", std::strerror(errno));
-    if (S_ISDIR(st.st_mode)) fail(path, ": is a directory, not a file");
+    const ReadOnlyFile file(path);  // closed on return: the mapping stays valid after close
+    const struct stat& st = file.status();
     if (!S_ISREG(st.st_mode)) fail(path, ": not a regular file");
     if (st.st_size == 0) fail(path, ": empty file (0 bytes)");
     const auto size = static_cast<std::size_t>(st.st_size);
-    void* p = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, fd, 0);
+    void* p = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, file.fd(), 0);
     if (p == MAP_FAILED) fail(path, ": cannot map ", size, " bytes: ", std::strerror(errno));
     return std::shared_ptr<const MappedFile>(new MappedFile(path, static_cast<const std::byte*>(p), size));
   }

@@ -16,11 +16,10 @@
 #include <string_view>
 #include <vector>
 
-#include <fcntl.h>
-#include <sys/stat.h>
 #include <unistd.h>
 
 #include "epona/core/error.hpp"
+#include "epona/io/read_only_file.hpp"
 
 namespace epona::io {
 
@@ -126,20 +125,9 @@ using HashProgress = std::function<void(std::uint64_t done, std::uint64_t total)
 // file's size). Throws epona::Error naming the file and the reason.
 inline Sha256Digest sha256_file(const std::string& path, const HashProgress& progress = {},
                                 std::size_t block_bytes = std::size_t{4} << 20) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) {
-    const int err = errno;
-    if (err == ENOENT) fail(path, ": file does not exist");
-    fail(path, ": cannot open: ", std::strerror(err));
-  }
-  struct FdCloser {
-    int fd;
-    ~FdCloser() { ::close(fd); }
-  } closer{fd};
-  struct stat st {};
-  if (::fstat(fd, &st) != 0) fail(path, ": cannot stat: ", std::strerror(errno));
-  if (S_ISDIR(st.st_mode)) fail(path, ": is a directory, not a file");
-  const auto total = static_cast<std::uint64_t>(st.st_size);
+  const ReadOnlyFile file(path);
+  const int fd = file.fd();
+  const auto total = static_cast<std::uint64_t>(file.status().st_size);
   std::vector<std::byte> block(std::max<std::size_t>(block_bytes, 1));
   Sha256 h;
   std::uint64_t done = 0;
