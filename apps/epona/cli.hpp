@@ -25,6 +25,7 @@
 #include "cmd_plan.hpp"
 #include "cmd_synth.hpp"
 #include "console.hpp"
+#include "processes.hpp"
 #include "epona/core/printable.hpp"
 
 namespace epona::app {
@@ -108,6 +109,7 @@ inline int run(const std::vector<std::string>& args, std::ostream& out, std::ost
       }
       const Console con{out, err, parsed.flag("quiet"), interactive};
       current_activity() = c.name;
+      check_launch(dist::launch_from_environment(), c.name);  // before any rank writes anything
       if (runs_a_model(c.name)) announce_compute(con, compute_options(parsed));
       return c.run(parsed, con);
     }

@@ -32,6 +32,7 @@
 #include "epona/eval/image_metrics.hpp"
 #include "epona/eval/planning_metrics.hpp"
 #include "epona/io/atomic_file.hpp"
+#include "processes.hpp"
 
 namespace epona::app {
 
@@ -137,6 +138,62 @@ struct ClipScores {
   std::optional<ControlScore> control;
   Tensor<float> plan;  // (traj_len, 3) the model's plan; empty without planning
 };
+
+// ---- a clip's scores as a message (from the rank that scored it to rank 0) -----------------
+
+inline void put_plan(dist::MessageWriter& m, const std::optional<PlanScores>& p) {
+  m.put(std::uint8_t(p.has_value()));
+  if (!p) return;
+  for (std::size_t k = 0; k < eval::kPlanSeconds; ++k) {
+    m.put(p->l2.at[k]).put(p->l2.avg[k]);
+    m.put(std::int8_t(p->collisions[k] ? int(*p->collisions[k]) : -1));
+  }
+}
+
+inline std::optional<PlanScores> get_plan(dist::MessageReader& m) {
+  if (!m.get<std::uint8_t>()) return std::nullopt;
+  PlanScores p;
+  for (std::size_t k = 0; k < eval::kPlanSeconds; ++k) {
+    p.l2.at[k] = m.get<double>(), p.l2.avg[k] = m.get<double>();
+    const auto hit = m.get<std::int8_t>();
+    if (hit >= 0) p.collisions[k] = hit != 0;
+  }
+  return p;
+}
+
+inline void put_scores(dist::MessageWriter& m, const ClipScores& s) {
+  m.put(s.name);
+  for (const auto* p : {&s.model, &s.constant_velocity, &s.constant_turn, &s.ground_truth, &s.best_of_k}) put_plan(m, *p);
+  m.put(s.spread_m);
+  for (const auto* v : {&s.psnr, &s.ssim, &s.repeat_psnr, &s.repeat_ssim, &s.ae_psnr, &s.ae_ssim}) m.put(*v);
+  m.put(std::uint8_t(s.control.has_value()));
+  if (s.control) m.put(s.control->forward_m).put(s.control->shift.shift).put(s.control->shift.mad).put(s.control->shift.mad_at_zero);
+  m.put(std::vector<std::int64_t>(s.plan.shape().begin(), s.plan.shape().end()));
+  m.put(std::vector<float>(s.plan.data(), s.plan.data() + s.plan.numel()));
+}
+
+inline ClipScores get_scores(dist::MessageReader& m) {
+  ClipScores s;
+  s.name = m.get_string();
+  for (auto* p : {&s.model, &s.constant_velocity, &s.constant_turn, &s.ground_truth, &s.best_of_k}) *p = get_plan(m);
+  s.spread_m = m.get_vector<double>();
+  for (auto* v : {&s.psnr, &s.ssim, &s.repeat_psnr, &s.repeat_ssim, &s.ae_psnr, &s.ae_ssim}) *v = m.get_vector<double>();
+  if (m.get<std::uint8_t>()) {
+    ControlScore c;
+    c.forward_m = m.get<double>();
+    c.shift.shift = m.get<std::int64_t>(), c.shift.mad = m.get<double>(), c.shift.mad_at_zero = m.get<double>();
+    s.control = c;
+  }
+  const auto shape = m.get_vector<std::int64_t>();
+  const auto values = m.get_vector<float>();
+  if (!shape.empty()) {
+    s.plan = Tensor<float>(Shape(shape.begin(), shape.end()));
+    EPONA_CHECK(std::size_t(s.plan.numel()) == values.size(), "a clip's plan from another rank has ", values.size(),
+                " values for its shape");
+    std::copy(values.begin(), values.end(), s.plan.data());
+  }
+  return s;
+}
 
 inline PlanScores score_plan(const std::vector<eval::Pose2>& plan, const std::vector<eval::Pose2>& truth,
                              const eval::EvalClip& c) {
@@ -552,8 +609,53 @@ inline std::vector<eval::EvalClip> read_clip_set(const EvalOptions& o, const Wor
   return clips;
 }
 
-inline int run_eval(const ParsedArgs& a, const Console& con) {
+// This process's share of the clips scored (every clip when alone), as one message of
+// (clip index, scores) pairs.
+inline std::string score_share(const std::vector<eval::EvalClip>& clips, const EvalOptions& opt, const ModelFiles& files,
+                               const ComputeOptions& compute, const dist::ProcessGroup& group, const Console& con) {
+  const auto engine = make_engine(compute);
+  cpu::Context ctx(compute.threads);
+  engine->load_dcae(files, con);
+  engine->load_world(files, con);
+  const Console silent{con.out, con.err, true, false};
+  const EvalContext e{*engine, ctx, files.configs.world, opt, size_policy(opt.fit), silent};
+  std::vector<std::size_t> share;
+  dist::for_each_share(clips.size(), group.rank(), group.size(), [&](std::size_t i) { share.push_back(i); });
+  dist::MessageWriter m;
+  m.put(static_cast<std::uint64_t>(share.size()));
+  Progress bar(con, "eval    ", static_cast<std::int64_t>(share.size()), "clip");
+  for (const std::size_t i : share) {
+    put_scores(m.put(static_cast<std::uint64_t>(i)), evaluate_clip(clips[i], opt.sample.seed + i, e));
+    bar.advance();
+  }
+  return m.bytes();
+}
+
+// Every rank's scores put back in clip order.
+inline std::vector<ClipScores> scores_in_clip_order(const std::vector<std::string>& by_rank, std::size_t clips) {
+  std::vector<std::optional<ClipScores>> slots(clips);
+  for (const auto& bytes : by_rank) {
+    dist::MessageReader m(bytes);
+    for (auto n = m.get<std::uint64_t>(); n > 0; --n) {
+      const auto i = m.get<std::uint64_t>();
+      EPONA_CHECK(i < clips && !slots[i], "internal: clip ", i, " came back twice or out of range");
+      slots[i] = get_scores(m);
+    }
+  }
+  std::vector<ClipScores> out;
+  for (std::size_t i = 0; i < clips; ++i) {
+    EPONA_CHECK(slots[i].has_value(), "internal: no process scored clip ", i);
+    out.push_back(std::move(*slots[i]));
+  }
+  return out;
+}
+
+inline int run_eval(const ParsedArgs& a, const Console& console) {
+  const dist::Launch launch = dist::launch_from_environment();
+  const auto group = join_job(launch);
+  const Console con = rank_console(console, *group);
   const ComputeOptions compute = compute_options(a);
+  if (compute.backend == "cuda") assign_gpu(launch, con);
   const ModelFiles files = resolve_models(a, true, true);
   const WorldModelConfig& wc = files.configs.world;
   const EvalOptions opt = eval_options(a, files.configs);
@@ -564,21 +666,17 @@ inline int run_eval(const ParsedArgs& a, const Console& con) {
            describe(opt.samplers, opt.plan, opt.video || opt.control), ", seed ", opt.sample.seed, " + clip index",
            opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"),
            opt.control ? ", control at +-" + std::to_string(opt.control_yaw) + " deg" : std::string(),
-           opt.plan && opt.planning.hypotheses > 1 ? ", " + describe(opt.planning) : std::string());
+           opt.plan && opt.planning.hypotheses > 1 ? ", " + describe(opt.planning) : std::string(),
+           group->size() > 1 ? ", split over " + std::to_string(group->size()) + " processes (" + launch.launcher + ")"
+                             : std::string());
 
-  const auto engine = make_engine(compute);
-  cpu::Context ctx(compute.threads);
-  engine->load_dcae(files, con);
-  engine->load_world(files, con);
-  const Console silent{con.out, con.err, true, false};
-  const EvalContext e{*engine, ctx, wc, opt, size_policy(opt.fit), silent};
-  std::vector<ClipScores> scores;
-  Progress bar(con, "eval    ", static_cast<std::int64_t>(clips.size()), "clip");
-  for (std::size_t i = 0; i < clips.size(); ++i) {
-    scores.push_back(evaluate_clip(clips[i], opt.sample.seed + i, e));
-    bar.advance();
-  }
-  const auto report = report_json(scores, settings_json(a, files, compute, opt, wc), opt);
+  const std::vector<std::string> by_rank =
+      run_on_every_rank(*group, [&] { return score_share(clips, opt, files, compute, *group, con); });
+  if (!group->is_root()) return 0;  // rank 0 reports, and fails for every rank
+  const std::vector<ClipScores> scores = scores_in_clip_order(by_rank, clips.size());
+  auto settings = settings_json(a, files, compute, opt, wc);
+  settings["processes"] = group->size();
+  const auto report = report_json(scores, settings, opt);
   io::write_atomically(opt.json, report.dump(2) + "\n");
   print_eval_table(con.out, report, opt.plan, opt.video);
   if (opt.control) print_control_table(con.out, report["control"]);

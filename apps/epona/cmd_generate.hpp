@@ -18,7 +18,9 @@
 #include "frames.hpp"
 #include "models.hpp"
 #include "rollout_common.hpp"
+#include "processes.hpp"
 #include "video_output.hpp"
+#include "epona/eval/clip_set.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/trajectory_io.hpp"
@@ -40,7 +42,10 @@ inline ArgParser generate_parser() {
               "Without --weights it runs the bundled model (models/small-synthetic) on its demo clip.");
   add_model_options(p, true, true);
   add_clip_options(p);
-  p.option("num-frames", "N", "frames to generate", "6, or one per action of --trajectory", 'n')
+  p.option("clips", "DIR", "roll out every clip folder of DIR (frames/ + poses.csv each, as `epona synth` writes) "
+           "into OUT/<clip>/, the weights loaded once; clip i uses seed + i. Under mpirun or srun the clips are "
+           "split over the processes", "one clip: --frames and --poses")
+      .option("num-frames", "N", "frames to generate", "6, or one per action of --trajectory", 'n')
       .option("trajectory", "FILE", "actions to follow: a trajectory written by epona (waypoint 0 of each step) "
               "or a poses file (one motion per step)")
       .option("max-frames", "N", "refuse to roll out more frames than this", "10000")
@@ -149,37 +154,23 @@ inline void print_generate_summary(std::ostream& out, const std::filesystem::pat
   if (!video.empty()) out << video << "\n";
 }
 
-inline int run_generate(const ParsedArgs& a, const Console& con) {
-  const ComputeOptions compute = compute_options(a);
-  const ModelFiles files = resolve_models(a, true, true);
-  const WorldModelConfig& wc = files.configs.world;
-  RolloutPlan plan;
-  const SampleOptions sample = sample_options(a, wc);
-  plan.samplers = samplers_of(sample);
-  plan.seed = sample.seed;
-  plan.actions = read_step_actions(a);
-  plan.frames = frames_to_generate(a, plan.actions);
-  plan.keep_latents = a.flag("latents");
-  const bool clip_decode = a.choice("decode", {"clip", "frame"}, "clip") == "clip";
-  const std::optional<VideoRequest> video_to = video_request(a);
-  const Clip clip = load_clip_for(a, files, con);
-  const auto dir = output_dir(a, "out/generate");
+// What one clip's rollout wrote, for the summary.
+struct GeneratedClip {
+  double seconds = 0;
+  io::Image sheet;
+  std::size_t inputs = 0, shown = 0;
+  std::string video_line;
+};
+
+// Rolls `clip` out under `plan` and writes every output into `dir` (marked INCOMPLETE until the
+// end): frames, contact sheet, trajectory, poses, and latents and video when asked.
+inline GeneratedClip generate_into(Engine& engine, cpu::Context& ctx, const Clip& clip, RolloutPlan plan,
+                                   const std::filesystem::path& dir, const WorldModelConfig& wc,
+                                   const std::optional<VideoRequest>& video_to, const Console& con) {
   IncompleteMarker incomplete(dir, "epona generate");
   if (!plan.keep_latents) remove_stale_output(dir / "latents.npy");
   remove_stale_frames(dir / "frames", plan.frames);
-
-  const auto engine = make_engine(compute);
-  cpu::Context ctx(compute.threads);
-  engine->load_dcae(files, con);
-  const History window = model::make_window(ctx, encode_frames(*engine, clip.frames, con), clip.poses);
-  engine->load_world(files, con);
-  const DcaeConfig& dc = engine->dcae_config();
-  plan.clip_len = clip_decode && dc.add_decoder_temporal ? dc.condition_frames : 1;
-  con.note("generating ", counted(plan.frames, "frame"), ": ", describe(plan.samplers, !plan.actions), ", seed ",
-           plan.seed, ", ",
-           plan.actions ? "actions from " + *a.get("trajectory") : std::string("self-predicted trajectory"), ", decoded ",
-           plan.clip_len > 1 ? "in clips of " + std::to_string(plan.clip_len) : std::string("frame by frame"));
-
+  const History window = model::make_window(ctx, encode_frames(engine, clip.frames, con), clip.poses);
   const auto slots = std::max<std::int64_t>(kSheetTiles - static_cast<std::int64_t>(clip.frames.size()), 5);
   std::optional<VideoOut> video;
   if (video_to) {
@@ -188,24 +179,155 @@ inline int run_generate(const ParsedArgs& a, const Console& con) {
   }
   FrameSink sink(dir / "frames", sheet_picks(plan.frames, slots), video ? &*video : nullptr);
   const auto t0 = std::chrono::steady_clock::now();
-  const RolloutLog log = roll_out(*engine, ctx, window, wc, plan, sink, con);
-  const double seconds = seconds_since(t0);
+  const RolloutLog log = roll_out(engine, ctx, window, wc, plan, sink, con);
+  GeneratedClip g;
+  g.seconds = seconds_since(t0);
 
   std::vector<SheetTile> tiles;
   const auto inputs = static_cast<std::int64_t>(clip.frames.size());
   for (std::int64_t i = 0; i < inputs; ++i) tiles.push_back({clip.frames[static_cast<std::size_t>(i)], true, i - inputs});
   tiles.insert(tiles.end(), sink.kept().begin(), sink.kept().end());
-  const io::Image sheet = contact_sheet(tiles);
-  io::write_png((dir / "contact_sheet.png").string(), sheet);
+  g.sheet = contact_sheet(tiles);
+  io::write_png((dir / "contact_sheet.png").string(), g.sheet);
   io::write_trajectory(dir / "trajectory.json", log.steps);
   io::write_trajectory(dir / "trajectory.csv", log.steps);
   write_pose_csv(dir / "poses.csv", log.motions);
   if (plan.keep_latents)
     io::write_npy(dir / "latents.npy", tokens_to_latent(ctx, log.latents, wc.latent_h(), wc.latent_w()));
-  const std::string video_line = video ? video->finish() : std::string();
+  g.video_line = video ? video->finish() : std::string();
   incomplete.done();
-  print_generate_summary(con.out, dir, wc, plan.frames, seconds, sheet, clip.frames.size(), sink.kept().size(),
-                         plan.actions.has_value(), plan.keep_latents, video_line);
+  g.inputs = clip.frames.size(), g.shown = sink.kept().size();
+  return g;
+}
+
+// The rollout settings of the command line (seed, samplers, actions, frames, decoding).
+inline RolloutPlan rollout_plan(const ParsedArgs& a, const WorldModelConfig& wc) {
+  RolloutPlan plan;
+  const SampleOptions sample = sample_options(a, wc);
+  plan.samplers = samplers_of(sample);
+  plan.seed = sample.seed;
+  plan.actions = read_step_actions(a);
+  plan.frames = frames_to_generate(a, plan.actions);
+  plan.keep_latents = a.flag("latents");
+  return plan;
+}
+
+inline void note_rollout(const Console& con, const ParsedArgs& a, const RolloutPlan& plan, const std::string& what) {
+  con.note("generating ", counted(plan.frames, "frame"), what, ": ", describe(plan.samplers, !plan.actions), ", seed ",
+           plan.seed, ", ",
+           plan.actions ? "actions from " + *a.get("trajectory") : std::string("self-predicted trajectory"), ", decoded ",
+           plan.clip_len > 1 ? "in clips of " + std::to_string(plan.clip_len) : std::string("frame by frame"));
+}
+
+inline std::int64_t decode_clip_length(const ParsedArgs& a, const DcaeConfig& dc) {
+  const bool clip_decode = a.choice("decode", {"clip", "frame"}, "clip") == "clip";
+  return clip_decode && dc.add_decoder_temporal ? dc.condition_frames : 1;
+}
+
+// ---- many clips: generate --clips DIR ---------------------------------------------------------
+
+// The clip folders of --clips (each with frames/ and poses.csv, as `epona synth` writes), every one
+// read and checked before any work.
+inline std::vector<eval::EvalClip> generation_clips(const ParsedArgs& a, const WorldModelConfig& wc) {
+  std::vector<eval::EvalClip> clips;
+  for (const auto& dir : eval::find_clip_folders(*a.get("clips"))) {
+    clips.push_back(eval::read_clip(dir));
+    eval::check_clip(clips.back(), {static_cast<std::size_t>(wc.condition_frames), 0, 0});
+  }
+  return clips;
+}
+
+// This process's share of the clips rolled out, clip i with seed + i, into out/<clip name>/; one
+// summary line per clip.
+inline std::string generate_share(const ParsedArgs& a, const std::vector<eval::EvalClip>& clips, const RolloutPlan& base,
+                                  const ModelFiles& files, const ComputeOptions& compute,
+                                  const std::filesystem::path& out, const dist::ProcessGroup& group, const Console& con) {
+  const WorldModelConfig& wc = files.configs.world;
+  const auto engine = make_engine(compute);
+  cpu::Context ctx(compute.threads);
+  engine->load_dcae(files, con);
+  engine->load_world(files, con);
+  RolloutPlan plan = base;
+  plan.clip_len = decode_clip_length(a, engine->dcae_config());
+  const Console silent{con.out, con.err, true, false};
+  const auto policy = size_policy(a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact"));
+  std::vector<std::size_t> share;
+  dist::for_each_share(clips.size(), group.rank(), group.size(), [&](std::size_t i) { share.push_back(i); });
+  Progress bar(con, "generate", static_cast<std::int64_t>(share.size()), "clip");
+  dist::MessageWriter m;
+  m.put(static_cast<std::uint64_t>(share.size()));
+  for (const std::size_t i : share) {
+    const eval::EvalClip& c = clips[i];
+    const Clip clip = load_clip(c.dir / "frames", c.dir / "poses.csv", wc.condition_frames, wc.image_h, wc.image_w,
+                                policy, max_pixels_option(a));
+    plan.seed = base.seed + i;
+    const std::filesystem::path dir = out / c.name;
+    prepare_output_dir(dir, "--out " + dir.string());
+    const GeneratedClip g = generate_into(*engine, ctx, clip, plan, dir, wc, std::nullopt, silent);
+    m.put(static_cast<std::uint64_t>(i)).put(dir.string() + ": " + counted(plan.frames, "frame") + " in " +
+                                             duration_text(g.seconds) + ", seed " + std::to_string(plan.seed));
+    bar.advance();
+  }
+  return m.bytes();
+}
+
+inline int run_generate_clips(const ParsedArgs& a, const Console& console) {
+  for (const char* single : {"frames", "poses", "video"})
+    if (a.has(single)) usage_fail("--clips and --", single, " do not go together (--", single, " is for one clip)");
+  const dist::Launch launch = dist::launch_from_environment();
+  const auto group = join_job(launch);
+  const Console con = rank_console(console, *group);
+  const ComputeOptions compute = compute_options(a);
+  if (compute.backend == "cuda") assign_gpu(launch, con);
+  const ModelFiles files = resolve_models(a, true, true);
+  const WorldModelConfig& wc = files.configs.world;
+  const RolloutPlan plan = rollout_plan(a, wc);
+  const std::vector<eval::EvalClip> clips = generation_clips(a, wc);
+  const auto out = output_dir(a, "out/generate");
+  note_rollout(con, a, plan, " for each of " + counted(std::int64_t(clips.size()), "clip") + " (clip i: seed + i)" +
+                                 (group->size() > 1 ? ", split over " + std::to_string(group->size()) + " processes" : ""));
+  const std::vector<std::string> by_rank =
+      run_on_every_rank(*group, [&] { return generate_share(a, clips, plan, files, compute, out, *group, con); });
+  if (!group->is_root()) return 0;  // rank 0 reports, and fails for every rank
+  std::vector<std::string> lines(clips.size());
+  for (const auto& bytes : by_rank) {
+    dist::MessageReader m(bytes);
+    for (auto n = m.get<std::uint64_t>(); n > 0; --n) {
+      const auto i = m.get<std::uint64_t>();
+      EPONA_CHECK(i < lines.size(), "internal: clip ", i, " out of range");
+      lines[i] = m.get_string();
+    }
+  }
+  for (const auto& line : lines) con.out << "wrote " << line << "\n";
+  con.out << "generated " << counted(plan.frames, "frame") << " for each of " << counted(std::int64_t(clips.size()), "clip")
+          << " into " << out.string() << "/<clip>/\n";
+  return 0;
+}
+
+// ---- one clip -------------------------------------------------------------------------------
+
+inline int run_generate(const ParsedArgs& a, const Console& con) {
+  if (a.has("clips")) return run_generate_clips(a, con);
+  const dist::Launch launch = dist::launch_from_environment();
+  EPONA_CHECK(!launch.several(), "generate of one clip runs as one process, but ", launch.launcher, " started ",
+              launch.size, ": give --clips DIR to split a clip set over the processes");
+  const ComputeOptions compute = compute_options(a);
+  const ModelFiles files = resolve_models(a, true, true);
+  const WorldModelConfig& wc = files.configs.world;
+  RolloutPlan plan = rollout_plan(a, wc);
+  const std::optional<VideoRequest> video_to = video_request(a);
+  const Clip clip = load_clip_for(a, files, con);
+  const auto dir = output_dir(a, "out/generate");
+
+  const auto engine = make_engine(compute);
+  cpu::Context ctx(compute.threads);
+  engine->load_dcae(files, con);
+  engine->load_world(files, con);
+  plan.clip_len = decode_clip_length(a, engine->dcae_config());
+  note_rollout(con, a, plan, "");
+  const GeneratedClip g = generate_into(*engine, ctx, clip, plan, dir, wc, video_to, con);
+  print_generate_summary(con.out, dir, wc, plan.frames, g.seconds, g.sheet, g.inputs, g.shown, plan.actions.has_value(),
+                         plan.keep_latents, g.video_line);
   return 0;
 }
 

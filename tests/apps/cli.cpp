@@ -561,5 +561,57 @@ TEST_CASE("bad inputs: clear errors, exit 1") {
   check_error(cli({"info", t / "junk.safetensors"}), "junk.safetensors");
 }
 
+// generate --clips: clip i of the set is what generate of that clip alone with seed + i writes.
+TEST_CASE("generate --clips: each clip as generate of it alone, seed + clip index") {
+  TempDir t;
+  const auto& w = golden_configs().world;
+  const fs::path clip = make_clip(t, w.condition_frames, w.condition_frames);
+  for (const char* name : {"a", "b"}) {  // two clip folders of the same frames: only the seed differs
+    fs::create_directories(t.path / "set" / name);
+    fs::copy(clip, t.path / "set" / name / "frames");
+    fs::rename(t.path / "set" / name / "frames" / "poses.csv", t.path / "set" / name / "poses.csv");
+  }
+  const auto run = [&](std::vector<std::string> a) {
+    a.insert(a.begin(), {"generate", "-n", "1", "--steps", "2", "-q"});
+    for (const auto& m : golden_model_args()) a.push_back(m);
+    return cli(a);
+  };
+  const Result set = run({"--clips", t / "set", "--seed", "5", "--out", t / "many"});
+  INFO(set.err);
+  REQUIRE(set.rc == 0);
+  CHECK(has(set.out, "generated 1 frame for each of 2 clips"));
+  for (const auto& [name, seed] : {std::pair{"a", "5"}, std::pair{"b", "6"}}) {
+    const fs::path alone = t.path / (std::string("alone_") + name);
+    const Result r = run({"--frames", (t.path / "set" / name / "frames").string(), "--poses",
+                          (t.path / "set" / name / "poses.csv").string(), "--seed", seed, "--out", alone.string()});
+    REQUIRE(r.rc == 0);
+    CHECK(read_bytes((t.path / "many" / name / "trajectory.json").string()) == read_bytes((alone / "trajectory.json").string()));
+    CHECK(read_bytes((t.path / "many" / name / "frames/frame_0000.png").string()) ==
+          read_bytes((alone / "frames/frame_0000.png").string()));
+  }
+  CHECK(read_bytes((t.path / "many/a/trajectory.json").string()) != read_bytes((t.path / "many/b/trajectory.json").string()));
+  check_error(run({"--clips", t / "set", "--frames", clip.string()}), "--clips and --frames do not go together");
+  check_error(run({"--clips", t / "absent"}), "no such folder");
+}
+
+// Issue #40: a launcher's variables as mpirun sets them. This test program is built without MPI
+// (EPONA_APP_MPI is the epona program's), so eval refuses with how to get MPI; commands that do
+// not split their work refuse first, in any build (tests/apps/mpi_eval.cpp runs the real mpirun).
+TEST_CASE("several processes: refused without MPI, and by commands that do not split their work") {
+  test::TempDir t("epona_cli_mpi");
+  ::setenv("OMPI_COMM_WORLD_SIZE", "2", 1);
+  ::setenv("OMPI_COMM_WORLD_RANK", "1", 1);
+  const Result plan = cli({"plan", "-q", "--out", t / "plan"});
+  const Result eval = cli({"eval", "--clips", t / "none", "--json", t / "r.json", "-q"});
+  ::setenv("OMPI_COMM_WORLD_SIZE", "many", 1);
+  const Result garbled = cli({"eval", "--clips", t / "none", "--json", t / "r.json", "-q"});
+  ::unsetenv("OMPI_COMM_WORLD_SIZE");
+  ::unsetenv("OMPI_COMM_WORLD_RANK");
+  check_error(plan, "plan runs as one process, but openmpi started 2 (this is rank 1)");
+  CHECK_FALSE(fs::exists(t.path / "plan"));
+  check_error(eval, "openmpi started 2 processes (this is rank 1), but this epona was built without MPI");
+  check_error(garbled, "OMPI_COMM_WORLD_SIZE is not a process count or index: 'many'");
+}
+
 // The one translation unit of this program that compiles stb (after every other include).
 #include "epona/io/stb_implementation.hpp"
