@@ -4,7 +4,7 @@
 set -euo pipefail
 packages=(g++ cmake ninja-build pkg-config libeigen3-dev libxsimd-dev doctest-dev libstb-dev
           nlohmann-json3-dev libbenchmark-dev clang libclang-rt-14-dev
-          libavcodec-dev libavformat-dev libavutil-dev libswscale-dev
+          libavcodec-dev libavformat-dev libavutil-dev libswscale-dev libopenmpi-dev openmpi-bin
           python3-dev pybind11-dev python3-numpy python3-pytest)
 missing=()
 for p in "${packages[@]}"; do
