@@ -3,6 +3,7 @@
 // the GPU test of the engine, so both run the same construction.
 #pragma once
 
+#include <cstdlib>
 #include <memory>
 
 #include "epona/cuda/backend.cuh"
@@ -25,6 +26,7 @@ std::unique_ptr<Engine> build(const ComputeOptions& c) {
 
 inline std::unique_ptr<Engine> build_cuda_engine(const ComputeOptions& c) {
   EPONA_CHECK(cuda::has_gpu(), "--backend cuda: no CUDA device is available (driver and GPU needed); use --backend cpu");
+  if (c.reproducible && !std::getenv("EPONA_CUDA_GEMM_TUNE")) cuda::set_gemm_tuning(cuda::GemmTuning::Off);
   return c.bf16_weights ? cuda_engine_detail::build<bf16>(c) : cuda_engine_detail::build<float>(c);
 }
 

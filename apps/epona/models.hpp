@@ -69,6 +69,10 @@ struct ComputeOptions {
   std::string backend = "cpu";
   bool bf16_weights = false;  // --dtype bfloat16: weights stored in bf16, activations in float32
   int threads = 0;            // 0: all hardware threads
+  // Kernels chosen without timing them (on the GPU: cuBLASLt's heuristic first choice for every
+  // product), so that every run and every process of a job computes alike: timing picks the
+  // fastest candidate, which can differ between processes. EPONA_CUDA_GEMM_TUNE overrides it.
+  bool reproducible = true;
 };
 
 // --threads beyond a few per hardware thread only slows the work (4096 on 2 cores ran 50x slower).
