@@ -609,53 +609,28 @@ inline std::vector<eval::EvalClip> read_clip_set(const EvalOptions& o, const Wor
   return clips;
 }
 
-// This process's share of the clips scored (every clip when alone), as one message of
-// (clip index, scores) pairs.
+// This process's share of the clips scored (every clip when alone), as one message.
 inline std::string score_share(const std::vector<eval::EvalClip>& clips, const EvalOptions& opt, const ModelFiles& files,
-                               const ComputeOptions& compute, const dist::ProcessGroup& group, const Console& con) {
+                               const ComputeOptions& compute, const Job& job) {
+  const Console& con = job.con;
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);
   engine->load_dcae(files, con);
   engine->load_world(files, con);
   const Console silent{con.out, con.err, true, false};
   const EvalContext e{*engine, ctx, files.configs.world, opt, size_policy(opt.fit), silent};
-  std::vector<std::size_t> share;
-  dist::for_each_share(clips.size(), group.rank(), group.size(), [&](std::size_t i) { share.push_back(i); });
-  dist::MessageWriter m;
-  m.put(static_cast<std::uint64_t>(share.size()));
-  Progress bar(con, "eval    ", static_cast<std::int64_t>(share.size()), "clip");
-  for (const std::size_t i : share) {
-    put_scores(m.put(static_cast<std::uint64_t>(i)), evaluate_clip(clips[i], opt.sample.seed + i, e));
+  const auto share = dist::share_size(clips.size(), job.group->rank(), job.group->size());
+  Progress bar(con, "eval    ", static_cast<std::int64_t>(share), "clip");
+  return share_message(*job.group, clips.size(), [&](std::size_t i, dist::MessageWriter& m) {
+    put_scores(m, evaluate_clip(clips[i], opt.sample.seed + i, e));
     bar.advance();
-  }
-  return m.bytes();
-}
-
-// Every rank's scores put back in clip order.
-inline std::vector<ClipScores> scores_in_clip_order(const std::vector<std::string>& by_rank, std::size_t clips) {
-  std::vector<std::optional<ClipScores>> slots(clips);
-  for (const auto& bytes : by_rank) {
-    dist::MessageReader m(bytes);
-    for (auto n = m.get<std::uint64_t>(); n > 0; --n) {
-      const auto i = m.get<std::uint64_t>();
-      EPONA_CHECK(i < clips && !slots[i], "internal: clip ", i, " came back twice or out of range");
-      slots[i] = get_scores(m);
-    }
-  }
-  std::vector<ClipScores> out;
-  for (std::size_t i = 0; i < clips; ++i) {
-    EPONA_CHECK(slots[i].has_value(), "internal: no process scored clip ", i);
-    out.push_back(std::move(*slots[i]));
-  }
-  return out;
+  });
 }
 
 inline int run_eval(const ParsedArgs& a, const Console& console) {
-  const dist::Launch launch = dist::launch_from_environment();
-  const auto group = join_job(launch);
-  const Console con = rank_console(console, *group);
   const ComputeOptions compute = compute_options(a);
-  if (compute.backend == "cuda") assign_gpu(launch, con);
+  const Job job = join_job(console, compute);
+  const Console& con = job.con;
   const ModelFiles files = resolve_models(a, true, true);
   const WorldModelConfig& wc = files.configs.world;
   const EvalOptions opt = eval_options(a, files.configs);
@@ -666,16 +641,14 @@ inline int run_eval(const ParsedArgs& a, const Console& console) {
            describe(opt.samplers, opt.plan, opt.video || opt.control), ", seed ", opt.sample.seed, " + clip index",
            opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"),
            opt.control ? ", control at +-" + std::to_string(opt.control_yaw) + " deg" : std::string(),
-           opt.plan && opt.planning.hypotheses > 1 ? ", " + describe(opt.planning) : std::string(),
-           group->size() > 1 ? ", split over " + std::to_string(group->size()) + " processes (" + launch.launcher + ")"
-                             : std::string());
+           opt.plan && opt.planning.hypotheses > 1 ? ", " + describe(opt.planning) : std::string(), job.split_note());
 
   const std::vector<std::string> by_rank =
-      run_on_every_rank(*group, [&] { return score_share(clips, opt, files, compute, *group, con); });
-  if (!group->is_root()) return 0;  // rank 0 reports, and fails for every rank
-  const std::vector<ClipScores> scores = scores_in_clip_order(by_rank, clips.size());
+      run_on_every_rank(*job.group, [&] { return score_share(clips, opt, files, compute, job); });
+  if (!job.group->is_root()) return 0;  // rank 0 reports, and fails for every rank
+  const auto scores = items_in_order<ClipScores>(by_rank, clips.size(), get_scores);
   auto settings = settings_json(a, files, compute, opt, wc);
-  settings["processes"] = group->size();
+  settings["processes"] = job.group->size();
   const auto report = report_json(scores, settings, opt);
   io::write_atomically(opt.json, report.dump(2) + "\n");
   print_eval_table(con.out, report, opt.plan, opt.video);

@@ -241,7 +241,8 @@ inline std::vector<eval::EvalClip> generation_clips(const ParsedArgs& a, const W
 // summary line per clip.
 inline std::string generate_share(const ParsedArgs& a, const std::vector<eval::EvalClip>& clips, const RolloutPlan& base,
                                   const ModelFiles& files, const ComputeOptions& compute,
-                                  const std::filesystem::path& out, const dist::ProcessGroup& group, const Console& con) {
+                                  const std::filesystem::path& out, const Job& job) {
+  const Console& con = job.con;
   const WorldModelConfig& wc = files.configs.world;
   const auto engine = make_engine(compute);
   cpu::Context ctx(compute.threads);
@@ -251,12 +252,9 @@ inline std::string generate_share(const ParsedArgs& a, const std::vector<eval::E
   plan.clip_len = decode_clip_length(a, engine->dcae_config());
   const Console silent{con.out, con.err, true, false};
   const auto policy = size_policy(a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact"));
-  std::vector<std::size_t> share;
-  dist::for_each_share(clips.size(), group.rank(), group.size(), [&](std::size_t i) { share.push_back(i); });
-  Progress bar(con, "generate", static_cast<std::int64_t>(share.size()), "clip");
-  dist::MessageWriter m;
-  m.put(static_cast<std::uint64_t>(share.size()));
-  for (const std::size_t i : share) {
+  const auto share = dist::share_size(clips.size(), job.group->rank(), job.group->size());
+  Progress bar(con, "generate", static_cast<std::int64_t>(share), "clip");
+  return share_message(*job.group, clips.size(), [&](std::size_t i, dist::MessageWriter& m) {
     const eval::EvalClip& c = clips[i];
     const Clip clip = load_clip(c.dir / "frames", c.dir / "poses.csv", wc.condition_frames, wc.image_h, wc.image_w,
                                 policy, max_pixels_option(a));
@@ -264,41 +262,30 @@ inline std::string generate_share(const ParsedArgs& a, const std::vector<eval::E
     const std::filesystem::path dir = out / c.name;
     prepare_output_dir(dir, "--out " + dir.string());
     const GeneratedClip g = generate_into(*engine, ctx, clip, plan, dir, wc, std::nullopt, silent);
-    m.put(static_cast<std::uint64_t>(i)).put(dir.string() + ": " + counted(plan.frames, "frame") + " in " +
-                                             duration_text(g.seconds) + ", seed " + std::to_string(plan.seed));
+    m.put(dir.string() + ": " + counted(plan.frames, "frame") + " in " + duration_text(g.seconds) + ", seed " +
+          std::to_string(plan.seed));
     bar.advance();
-  }
-  return m.bytes();
+  });
 }
 
 inline int run_generate_clips(const ParsedArgs& a, const Console& console) {
   for (const char* single : {"frames", "poses", "video"})
     if (a.has(single)) usage_fail("--clips and --", single, " do not go together (--", single, " is for one clip)");
-  const dist::Launch launch = dist::launch_from_environment();
-  const auto group = join_job(launch);
-  const Console con = rank_console(console, *group);
   const ComputeOptions compute = compute_options(a);
-  if (compute.backend == "cuda") assign_gpu(launch, con);
+  const Job job = join_job(console, compute);
+  const Console& con = job.con;
   const ModelFiles files = resolve_models(a, true, true);
   const WorldModelConfig& wc = files.configs.world;
   const RolloutPlan plan = rollout_plan(a, wc);
   const std::vector<eval::EvalClip> clips = generation_clips(a, wc);
   const auto out = output_dir(a, "out/generate");
   note_rollout(con, a, plan, " for each of " + counted(std::int64_t(clips.size()), "clip") + " (clip i: seed + i)" +
-                                 (group->size() > 1 ? ", split over " + std::to_string(group->size()) + " processes" : ""));
+                                 job.split_note());
   const std::vector<std::string> by_rank =
-      run_on_every_rank(*group, [&] { return generate_share(a, clips, plan, files, compute, out, *group, con); });
-  if (!group->is_root()) return 0;  // rank 0 reports, and fails for every rank
-  std::vector<std::string> lines(clips.size());
-  for (const auto& bytes : by_rank) {
-    dist::MessageReader m(bytes);
-    for (auto n = m.get<std::uint64_t>(); n > 0; --n) {
-      const auto i = m.get<std::uint64_t>();
-      EPONA_CHECK(i < lines.size(), "internal: clip ", i, " out of range");
-      lines[i] = m.get_string();
-    }
-  }
-  for (const auto& line : lines) con.out << "wrote " << line << "\n";
+      run_on_every_rank(*job.group, [&] { return generate_share(a, clips, plan, files, compute, out, job); });
+  if (!job.group->is_root()) return 0;  // rank 0 reports, and fails for every rank
+  const auto get_line = [](dist::MessageReader& m) { return m.get_string(); };
+  for (const auto& line : items_in_order<std::string>(by_rank, clips.size(), get_line)) con.out << "wrote " << line << "\n";
   con.out << "generated " << counted(plan.frames, "frame") << " for each of " << counted(std::int64_t(clips.size()), "clip")
           << " into " << out.string() << "/<clip>/\n";
   return 0;

@@ -11,10 +11,12 @@
 #include <filesystem>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "console.hpp"
+#include "models.hpp"
 #include "epona/core/error.hpp"
 #include "epona/dist/launch.hpp"
 #include "epona/dist/message.hpp"
@@ -121,9 +123,60 @@ inline std::vector<std::string> run_on_every_rank(dist::ProcessGroup& g, const s
   return by_rank;
 }
 
-// The console of a rank: rank 0 speaks, the others only fail (rank 0 names their errors too).
-inline Console rank_console(const Console& con, const dist::ProcessGroup& g) {
-  return g.is_root() ? con : Console{con.out, con.err, true, false};
+// A process's place in its job: the launch, the group, and its console (rank 0 speaks; the others
+// only fail, and rank 0 names their errors too).
+struct Job {
+  dist::Launch launch;
+  std::unique_ptr<dist::ProcessGroup> group;
+  Console con;
+  bool several() const { return group->size() > 1; }
+  // ", split over N processes (launcher)" for the notes; empty alone.
+  std::string split_note() const {
+    return several() ? ", split over " + std::to_string(group->size()) + " processes (" + launch.launcher + ")" : "";
+  }
+};
+
+// Joins the job this process was launched in (alone without a launcher), and on a GPU host takes
+// this rank's GPU before anything starts CUDA.
+inline Job join_job(const Console& console, const ComputeOptions& compute) {
+  const dist::Launch launch = dist::launch_from_environment();
+  auto group = join_job(launch);
+  const bool root = group->is_root();
+  Job j{launch, std::move(group), root ? console : Console{console.out, console.err, true, false}};
+  if (compute.backend == "cuda") assign_gpu(j.launch, j.con);
+  return j;
+}
+
+// This rank's share of `count` items, each written by `put(i, message)` after its index, as one
+// message for run_on_every_rank.
+template <class Put>
+std::string share_message(const dist::ProcessGroup& g, std::size_t count, Put&& put) {
+  std::vector<std::size_t> share;
+  dist::for_each_share(count, g.rank(), g.size(), [&](std::size_t i) { share.push_back(i); });
+  dist::MessageWriter m;
+  m.put(static_cast<std::uint64_t>(share.size()));
+  for (const std::size_t i : share) put(i, m.put(static_cast<std::uint64_t>(i)));
+  return m.bytes();
+}
+
+// Every rank's share_message read back into item order by `get(message)`; each item exactly once.
+template <class T, class Get>
+std::vector<T> items_in_order(const std::vector<std::string>& by_rank, std::size_t count, Get&& get) {
+  std::vector<std::optional<T>> slots(count);
+  for (const auto& bytes : by_rank) {
+    dist::MessageReader m(bytes);
+    for (auto n = m.get<std::uint64_t>(); n > 0; --n) {
+      const auto i = m.get<std::uint64_t>();
+      EPONA_CHECK(i < count && !slots[i], "internal: item ", i, " came back twice or out of range");
+      slots[i] = get(m);
+    }
+  }
+  std::vector<T> out;
+  for (std::size_t i = 0; i < count; ++i) {
+    EPONA_CHECK(slots[i].has_value(), "internal: no process returned item ", i);
+    out.push_back(std::move(*slots[i]));
+  }
+  return out;
 }
 
 }  // namespace epona::app

@@ -116,6 +116,7 @@ TEST_CASE("the shares cover every item once, differing by at most one") {
       for (int rank = 0; rank < size; ++rank) {
         std::size_t n = 0;
         dist::for_each_share(count, rank, size, [&](std::size_t i) { ++taken[i], ++n; });
+        CHECK(n == dist::share_size(count, rank, size));
         per_rank.push_back(n);
       }
       for (int t : taken) CHECK(t == 1);

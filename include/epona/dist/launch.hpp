@@ -71,4 +71,9 @@ void for_each_share(std::size_t count, int rank, int size, F&& f) {
   for (std::size_t i = static_cast<std::size_t>(rank); i < count; i += static_cast<std::size_t>(size)) f(i);
 }
 
+// How many items for_each_share gives `rank`.
+inline std::size_t share_size(std::size_t count, int rank, int size) {
+  return (count + static_cast<std::size_t>(size - 1 - rank)) / static_cast<std::size_t>(size);
+}
+
 }  // namespace epona::dist
