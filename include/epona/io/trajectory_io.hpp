@@ -5,7 +5,7 @@
 //
 // Waypoint n of step s is the ego pose n+1 frames after that step's current frame, in the ego
 // frame of the current frame (cumulative, not frame-to-frame): x forward, y left, yaw positive =
-// turning left (sampling-and-rollout.md sections 5, 7). At 5 Hz the 15 waypoints span 3 s.
+// turning left (docs/api.md). At 5 Hz the 15 waypoints span 3 s.
 #pragma once
 
 #include <charconv>
