@@ -19,9 +19,9 @@
 #include "models.hpp"
 #include "rollout_common.hpp"
 #include "video_output.hpp"
+#include "epona/domain/trajectory_io.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/npy.hpp"
-#include "epona/io/trajectory_io.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/rollout.hpp"
 

@@ -1,4 +1,4 @@
-// epona/io/poses.hpp — the per-frame ego motion a user gives with a clip: CSV, JSON, the
+// epona/domain/poses.hpp — the per-frame ego motion a user gives with a clip: CSV, JSON, the
 // official demo's pose.npy + yaw.npy (dataset/dataset_demo.py), or absolute 4x4 ego-to-world
 // poses turned into motions by get_rel_pose (utils/preprocess.py). Every reader validates
 // (finite numbers, column counts, matching lengths) and names the file and row in its errors.

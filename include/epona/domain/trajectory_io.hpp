@@ -1,4 +1,4 @@
-// epona/io/trajectory_io.hpp — planned trajectories to and from files: TrajDiT's denormalised
+// epona/domain/trajectory_io.hpp — planned trajectories to and from files: TrajDiT's denormalised
 // output (S steps x W = 15 waypoints x [x m, y m, yaw deg], what test_free.py saves as
 // pred_traj.pt) as CSV, JSON or .npy (written under a temp name, then renamed), read back
 // exactly (shortest round-trip decimals), and turned into per-step actions for a replay.
@@ -22,9 +22,9 @@
 
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/domain/poses.hpp"
 #include "epona/io/atomic_file.hpp"
 #include "epona/io/npy.hpp"
-#include "epona/io/poses.hpp"
 
 namespace epona::io {
 
