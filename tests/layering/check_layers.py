@@ -3,7 +3,7 @@
 
 The map is the table between the `layer-map` markers of docs/architecture.md: one row per
 folder of include/epona, saying which other folders its headers may include. This script reads
-that table, scans every `#include "epona/..."` of every header under include/epona, and fails,
+that table, scans every `#include "epona/..."` (or <epona/...>) of every header under include/epona, and fails,
 naming each offending edge (file:line, its layer, the included layer), when a header includes
 a folder its row does not list, when a folder is missing from the map, when an included header
 does not exist, or when headers include each other in a cycle.
@@ -24,7 +24,7 @@ import unittest
 MAP_BEGIN = "<!-- layer-map:begin -->"
 MAP_END = "<!-- layer-map:end -->"
 HEADER_SUFFIXES = (".hpp", ".h", ".cuh")
-INCLUDE_RE = re.compile(r'^\s*#\s*include\s*"epona/([^"]+)"')
+INCLUDE_RE = re.compile(r'^\s*#\s*include\s*[<"]epona/([^">]+)[">]')
 
 
 def strip_cell(cell):
@@ -199,6 +199,11 @@ class SelfTest(unittest.TestCase):
         self.assertEqual(len(problems), 1)
         self.assertIn("include/epona/low/a.hpp:3: layer low includes layer high", problems[0])
         self.assertEqual(main(["check_layers.py", repo]), 1)
+
+    def test_angle_bracket_include_is_checked(self):
+        repo = self.make_tree({"include/epona/low/a.hpp": "#include <epona/high/b.hpp>\n",
+                               "include/epona/high/b.hpp": "#pragma once\n"})
+        self.assertEqual(len(check(repo)), 1)
 
     def test_cycle_fails(self):
         repo = self.make_tree({"include/epona/low/a.hpp": '#include "epona/low/b.hpp"\n',
