@@ -15,7 +15,7 @@
 #include <vector>
 
 #include "epona/cpu/context.hpp"
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/model/dcae.hpp"

@@ -1,7 +1,7 @@
 // fuzz/fuzz_config_json.cpp — parse_configs (both layouts, every key's type and range, validate()
 // with its size limits) on arbitrary text; an accepted config must survive to_json -> parse
 // unchanged.
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "fuzz_common.hpp"
 
 EPONA_FUZZ_TARGET(config_json) {

@@ -1,6 +1,6 @@
 // fuzz/fuzz_poses_csv.cpp — parse_pose_csv (line walker, comments, BOM, header detection and
 // column order, number parsing, float32 range) on arbitrary text.
-#include "epona/io/poses.hpp"
+#include "epona/domain/poses.hpp"
 #include "fuzz_common.hpp"
 
 EPONA_FUZZ_TARGET(poses_csv) {

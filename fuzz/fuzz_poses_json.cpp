@@ -1,6 +1,6 @@
 // fuzz/fuzz_poses_json.cpp — parse_pose_json (the list, object and {"poses"}/{"absolute"} forms,
 // 4x4 matrices through get_rel_pose, float32 range) on arbitrary text.
-#include "epona/io/poses.hpp"
+#include "epona/domain/poses.hpp"
 #include "fuzz_common.hpp"
 
 EPONA_FUZZ_TARGET(poses_json) {

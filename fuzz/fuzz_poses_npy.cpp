@@ -8,7 +8,7 @@
 #include <filesystem>
 #include <fstream>
 
-#include "epona/io/trajectory_io.hpp"
+#include "epona/domain/trajectory_io.hpp"
 #include "fuzz_common.hpp"
 
 namespace poses_npy_target {

@@ -3,7 +3,7 @@
 // through trajectory_to_csv.
 #include <cstring>
 
-#include "epona/io/trajectory_io.hpp"
+#include "epona/domain/trajectory_io.hpp"
 #include "fuzz_common.hpp"
 
 EPONA_FUZZ_TARGET(trajectory_csv) {

@@ -2,7 +2,7 @@
 // on arbitrary text; an accepted trajectory must round-trip bit-exactly through trajectory_to_json.
 #include <cstring>
 
-#include "epona/io/trajectory_io.hpp"
+#include "epona/domain/trajectory_io.hpp"
 #include "fuzz_common.hpp"
 
 EPONA_FUZZ_TARGET(trajectory_json) {

@@ -14,16 +14,16 @@
 
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/context.hpp"
+#include "epona/domain/poses.hpp"
+#include "epona/domain/world_session.hpp"
 #include "epona/io/image.hpp"
-#include "epona/io/poses.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
-#include "epona/model/world_session.hpp"
 #include "epona/models.hpp"
 
 namespace epona::python {
 
-// A WorldSession on a loaded model (see epona/model/world_session.hpp).
+// A WorldSession on a loaded model (see epona/domain/world_session.hpp).
 class SessionApi {
  public:
   virtual ~SessionApi() = default;

@@ -5,8 +5,8 @@
 
 // First: trajectory_io.hpp and poses.hpp name `detail::concat` unqualified, which resolves to
 // epona::io::detail (no concat) once config_json.hpp has declared that namespace.
-#include "epona/io/poses.hpp"
-#include "epona/io/trajectory_io.hpp"
+#include "epona/domain/poses.hpp"
+#include "epona/domain/trajectory_io.hpp"
 
 #include <exception>
 #include <filesystem>

@@ -13,10 +13,10 @@
 #include "output_paths.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/flow/solvers.hpp"
-#include "epona/io/poses.hpp"
+#include "epona/domain/poses.hpp"
 #include "epona/model/plan_choice.hpp"
 #include "epona/model/world_model.hpp"
-#include "epona/model/world_session.hpp"
+#include "epona/domain/world_session.hpp"
 
 namespace epona::app {
 

@@ -20,10 +20,10 @@
 #include "rollout_common.hpp"
 #include "processes.hpp"
 #include "video_output.hpp"
+#include "epona/domain/trajectory_io.hpp"
 #include "epona/eval/clip_set.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/npy.hpp"
-#include "epona/io/trajectory_io.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/rollout.hpp"
 

@@ -17,7 +17,7 @@
 #include "inspect.hpp"
 #include "models.hpp"
 #include "epona/core/printable.hpp"
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"

@@ -14,8 +14,8 @@
 #include "engine.hpp"
 #include "frames.hpp"
 #include "models.hpp"
+#include "epona/domain/trajectory_io.hpp"
 #include "epona/io/image.hpp"
-#include "epona/io/trajectory_io.hpp"
 
 namespace epona::app {
 

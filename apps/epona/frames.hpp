@@ -1,7 +1,7 @@
 // apps/epona/frames.hpp — the input clip of plan/generate: a folder of frames (PNG/JPEG, in
 // natural name order) and a poses file with one motion per frame; the last F frames of the
 // model's window are fitted to the model's image size and encoded (model::make_window, in
-// model/world_session.hpp, makes the window from them).
+// domain/world_session.hpp, makes the window from them).
 #pragma once
 
 #include <algorithm>
@@ -16,10 +16,10 @@
 #include "engine.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/context.hpp"
+#include "epona/domain/poses.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/image_folder.hpp"
 #include "epona/io/limits.hpp"
-#include "epona/io/poses.hpp"
 
 namespace epona::app {
 

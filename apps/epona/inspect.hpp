@@ -15,7 +15,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
 

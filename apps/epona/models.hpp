@@ -16,7 +16,7 @@
 #include "args.hpp"
 #include "inspect.hpp"
 #include "epona/core/dtype.hpp"
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/io/limits.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/model/dcae.hpp"

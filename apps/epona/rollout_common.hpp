@@ -13,12 +13,12 @@
 #include "engine.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/context.hpp"
+#include "epona/domain/poses.hpp"
+#include "epona/domain/world_session.hpp"
 #include "epona/io/image.hpp"
-#include "epona/io/poses.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
-#include "epona/model/world_session.hpp"
 
 namespace epona::app {
 

@@ -19,14 +19,11 @@
 #include "epona/flow/schedule.hpp"
 #include "epona/flow/solvers.hpp"
 
-#include "epona/io/config_json.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/npy.hpp"
-#include "epona/io/poses.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/io/torch_checkpoint.hpp"
-#include "epona/io/trajectory_io.hpp"
 // epona/io/video_writer.hpp is left out: it needs FFmpeg's libraries (CMake: epona_ffmpeg).
 
 #include "epona/model/config.hpp"
@@ -36,4 +33,8 @@
 #include "epona/model/relative_pose.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
-#include "epona/model/world_session.hpp"
+
+#include "epona/domain/config_json.hpp"
+#include "epona/domain/poses.hpp"
+#include "epona/domain/trajectory_io.hpp"
+#include "epona/domain/world_session.hpp"

@@ -20,10 +20,10 @@
 #include "../../apps/epona/cli.hpp"
 #include "../temp_dir.hpp"
 #include "cli_testing.hpp"
+#include "epona/domain/trajectory_io.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
-#include "epona/io/trajectory_io.hpp"
 #include "epona/model/rollout.hpp"
 
 namespace fs = std::filesystem;

@@ -15,7 +15,7 @@
 
 #include "../temp_dir.hpp"
 #include "cli_testing.hpp"
-#include "epona/io/trajectory_io.hpp"
+#include "epona/domain/trajectory_io.hpp"
 
 namespace fs = std::filesystem;
 using namespace epona;

@@ -17,8 +17,8 @@
 #include "epona/cuda/backend.cuh"
 #include "epona/cuda/dcae_ops.cuh"
 #include "epona/cuda/scratch.hpp"
+#include "epona/domain/world_session.hpp"
 #include "epona/model/rollout.hpp"
-#include "epona/model/world_session.hpp"
 
 using namespace epona;
 using epona::test::rel_max;

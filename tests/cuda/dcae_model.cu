@@ -18,7 +18,7 @@
 #include "dcae_testing.cuh"
 #include "../metrics.hpp"
 #include "epona/cuda/backend.cuh"
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/model/dcae.hpp"
 

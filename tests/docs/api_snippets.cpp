@@ -8,16 +8,16 @@
 #include <vector>
 
 #include "epona/cpu/context.hpp"
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
+#include "epona/domain/poses.hpp"
+#include "epona/domain/world_session.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/load_weights.hpp"
-#include "epona/io/poses.hpp"
 #include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/plan_choice.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
-#include "epona/model/world_session.hpp"
 
 namespace epona::api_snippets {
 

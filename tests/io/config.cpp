@@ -1,4 +1,4 @@
-// Tests for epona/model/config.hpp and epona/io/config_json.hpp: the golden configs.json is
+// Tests for epona/model/config.hpp and epona/domain/config_json.hpp: the golden configs.json is
 // read and every value compared with the JSON itself (generic, no numbers of this set), the
 // derived sizes with its "derived"/"mst"/"vis_dit"/"traj_dit"/"dcae" sections, the parameter
 // counts with the weights listed in manifest.json; defaults equal the shipped model; every
@@ -10,7 +10,7 @@
 #include <functional>
 #include <string>
 
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/model/config.hpp"
 
 using namespace epona;

@@ -1,4 +1,4 @@
-// Tests for epona/io/poses.hpp: every accepted input form read back to the exact numbers it
+// Tests for epona/domain/poses.hpp: every accepted input form read back to the exact numbers it
 // holds (CSV/JSON values are parsed as double and rounded to fp32 once), absolute poses
 // against the torch float32 references of scripts/make_pose_fixtures.py (tolerance
 // 1e-5·max(1, |want|)), and every malformed input ending in an error that names file and row.
@@ -11,7 +11,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "epona/io/poses.hpp"
+#include "epona/domain/poses.hpp"
 
 using namespace epona;
 namespace fs = std::filesystem;

@@ -1,4 +1,4 @@
-// Tests for epona/io/trajectory_io.hpp: planned trajectories written as CSV/JSON/.npy read back
+// Tests for epona/domain/trajectory_io.hpp: planned trajectories written as CSV/JSON/.npy read back
 // bit-exactly (shortest round-trip decimals), the files' layout, per-step actions for a replay,
 // and malformed files ending in errors that name the file and line/step.
 #include <doctest/doctest.h>
@@ -11,7 +11,7 @@
 #include <random>
 #include <string>
 
-#include "epona/io/trajectory_io.hpp"
+#include "epona/domain/trajectory_io.hpp"
 
 using namespace epona;
 namespace fs = std::filesystem;

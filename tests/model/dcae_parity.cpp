@@ -14,7 +14,7 @@
 
 #include "../metrics.hpp"
 #include "epona/cpu/context.hpp"
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/model/dcae.hpp"

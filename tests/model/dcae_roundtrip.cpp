@@ -12,7 +12,7 @@
 #include <unistd.h>
 
 #include "epona/cpu/context.hpp"
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/io/stb_implementation.hpp"

@@ -12,7 +12,7 @@
 
 #include "../metrics.hpp"
 #include "epona/core/tensor.hpp"
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/io/tensor_map.hpp"

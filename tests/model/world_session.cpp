@@ -11,12 +11,12 @@
 #include <string>
 #include <vector>
 
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
+#include "epona/domain/poses.hpp"
+#include "epona/domain/world_session.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/load_weights.hpp"
-#include "epona/io/poses.hpp"
 #include "epona/model/rollout.hpp"
-#include "epona/model/world_session.hpp"
 #include "../error_text.hpp"
 
 using namespace epona;

@@ -20,10 +20,10 @@
 #include <thread>
 #include <vector>
 
+#include "epona/domain/trajectory_io.hpp"
 #include "epona/io/atomic_file.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
-#include "epona/io/trajectory_io.hpp"
 
 using namespace epona;
 namespace fs = std::filesystem;

@@ -18,9 +18,9 @@
 
 #include <nlohmann/json.hpp>
 
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
+#include "epona/domain/poses.hpp"
 #include "epona/io/npy.hpp"
-#include "epona/io/poses.hpp"
 
 using namespace epona;
 using nlohmann::json;

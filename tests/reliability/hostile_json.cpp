@@ -10,12 +10,12 @@
 #include <string>
 
 #include "../temp_dir.hpp"
+#include "epona/domain/config_json.hpp"
+#include "epona/domain/poses.hpp"
+#include "epona/domain/trajectory_io.hpp"
 #include "epona/eval/clip_set.hpp"
-#include "epona/io/config_json.hpp"
 #include "epona/io/json_reader.hpp"
-#include "epona/io/poses.hpp"
 #include "epona/io/safetensors.hpp"
-#include "epona/io/trajectory_io.hpp"
 
 using namespace epona;
 

@@ -11,11 +11,11 @@
 #include <fstream>
 #include <iterator>
 
-#include "epona/io/config_json.hpp"
+#include "epona/domain/config_json.hpp"
+#include "epona/domain/poses.hpp"
+#include "epona/domain/trajectory_io.hpp"
 #include "epona/io/image.hpp"  // stb_image_write.h too
 #include "epona/io/limits.hpp"
-#include "epona/io/poses.hpp"
-#include "epona/io/trajectory_io.hpp"
 
 using namespace epona;
 

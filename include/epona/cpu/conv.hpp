@@ -14,25 +14,11 @@
 #include <type_traits>
 #include <vector>
 
+#include "epona/core/shapes.hpp"
 #include "epona/cpu/context.hpp"
 #include "epona/cpu/activation.hpp"
 #include "epona/cpu/conv_winograd.hpp"
 #include "epona/cpu/gemm.hpp"
-
-namespace epona {
-
-// Activation fused after a convolution or norm (the DC-AE uses ReLU and SiLU only). Backend
-// neutral, like the shape structs below, so that every backend's kernels take the same types.
-enum class ConvAct { None, Relu, Silu };
-
-// Geometry of a stride-1 convolution with zero padding kernel/2 on every side.
-// Weight layout [out, in/groups, kernel, kernel] (PyTorch), bias [out] or null.
-struct Conv2dShape {
-  std::int64_t batch = 1, in_channels = 0, height = 0, width = 0;
-  std::int64_t out_channels = 0, kernel = 1, groups = 1;
-};
-
-}  // namespace epona
 
 namespace epona::cpu {
 
@@ -65,17 +51,6 @@ inline constexpr std::int64_t kPanelFloats = std::int64_t{1} << 20;
 // Narrowest task worth its own GEMM (output columns), and tasks per thread for load balance.
 inline constexpr std::int64_t kMinTaskColumns = 256;
 inline constexpr std::int64_t kTasksPerThread = 2;
-
-inline void check_shape(const Conv2dShape& s) {
-  EPONA_CHECK(s.batch >= 0 && s.in_channels > 0 && s.out_channels > 0 && s.height > 0 && s.width > 0,
-              "conv2d: bad geometry N=", s.batch, " C=", s.in_channels, " H=", s.height, " W=", s.width,
-              " O=", s.out_channels);
-  EPONA_CHECK(s.kernel >= 1 && s.kernel % 2 == 1, "conv2d: kernel size must be odd (same padding), got ",
-              s.kernel);
-  EPONA_CHECK(s.groups >= 1 && s.in_channels % s.groups == 0 && s.out_channels % s.groups == 0,
-              "conv2d: groups=", s.groups, " must divide in_channels=", s.in_channels, " and out_channels=",
-              s.out_channels);
-}
 
 // Weights as float32: a view for float, a widened copy for bf16 (accumulation stays fp32).
 template <class W>
@@ -327,7 +302,7 @@ inline void conv_depthwise(const float* in, std::int64_t planes, std::int64_t ch
 template <class W>
 void conv2d(Context& ctx, const float* x, const W* weight, const float* bias, float* y, const Conv2dShape& s,
             ConvAct act = ConvAct::None) {
-  conv_detail::check_shape(s);
+  check_conv2d_shape(s);
   const std::int64_t cin_g = s.in_channels / s.groups, cout_g = s.out_channels / s.groups;
   const std::int64_t HW = s.height * s.width, k = s.kernel;
   const gemm::KernelFamily* family = detail::kernel_family<float>(active_isa(), HW);
@@ -408,9 +383,8 @@ inline void gated_act(Context&, const float* value, const float* gate, float* ou
     }
 }
 
-// Evaluation order of the linear attention: Auto is the reference's choice (Linear when
-// H·W > d, else Quadratic); the others force one order (tests compare the two).
-enum class AttentionOrder { Auto, Linear, Quadratic };
+// LiteMLA's evaluation order is backend neutral (core/shapes.hpp); cpu::AttentionOrder names it.
+using epona::AttentionOrder;
 
 // LiteMLA's ReLU linear attention. qkv (N, heads·3·d, HW) holds, per head a, q in channels
 // [3da, 3da+d), k in [3da+d, 3da+2d), v in [3da+2d, 3da+3d); out (N, heads·d, HW), head a in

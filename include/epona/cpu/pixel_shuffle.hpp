@@ -7,16 +7,8 @@
 #include <algorithm>
 #include <cstdint>
 
+#include "epona/core/shapes.hpp"
 #include "epona/cpu/context.hpp"
-
-namespace epona {
-
-// Geometry of a (un)shuffle: input (batch, channels, height, width), factor r.
-struct ShuffleShape {
-  std::int64_t batch = 1, channels = 0, height = 0, width = 0, factor = 1;
-};
-
-}  // namespace epona
 
 namespace epona::cpu {
 

@@ -1,12 +1,12 @@
 // epona/cuda/attention_wgmma.cuh — the Hopper (sm_90a) flash-attention kernels for bf16 with
 // head dim 128: warpgroup MMA (wgmma), S = Q Kᵀ with both operands in shared memory and O += P V
 // with P in registers; online softmax, masking and the output store shared with attention.cuh's
-// mma.sync kernels (same float32 accumulation, base-2 softmax and bf16 P). Tiles arrive by
-// cp.async from the computing threads, or by the tensor memory accelerator (TMA) from a producer
-// warp while consumer warpgroups compute; the planned variant sizes its blocks to fill the GPU
-// (consumers sharing a block's rows split its key tiles, key ranges over blocks are merged by a
-// combine kernel). Included at the end of attention.cuh, which declares its entry points; other
-// targets compile empty kernel bodies.
+// mma.sync kernels through attention_common.cuh (same float32 accumulation, base-2 softmax and
+// bf16 P). Tiles arrive by cp.async from the computing threads, or by the tensor memory
+// accelerator (TMA) from a producer warp while consumer warpgroups compute; the planned variant
+// sizes its blocks to fill the GPU (consumers sharing a block's rows split its key tiles, key
+// ranges over blocks are merged by a combine kernel). Included at the end of attention.cuh,
+// which declares its entry points; other targets compile empty kernel bodies.
 #pragma once
 
 #include <cuda.h>  // CUtensorMap (the encoder itself is fetched from the driver at run time)
@@ -15,7 +15,7 @@
 #include <cstdint>
 #include <string>
 
-#include "epona/cuda/attention.cuh"
+#include "epona/cuda/attention_common.cuh"
 #include "epona/cuda/wgmma.cuh"
 
 namespace epona::cuda::detail {

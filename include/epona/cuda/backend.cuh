@@ -4,13 +4,13 @@
 // call unqualified. Include it (from a .cu file) before instantiating a model on Cuda.
 #pragma once
 
+#include "epona/core/backend_traits.hpp"
 #include "epona/cuda/graph.hpp"
 #include "epona/cuda/memory.hpp"
 #include "epona/cuda/ops.cuh"
 #include "epona/cuda/qk_norm_rope.cuh"
 #include "epona/cuda/side_stream.hpp"
 #include "epona/cuda/world_ops.cuh"
-#include "epona/nn/backend_context.hpp"
 
 namespace epona {
 

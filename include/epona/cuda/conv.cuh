@@ -21,7 +21,7 @@
 #include <vector>
 
 #include "epona/core/env.hpp"
-#include "epona/cpu/conv.hpp"
+#include "epona/core/shapes.hpp"
 #include "epona/cuda/activation.cuh"
 #include "epona/cuda/conv_cudnn.cuh"
 #include "epona/cuda/device.cuh"
@@ -393,7 +393,7 @@ void require_cudnn(Context& ctx, const Conv2dShape& s) {
               cudnn::Engine::get().plan_problem<T>(ctx, s));
 }
 inline void check_conv_args(const void* x, const void* weight, const void* y, const Conv2dShape& s) {
-  cpu::conv_detail::check_shape(s);
+  check_conv2d_shape(s);
   EPONA_CHECK(x && weight && y, "conv2d: null input, weight or output");
   EPONA_CHECK(s.height * s.width <= 0x7fffffff, "conv2d: ", s.height, "x", s.width, " exceeds one image's index range");
 }

@@ -27,7 +27,7 @@
 
 #include "epona/core/env.hpp"
 #include "epona/core/dtype.hpp"
-#include "epona/cpu/conv.hpp"
+#include "epona/core/shapes.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/scratch.hpp"
 

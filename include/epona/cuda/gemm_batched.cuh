@@ -11,7 +11,7 @@
 #include <vector>
 
 #include "epona/core/env.hpp"
-#include "epona/cuda/gemm.cuh"
+#include "epona/cuda/gemm_common.cuh"
 
 namespace epona::cuda {
 

@@ -8,7 +8,7 @@
 #include <cstdint>
 #include <type_traits>
 
-#include "epona/cpu/conv.hpp"
+#include "epona/core/shapes.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/device.cuh"
 #include "epona/cuda/scratch.hpp"
@@ -193,7 +193,7 @@ inline dim3 grid(std::int64_t x, std::int64_t heads, std::int64_t images) {
 // modified). Order as cpu::relu_linear_attention (Auto: linear when HW > d). d <= 32.
 template <class T>
 void relu_linear_attention(Context& ctx, const T* qkv, T* out, std::int64_t N, std::int64_t heads, std::int64_t d,
-                           std::int64_t HW, float eps, cpu::AttentionOrder order = cpu::AttentionOrder::Auto) {
+                           std::int64_t HW, float eps, AttentionOrder order = AttentionOrder::Auto) {
   using namespace mla_detail;
   static_assert(is_device_float<T>, "relu_linear_attention takes float or bf16");
   EPONA_CHECK(N >= 0 && heads > 0 && HW >= 0 && d > 0, "relu_linear_attention: bad extents (N ", N, ", heads ",
@@ -204,7 +204,7 @@ void relu_linear_attention(Context& ctx, const T* qkv, T* out, std::int64_t N, s
   EPONA_CHECK(qkv && out, "relu_linear_attention: null input or output");
   if (N == 0 || HW == 0) return;
   const Geometry g{HW, static_cast<int>(heads), static_cast<int>(d)};
-  const bool linear = order == cpu::AttentionOrder::Auto ? HW > d : order == cpu::AttentionOrder::Linear;
+  const bool linear = order == AttentionOrder::Auto ? HW > d : order == AttentionOrder::Linear;
   if (!linear) {
     constexpr int warps = kThreads / 32, pixels_per_warp = 16;  // amortise each block's start
     const std::int64_t pixel_blocks =

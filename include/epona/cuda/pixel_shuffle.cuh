@@ -8,7 +8,7 @@
 #include <algorithm>
 #include <cstdint>
 
-#include "epona/cpu/pixel_shuffle.hpp"
+#include "epona/core/shapes.hpp"
 #include "epona/cuda/context.hpp"
 #include "epona/cuda/dcae_fusion.hpp"
 #include "epona/cuda/device.cuh"

@@ -16,11 +16,11 @@
 #include <nlohmann/json.hpp>
 
 #include "epona/core/error.hpp"
+#include "epona/domain/poses.hpp"
 #include "epona/eval/planning_metrics.hpp"
 #include "epona/io/image_folder.hpp"
 #include "epona/io/json_reader.hpp"
 #include "epona/io/npy.hpp"
-#include "epona/io/poses.hpp"
 
 namespace epona::eval {
 

@@ -1,6 +1,6 @@
 // epona/eval/ground_truth.hpp — SE(2) poses for the evaluation: the per-frame ego motions of a
 // clip (x m forward, y m left, yaw degrees left-positive, each in the ego frame of the frame
-// before, io/poses.hpp) composed into cumulative poses in the ego frame of the last history
+// before, domain/poses.hpp) composed into cumulative poses in the ego frame of the last history
 // frame — the frame the model's planned waypoints are expressed in (WorldModel::plan).
 #pragma once
 
@@ -12,7 +12,7 @@
 
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
-#include "epona/io/poses.hpp"
+#include "epona/domain/poses.hpp"
 
 namespace epona::eval {
 

@@ -8,7 +8,7 @@
 #include <vector>
 
 #include "epona/core/error.hpp"
-#include "epona/model/config.hpp"
+#include "epona/flow/sampling_limits.hpp"
 
 namespace epona::flow {
 

@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "epona/core/error.hpp"
+#include "epona/flow/sampling_limits.hpp"
 
 namespace epona {
 
@@ -41,11 +42,7 @@ inline constexpr double dit_layernorm_eps = 1e-6;
 inline constexpr double dit_rmsnorm_eps = 1e-6;
 inline constexpr int dit_mlp_ratio = 4;
 inline constexpr int traj_token_size = 3;  // each waypoint is [x, y, yaw]
-// Sampling schedule shift (get_schedule): mu is linear through (x1, base) and (x2, max).
-inline constexpr double schedule_base_shift = 0.5;
-inline constexpr double schedule_max_shift = 1.15;
-inline constexpr double schedule_x1 = 256.0;
-inline constexpr double schedule_x2 = 4096.0;
+// The sampling schedule's shift constants: flow/sampling_limits.hpp (the schedule needs them).
 // Pose tokenizer ranges (poses_to_indices / yaws_to_indices)
 inline constexpr double tokenizer_x_range_m = 8.0;
 inline constexpr double tokenizer_y_range_m = 1.0;
@@ -65,19 +62,13 @@ inline constexpr double max_activation_bytes = 1e12;
 // the terabyte activation limit, a 4096x8192 config was accepted and ran (2.4 GB, 56 s) for a
 // model that cannot have been trained at that size. (io/limits.hpp lists every limit.)
 inline constexpr std::int64_t max_image_pixels = std::int64_t{16} * 512 * 1024;
-// Most sampling steps / rollout frames accepted (the official runs use 100 steps, 54 frames);
-// a larger count is a typo or an attack, refused before the schedule or any output is allocated.
-inline constexpr std::int64_t max_sampling_steps = 100000;
+// Most rollout frames accepted (the official runs use 54 frames); a larger count is a typo or an
+// attack, refused before any output is allocated. (The sampling steps' bound is with the
+// schedule, flow/sampling_limits.hpp.)
 inline constexpr std::int64_t max_rollout_frames = 1000000;
 // Plan hypotheses of one scene (WorldModel::plan_hypotheses): a bound on the batch it runs.
 inline constexpr std::int64_t max_hypotheses = 1024;
 }  // namespace constants
-
-// Throws (naming `what`) unless 1 <= steps <= constants::max_sampling_steps.
-inline void check_sampling_steps(std::int64_t steps, const char* what = "sampling steps") {
-  EPONA_CHECK(steps >= 1 && steps <= constants::max_sampling_steps, what, " must be in [1, ",
-              constants::max_sampling_steps, "], got ", steps);
-}
 
 namespace detail {
 // Collects every problem of a config so that validate() reports them all at once.

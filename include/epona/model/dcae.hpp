@@ -368,7 +368,7 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
   }
 };
 
-// FLOPs of one pass at H x W, counted as spec §12 (and torch.utils.flop_counter): 2 per
+// FLOPs of one pass at H x W, counted as torch.utils.flop_counter counts them: 2 per
 // multiply-accumulate of every convolution and matrix product (LiteMLA's padded [v; 1] products
 // and the temporal blocks' projections and attention included); biases, norms, activations,
 // softmax, residual adds and shortcuts excluded.

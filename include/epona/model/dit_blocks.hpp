@@ -427,7 +427,8 @@ struct SingleStreamBlock {
 
   // z ← z + gate ⊙ linear2([attention, GELU(mlp)]). Only the rows from `first_out` on are
   // updated (keys and values still come from every row): the last single block passes
-  // rows.cond, since only the target tokens reach the final layer (compute-budget.md §5.4).
+  // rows.cond, since only the target tokens reach the final layer (docs/world-model.md,
+  // design notes: exact pruning of the last blocks).
   // Modulation vectors of this block in a table row: (shift, scale, gate).
   std::int64_t modulation_width() const { return 3 * widths.hidden; }
   void modulations(Context& ctx, const A* silu_vecs, std::int64_t n, A* table, std::int64_t ld) const {

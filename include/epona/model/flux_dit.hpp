@@ -2,7 +2,7 @@
 // `FluxDiT`, prefix `module.dit.`, with `vector_in` for the action embedding) and the TrajDiT
 // (models/traj_dit.py `TrajDiT`, prefix `module.traj_dit.`, input layer `traj_in`, no
 // `vector_in`). forward(x, ids, cond, cond_ids, t, y) -> velocity, plus the rectified-flow
-// sampler. Step-invariant work is hoisted out of the sampling loop (compute-budget.md §5): cond_in,
+// sampler. Step-invariant work is hoisted out of the sampling loop (docs/world-model.md): cond_in,
 // vector_in and the RoPE table once per sample, and every block's modulation for all steps at
 // once (time_in and the modulation Linears as GEMMs over the steps); the loop itself is replayed
 // as one CUDA graph on the GPU, and with unpaired streams (the TrajDiT) each step's first
@@ -264,8 +264,8 @@ class FluxDiT {
   }
 
   // FLOPs of one velocity evaluation including cond_in, batch 1: `executed` counts what runs
-  // (the last single block updates only the target rows); otherwise the official count of
-  // compute-budget.md §3.2/3.3 (every row of every block).
+  // (the last single block updates only the target rows); otherwise what the official code
+  // computes (every row of every block).
   nn::Flops forward_flops(const JointRows& rows, bool executed = true) const {
     nn::Flops f{input_.flops(rows.target) + time_in_.flops(1) + cond_in_.flops(rows.cond), 0};
     if (vector_in_) f.gemm += vector_in_->flops(1);

@@ -367,7 +367,7 @@ class SpatialTemporalTransformer {
   }
 
   // FLOPs of one evaluate (batch 1): `executed` counts what runs (the last block computes the
-  // last frame only); otherwise the official count of compute-budget.md §3.1.
+  // last frame only); otherwise what the official code computes (every frame in every block).
   nn::Flops evaluate_flops(bool executed = true) const {
     const double F = double(cfg_.condition_frames), C = double(cfg_.n_embd);
     const double L = double(cfg_.img_tokens()), E = double(cfg_.fourier_dim), P = double(cfg_.projector_hidden);

@@ -32,7 +32,7 @@ inline std::optional<PlanChoice> plan_choice_named(const std::string& name) {
 
 // How a planner turns one scene into one plan: K hypotheses and the rule that picks one. K = 1 is the
 // official model's single sample. A model may recommend another rule in its configs.json
-// ("planner": {"hypotheses": K, "choose": RULE}, read by io/config_json.hpp), as a model card
+// ("planner": {"hypotheses": K, "choose": RULE}, read by domain/config_json.hpp), as a model card
 // recommends its sampling settings; the bundled model does (docs/evaluation.md says why).
 struct PlanningRule {
   std::int64_t hypotheses = 1;

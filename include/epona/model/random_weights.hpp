@@ -1,5 +1,5 @@
 // epona/model/random_weights.hpp — a world-model weight map with random values under every
-// official key of world-model.md §9.2 (`module.model.`, `module.dit.`, `module.traj_dit.`),
+// official key (docs/checkpoints.md: `module.model.`, `module.dit.`, `module.traj_dit.`),
 // sized from a WorldModelConfig: for benchmarks and examples at any size without a
 // checkpoint. Linear weights ~ U(±1/sqrt(fan_in)) so activations stay O(1); norms near 1/0.
 #pragma once

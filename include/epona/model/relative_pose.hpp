@@ -3,7 +3,7 @@
 // j in the ego frame of frame i, R_i^-1 (t_j - t_i) and atan2 of R_i^-1 R_j, in fp32 like the
 // official code (general 3x3 inverse by LU with partial pivoting, as torch.linalg.inv does).
 //
-// Conventions (follow the numbers, sampling-and-rollout.md section 7): the result is in the
+// Conventions (follow the numbers of the official data pipeline): the result is in the
 // ego frame of the reference pose, nuPlan's x forward, y left, z up; x, y in the pose's length
 // unit (metres), yaw in degrees, positive = turning left (counter-clockwise seen from above).
 #pragma once

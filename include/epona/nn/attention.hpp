@@ -56,7 +56,7 @@ void packed_attention(Context& ctx, const T* q, const T* k, const T* v, T* o, co
   attention(ctx, q, k, v, o, attention_shape<typename BackendOf<Context>::type>(p));
 }
 
-// FLOPs of attention as compute-budget.md counts them (4·H·Lq·Lk·d per sequence).
+// FLOPs of attention as nn/flops.hpp counts them (4·H·Lq·Lk·d per sequence).
 inline double attention_flops(std::int64_t seqs, std::int64_t heads, std::int64_t lq, std::int64_t lk,
                               std::int64_t head_dim) {
   return 4.0 * double(seqs) * double(heads) * double(lq) * double(lk) * double(head_dim);

@@ -1,7 +1,7 @@
-// epona/nn/flops.hpp — FLOP counts as compute-budget.md §1 counts them: 2·M·N·K per Linear
-// (bias adds ignored), 4·H·Lq·Lk·d per attention call; norms, activations, RoPE and residual
-// adds excluded. Kept apart so GEMM-only figures (pytorch-baseline.md's GFLOP column) can
-// be quoted next to the totals.
+// epona/nn/flops.hpp — FLOP counts as the roofline figures of docs/performance.md take them:
+// 2·M·N·K per Linear (bias adds ignored), 4·H·Lq·Lk·d per attention call; norms, activations,
+// RoPE and residual adds excluded. Kept apart so GEMM-only figures (docs/performance.md quotes
+// both) can be quoted next to the totals.
 #pragma once
 
 namespace epona::nn {

@@ -3,7 +3,7 @@
 // of width dim — (shift, scale, gate)[×2] for the blocks, (shift, scale) for the final layer.
 // SiLU(vec) is shared by every modulation of a forward, so callers pass it in once computed;
 // the samplers evaluate every modulation for all their steps at once (one GEMM of M = steps
-// rows instead of one GEMV per step, compute-budget.md §5.2) into columns of one table.
+// rows instead of one GEMV per step; docs/world-model.md, design notes) into columns of one table.
 #pragma once
 
 #include <cstdint>

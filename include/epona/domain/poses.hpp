@@ -1,9 +1,9 @@
-// epona/io/poses.hpp — the per-frame ego motion a user gives with a clip: CSV, JSON, the
+// epona/domain/poses.hpp — the per-frame ego motion a user gives with a clip: CSV, JSON, the
 // official demo's pose.npy + yaw.npy (dataset/dataset_demo.py), or absolute 4x4 ego-to-world
 // poses turned into motions by get_rel_pose (utils/preprocess.py). Every reader validates
 // (finite numbers, column counts, matching lengths) and names the file and row in its errors.
 //
-// Meaning of the result (sampling-and-rollout.md sections 7-9): entry i is the motion from
+// Meaning of the result (docs/api.md, actions): entry i is the motion from
 // frame i-1 to frame i, expressed in the ego frame of frame i-1 — x metres forward, y metres
 // to the LEFT, yaw degrees, positive = turning left (nuPlan's ego frame; the official README's
 // "right is positive" for y contradicts its own data pipeline, whose numbers we follow). Entry 0

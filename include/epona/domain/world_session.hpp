@@ -1,4 +1,4 @@
-// epona/model/world_session.hpp — an interactive driving session over a loaded world model and
+// epona/domain/world_session.hpp — an interactive driving session over a loaded world model and
 // DC-AE: reset() encodes the last F frames once; each step() plans (or takes the given action),
 // predicts the next latent, decodes it to a frame and slides the window by one — the step of the
 // CLI's rollout (apps/epona/rollout_common.hpp) and of model::rollout, one call at a time, with
@@ -17,8 +17,8 @@
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/context.hpp"
+#include "epona/domain/poses.hpp"
 #include "epona/io/image.hpp"
-#include "epona/io/poses.hpp"
 #include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/rollout.hpp"

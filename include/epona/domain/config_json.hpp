@@ -1,4 +1,4 @@
-// epona/io/config_json.hpp — reads and writes the model configuration as JSON: the golden
+// epona/domain/config_json.hpp — reads and writes the model configuration as JSON: the golden
 // `configs.json` layout (`world_model_config` + `dcae.{config, image_size, temporal_block}`,
 // the official config dict with the dc-ae config) or a plain object holding only the
 // world-model keys. Every key used must be present with the right type; errors name the key.

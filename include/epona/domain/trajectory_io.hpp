@@ -1,11 +1,11 @@
-// epona/io/trajectory_io.hpp — planned trajectories to and from files: TrajDiT's denormalised
+// epona/domain/trajectory_io.hpp — planned trajectories to and from files: TrajDiT's denormalised
 // output (S steps x W = 15 waypoints x [x m, y m, yaw deg], what test_free.py saves as
 // pred_traj.pt) as CSV, JSON or .npy (written under a temp name, then renamed), read back
 // exactly (shortest round-trip decimals), and turned into per-step actions for a replay.
 //
 // Waypoint n of step s is the ego pose n+1 frames after that step's current frame, in the ego
 // frame of the current frame (cumulative, not frame-to-frame): x forward, y left, yaw positive =
-// turning left (sampling-and-rollout.md sections 5, 7). At 5 Hz the 15 waypoints span 3 s.
+// turning left (docs/api.md). At 5 Hz the 15 waypoints span 3 s.
 #pragma once
 
 #include <charconv>
@@ -22,9 +22,9 @@
 
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/domain/poses.hpp"
 #include "epona/io/atomic_file.hpp"
 #include "epona/io/npy.hpp"
-#include "epona/io/poses.hpp"
 
 namespace epona::io {
 
