@@ -27,13 +27,20 @@
 // --mst-tune-compare: the MST with its large products' cuBLASLt candidates timed or not;
 // --sampler-compare SOLVER:PLAN:VIDEO (e.g. midpoint:10:10, `epona --sampler fast`): the step row
 // again with that flow solver and those planner / video steps, alternating with the official
-// sampler over two rounds, rows step_official_rN and step_SOLVER_PLAN_VIDEO_rN; docs/solvers.md).
+// sampler over two rounds, rows step_official_rN and step_SOLVER_PLAN_VIDEO_rN; docs/solvers.md);
+// --rollout-compare N: rollouts of N frames, each step followed by the DC-AE decode of its frame
+// (the real DC-AE, random weights, its own stream): `serial` decodes after each step on the host
+// thread, `beside` on a worker thread while the next step samples (as the epona program's
+// rollouts do, apps/epona/rollout_common.hpp); host wall time per frame over the rollout, median
+// of 3, two rounds, with the official sampler and with --sampler-compare's; rows
+// rollout_{serial,beside}_{official,SOLVER_PLAN_VIDEO}_rN (issue #40).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <functional>
+#include <future>
 #include <optional>
 #include <set>
 #include <sstream>
@@ -46,6 +53,9 @@
 #include "epona/cuda/backend.cuh"
 #include "epona/flow/schedule.hpp"
 #include "epona/flow/solvers.hpp"
+#include "epona/cuda/dcae_ops.cuh"
+#include "epona/model/dcae.hpp"
+#include "epona/model/latent_layout.hpp"
 #include "epona/model/pose_tokenizer.hpp"
 #include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
@@ -69,6 +79,7 @@ struct Options {
   bool order_compare = false;     // the MST with its large row passes in forward and reverse row order
   bool group_compare = false;     // the MST with its key, value and query products grouped or not
   bool mst_tune_compare = false;  // the MST with its large products' cuBLASLt candidates timed or not
+  std::int64_t rollout_frames = 0;  // --rollout-compare N: N-frame rollouts with the DC-AE decode, serial and beside
   std::optional<DitSamplers> sampler_compare;  // the step again with these solvers and steps
   std::string sampler_name;                    // its row suffix, SOLVER_PLAN_VIDEO
   bool want(const std::string& n) const { return only.empty() || only.count(n) > 0; }
@@ -104,6 +115,7 @@ Options parse(int argc, char** argv) {
     else if (a == "--order-compare") o.order_compare = true;
     else if (a == "--group-compare") o.group_compare = true;
     else if (a == "--mst-tune-compare") o.mst_tune_compare = true;
+    else if (a == "--rollout-compare") o.rollout_frames = std::max<std::int64_t>(2, std::stoll(next()));
     else if (a == "--sampler-compare") {
       std::stringstream ss(next());
       std::string solver, plan, video;
@@ -120,7 +132,7 @@ Options parse(int argc, char** argv) {
     } else fail("unknown option ", a,
                 " (--repeats N, --steps S, --only a,b, --fp32, --profile, --tune-compare, --residual-compare, "
                 "--qk-norm-compare, --pdl-compare, --front-compare, --order-compare, --group-compare, "
-                "--mst-tune-compare, --sampler-compare SOLVER:PLAN:VIDEO)");
+                "--mst-tune-compare, --sampler-compare SOLVER:PLAN:VIDEO, --rollout-compare FRAMES)");
   }
   return o;
 }
@@ -323,6 +335,58 @@ void time_stream_gemms(cuda::Context& ctx, int repeats) {
   }
   EPONA_CUDA_CHECK(cudaEventDestroy(fork));
   EPONA_CUDA_CHECK(cudaEventDestroy(join));
+}
+
+// Rollouts of o.rollout_frames frames with each frame's DC-AE decode (the real DC-AE, random
+// weights, its own context and stream): after the step on this thread (`serial`) or on a worker
+// thread while the next step samples (`beside`). Milliseconds per frame of host wall time.
+template <class W>
+void time_rollouts(const Options& o, WorldModel<Cuda, W>& wm, const History& h) {
+  DcaeConfig dcfg;
+  Dcae<Cuda, W> dcae(dcfg);
+  dcae.randomize(1);
+  cuda::Context dctx;
+  const WorldModelConfig& w = wm.config();
+  cpu::Context host;
+  const auto decode = [&](const Tensor<float>& tokens) {
+    const Tensor<float> z = tokens_to_latent(host, tokens, w.latent_h(), w.latent_w());
+    const Tensor<float, Cuda> images = dcae.decode(dctx, BackendTraits<Cuda>::upload(z), false);
+    Tensor<float> out(images.shape());
+    BackendTraits<Cuda>::download_into(dctx, images, out);
+    return out;
+  };
+  const auto rollout_ms = [&](const SampleOptions& opt, bool beside) {
+    const auto t0 = std::chrono::steady_clock::now();
+    std::future<Tensor<float>> running;
+    for (std::int64_t f = 0; f < o.rollout_frames; ++f) {
+      const StepResult r = wm.predict_next(h, std::nullopt, opt);
+      if (running.valid()) running.get();
+      if (beside)
+        running = std::async(std::launch::async, decode, r.latent);
+      else
+        (void)decode(r.latent);
+    }
+    if (running.valid()) running.get();
+    return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() /
+           double(o.rollout_frames);
+  };
+  std::vector<std::pair<std::string, SampleOptions>> samplers{{"official", {}}};
+  if (o.sampler_compare) {
+    SampleOptions s;
+    s.plan_solver = o.sampler_compare->plan.kind, s.plan_steps = o.sampler_compare->plan.steps;
+    s.video_solver = o.sampler_compare->video.kind, s.video_steps = o.sampler_compare->video.steps;
+    samplers.emplace_back(o.sampler_name, s);
+  }
+  for (auto& [name, opt] : samplers) {
+    opt.seed = 7;
+    (void)decode(wm.predict_next(h, std::nullopt, opt).latent);  // records the graphs, plans the decode
+    for (const char* round : {"_r1", "_r2"})
+      for (const bool beside : {false, true}) {
+        std::vector<double> runs;
+        for (int k = 0; k < 3; ++k) runs.push_back(rollout_ms(opt, beside));
+        emit(std::string("rollout_") + (beside ? "beside_" : "serial_") + name + round, runs, 0);
+      }
+  }
 }
 
 template <class W>
@@ -539,6 +603,7 @@ int run(const Options& o) {
     cuda::set_gemm_tuning(was);
     arena = Arena<Cuda>();
   }
+  if (o.rollout_frames > 0) time_rollouts(o, wm, h);
   emit_value("device_memory_gib", double(used_device_bytes() - base_bytes) / 1073741824.0);
   return 0;
 }

@@ -31,6 +31,9 @@ class Engine {
   virtual Tensor<float> encode(const io::Image& frame) = 0;
   // Latents (N, C, h, w) -> images (N, 3, 32h, 32w) in the model's [-1, 1] range, on the host.
   virtual Tensor<float> decode(const Tensor<float>& latents, bool is_video) = 0;
+  // Whether decode may run on another thread while step runs: the DC-AE and the world model have
+  // contexts (GPU streams) of their own. Not on the CPU, where both would share the cores.
+  virtual bool decodes_beside_steps() const = 0;
   // WorldModel::plan and WorldModel::run_step (one step drawing from `noise`; want_latent = true).
   virtual Tensor<float> plan(const History& window, const SampleOptions& opt) = 0;
   // WorldModel::plan_hypotheses: K plans of one scene (K, traj_len, 3).
@@ -69,6 +72,7 @@ class ModelEngine final : public Engine {
   Tensor<float> decode(const Tensor<float>& latents, bool is_video) override {
     return to_host(dcae().decode(ctx_, BackendTraits<B>::upload(latents), is_video));
   }
+  bool decodes_beside_steps() const override { return !is_host_backend<B>; }
   Tensor<float> plan(const History& window, const SampleOptions& opt) override { return world().plan(window, opt); }
   Tensor<float> plan_hypotheses(const History& window, std::int64_t K, const SampleOptions& opt) override {
     return world().plan_hypotheses(window, K, opt);

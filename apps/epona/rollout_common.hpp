@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <future>
 #include <optional>
 #include <vector>
 
@@ -29,17 +30,53 @@ class FrameConsumer {
   virtual void put(const io::Image& img) = 0;
 };
 
-// Decodes generated latents (tokens (1, L, C) each) as one group: a temporal clip when
-// `is_video`, else frame by frame.
-inline void decode_group(cpu::Context& ctx, Engine& engine, const WorldModelConfig& w,
-                         const std::vector<Tensor<float>>& tokens, bool is_video, FrameConsumer& sink) {
-  if (tokens.empty()) return;
+// Generated latents (tokens (1, L, C) each) as one latent tensor (n, C, h, w).
+inline Tensor<float> latent_group(cpu::Context& ctx, const WorldModelConfig& w, const std::vector<Tensor<float>>& tokens) {
   const std::int64_t L = w.img_tokens(), C = w.token_dim(), n = static_cast<std::int64_t>(tokens.size());
   Tensor<float> group({n, L, C});
   for (std::int64_t i = 0; i < n; ++i) std::copy_n(tokens[static_cast<std::size_t>(i)].data(), L * C, group[i].data());
-  const Tensor<float> images = engine.decode(tokens_to_latent(ctx, group, w.latent_h(), w.latent_w()), is_video);
-  for (std::int64_t i = 0; i < n; ++i) sink.put(io::tensor_to_image(images, i));
+  return tokens_to_latent(ctx, group, w.latent_h(), w.latent_w());
 }
+
+// Decodes groups of generated latents (a temporal clip, or frame by frame) into a sink, in order.
+// On a GPU (Engine::decodes_beside_steps) a group decodes on a worker thread while the next
+// steps sample: the next step needs the latent, not the picture, so a frame's decode overlaps the
+// following frame's sampling (issue #40). The frames and their order are the same either way.
+class FrameDecoder {
+ public:
+  FrameDecoder(Engine& engine, cpu::Context& ctx, const WorldModelConfig& w, FrameConsumer& sink)
+      : engine_(engine), ctx_(ctx), w_(w), sink_(sink), beside_(engine.decodes_beside_steps()) {}
+  FrameDecoder(const FrameDecoder&) = delete;
+  FrameDecoder& operator=(const FrameDecoder&) = delete;
+  ~FrameDecoder() {
+    if (running_.valid()) running_.wait();  // an error on the way out: the worker may not outlive us
+  }
+
+  void decode(const std::vector<Tensor<float>>& tokens, bool is_video) {
+    if (tokens.empty()) return;
+    Tensor<float> latents = latent_group(ctx_, w_, tokens);
+    finish();
+    if (!beside_) return put(engine_.decode(latents, is_video));
+    running_ = std::async(std::launch::async, [this, latents = std::move(latents), is_video] {
+      return engine_.decode(latents, is_video);
+    });
+  }
+  // Waits for the group in flight and hands its frames to the sink.
+  void finish() {
+    if (running_.valid()) put(running_.get());
+  }
+
+ private:
+  void put(const Tensor<float>& images) {
+    for (std::int64_t i = 0; i < images.size(0); ++i) sink_.put(io::tensor_to_image(images, i));
+  }
+  Engine& engine_;
+  cpu::Context& ctx_;
+  const WorldModelConfig& w_;
+  FrameConsumer& sink_;
+  bool beside_;
+  std::future<Tensor<float>> running_;
+};
 
 inline NextAction action_at(const io::PoseSequence& p, std::size_t i) { return action_of({p.x[i], p.y[i], p.yaw[i]}); }
 
@@ -67,6 +104,7 @@ inline RolloutLog roll_out(Engine& engine, cpu::Context& ctx, History window, co
   RolloutLog log{Tensor<float>({p.frames, W, 3}), {},
                  p.keep_latents ? Tensor<float>({p.frames, wc.img_tokens(), wc.token_dim()}) : Tensor<float>()};
   std::vector<Tensor<float>> pending;
+  FrameDecoder decoder(engine, ctx, wc, sink);
   NoiseSource noise = NoiseSource::seeded(p.seed);
   Progress bar(con, "generate", p.frames, "frame");
   for (std::int64_t i = 0; i < p.frames; ++i) {
@@ -85,12 +123,13 @@ inline RolloutLog roll_out(Engine& engine, cpu::Context& ctx, History window, co
     model::slide_window(window, r.latent, used);
     pending.push_back(r.latent);
     if (static_cast<std::int64_t>(pending.size()) == p.clip_len) {
-      decode_group(ctx, engine, wc, pending, p.clip_len > 1, sink);
+      decoder.decode(pending, p.clip_len > 1);
       pending.clear();
     }
     bar.advance();
   }
-  decode_group(ctx, engine, wc, pending, false, sink);  // an incomplete last clip: frame by frame (test_nuplan.py)
+  decoder.decode(pending, false);  // an incomplete last clip: frame by frame (test_nuplan.py)
+  decoder.finish();
   return log;
 }
 

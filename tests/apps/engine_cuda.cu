@@ -13,6 +13,7 @@
 #include "../../apps/epona/cuda_engine.cuh"
 #include "../../apps/epona/engine.hpp"
 #include "../../apps/epona/frames.hpp"
+#include "../../apps/epona/rollout_common.hpp"
 #include "../cuda/cuda_test_util.cuh"
 #include "epona/cuda/backend.cuh"
 #include "epona/cuda/dcae_ops.cuh"
@@ -154,3 +155,44 @@ TEST_CASE("CUDA engine, float32: plan hypotheses match the CPU engine's, and hyp
 
 // The one translation unit of this program that compiles stb (after every other include).
 #include "epona/io/stb_implementation.hpp"
+
+namespace {
+class KeptFrames final : public app::FrameConsumer {
+ public:
+  void put(const io::Image& img) override { frames.push_back(img); }
+  std::vector<io::Image> frames;
+};
+}  // namespace
+
+// The rollout decodes each clip on a worker thread while the next steps sample (issue #40): its
+// frames must be, in order and bit for bit, the latents it kept decoded afterwards on the main thread.
+TEST_CASE("CUDA engine: a rollout's frames decoded beside its steps equal its latents decoded after it") {
+  EPONA_REQUIRE_GPU();
+  const auto files = golden_files();
+  const auto& w = files.configs.world;
+  auto engine = loaded("cuda", false, files);
+  REQUIRE(engine->decodes_beside_steps());
+  const History h = window_of(*engine, w);
+  const std::int64_t clip = files.configs.dcae.add_decoder_temporal ? files.configs.dcae.condition_frames : 1;
+  app::RolloutPlan plan;
+  plan.frames = 2 * clip + 1;  // two whole clips and a last frame alone
+  plan.clip_len = clip;
+  plan.samplers = DitSamplers::euler(2);
+  plan.seed = 3;
+  plan.keep_latents = true;
+  KeptFrames kept;
+  std::ostringstream sink;
+  cpu::Context ctx;
+  const app::RolloutLog log = app::roll_out(*engine, ctx, h, w, plan, kept, app::Console{sink, sink, true, false});
+  REQUIRE(kept.frames.size() == std::size_t(plan.frames));
+  std::size_t next = 0;
+  for (std::int64_t first = 0; first < plan.frames; first += clip) {
+    const std::int64_t n = std::min(clip, plan.frames - first);
+    const Tensor<float> z = tokens_to_latent(ctx, log.latents.slice(first, first + n), w.latent_h(), w.latent_w());
+    const Tensor<float> images = engine->decode(z, n == clip && clip > 1);
+    for (std::int64_t i = 0; i < n; ++i, ++next) {
+      const io::Image expected = io::tensor_to_image(images, i);
+      CHECK_MESSAGE(kept.frames[next].rgb == expected.rgb, "frame ", next);
+    }
+  }
+}
