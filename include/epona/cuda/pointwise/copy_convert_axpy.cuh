@@ -1,5 +1,5 @@
 // epona/cuda/pointwise/copy_convert_axpy.cuh — the kernels the world-model layers need beyond the phase-1 op
-// contract, mirroring epona/nn/cpu_extra_ops.hpp: device copies (dense and strided 2-D),
+// contract, mirroring epona/cpu/copy_fill_axpy.hpp: device copies (dense and strided 2-D),
 // float32 -> storage-type conversion (what autocast does to a float32 input of a bf16 GEMM)
 // and the Euler update of the samplers, x += round(a·v) with the step formed in v's type, alone
 // or fused with the conversion of the new state (one pass per step instead of two).

@@ -1,7 +1,7 @@
-// epona/nn/cpu_extra_ops.hpp — the few CPU kernels the world-model layers need beyond the
-// cpu/ op contract: plain copies (dense and strided 2-D), fill, and the Euler update
-// x += a·v. Plain loops in namespace epona::cpu so layer code finds them by ADL like the
-// other kernels (candidates to move into cpu/ and to mirror in cuda/).
+// epona/cpu/copy_fill_axpy.hpp — the plain CPU kernels the world-model layers need beyond the
+// cpu/ op contract: copies (dense and strided 2-D), fill, and the Euler update x += a·v. Plain
+// loops in namespace epona::cpu so layer code finds them by ADL like the other kernels; the GPU's
+// counterparts are in cuda/pointwise/copy_convert_axpy.cuh.
 #pragma once
 
 #include <algorithm>
@@ -9,9 +9,6 @@
 #include <cstring>
 
 #include "epona/cpu/context.hpp"
-#include "epona/cpu/norm.hpp"
-#include "epona/cpu/residual_norm.hpp"
-#include "epona/cpu/rope.hpp"
 
 namespace epona::cpu {
 
@@ -36,15 +33,6 @@ inline void axpy(Context&, float* x, const float* v, float a, std::int64_t n) {
     volatile float step = a * v[i];
     x[i] += step;
   }
-}
-
-// Per head RMSNorm of `rows` tokens (heads at x + r·row_stride), then their rotation by rows r
-// of the cos/sin tables (rows, head_dim/2).
-inline void rms_norm_rope_heads(Context& ctx, float* x, std::int64_t rows, std::int64_t row_stride,
-                                std::int64_t heads, std::int64_t head_dim, const float* scale, float eps,
-                                const float* cos, const float* sin) {
-  rms_norm_heads(ctx, x, rows, row_stride, heads, head_dim, scale, eps);
-  apply_rope(ctx, x, rows, row_stride, heads, head_dim, cos, sin);
 }
 
 }  // namespace epona::cpu
