@@ -22,9 +22,9 @@
 #include "epona/model/config.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/nn/conv2d.hpp"
-#include "epona/nn/dcae_blocks.hpp"
+#include "epona/nn/blocks/dcae_blocks.hpp"
 #include "epona/nn/feature_map.hpp"
-#include "epona/nn/llama_block.hpp"
+#include "epona/nn/blocks/llama_block.hpp"
 #include "epona/nn/norm2d.hpp"
 #include "epona/nn/pixel_shuffle.hpp"
 

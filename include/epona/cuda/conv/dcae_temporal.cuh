@@ -2,7 +2,7 @@
 // block, space block], LLaMA blocks of dim 32, 8 heads of 4, SwiGLU 256) fused: one kernel per
 // block does the attention over its sequence, wo + residual, RMSNorm + SwiGLU FFN + residual and
 // the NEXT block's RMSNorm + q/k/v projections + RoPE; the first block's q/k/v take one more
-// launch. Same roundings as the unfused path (nn/llama_block.hpp on the CUDA kernels).
+// launch. Same roundings as the unfused path (nn/blocks/llama_block.hpp on the CUDA kernels).
 #pragma once
 
 #include <cmath>
@@ -233,7 +233,7 @@ __global__ void __launch_bounds__(kThreads) block_kernel(float* __restrict__ x, 
 
 }  // namespace temporal_detail
 
-// Runs a chain of LLaMA TransformerBlocks (nn/llama_block.hpp) over the float32 token rows x
+// Runs a chain of LLaMA TransformerBlocks (nn/blocks/llama_block.hpp) over the float32 token rows x
 // (rows, 32) in place: `steps` in order, each {block, seq (nn::TokenSequences), cos, sin (its
 // RoPE tables in device memory)}. Weights of T; dim 32, 8 heads, hidden 256 only. False (nothing
 // done) when fusion is off or a block has other extents or misaligned weights: the caller then

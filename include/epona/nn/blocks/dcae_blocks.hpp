@@ -1,4 +1,4 @@
-// epona/nn/dcae_blocks.hpp — the residual blocks of DC-AE stages (efficientvit ResidualBlock
+// epona/nn/blocks/dcae_blocks.hpp — the residual blocks of DC-AE stages (efficientvit ResidualBlock
 // wrappers, `main` = the branch): ResBlock (conv-act-conv-norm + x), EfficientViTBlock (LiteMLA
 // then GLUMBConv, each + x), and the 2x resampling pairs ConvPixelUnshuffle + channel-averaging
 // shortcut (down) and ConvPixelShuffle + channel-duplicating shortcut (up).
@@ -12,8 +12,8 @@
 #include "epona/cpu/elementwise.hpp"
 #include "epona/nn/conv2d.hpp"
 #include "epona/nn/feature_map.hpp"
-#include "epona/nn/glu_mbconv.hpp"
-#include "epona/nn/lite_mla.hpp"
+#include "epona/nn/blocks/glu_mbconv.hpp"
+#include "epona/nn/blocks/lite_mla.hpp"
 #include "epona/nn/norm2d.hpp"
 #include "epona/nn/pixel_shuffle.hpp"
 

@@ -1,4 +1,4 @@
-// epona/nn/llama_block.hpp — the LLaMA-style TransformerBlock of Epona's temporal DC-AE decoder
+// epona/nn/blocks/llama_block.hpp — the LLaMA-style TransformerBlock of Epona's temporal DC-AE decoder
 // (`causal_time_block.*`, `space_block.*`): RMSNorm (weight only) -> q/k/v -> 1-D RoPE -> SDPA
 // (causal or full) -> wo, + x; RMSNorm -> SwiGLU FFN, + x. No biases. Rows of the token
 // matrix form sequences through a strided layout, so time and space attention need no transposes.

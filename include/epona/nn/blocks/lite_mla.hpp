@@ -1,4 +1,4 @@
-// epona/nn/lite_mla.hpp — LiteMLA of EfficientViT as the DC-AE mix variant uses it (no
+// epona/nn/blocks/lite_mla.hpp — LiteMLA of EfficientViT as the DC-AE mix variant uses it (no
 // multi-scale aggregation): 1x1 qkv conv (no bias), ReLU linear attention per 32-wide head with
 // q/k/v interleaved per head, then 1x1 proj conv (no bias) and its RMSNorm2d. Returns the branch.
 #pragma once

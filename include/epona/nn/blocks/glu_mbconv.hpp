@@ -1,4 +1,4 @@
-// epona/nn/glu_mbconv.hpp — GLUMBConv of EfficientViT (the DC-AE's "local module"): 1x1 expansion
+// epona/nn/blocks/glu_mbconv.hpp — GLUMBConv of EfficientViT (the DC-AE's "local module"): 1x1 expansion
 // C -> 8C with bias and activation, depthwise 3x3 with bias (no activation), value · act(gate)
 // over the two halves, 1x1 projection 4C -> C without bias, then its norm. Returns the branch.
 #pragma once
