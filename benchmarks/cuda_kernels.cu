@@ -13,9 +13,9 @@
 #include <string>
 #include <vector>
 
-#include "epona/cuda/gemm_batched.cuh"
+#include "epona/cuda/gemm/gemm_batched.cuh"
 #include "epona/cuda/ops.cuh"
-#include "epona/cuda/side_stream.hpp"
+#include "epona/cuda/runtime/side_stream.hpp"
 
 using namespace epona;
 

@@ -21,8 +21,8 @@
 #include <vector>
 
 #include "epona/cuda/ops.cuh"
-#include "epona/cuda/qk_layer_norm_rope.cuh"
-#include "epona/cuda/qk_norm_rope.cuh"
+#include "epona/cuda/attention/qk_layer_norm_rope.cuh"
+#include "epona/cuda/attention/qk_rms_norm_rope.cuh"
 #include "gpu_event_timer.cuh"
 
 using namespace epona;

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The few-rows GEMM experiment (include/epona/cuda/gemm_few_rows.cuh) in one device call:
+# The few-rows GEMM experiment (include/epona/cuda/gemm/gemm_few_rows.cuh) in one device call:
 #   1. bench_cuda_small_kernels --only few_rows: each condition-stream shape in cuBLASLt, the
 #      few-rows GEMM (its pick, with and without programmatic launches) and each tile;
 #   2. its tests in test_cuda_gemm, plainly and under compute-sanitizer memcheck;

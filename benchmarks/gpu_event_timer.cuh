@@ -5,8 +5,8 @@
 #include <functional>
 #include <vector>
 
-#include "epona/cuda/context.hpp"
-#include "epona/cuda/event_timer.hpp"
+#include "epona/cuda/runtime/context.hpp"
+#include "epona/cuda/runtime/event_timer.hpp"
 
 namespace epona::bench {
 

@@ -20,7 +20,7 @@
 
 #include <cuda_runtime.h>
 
-#include "epona/cuda/check.hpp"
+#include "epona/cuda/runtime/check.hpp"
 
 namespace {
 

@@ -17,7 +17,7 @@
 #include "../cuda/cuda_test_util.cuh"
 #include "epona/cuda/backend.cuh"
 #include "epona/cuda/dcae_ops.cuh"
-#include "epona/cuda/scratch.hpp"
+#include "epona/cuda/runtime/scratch.hpp"
 #include "epona/domain/world_session.hpp"
 #include "epona/model/rollout.hpp"
 

@@ -1,4 +1,4 @@
-// GPU tests for epona/cuda/attention.cuh: flash attention (bf16 tensor-core kernels with head
+// GPU tests for epona/cuda/attention/attention.cuh: flash attention (bf16 tensor-core kernels with head
 // dim 128 specialised and the generic zero-padded path, each block tiling and the short
 // warp-per-head kernel, and the automatic choice; float32 kernel) against cpu::attention on
 // the same (bf16-rounded) inputs: dense, causal, cross (lq != lk), additive masks with a
@@ -22,7 +22,7 @@
 #include <limits>
 #include <vector>
 
-#include "epona/cuda/graph.hpp"
+#include "epona/cuda/runtime/graph.hpp"
 
 using namespace epona;
 using namespace epona::test;

@@ -10,8 +10,8 @@
 
 #include "dcae_testing.cuh"
 #include "epona/cuda/backend.cuh"
-#include "epona/nn/dcae_blocks.hpp"
-#include "epona/nn/llama_block.hpp"
+#include "epona/nn/blocks/dcae_blocks.hpp"
+#include "epona/nn/blocks/llama_block.hpp"
 
 using namespace epona;
 using namespace epona::test;

@@ -1,4 +1,4 @@
-// GPU kernels of the DC-AE (cuda/conv.cuh, norm2d.cuh, lite_mla.cuh, pixel_shuffle.cuh) against
+// GPU kernels of the DC-AE (cuda/conv/conv.cuh, norm2d.cuh, lite_mla.cuh, pixel_shuffle.cuh) against
 // the CPU kernels (cpu/conv.hpp, cpu/pixel_shuffle.hpp) on the same random data: the GPU works
 // on channels-last maps, the CPU on NCHW; results are compared after the layout change. Every
 // GPU output is poisoned (NaN) first. float32: rel_l2 and max error <= 1e-5 (of max|ref|).

@@ -1,4 +1,4 @@
-// The DC-AE's temporal front on the GPU through the fused kernels (cuda/dcae_temporal.cuh: one
+// The DC-AE's temporal front on the GPU through the fused kernels (cuda/conv/dcae_temporal.cuh: one
 // kernel per LLaMA block) against the CPU backend's DcaeTemporalBlocks (the reference: plain
 // GEMMs, RoPE, attention) with the same seeded weights and inputs, and against the GPU's unfused
 // path (EPONA_CUDA_DCAE_FUSE=0's kernels). Sizes: one frame of 16x32 latents (the 512x1024

@@ -9,7 +9,7 @@
 
 #include "cuda_test_util.cuh"
 #include "epona/cpu/context.hpp"
-#include "epona/cuda/dcae_fusion.hpp"
+#include "epona/cuda/conv/dcae_fusion.hpp"
 #include "epona/cuda/dcae_ops.cuh"
 #include "epona/nn/feature_map.hpp"
 

@@ -1,9 +1,9 @@
 // GPU tests for the passes that replace others bit for bit:
-// * the bf16 lookup-table path of epona/cuda/activation.cuh (GELU erf, GELU tanh, SiLU): the
+// * the bf16 lookup-table path of epona/cuda/pointwise/activation.cuh (GELU erf, GELU tanh, SiLU): the
 //   same bits as computing the function (every one of the 2^16 bf16 inputs, NaN and infinities
 //   included), a float64 reference within one bf16 rounding, every element written (poisoned
 //   output), a ragged tail of packs, no table created while a stream is captured into a graph;
-// * the MST's fused QK LayerNorm + RoPE (cuda/qk_layer_norm_rope.cuh): the same bits as
+// * the MST's fused QK LayerNorm + RoPE (cuda/attention/qk_layer_norm_rope.cuh): the same bits as
 //   layer_norm then apply_rope on q and k, and a float64 reference within the bf16 bounds;
 // * the large row passes in either row order (cuda::set_reversed_passes): the same bits, every
 //   element written (poisoned outputs).

@@ -1,4 +1,4 @@
-// GPU tests for epona/cuda/gemm.cuh: linear() with every epilogue, with and without bias,
+// GPU tests for epona/cuda/gemm/gemm.cuh: linear() with every epilogue, with and without bias,
 // float32 and bf16, odd and model-like sizes, misaligned operands, against cpu::linear on the
 // same (bf16-rounded) inputs. float32 within 1e-5 (TF32 must be off). bf16: the product
 // rounded once (2^-8 of each value); with an activation, the pre-activation z may be rounded

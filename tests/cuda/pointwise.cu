@@ -1,6 +1,6 @@
-// GPU tests for the memory-bound kernels: epona/cuda/norm.cuh (LayerNorm, LayerNorm +
+// GPU tests for the memory-bound kernels: epona/cuda/pointwise/norm.cuh (LayerNorm, LayerNorm +
 // modulation, residual add + LayerNorm, gated residual + modulated LayerNorm, per-head
-// RMSNorm), rope.cuh, qk_norm_rope.cuh, activation.cuh and elementwise.cuh, in float32,
+// RMSNorm), rope.cuh, qk_rms_norm_rope.cuh, activation.cuh and elementwise.cuh, in float32,
 // bf16 and the mixed storage combinations the model uses, against the CPU backend on the same
 // (bf16-rounded) inputs. Outputs are poisoned first; in-place ops on packed buffers must leave
 // every channel outside their heads bit-identical.
@@ -11,9 +11,9 @@
 // Programmatic dependent launches: a chain of dependent kernels gives the host's bits exactly,
 // eagerly and in a graph, with the launches on and off.
 #include "cuda_test_util.cuh"
-#include "epona/cuda/graph.hpp"
-#include "epona/cuda/qk_norm_rope.cuh"
-#include "epona/cuda/world_ops.cuh"
+#include "epona/cuda/runtime/graph.hpp"
+#include "epona/cuda/attention/qk_rms_norm_rope.cuh"
+#include "epona/cuda/pointwise/copy_convert_axpy.cuh"
 
 #include <algorithm>
 #include <array>

@@ -60,7 +60,10 @@ def read_map(doc_path):
 
 
 def layer_of(rel_path):
-    """The layer of a path under include/epona: its first folder, or the file name at the top."""
+    """The layer of a path under include/epona: its first folder, or the file name at the top.
+
+    Sub-folders belong to the layer of their top folder (cuda/gemm/x.cuh is layer cuda,
+    nn/blocks/y.hpp layer nn): they group a layer's headers by concern and need no row."""
     return rel_path.split("/", 1)[0]
 
 
@@ -215,6 +218,17 @@ class SelfTest(unittest.TestCase):
         problems = check(repo)
         self.assertIn("include/epona/other: not in the layer map of docs/architecture.md", problems)
         self.assertIn("include/epona/other/c.hpp:1: includes epona/low/gone.hpp, which does not exist", problems)
+
+    def test_sub_folder_is_its_top_folders_layer(self):
+        repo = self.make_tree({"include/epona/low/sub/a.hpp": "#pragma once\n",
+                               "include/epona/low/b.hpp": '#include "epona/low/sub/a.hpp"\n',
+                               "include/epona/high/deep/c.hpp": '#include "epona/low/sub/a.hpp"\n'})
+        self.assertEqual(check(repo), [])
+        repo = self.make_tree({"include/epona/low/sub/a.hpp": '#include "epona/high/deep/c.hpp"\n',
+                               "include/epona/high/deep/c.hpp": "#pragma once\n"})
+        problems = check(repo)
+        self.assertEqual(len(problems), 1)
+        self.assertIn("include/epona/low/sub/a.hpp:1: layer low includes layer high", problems[0])
 
     def test_map_is_read_from_the_table(self):
         repo = self.make_tree({})

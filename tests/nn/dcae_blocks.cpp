@@ -1,4 +1,4 @@
-// Tests for epona/nn/glu_mbconv.hpp and epona/nn/dcae_blocks.hpp against float64 compositions
+// Tests for epona/nn/blocks/glu_mbconv.hpp and epona/nn/blocks/dcae_blocks.hpp against float64 compositions
 // of the spec's formulas (§3.7, §4): GLUMBConv (expansion + act, depthwise, value·act(gate),
 // projection + norm), EfficientViTBlock (x + LiteMLA(x), then + GLUMBConv), ResBlock with
 // RMSNorm2d+SiLU and BatchNorm2d+ReLU, the down/up-sampling pairs with and without shortcut, and
@@ -8,7 +8,7 @@
 #include <set>
 
 #include "dcae_reference.hpp"
-#include "epona/nn/dcae_blocks.hpp"
+#include "epona/nn/blocks/dcae_blocks.hpp"
 
 using namespace epona;
 using dcae_ref::HostTensor;

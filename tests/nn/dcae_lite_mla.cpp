@@ -1,4 +1,4 @@
-// Tests for LiteMLA (epona/nn/lite_mla.hpp, kernel relu_linear_attention of epona/cpu/conv.hpp)
+// Tests for LiteMLA (epona/nn/blocks/lite_mla.hpp, kernel relu_linear_attention of epona/cpu/conv.hpp)
 // against the defining sums in float64 (S(m,n) = Σ_j relu(k)[j,m] relu(q)[j,n], out = Σ_m v S /
 // (Σ_m S + eps)): the linear and the quadratic evaluation order on the same data, the
 // reference's automatic choice (H·W > d linear), q/k/v interleaved per head, all-zero keys
@@ -8,7 +8,7 @@
 
 #include "dcae_reference.hpp"
 #include "epona/cpu/conv.hpp"
-#include "epona/nn/lite_mla.hpp"
+#include "epona/nn/blocks/lite_mla.hpp"
 
 using namespace epona;
 using dcae_ref::HostTensor;

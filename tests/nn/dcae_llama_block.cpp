@@ -1,4 +1,4 @@
-// Tests for epona/nn/llama_block.hpp (the temporal decoder's TransformerBlock) against a float64
+// Tests for epona/nn/blocks/llama_block.hpp (the temporal decoder's TransformerBlock) against a float64
 // loop written from spec §6.3-§6.4: RMSNorm (weight only, eps 1e-5), q/k/v, 1-D RoPE (theta 1000,
 // adjacent pairs) at each token's position, softmax(q·k/sqrt(4)) with or without the causal
 // mask, wo, + x, RMSNorm, SwiGLU (w2(silu(w1 h) * w3 h)), + x. Both strided layouts (time:
@@ -7,7 +7,7 @@
 #include <doctest/doctest.h>
 
 #include "dcae_reference.hpp"
-#include "epona/nn/llama_block.hpp"
+#include "epona/nn/blocks/llama_block.hpp"
 
 using namespace epona;
 using dcae_ref::HostTensor;

@@ -17,7 +17,7 @@ struct Cpu;   // host memory, Eigen + xsimd kernels (epona/cpu/)
 struct Cuda;  // device memory, cuBLASLt + own kernels (epona/cuda/, needs nvcc)
 
 // Allocation of raw bytes on a backend. Specialised per backend; the CUDA one lives in
-// epona/cuda/memory.hpp so that host-only builds never see CUDA headers.
+// epona/cuda/runtime/memory.hpp so that host-only builds never see CUDA headers.
 template <class B> struct BackendMemory;
 
 template <> struct BackendMemory<Cpu> {

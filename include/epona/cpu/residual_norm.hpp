@@ -1,5 +1,5 @@
 // epona/cpu/residual_norm.hpp — a residual update followed by the LayerNorm after it, the CPU
-// side of the GPU's fused pass (epona/cuda/norm.cuh): x += [gate ⊙] y, then LN(x) affine (the
+// side of the GPU's fused pass (epona/cuda/pointwise/norm.cuh): x += [gate ⊙] y, then LN(x) affine (the
 // MST's residual and ln2 / next ln1) or modulated (the DiT blocks). Here the two steps simply
 // run in turn, so both backends compute the same function.
 #pragma once

@@ -5,12 +5,12 @@
 #pragma once
 
 #include "epona/core/backend_traits.hpp"
-#include "epona/cuda/graph.hpp"
-#include "epona/cuda/memory.hpp"
+#include "epona/cuda/runtime/graph.hpp"
+#include "epona/cuda/runtime/memory.hpp"
 #include "epona/cuda/ops.cuh"
-#include "epona/cuda/qk_norm_rope.cuh"
-#include "epona/cuda/side_stream.hpp"
-#include "epona/cuda/world_ops.cuh"
+#include "epona/cuda/attention/qk_rms_norm_rope.cuh"
+#include "epona/cuda/runtime/side_stream.hpp"
+#include "epona/cuda/pointwise/copy_convert_axpy.cuh"
 
 namespace epona {
 

@@ -5,11 +5,11 @@
 #pragma once
 
 #include "epona/cuda/backend.cuh"
-#include "epona/cuda/conv.cuh"
-#include "epona/cuda/conv_fold.cuh"
-#include "epona/cuda/dcae_temporal.cuh"
-#include "epona/cuda/lite_mla.cuh"
-#include "epona/cuda/norm2d.cuh"
+#include "epona/cuda/conv/conv.cuh"
+#include "epona/cuda/conv/conv_fold.cuh"
+#include "epona/cuda/conv/dcae_temporal.cuh"
+#include "epona/cuda/attention/lite_mla.cuh"
+#include "epona/cuda/pointwise/norm2d.cuh"
 #include "epona/cuda/ops.cuh"
-#include "epona/cuda/pixel_shuffle.cuh"
-#include "epona/cuda/scratch.hpp"
+#include "epona/cuda/pointwise/pixel_shuffle.cuh"
+#include "epona/cuda/runtime/scratch.hpp"

@@ -22,9 +22,9 @@
 #include "epona/model/config.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/nn/conv2d.hpp"
-#include "epona/nn/dcae_blocks.hpp"
+#include "epona/nn/blocks/dcae_blocks.hpp"
 #include "epona/nn/feature_map.hpp"
-#include "epona/nn/llama_block.hpp"
+#include "epona/nn/blocks/llama_block.hpp"
 #include "epona/nn/norm2d.hpp"
 #include "epona/nn/pixel_shuffle.hpp"
 
@@ -319,7 +319,7 @@ struct DcaeTemporalBlocks : nn::Bindable<DcaeTemporalBlocks<B, T>> {
   };
 
   // The whole chain T0 S0 T1 S1 … as one fused call where the backend has one (CUDA:
-  // cuda/dcae_temporal.cuh); false when it has none or declines (then the blocks run one by one).
+  // cuda/conv/dcae_temporal.cuh); false when it has none or declines (then the blocks run one by one).
   template <class Ctx>
   bool forward_fused(Ctx& ctx, Tensor<float, B>& x, const nn::TokenSequences& time, const nn::TokenSequences& space,
                      const Tables& time_rope, const Tables& space_rope) const {

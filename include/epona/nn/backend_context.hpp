@@ -14,8 +14,10 @@
 #include "epona/core/backend_traits.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/cpu/context.hpp"
+#include "epona/cpu/copy_fill_axpy.hpp"
 #include "epona/cpu/ops.hpp"
-#include "epona/nn/cpu_extra_ops.hpp"
+#include "epona/cpu/qk_rms_norm_rope.hpp"
+#include "epona/cpu/residual_norm.hpp"
 
 namespace epona {
 

@@ -13,9 +13,9 @@
 #include "epona/core/dtype.hpp"
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/cpu/copy_fill_axpy.hpp"
 #include "epona/cpu/pixel_shuffle.hpp"
 #include "epona/nn/backend_context.hpp"
-#include "epona/nn/cpu_extra_ops.hpp"
 
 namespace epona {
 
