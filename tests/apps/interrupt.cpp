@@ -128,7 +128,8 @@ TEST_CASE("SIGINT during generate leaves the folder marked INCOMPLETE") {
   CHECK(fs::exists(dir / "INCOMPLETE"));
   CHECK(read_text(dir / "INCOMPLETE").find("incomplete") != std::string::npos);
   CHECK_FALSE(fs::exists(dir / "trajectory.json"));
-  CHECK(temporaries(dir).empty());
+  const auto left = temporaries(dir);
+  CHECK_MESSAGE(left.empty(), "left: ", left.empty() ? std::string() : left.front().string());
 }
 
 #ifdef EPONA_CLI_HAS_FFMPEG
@@ -150,7 +151,8 @@ TEST_CASE("SIGINT during generate --video removes the video's temporary file") {
   ::kill(pid, SIGINT);
   const int status = wait_status(pid);
   CHECK(WIFSIGNALED(status));
-  CHECK(temporaries(dir).empty());
+  const auto left = temporaries(dir);
+  CHECK_MESSAGE(left.empty(), "left: ", left.empty() ? std::string() : left.front().string());
   CHECK_FALSE(fs::exists(video));
 }
 #endif

@@ -102,13 +102,21 @@ class TempFile {
  public:
   explicit TempFile(const std::filesystem::path& path) {
     static std::atomic<unsigned> counter{0};
+    int err = 0;
     for (int attempt = 0; attempt < 100; ++attempt) {  // a stale name from a killed run is skipped
       name_ = path.string() + ".tmp-" + std::to_string(::getpid()) + "-" + std::to_string(counter++);
+      // Listed before it exists: a signal between the creation and the listing left the file
+      // behind (tests/apps/interrupt.cpp caught it). A signal before the creation unlinks a name
+      // that is not there yet, or a stale file of a dead process of our pid.
+      slot_ = list_temporary(name_);
       fd_ = ::open(name_.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
-      if (fd_ >= 0 || errno != EEXIST) break;
+      err = errno;
+      if (fd_ >= 0) return;
+      unlist_temporary(slot_);
+      slot_ = -1;
+      if (err != EEXIST) break;
     }
-    if (fd_ < 0) fail(path.string(), ": cannot create the temporary file ", name_, ": ", std::strerror(errno));
-    slot_ = list_temporary(name_);
+    fail(path.string(), ": cannot create the temporary file ", name_, ": ", std::strerror(err));
   }
   TempFile(const TempFile&) = delete;
   TempFile& operator=(const TempFile&) = delete;
