@@ -252,12 +252,12 @@ inline std::string generate_share(const ParsedArgs& a, const std::vector<eval::E
   plan.clip_len = decode_clip_length(a, engine->dcae_config());
   const Console silent{con.out, con.err, true, false};
   const auto policy = size_policy(a.choice("fit", {"exact", "resize", "crop", "cover"}, "exact"));
+  const std::int64_t max_pixels = max_pixels_option(a);
   const auto share = dist::share_size(clips.size(), job.group->rank(), job.group->size());
   Progress bar(con, "generate", static_cast<std::int64_t>(share), "clip");
   return share_message(*job.group, clips.size(), [&](std::size_t i, dist::MessageWriter& m) {
-    const eval::EvalClip& c = clips[i];
-    const Clip clip = load_clip(c.dir / "frames", c.dir / "poses.csv", wc.condition_frames, wc.image_h, wc.image_w,
-                                policy, max_pixels_option(a));
+    const eval::EvalClip& c = clips[i];  // listed, read and checked by generation_clips
+    const Clip clip = window_clip(c.frames, c.poses, wc.condition_frames, wc.image_h, wc.image_w, policy, max_pixels);
     plan.seed = base.seed + i;
     const std::filesystem::path dir = out / c.name;
     prepare_output_dir(dir, "--out " + dir.string());

@@ -78,6 +78,22 @@ struct Clip {
   std::int64_t folder_frames = 0;            // frames in the folder
 };
 
+// The last `window` of `files` (at least that many, one pose each, checked by the caller), read
+// and fitted to the model's size, and their poses.
+inline Clip window_clip(const std::vector<std::filesystem::path>& files, const io::PoseSequence& poses,
+                        std::int64_t window, std::int64_t height, std::int64_t width, io::SizePolicy policy,
+                        std::int64_t max_pixels = io::limits::kPixels) {
+  const auto n = static_cast<std::int64_t>(files.size());
+  Clip c;
+  c.folder_frames = n;
+  for (std::int64_t i = n - window; i < n; ++i) {
+    c.files.push_back(files[static_cast<std::size_t>(i)]);
+    c.frames.push_back(read_frame(files[static_cast<std::size_t>(i)], height, width, policy, max_pixels));
+  }
+  c.poses = poses.slice(static_cast<std::size_t>(n - window), static_cast<std::size_t>(window));
+  return c;
+}
+
 inline Clip load_clip(const std::filesystem::path& frames_dir, const std::filesystem::path& poses_file,
                       std::int64_t window, std::int64_t height, std::int64_t width, io::SizePolicy policy,
                       std::int64_t max_pixels = io::limits::kPixels) {
@@ -88,14 +104,7 @@ inline Clip load_clip(const std::filesystem::path& frames_dir, const std::filesy
               " condition frames, the folder holds ", n);
   EPONA_CHECK(static_cast<std::int64_t>(poses.size()) == n, "--poses ", poses_file.string(), " holds ", poses.size(),
               " pose(s) for the ", n, " frame(s) in ", frames_dir.string(), "; give one pose per frame");
-  Clip c;
-  c.folder_frames = n;
-  for (std::int64_t i = n - window; i < n; ++i) {
-    c.files.push_back(files[static_cast<std::size_t>(i)]);
-    c.frames.push_back(read_frame(files[static_cast<std::size_t>(i)], height, width, policy, max_pixels));
-  }
-  c.poses = poses.slice(static_cast<std::size_t>(n - window), static_cast<std::size_t>(window));
-  return c;
+  return window_clip(files, poses, window, height, width, policy, max_pixels);
 }
 
 // Encodes frames one by one (progress per frame) -> latents (N, C, h, w) on the host.

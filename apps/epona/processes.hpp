@@ -151,11 +151,9 @@ inline Job join_job(const Console& console, const ComputeOptions& compute) {
 // message for run_on_every_rank.
 template <class Put>
 std::string share_message(const dist::ProcessGroup& g, std::size_t count, Put&& put) {
-  std::vector<std::size_t> share;
-  dist::for_each_share(count, g.rank(), g.size(), [&](std::size_t i) { share.push_back(i); });
   dist::MessageWriter m;
-  m.put(static_cast<std::uint64_t>(share.size()));
-  for (const std::size_t i : share) put(i, m.put(static_cast<std::uint64_t>(i)));
+  m.put(static_cast<std::uint64_t>(dist::share_size(count, g.rank(), g.size())));
+  dist::for_each_share(count, g.rank(), g.size(), [&](std::size_t i) { put(i, m.put(static_cast<std::uint64_t>(i))); });
   return m.bytes();
 }
 
