@@ -119,6 +119,7 @@ class BindReport {
   }
   void problem(std::string p) { problems_.push_back(std::move(p)); }
   bool ok() const { return problems_.empty(); }
+  const TensorMap& map() const { return map_; }
 
   // Throws if anything was missing or mis-shaped; with `strict`, also names every tensor of
   // the map that was not bound (ignoring names for which `ignore(name)` is true).

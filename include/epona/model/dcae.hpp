@@ -440,7 +440,7 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
   static Dcae load(const io::TensorMap& weights, const DcaeConfig& config, bool strict = true) {
     Dcae model(config);
     io::BindReport report(weights);
-    nn::ParamBinder binder(weights, report);
+    nn::ParamBinder binder(report);
     model.visit_params("", binder);
     report.finish(strict, [&](const std::string& name) { return binder.is_counter(name); });
     return model;

@@ -24,6 +24,7 @@
 #include "epona/nn/layer_norm.hpp"
 #include "epona/nn/linear.hpp"
 #include "epona/nn/mlp.hpp"
+#include "epona/nn/parameter.hpp"
 #include "epona/nn/modulation.hpp"
 #include "epona/nn/rope.hpp"
 
@@ -182,19 +183,21 @@ struct DoubleStream {
       : mod(w.hidden, 6), qkv(w.hidden, 3 * w.hidden, true), proj(w.hidden, w.hidden, true),
         norm(w.head_dim(), w.rms_eps), mlp(w.hidden, w.mlp_hidden, w.hidden, true, nn::Gelu::Tanh) {}
 
-  // s ∈ {"img", "cond"}: "<s>_mod.lin.", "<s>_attn.norm."; the Linear layers ("<s>_attn.qkv.",
-  // "<s>_attn.proj.", "<s>_mlp.") are bound with the other stream's (bind_layers).
-  void bind(const io::TensorMap& w, const std::string& p, const std::string& s, io::BindReport& r) {
-    mod.bind(w, p + s + "_mod.lin.", r);
-    norm.bind(w, p + s + "_attn.norm.", r);
+  // p names the stream ("double_blocks.0.img"): "<p>_mod.lin.", "<p>_attn.norm."; its Linear
+  // layers ("<p>_attn.qkv.", "<p>_attn.proj.", "<p>_mlp.") are visited with the other
+  // stream's (visit_layers).
+  template <class V>
+  void visit_own(const std::string& p, V& v) {
+    mod.visit_params(p + "_mod.lin.", v);
+    norm.visit_params(p + "_attn.norm.", v);
   }
   // The Linear layers of streams a and b, each layer's weights of both in one allocation (a's
-  // first), so a paired product's weight stride is one matrix (Linear::bind_pair).
-  static void bind_layers(DoubleStream& a, const std::string& pa, DoubleStream& b, const std::string& pb,
-                          io::BindReport& r) {
-    nn::Linear<B, W>::bind_pair(a.qkv, pa + "_attn.qkv.", b.qkv, pb + "_attn.qkv.", r);
-    nn::Linear<B, W>::bind_pair(a.proj, pa + "_attn.proj.", b.proj, pb + "_attn.proj.", r);
-    nn::SequentialMlp<B, W>::bind_pair(a.mlp, pa + "_mlp.", b.mlp, pb + "_mlp.", r);
+  // first), so a paired product's weight stride is one matrix (Linear::visit_pair).
+  template <class V>
+  static void visit_layers(V& v, DoubleStream& a, const std::string& pa, DoubleStream& b, const std::string& pb) {
+    nn::Linear<B, W>::visit_pair(v, a.qkv, pa + "_attn.qkv.", b.qkv, pb + "_attn.qkv.");
+    nn::Linear<B, W>::visit_pair(v, a.proj, pa + "_attn.proj.", b.proj, pb + "_attn.proj.");
+    nn::SequentialMlp<B, W>::visit_pair(v, a.mlp, pa + "_mlp.", b.mlp, pb + "_mlp.");
   }
 
   // The stream's Linear layers, as StreamPair::linear picks them.
@@ -289,7 +292,7 @@ struct DoubleBlockEntry {
 };
 
 template <class B, class W>
-struct DoubleStreamBlock {
+struct DoubleStreamBlock : nn::Bindable<DoubleStreamBlock<B, W>> {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   DitWidths widths;
@@ -299,10 +302,11 @@ struct DoubleStreamBlock {
   explicit DoubleStreamBlock(const DitWidths& w) : widths(w), img(w), cond(w) {}
 
   // The condition stream's layers come first in each paired allocation: its rows come first.
-  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
-    img.bind(w, p, "img", r);
-    cond.bind(w, p, "cond", r);
-    DoubleStream<B, W>::bind_layers(cond, p + "cond", img, p + "img", r);
+  template <class V>
+  void visit_params(const std::string& p, V& v) {
+    img.visit_own(p + "img", v);
+    cond.visit_own(p + "cond", v);
+    DoubleStream<B, W>::visit_layers(v, cond, p + "cond", img, p + "img");
   }
 
   // Modulation vectors of this block in a table row: [img 6D | cond 6D].
@@ -398,7 +402,7 @@ struct DoubleStreamBlock {
 };
 
 template <class B, class W>
-struct SingleStreamBlock {
+struct SingleStreamBlock : nn::Bindable<SingleStreamBlock<B, W>> {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   DitWidths widths;
@@ -412,11 +416,12 @@ struct SingleStreamBlock {
       : widths(w), linear1(w.hidden, 3 * w.hidden + w.mlp_hidden, true),
         linear2(w.hidden + w.mlp_hidden, w.hidden, true), norm(w.head_dim(), w.rms_eps), modulation(w.hidden, 3) {}
 
-  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
-    linear1.bind(w, p + "linear1.", r);
-    linear2.bind(w, p + "linear2.", r);
-    norm.bind(w, p + "norm.", r);
-    modulation.bind(w, p + "modulation.lin.", r);
+  template <class V>
+  void visit_params(const std::string& p, V& v) {
+    linear1.visit_params(p + "linear1.", v);
+    linear2.visit_params(p + "linear2.", v);
+    norm.visit_params(p + "norm.", v);
+    modulation.visit_params(p + "modulation.lin.", v);
     if (!linear1.weight.empty() && !linear1.bias.empty()) {
       const std::int64_t D = widths.hidden;
       q_part = linear1.rows(0, D);
@@ -474,7 +479,7 @@ struct SingleStreamBlock {
 };
 
 template <class B, class W>
-struct LastLayer {
+struct LastLayer : nn::Bindable<LastLayer<B, W>> {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   DitWidths widths;
@@ -485,9 +490,10 @@ struct LastLayer {
   LastLayer(const DitWidths& w, std::int64_t out_channels)
       : widths(w), adaLN_modulation(w.hidden, 2), linear(w.hidden, out_channels, true) {}
 
-  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
-    adaLN_modulation.bind(w, p + "adaLN_modulation.1.", r);
-    linear.bind(w, p + "linear.", r);
+  template <class V>
+  void visit_params(const std::string& p, V& v) {
+    adaLN_modulation.visit_params(p + "adaLN_modulation.1.", v);
+    linear.visit_params(p + "linear.", v);
   }
 
   // out (target, out_channels) = linear((1 + scale)·LN(z_target) + shift); (shift, scale) halves.

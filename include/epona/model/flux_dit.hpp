@@ -75,7 +75,7 @@ struct FluxDitConfig {
 };
 
 template <class B, class W>
-class FluxDiT {
+class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
  public:
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
@@ -125,16 +125,17 @@ class FluxDiT {
 
   const FluxDitConfig& config() const { return cfg_; }
 
-  void bind(const io::TensorMap& w, const std::string& prefix, io::BindReport& r) {
-    input_.bind(w, prefix + cfg_.input_name + ".", r);
-    time_in_.bind(w, prefix + "time_in.", r);
-    if (vector_in_) vector_in_->bind(w, prefix + "vector_in.", r);
-    cond_in_.bind(w, prefix + "cond_in.", r);
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    input_.visit_params(prefix + cfg_.input_name + ".", v);
+    time_in_.visit_params(prefix + "time_in.", v);
+    if (vector_in_) vector_in_->visit_params(prefix + "vector_in.", v);
+    cond_in_.visit_params(prefix + "cond_in.", v);
     for (std::size_t i = 0; i < double_blocks_.size(); ++i)
-      double_blocks_[i].bind(w, prefix + "double_blocks." + std::to_string(i) + ".", r);
+      double_blocks_[i].visit_params(prefix + "double_blocks." + std::to_string(i) + ".", v);
     for (std::size_t i = 0; i < single_blocks_.size(); ++i)
-      single_blocks_[i].bind(w, prefix + "single_blocks." + std::to_string(i) + ".", r);
-    final_layer_.bind(w, prefix + "final_layer.", r);
+      single_blocks_[i].visit_params(prefix + "single_blocks." + std::to_string(i) + ".", v);
+    final_layer_.visit_params(prefix + "final_layer.", v);
   }
 
   // ---- workspace sizes (bytes of arena) ----

@@ -69,7 +69,7 @@ enum ActionSlot : std::int64_t { kYaw = 0, kPoseX = 1, kPoseY = 2 };
 
 // nn.Sequential(Linear(in, hidden, no bias), GELU, Linear(hidden, C, no bias), LayerNorm(C)).
 template <class B, class W>
-struct Projector {
+struct Projector : nn::Bindable<Projector<B, W>> {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   nn::SequentialMlp<B, W> mlp;  // indices 0 and 2
@@ -79,9 +79,10 @@ struct Projector {
   Projector(std::int64_t in, std::int64_t hidden, std::int64_t out, float eps)
       : mlp(in, hidden, out, false, nn::Gelu::Erf), norm(out, eps, true) {}
 
-  void bind(const io::TensorMap& w, const std::string& prefix, io::BindReport& r) {
-    mlp.bind(w, prefix, r);
-    norm.bind(w, prefix + "3.", r);
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    mlp.visit_params(prefix, v);
+    norm.visit_params(prefix + "3.", v);
   }
   // x (n, in) -> y (n, C) float32 (LayerNorm's output type under autocast); hidden (n, hidden)
   // and projected (n, C) scratch.
@@ -95,7 +96,7 @@ struct Projector {
 // One pre-LN transformer layer of the MST (`CausalTimeBlock` and `SpaceBlock` share the
 // parameter layout): QK-LayerNorm over the full width before the head split, no biases.
 template <class B, class W>
-struct MstLayer {
+struct MstLayer : nn::Bindable<MstLayer<B, W>> {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   nn::LayerNorm<B> ln1, ln2, q_norm, k_norm;
@@ -109,17 +110,17 @@ struct MstLayer {
         value(c.n_embd, c.n_embd, false), proj(c.n_embd, c.n_embd, false),
         mlp(c.n_embd, c.mlp_hidden(), c.n_embd, false, nn::Gelu::Erf) {}
 
-  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
-    ln1.bind(w, p + "ln1.", r);
-    ln2.bind(w, p + "ln2.", r);
+  template <class V>
+  void visit_params(const std::string& p, V& v) {
+    ln1.visit_params(p + "ln1.", v);
+    ln2.visit_params(p + "ln2.", v);
     // key, value, query stacked in that order: one grouped product (key and value alone in the
     // pruned last block, whose queries are a subset of the rows).
-    nn::Linear<B, W>::bind_stacked(r,
-                                   {{&key, p + "attn.key."}, {&value, p + "attn.value."}, {&query, p + "attn.query."}});
-    proj.bind(w, p + "attn.proj.", r);
-    q_norm.bind(w, p + "attn.q_norm.", r);
-    k_norm.bind(w, p + "attn.k_norm.", r);
-    mlp.bind(w, p + "mlp.", r);
+    nn::Linear<B, W>::visit_group(v, {{&key, p + "attn.key."}, {&value, p + "attn.value."}, {&query, p + "attn.query."}});
+    proj.visit_params(p + "attn.proj.", v);
+    q_norm.visit_params(p + "attn.q_norm.", v);
+    k_norm.visit_params(p + "attn.k_norm.", v);
+    mlp.visit_params(p + "mlp.", v);
   }
 
   // Scratch of one layer over n tokens of width C.
@@ -243,14 +244,15 @@ struct MstLayer {
 };
 
 template <class B, class W>
-struct CausalTimeSpaceBlock {
+struct CausalTimeSpaceBlock : nn::Bindable<CausalTimeSpaceBlock<B, W>> {
   MstLayer<B, W> causal_time_block, space_block;
 
   CausalTimeSpaceBlock() = default;
   explicit CausalTimeSpaceBlock(const MstConfig& c) : causal_time_block(c), space_block(c) {}
-  void bind(const io::TensorMap& w, const std::string& p, io::BindReport& r) {
-    causal_time_block.bind(w, p + "causal_time_block.", r);
-    space_block.bind(w, p + "space_block.", r);
+  template <class V>
+  void visit_params(const std::string& p, V& v) {
+    causal_time_block.visit_params(p + "causal_time_block.", v);
+    space_block.visit_params(p + "space_block.", v);
   }
 };
 
@@ -259,7 +261,7 @@ template <class B>
 using MstObserver = std::function<void(std::int64_t, const std::string&, const Tensor<float, B>&)>;
 
 template <class B, class W>
-class SpatialTemporalTransformer {
+class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransformer<B, W>> {
  public:
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
@@ -282,14 +284,15 @@ class SpatialTemporalTransformer {
 
   const MstConfig& config() const { return cfg_; }
 
-  void bind(const io::TensorMap& w, const std::string& prefix, io::BindReport& r) {
-    time_emb_ = nn::bind_param<B, float>(r, prefix + "time_emb", {cfg_.time_emb_rows, cfg_.n_embd});
-    img_projector_.bind(w, prefix + "img_projector.", r);
-    pose_x_projector_.bind(w, prefix + "pose_x_projector.", r);
-    pose_y_projector_.bind(w, prefix + "pose_y_projector.", r);
-    yaw_projector_.bind(w, prefix + "yaw_projector.", r);
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    v.param(prefix + "time_emb", time_emb_, {cfg_.time_emb_rows, cfg_.n_embd});
+    img_projector_.visit_params(prefix + "img_projector.", v);
+    pose_x_projector_.visit_params(prefix + "pose_x_projector.", v);
+    pose_y_projector_.visit_params(prefix + "pose_y_projector.", v);
+    yaw_projector_.visit_params(prefix + "yaw_projector.", v);
     for (std::size_t i = 0; i < blocks_.size(); ++i)
-      blocks_[i].bind(w, prefix + "causal_time_space_blocks." + std::to_string(i) + ".", r);
+      blocks_[i].visit_params(prefix + "causal_time_space_blocks." + std::to_string(i) + ".", v);
   }
 
   // Arena bytes evaluate() needs besides its outputs (scratch of one batch item).

@@ -163,9 +163,8 @@ class WorldModel {
     if (!any_traj)
       report.problem("no TrajDiT weights (no key starts with 'module.traj_dit.'; the official loader would "
                      "silently keep random ones)");
-    m.mst_.bind(weights, "module.model.", report);
-    m.vis_.bind(weights, "module.dit.", report);
-    m.traj_.bind(weights, "module.traj_dit.", report);
+    nn::ParamBinder binder(report);
+    m.visit_params(binder);
     report.finish(true, [](const std::string& k) { return k.rfind("module.", 0) != 0; });
     return m;
   }
@@ -174,6 +173,14 @@ class WorldModel {
   // safetensors file with the same keys. The file is released once the weights are bound.
   static WorldModel load_file(const std::string& path, const WorldModelConfig& config = {}) {
     return load(io::load_weights(path), config);
+  }
+
+  // The parameter tree of the three networks under their official prefixes (nn/parameter.hpp).
+  template <class V>
+  void visit_params(V& v) {
+    mst_.visit_params("module.model.", v);
+    vis_.visit_params("module.dit.", v);
+    traj_.visit_params("module.traj_dit.", v);
   }
 
   const WorldModelConfig& config() const { return cfg_; }

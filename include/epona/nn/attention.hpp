@@ -64,7 +64,7 @@ inline double attention_flops(std::int64_t seqs, std::int64_t heads, std::int64_
 
 // QKNorm: RMSNorm per token and head with separate learned scales for queries and keys.
 template <class B>
-struct QkNorm {
+struct QkNorm : Bindable<QkNorm<B>> {
   using Context = BackendContext<B>;
 
   std::int64_t head_dim = 0;
@@ -74,9 +74,10 @@ struct QkNorm {
   QkNorm() = default;
   QkNorm(std::int64_t d, float epsilon) : head_dim(d), eps(epsilon) {}
 
-  void bind(const io::TensorMap&, const std::string& prefix, io::BindReport& report) {
-    query_scale = bind_param<B, float>(report, prefix + "query_norm.scale", {head_dim});
-    key_scale = bind_param<B, float>(report, prefix + "key_norm.scale", {head_dim});
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    v.param(prefix + "query_norm.scale", query_scale, {head_dim});
+    v.param(prefix + "key_norm.scale", key_scale, {head_dim});
   }
 
   // In place on `rows` tokens; q of token r starts at q + r*stride (heads side by side), k too.

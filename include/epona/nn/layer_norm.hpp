@@ -14,7 +14,7 @@
 namespace epona::nn {
 
 template <class B>
-struct LayerNorm {
+struct LayerNorm : Bindable<LayerNorm<B>> {
   using Context = BackendContext<B>;
 
   std::int64_t width = 0;
@@ -25,10 +25,11 @@ struct LayerNorm {
   LayerNorm() = default;
   LayerNorm(std::int64_t n, float epsilon, bool with_affine) : width(n), eps(epsilon), affine(with_affine) {}
 
-  void bind(const io::TensorMap&, const std::string& prefix, io::BindReport& report) {
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
     if (!affine) return;
-    weight = bind_param<B, float>(report, prefix + "weight", {width});
-    bias = bind_param<B, float>(report, prefix + "bias", {width});
+    v.param(prefix + "weight", weight, {width});
+    v.param(prefix + "bias", bias, {width});
   }
 
   // y = LN(x) row by row over the last dimension; x and y may be the same tensor. Statistics in

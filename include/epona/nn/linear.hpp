@@ -19,7 +19,7 @@
 namespace epona::nn {
 
 template <class B, class T>
-struct Linear {
+struct Linear : Bindable<Linear<B, T>> {
   using Context = BackendContext<B>;
   using Epilogue = BackendEpilogue<B>;
   using A = Activation<B, T>;
@@ -37,9 +37,10 @@ struct Linear {
   bool same_shape(const Linear& o) const { return in == o.in && out == o.out && has_bias == o.has_bias; }
 
   // prefix names the module ("img_in." → "img_in.weight", "img_in.bias").
-  void bind(const io::TensorMap&, const std::string& prefix, io::BindReport& report) {
-    weight = bind_param<B, T>(report, prefix + "weight", {out, in});
-    if (has_bias) bias = bind_param<B, T>(report, prefix + "bias", {out});
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    v.param(prefix + "weight", weight, {out, in});
+    if (has_bias) v.param(prefix + "bias", bias, {out});
   }
 
   // x (..., in) -> y (..., out); y preallocated.
@@ -48,28 +49,27 @@ struct Linear {
     linear(ctx, x, weight, bias, y, epilogue);
   }
 
-  // Binds layers of one shape (each with its prefix) with their weights in one allocation
+  // Layers of one shape (each with its prefix) with their weights in one allocation
   // (count, out, in) and their biases in another (count, out), in the order given: a grouped
   // product's weight stride is then one matrix, positive and small (cuBLASLt's bf16 batched
   // kernels take no negative strides, and separate allocations may lie either way round).
-  static void bind_stacked(io::BindReport& report, const std::vector<std::pair<Linear*, std::string>>& layers) {
+  template <class V>
+  static void visit_group(V& v, const std::vector<std::pair<Linear*, std::string>>& layers) {
     const Linear& a = *layers.front().first;
     for (const auto& [l, prefix] : layers)
-      EPONA_CHECK(l->same_shape(a), "Linear::bind_stacked: ", prefix, " (", l->in, " -> ", l->out, ") with (", a.in,
-                  " -> ", a.out, ")");
+      EPONA_CHECK(l->same_shape(a), "Linear group: ", prefix, " (", l->in, " -> ", l->out, ") with (", a.in, " -> ",
+                  a.out, ")");
     const auto stack = [&](const std::string& name, const Shape& shape, Tensor<T, B> Linear::*member) {
-      std::vector<std::string> names;
-      for (const auto& layer : layers) names.push_back(layer.second + name);
-      auto stacked = bind_stacked_params<B, T>(report, names, shape);
-      if (stacked.empty()) return;
-      for (std::size_t i = 0; i < layers.size(); ++i) layers[i].first->*member = stacked[static_cast<std::int64_t>(i)];
+      std::vector<StackedPart<T, B>> parts;
+      for (const auto& [l, prefix] : layers) parts.push_back({&(l->*member), prefix + name});
+      visit_stacked(v, std::span<const StackedPart<T, B>>(parts), shape);
     };
     stack("weight", {a.out, a.in}, &Linear::weight);
     if (a.has_bias) stack("bias", {a.out}, &Linear::bias);
   }
-  static void bind_pair(Linear& a, const std::string& first, Linear& b, const std::string& second,
-                        io::BindReport& report) {
-    bind_stacked(report, {{&a, first}, {&b, second}});
+  template <class V>
+  static void visit_pair(V& v, Linear& a, const std::string& first, Linear& b, const std::string& second) {
+    visit_group(v, {{&a, first}, {&b, second}});
   }
 
   // The layer restricted to output features [begin, end): the rows of W and b (contiguous),

@@ -17,7 +17,7 @@ namespace epona::nn {
 enum class Gelu { Erf, Tanh };
 
 template <class B, class T>
-struct SequentialMlp {
+struct SequentialMlp : Bindable<SequentialMlp<B, T>> {
   using Context = BackendContext<B>;
   using Epilogue = BackendEpilogue<B>;
   using A = Activation<B, T>;
@@ -29,17 +29,18 @@ struct SequentialMlp {
   SequentialMlp(std::int64_t in, std::int64_t hidden, std::int64_t out, bool bias, Gelu g)
       : fc1(in, hidden, bias), fc2(hidden, out, bias), gelu(g) {}
 
-  void bind(const io::TensorMap& w, const std::string& prefix, io::BindReport& report) {
-    fc1.bind(w, prefix + "0.", report);
-    fc2.bind(w, prefix + "2.", report);
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    fc1.visit_params(prefix + "0.", v);
+    fc2.visit_params(prefix + "2.", v);
   }
 
-  // Binds two MLPs of one shape with each layer's weights of both in one allocation (a's first;
-  // Linear::bind_pair), for paired products.
-  static void bind_pair(SequentialMlp& a, const std::string& first, SequentialMlp& b, const std::string& second,
-                        io::BindReport& report) {
-    Linear<B, T>::bind_pair(a.fc1, first + "0.", b.fc1, second + "0.", report);
-    Linear<B, T>::bind_pair(a.fc2, first + "2.", b.fc2, second + "2.", report);
+  // Two MLPs of one shape with each layer's weights of both in one allocation (a's first;
+  // Linear::visit_pair), for paired products.
+  template <class V>
+  static void visit_pair(V& v, SequentialMlp& a, const std::string& first, SequentialMlp& b, const std::string& second) {
+    Linear<B, T>::visit_pair(v, a.fc1, first + "0.", b.fc1, second + "0.");
+    Linear<B, T>::visit_pair(v, a.fc2, first + "2.", b.fc2, second + "2.");
   }
 
   // x (rows, in) -> y (rows, out); hidden (rows, hidden) is scratch.
@@ -55,7 +56,7 @@ struct SequentialMlp {
 };
 
 template <class B, class T>
-struct MlpEmbedder {
+struct MlpEmbedder : Bindable<MlpEmbedder<B, T>> {
   using Context = BackendContext<B>;
   using Epilogue = BackendEpilogue<B>;
   using A = Activation<B, T>;
@@ -65,9 +66,10 @@ struct MlpEmbedder {
   MlpEmbedder() = default;
   MlpEmbedder(std::int64_t in, std::int64_t hidden) : in_layer(in, hidden, true), out_layer(hidden, hidden, true) {}
 
-  void bind(const io::TensorMap& w, const std::string& prefix, io::BindReport& report) {
-    in_layer.bind(w, prefix + "in_layer.", report);
-    out_layer.bind(w, prefix + "out_layer.", report);
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    in_layer.visit_params(prefix + "in_layer.", v);
+    out_layer.visit_params(prefix + "out_layer.", v);
   }
 
   void operator()(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& hidden, Tensor<A, B>& y) const {

@@ -17,7 +17,7 @@
 namespace epona::nn {
 
 template <class B, class T>
-struct Modulation {
+struct Modulation : Bindable<Modulation<B, T>> {
   using Context = BackendContext<B>;
   using A = Activation<B, T>;
 
@@ -29,8 +29,9 @@ struct Modulation {
   Modulation(std::int64_t d, int n_chunks) : dim(d), chunks(n_chunks), lin(d, n_chunks * d, true) {}
 
   // `linear_prefix` is the Linear's own prefix: "img_mod.lin." or "adaLN_modulation.1.".
-  void bind(const io::TensorMap& w, const std::string& linear_prefix, io::BindReport& report) {
-    lin.bind(w, linear_prefix, report);
+  template <class V>
+  void visit_params(const std::string& linear_prefix, V& v) {
+    lin.visit_params(linear_prefix, v);
   }
 
   // silu_vec (1, dim) = SiLU(vec); the chunks*dim outputs go to the front of `out` (a buffer
