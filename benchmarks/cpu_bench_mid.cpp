@@ -165,7 +165,7 @@ struct World : bench::BenchMidWorld<W> {
     auto& self = *this;  // the base's members by name
     const auto& dit = vis ? self.wm.vis_dit() : self.wm.traj_dit();
     const auto& x_ids = vis ? self.ids.img : self.ids.traj;
-    const model::JointRows rows{self.cfg.tokens_per_frame(), x_ids.size(1)};
+    const nn::JointRows rows{self.cfg.tokens_per_frame(), x_ids.size(1)};
     gflop = dit.forward_flops(rows, false).total() / 1e9;
     auto x = std::make_shared<Tensor<float, Cpu>>(self.dit_input(vis));
     auto v = std::make_shared<Tensor<float, Cpu>>(x->shape());

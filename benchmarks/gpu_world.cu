@@ -433,7 +433,7 @@ int run(const Options& o) {
   const auto pose_idx = tok.poses_to_indices(pose_full), yaw_idx = tok.yaws_to_indices(yaw_full);
   const auto& mst = wm.mst();
   const auto ids = model::prepare_ids(1, cfg.latent_h(), cfg.latent_w(), cfg.tokens_per_frame(), cfg.traj_len);
-  const model::JointRows traj_rows{cfg.tokens_per_frame(), cfg.traj_len}, img_rows{cfg.tokens_per_frame(), L};
+  const nn::JointRows traj_rows{cfg.tokens_per_frame(), cfg.traj_len}, img_rows{cfg.tokens_per_frame(), L};
   const auto& traj = wm.traj_dit();
   const auto& vis = wm.vis_dit();
   // One arena for the component timings, sized for the largest of them.
@@ -486,7 +486,7 @@ int run(const Options& o) {
     cuda::set_gemm_tuning(was);
   }
 
-  const auto dit_rows = [&](bool is_vis) -> const model::JointRows& { return is_vis ? img_rows : traj_rows; };
+  const auto dit_rows = [&](bool is_vis) -> const nn::JointRows& { return is_vis ? img_rows : traj_rows; };
   // The DiT rows; `suffix` names a second pass with the GEMM tuning switched (--tune-compare).
   // traj_sample_only: the TrajDiT sample row alone (--front-compare).
   const auto time_dits = [&](const std::string& suffix, bool traj_sample_only = false) {

@@ -54,7 +54,7 @@ void dit_forward(benchmark::State& state, bool vis) {
   const auto& x_ids = vis ? b.ids.img : b.ids.traj;
   const auto x = b.dit_input(vis);
   Tensor<float, Cpu> v(x.shape()), t = Tensor<float, Cpu>::full({1}, 0.37f);
-  const model::JointRows rows{b.cfg.tokens_per_frame(), x_ids.size(1)};
+  const nn::JointRows rows{b.cfg.tokens_per_frame(), x_ids.size(1)};
   Arena<Cpu> arena(dit.forward_bytes(1, rows));
   for (auto _ : state) {
     dit.forward(b.wm.context(), arena, x, x_ids, b.stt, b.ids.cond, t, b.pose_emb, v);

@@ -254,8 +254,8 @@ namespace {
 // One DiT block on the CPU (float32) and on the GPU (weights W) from the same residual z,
 // modulation vectors and RoPE table; returns (cpu z or out, gpu z or out).
 struct DitBlockCase {
-  model::DitWidths widths = model::FluxDitConfig::vis(config()).widths();
-  model::JointRows rows{config().tokens_per_frame(), config().img_tokens()};
+  nn::DitWidths widths = model::FluxDitConfig::vis(config()).widths();
+  nn::JointRows rows{config().tokens_per_frame(), config().img_tokens()};
   Tensor<float, Cpu> z = test::random_tensor({rows.total(), widths.hidden}, 21, -2.f, 2.f);
   nn::RopeTable<Cpu> rope = [this] {
     const auto ids = model::prepare_ids(1, config().latent_h(), config().latent_w(), rows.cond, config().traj_len);
@@ -266,8 +266,8 @@ struct DitBlockCase {
   }();
 
   template <class B, class A>
-  static model::DitScratch<B, A> scratch(Arena<B>& arena, std::int64_t n, const model::DitWidths& w) {
-    return model::DitScratch<B, A>::plan(arena, n, w);
+  static nn::DitScratch<B, A> scratch(Arena<B>& arena, std::int64_t n, const nn::DitWidths& w) {
+    return nn::DitScratch<B, A>::plan(arena, n, w);
   }
 
   // run(block, scratch, mods, rope) for CPU float and GPU W; compares z rows [first, total).
@@ -279,9 +279,9 @@ struct DitBlockCase {
     auto cpu_block = make.template operator()<Cpu, float>();
     bind(cpu_block, prefix);
     ArenaCounter<Cpu> counter;
-    model::DitScratch<Cpu, float>::plan(counter, rows.total(), widths);
+    nn::DitScratch<Cpu, float>::plan(counter, rows.total(), widths);
     Arena<Cpu> ca(counter.bytes());
-    auto cs = model::DitScratch<Cpu, float>::plan(ca, rows.total(), widths);
+    auto cs = nn::DitScratch<Cpu, float>::plan(ca, rows.total(), widths);
     std::copy_n(z.data(), z.numel(), cs.z.data());
     Tensor<float, Cpu> cpu_out = run(cpu_ctx(), cpu_block, cs, mods.data(), rope);
 
@@ -289,7 +289,7 @@ struct DitBlockCase {
     bind(gpu_block, prefix);
     Arena<Cuda> ga(counter.bytes() * 2);
     poison_arena(ga);
-    auto gs = model::DitScratch<Cuda, A>::plan(ga, rows.total(), widths);
+    auto gs = nn::DitScratch<Cuda, A>::plan(ga, rows.total(), widths);
     auto zin = upload<A>(z);
     cuda::copy(gpu(), zin.data(), gs.z.data(), z.numel());
     const auto dmods = upload<A>(mods);
@@ -314,9 +314,9 @@ void dit_blocks() {
   DitBlockCase k;
   const auto w = k.widths;
   const std::int64_t D = w.hidden;
-  const auto dl = [w]<class B, class T>() { return model::DoubleStreamBlock<B, T>(w); };
-  const auto sl = [w]<class B, class T>() { return model::SingleStreamBlock<B, T>(w); };
-  const auto ll = [w]<class B, class T>() { return model::LastLayer<B, T>(w, config().token_dim()); };
+  const auto dl = [w]<class B, class T>() { return nn::DoubleStreamBlock<B, T>(w); };
+  const auto sl = [w]<class B, class T>() { return nn::SingleStreamBlock<B, T>(w); };
+  const auto ll = [w]<class B, class T>() { return nn::LastLayer<B, T>(w, config().token_dim()); };
   const auto z_of = [](auto& ctx, auto& s) {
     if constexpr (std::is_same_v<std::decay_t<decltype(ctx)>, cuda::Context>)
       return download(s.z);
@@ -326,7 +326,7 @@ void dit_blocks() {
   const std::string tag = std::is_same_v<W, float> ? " (GPU f32 vs CPU)" : " (GPU bf16 vs CPU f32)";
   k.template compare<W>("DoubleStreamBlock" + tag, "module.dit.double_blocks.0.", 12 * D, dl,
                         [&](auto& ctx, const auto& b, auto& s, const auto* mods, const auto& rope) {
-                          model::SideQueue<BackendOf_t<decltype(ctx)>> queue;
+                          nn::SideQueue<BackendOf_t<decltype(ctx)>> queue;
                           b(ctx, queue, s, k.rows, rope, mods);
                           return z_of(ctx, s);
                         });
@@ -334,7 +334,7 @@ void dit_blocks() {
     k.template compare<W>("SingleStreamBlock, rows from " + std::to_string(first) + tag,
                           "module.dit.single_blocks.1.", 3 * D, sl,
                           [&](auto& ctx, const auto& b, auto& s, const auto* mods, const auto& rope) {
-                            model::SideQueue<BackendOf_t<decltype(ctx)>> queue;
+                            nn::SideQueue<BackendOf_t<decltype(ctx)>> queue;
                             b(ctx, queue, s, k.rows, rope, mods, first);
                             return z_of(ctx, s);
                           },
@@ -428,7 +428,7 @@ void dit_network(bool vis) {
   const auto ids = model::prepare_ids(kBatch, c.latent_h(), c.latent_w(), c.tokens_per_frame(), c.traj_len);
   const auto& target_ids = vis ? ids.img : ids.traj;
   const std::int64_t Lx = target_ids.size(1);
-  const model::JointRows rows{c.tokens_per_frame(), Lx};
+  const nn::JointRows rows{c.tokens_per_frame(), Lx};
   const auto cond = test::random_tensor({kBatch, rows.cond, c.n_embd}, 41, -2.f, 2.f);
   const auto y = test::random_tensor({kBatch, c.pose_emb_dim()}, 42, -2.f, 2.f);
   const auto x = test::random_tensor({kBatch, Lx, dc.in_channels}, 43, -2.f, 2.f);
@@ -502,7 +502,7 @@ void dit_solvers(bool vis) {
   const auto ids = model::prepare_ids(kBatch, c.latent_h(), c.latent_w(), c.tokens_per_frame(), c.traj_len);
   const auto& target_ids = vis ? ids.img : ids.traj;
   const std::int64_t Lx = target_ids.size(1), steps = 6;
-  const model::JointRows rows{c.tokens_per_frame(), Lx};
+  const nn::JointRows rows{c.tokens_per_frame(), Lx};
   const auto cond = test::random_tensor({kBatch, rows.cond, c.n_embd}, 41, -2.f, 2.f);
   const auto y = test::random_tensor({kBatch, c.pose_emb_dim()}, 42, -2.f, 2.f);
   const auto x = test::random_tensor({kBatch, Lx, dc.in_channels}, 43, -2.f, 2.f);

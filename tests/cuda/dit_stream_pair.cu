@@ -20,7 +20,7 @@
 
 #include "../metrics.hpp"
 #include "epona/cuda/backend.cuh"
-#include "epona/model/dit_blocks.hpp"
+#include "epona/nn/blocks/dit_blocks.hpp"
 #include "epona/model/random_weights.hpp"
 
 using namespace epona;
@@ -261,8 +261,8 @@ namespace {
 
 // One double block of hidden 256 (head dim 128, the kernels' real one), rows 37 / 34.
 struct PairBlockCase {
-  model::DitWidths widths{256, 2, 1024};
-  model::JointRows rows{37, 34};
+  nn::DitWidths widths{256, 2, 1024};
+  nn::JointRows rows{37, 34};
   io::TensorMap weights = [] {
     model::detail::WeightSynth w(5);
     model::detail::synth_dit(w, "dit.", "img_in", 4, 256, 2, 0, 1, 0, 96);
@@ -281,26 +281,26 @@ struct PairBlockCase {
   template <class B, class W, class Context>
   std::pair<HostF, HostF> run(Context& ctx, bool first, bool expect_paired) const {
     using A = Activation<B, W>;
-    model::DoubleStreamBlock<B, W> block(widths);
+    nn::DoubleStreamBlock<B, W> block(widths);
     io::BindReport report(weights);
     block.bind(weights, "dit.double_blocks.0.", report);
     report.finish(true, [](const std::string& k) { return k.rfind("dit.double_blocks.0.", 0) != 0; });
     ArenaCounter<B> counter;
-    model::DitScratch<B, A>::plan(counter, rows, widths);
+    nn::DitScratch<B, A>::plan(counter, rows, widths);
     Arena<B> arena(counter.bytes() + 4096);
     poison_arena(ctx, arena);
-    auto s = model::DitScratch<B, A>::plan(arena, rows, widths);
+    auto s = nn::DitScratch<B, A>::plan(arena, rows, widths);
     auto canary = arena.template take<unsigned char>({4096 - 64});
     put(ctx, z, s.z);
     put(ctx, normed_in, s.modulated);
     const auto dm = to<B, A>(ctx, mods), dn = to<B, A>(ctx, next), dsrc = to<B, A>(ctx, cond_src);
     const nn::RopeTable<B> r{to<B, float>(ctx, rope.cos), to<B, float>(ctx, rope.sin)};
-    model::SideQueue<B> queue;
+    nn::SideQueue<B> queue;
     CHECK(model::detail::StreamPair<B, W>::pairs(ctx, s, rows) == expect_paired);
     if (first)
       block(ctx, queue, s, rows, r, dm.data(), {}, dn.data(), dn.data() + 2 * D, dsrc.data());
     else
-      block(ctx, queue, s, rows, r, dm.data(), model::DoubleBlockEntry::already_normed());
+      block(ctx, queue, s, rows, r, dm.data(), nn::DoubleBlockEntry::already_normed());
     if constexpr (std::is_same_v<B, Cuda>) {
       const auto bytes = cuda::to_host(ctx, canary);
       CHECK(std::count(bytes.data(), bytes.data() + bytes.numel(), 0xFF) == bytes.numel());
@@ -394,16 +394,16 @@ TEST_CASE("double block: paired products vs per-stream vs the CPU backend (rows 
 TEST_CASE("double block pairs only padded scratch and close row counts") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
-  const model::DitWidths w{256, 2, 1024};
+  const nn::DitWidths w{256, 2, 1024};
   ArenaCounter<Cuda> c;
   using Pair = model::detail::StreamPair<Cuda, bf16>;
-  const auto padded = model::DitScratch<Cuda, bf16>::plan(c, model::JointRows{37, 34}, w);
-  const auto unpadded = model::DitScratch<Cuda, bf16>::plan(c, std::int64_t{71}, w);
+  const auto padded = nn::DitScratch<Cuda, bf16>::plan(c, nn::JointRows{37, 34}, w);
+  const auto unpadded = nn::DitScratch<Cuda, bf16>::plan(c, std::int64_t{71}, w);
   CHECK(Pair::pairs(ctx, padded, {37, 34}));
   CHECK_FALSE(Pair::pairs(ctx, unpadded, {37, 34}));  // a scratch planned without the padding
-  CHECK_FALSE(model::streams_pairable({515, 15}));     // the TrajDiT
-  CHECK_FALSE(model::streams_pairable({512, 515}));    // a longer target would overrun the condition's
-  CHECK(model::streams_pairable({515, 512}));          // the VisDiT
-  CHECK(model::paired_padding({515, 512}) == 3);
-  CHECK(model::paired_padding({515, 15}) == 0);
+  CHECK_FALSE(nn::streams_pairable({515, 15}));     // the TrajDiT
+  CHECK_FALSE(nn::streams_pairable({512, 515}));    // a longer target would overrun the condition's
+  CHECK(nn::streams_pairable({515, 512}));          // the VisDiT
+  CHECK(nn::paired_padding({515, 512}) == 3);
+  CHECK(nn::paired_padding({515, 15}) == 0);
 }

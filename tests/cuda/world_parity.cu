@@ -140,7 +140,7 @@ std::pair<Tensor<float, Cpu>, Tensor<float, Cpu>> run_dit(bool vis) {
   const auto cond = cuda::to_device(ctx, g.tensor("mst.stt_features"));
   const auto y = cuda::to_device(ctx, g.tensor("mst.pose_emb"));
   const auto x = cuda::to_device(ctx, g.tensor(name + ".x"));
-  const model::JointRows rows{cond.size(1), x.size(1)};
+  const nn::JointRows rows{cond.size(1), x.size(1)};
   const std::int64_t B = x.size(0), steps = w.num_sampling_steps;
   Arena<Cuda> arena(std::max(d.forward_bytes(B, rows), d.conditioning_bytes(B, rows) + d.sample_bytes(B, rows, steps)));
 

@@ -57,7 +57,7 @@ TEST_CASE("bf16 weights: MST, one DiT velocity each, and both samplers") {
     const auto& dit = vis ? wm.vis_dit() : wm.traj_dit();
     const auto& target_ids = vis ? ids.img : ids.traj;
     const auto x = g.tensor(name + ".x");
-    const model::JointRows rows{cond.size(1), x.size(1)};
+    const nn::JointRows rows{cond.size(1), x.size(1)};
     Arena<Cpu> arena(dit.forward_bytes(B, rows) + dit.sample_bytes(B, rows, w.num_sampling_steps));
     Tensor<float, Cpu> v(x.shape());
     dit.forward(ctx, arena, x, target_ids, cond, ids.cond, g.tensor(name + ".t"), y, v);

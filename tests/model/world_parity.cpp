@@ -162,7 +162,7 @@ TEST_CASE("TrajDiT and VisDiT: one velocity and a full sample (traj.*, vis.*)") 
     const auto& d = dit(vis);
     const auto& target_ids = vis ? ids.img : ids.traj;
     const auto x = g.tensor(name + ".x");
-    const model::JointRows rows{cond.size(1), x.size(1)};
+    const nn::JointRows rows{cond.size(1), x.size(1)};
     const std::int64_t steps = w.num_sampling_steps;
     Arena<Cpu> arena(std::max(d.forward_bytes(x.size(0), rows),
                               d.conditioning_bytes(x.size(0), rows) + d.sample_bytes(x.size(0), rows, steps)));

@@ -171,7 +171,7 @@ void check_dit(bool vis, bool bf16_storage) {
   t.data()[1] = 0.875f;
   HostTensor out({B, lx, c.out_channels});
   cpu::Context ctx(2);
-  const model::JointRows rows{lc, lx};
+  const nn::JointRows rows{lc, lx};
   Arena<Cpu> arena(dit.forward_bytes(B, rows));
   dit.forward(ctx, arena, x, x_ids, cond, ids.cond, t, y, out);
   CHECK(arena.high_water() == dit.forward_bytes(B, rows));

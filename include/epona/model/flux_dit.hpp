@@ -25,8 +25,8 @@
 #include "epona/flow/solvers.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
-#include "epona/model/dit_blocks.hpp"
 #include "epona/nn/backend_context.hpp"
+#include "epona/nn/blocks/dit_trunk.hpp"
 #include "epona/nn/embeddings.hpp"
 #include "epona/nn/linear.hpp"
 #include "epona/nn/mlp.hpp"
@@ -71,7 +71,7 @@ struct FluxDitConfig {
     d.input_name = "traj_in";
     return d;
   }
-  DitWidths widths() const { return {hidden_size, num_heads, mlp_ratio * hidden_size}; }
+  nn::DitWidths widths() const { return {hidden_size, num_heads, mlp_ratio * hidden_size}; }
 };
 
 template <class B, class W>
@@ -85,7 +85,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   // RoPE table of the joint ids, for every batch item.
   struct Conditioning {
     std::int64_t batch = 0;
-    JointRows rows;
+    nn::JointRows rows;
     Tensor<A, B> cond;      // (batch, Lc, D) = cond_in(cond)
     Tensor<A, B> vec_y;     // (batch, D) = vector_in(y), empty without vector_in
     nn::RopeTable<B> rope;  // (batch·(Lc+Lx), head_dim/2)
@@ -112,15 +112,13 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   explicit FluxDiT(const FluxDitConfig& c)
       : cfg_(c), widths_(c.widths()), input_(c.in_channels, c.hidden_size, true),
         time_in_(c.time_dim, c.hidden_size), cond_in_(c.context_in_dim, c.hidden_size, true),
-        final_layer_(widths_, c.out_channels) {
+        trunk_(widths_, c.depth, c.depth_single_blocks, c.out_channels) {
     EPONA_CHECK(c.num_heads > 0 && c.hidden_size % c.num_heads == 0, "DiT: num_heads ", c.num_heads,
                 " does not divide hidden_size ", c.hidden_size);
     std::int64_t axes = 0;
     for (auto a : c.axes_dim) axes += a;
     EPONA_CHECK(axes == widths_.head_dim(), "DiT: axes_dim sums to ", axes, ", the head dim is ", widths_.head_dim());
     if (c.vec_in_dim > 0) vector_in_.emplace(c.vec_in_dim, c.hidden_size);
-    for (std::int64_t i = 0; i < c.depth; ++i) double_blocks_.emplace_back(widths_);
-    for (std::int64_t i = 0; i < c.depth_single_blocks; ++i) single_blocks_.emplace_back(widths_);
   }
 
   const FluxDitConfig& config() const { return cfg_; }
@@ -131,26 +129,22 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     time_in_.visit_params(prefix + "time_in.", v);
     if (vector_in_) vector_in_->visit_params(prefix + "vector_in.", v);
     cond_in_.visit_params(prefix + "cond_in.", v);
-    for (std::size_t i = 0; i < double_blocks_.size(); ++i)
-      double_blocks_[i].visit_params(prefix + "double_blocks." + std::to_string(i) + ".", v);
-    for (std::size_t i = 0; i < single_blocks_.size(); ++i)
-      single_blocks_[i].visit_params(prefix + "single_blocks." + std::to_string(i) + ".", v);
-    final_layer_.visit_params(prefix + "final_layer.", v);
+    trunk_.visit_params(prefix, v);
   }
 
   // ---- workspace sizes (bytes of arena) ----
   // What prepare() takes at most (its Conditioning stays, its scratch is released).
-  std::size_t conditioning_bytes(std::int64_t batch, const JointRows& rows) const {
+  std::size_t conditioning_bytes(std::int64_t batch, const nn::JointRows& rows) const {
     return conditioning_sizes(batch, rows).total();
   }
   // One velocity evaluation of one batch item.
-  std::size_t velocity_bytes(const JointRows& rows) const {
+  std::size_t velocity_bytes(const nn::JointRows& rows) const {
     ArenaCounter<B> c;
     plan_velocity(c, rows);
     return c.bytes();
   }
   // Everything sample() takes on top of its conditioning, for `steps` steps of `solver`.
-  std::size_t sample_bytes(std::int64_t batch, const JointRows& rows, std::int64_t steps,
+  std::size_t sample_bytes(std::int64_t batch, const nn::JointRows& rows, std::int64_t steps,
                            flow::SolverKind solver = flow::SolverKind::euler) const {
     ArenaCounter<B> v;
     v.template take<A>({batch, rows.target, cfg_.out_channels});
@@ -161,7 +155,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     return m.kept + std::max(m.scratch, v.bytes() + velocity_bytes(rows));
   }
   // Everything forward() takes.
-  std::size_t forward_bytes(std::int64_t batch, const JointRows& rows) const {
+  std::size_t forward_bytes(std::int64_t batch, const nn::JointRows& rows) const {
     const auto c = conditioning_sizes(batch, rows);
     const auto m = modulation_sizes(batch, 1);
     return c.kept + std::max(c.scratch, m.kept + std::max(m.scratch, velocity_bytes(rows)));
@@ -174,13 +168,13 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
                 cfg_.context_in_dim, "), got ", shape_str(cond.shape()));
     const std::int64_t batch = cond.size(0);
     EPONA_CHECK(target_ids.dim() == 3, "DiT target ids must be (B, L, axes), got ", shape_str(target_ids.shape()));
-    const JointRows rows{cond.size(1), target_ids.size(1)};
+    const nn::JointRows rows{cond.size(1), target_ids.size(1)};
     const auto axes = static_cast<std::int64_t>(cfg_.axes_dim.size());
     check_shape(cond_ids, {batch, rows.cond, axes}, "DiT condition ids");
     check_shape(target_ids, {batch, rows.target, axes}, "DiT target ids");
     if (vector_in_) check_shape(y, {batch, cfg_.vec_in_dim}, "DiT vector input y");
     Conditioning c = plan_conditioning(arena, batch, rows);
-    side_.side(ctx);  // the blocks' second queue exists before any sampling loop is recorded
+    trunk_.queue().side(ctx);  // the blocks' second queue exists before any sampling loop is recorded
     {
       ArenaScope<B> scope(arena);
       auto s = plan_conditioning_scratch(arena, batch, rows);
@@ -210,14 +204,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
       for (std::int64_t b = 0; b < c.batch; ++b)
         add_row_broadcast(ctx, s.vec.data() + b * times * D, c.vec_y[b].data(), times, D);
     silu_to(ctx, s.vec.data(), s.silu.data(), n * D);
-    std::int64_t offset = 0;
-    const auto fill = [&](const auto& block) {
-      block.modulations(ctx, s.silu.data(), n, m.table.data() + offset, m.width);
-      offset += block.modulation_width();
-    };
-    for (const auto& block : double_blocks_) fill(block);
-    for (const auto& block : single_blocks_) fill(block);
-    fill(final_layer_);
+    trunk_.modulations(ctx, s.silu.data(), n, m.table.data(), m.width);
     return m;
   }
 
@@ -267,17 +254,14 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   // FLOPs of one velocity evaluation including cond_in, batch 1: `executed` counts what runs
   // (the last single block updates only the target rows); otherwise what the official code
   // computes (every row of every block).
-  nn::Flops forward_flops(const JointRows& rows, bool executed = true) const {
+  nn::Flops forward_flops(const nn::JointRows& rows, bool executed = true) const {
     nn::Flops f{input_.flops(rows.target) + time_in_.flops(1) + cond_in_.flops(rows.cond), 0};
     if (vector_in_) f.gemm += vector_in_->flops(1);
-    for (const auto& b : double_blocks_) f += b.flops(rows);
-    for (std::size_t j = 0; j < single_blocks_.size(); ++j)
-      f += single_blocks_[j].flops(rows, executed ? first_updated_row(j, rows) : 0);
-    return f + final_layer_.flops(rows);
+    return f + trunk_.flops(rows, executed);
   }
 
  private:
-  using Scratch = DitScratch<B, A>;
+  using Scratch = nn::DitScratch<B, A>;
   // sample() for one solver: the modulations of every evaluation time (k of the velocity
   // contract indexes them), the velocity, the cast state and the solver's scratch, then the loop.
   template <class Solver>
@@ -339,15 +323,6 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   static std::uint64_t address(const void* p) { return static_cast<std::uint64_t>(reinterpret_cast<std::uintptr_t>(p)); }
 
   // The last single block only needs to update the target rows (the final layer reads no others).
-  std::int64_t first_updated_row(std::size_t single_index, const JointRows& rows) const {
-    return single_index + 1 == single_blocks_.size() ? rows.cond : 0;
-  }
-  std::int64_t modulation_width() const {
-    std::int64_t w = final_layer_.modulation_width();
-    for (const auto& b : double_blocks_) w += b.modulation_width();
-    for (const auto& b : single_blocks_) w += b.modulation_width();
-    return w;
-  }
 
   // A float32 input as a GEMM operand: itself when A is float, else converted into `buffer`.
   const Tensor<A, B>& as_activation(Context& ctx, const Tensor<float, B>& x, Tensor<A, B>& buffer) const {
@@ -362,7 +337,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   }
 
   template <class Alloc>
-  Conditioning plan_conditioning(Alloc& a, std::int64_t batch, const JointRows& rows) const {
+  Conditioning plan_conditioning(Alloc& a, std::int64_t batch, const nn::JointRows& rows) const {
     const std::int64_t pairs = widths_.head_dim() / 2;
     Conditioning c;
     c.batch = batch;
@@ -374,7 +349,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     return c;
   }
   template <class Alloc>
-  ConditioningScratch plan_conditioning_scratch(Alloc& a, std::int64_t batch, const JointRows& rows) const {
+  ConditioningScratch plan_conditioning_scratch(Alloc& a, std::int64_t batch, const nn::JointRows& rows) const {
     ConditioningScratch s;
     if (kConvertInputs) s.cond = a.template take<A>({batch, rows.cond, cfg_.context_in_dim});
     if (vector_in_) {
@@ -383,7 +358,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     }
     return s;
   }
-  Sizes conditioning_sizes(std::int64_t batch, const JointRows& rows) const {
+  Sizes conditioning_sizes(std::int64_t batch, const nn::JointRows& rows) const {
     ArenaCounter<B> kept, scratch;
     plan_conditioning(kept, batch, rows);
     plan_conditioning_scratch(scratch, batch, rows);
@@ -394,7 +369,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   Modulations plan_modulations(Alloc& a, std::int64_t batch, std::int64_t times) const {
     Modulations m;
     m.times = times;
-    m.width = modulation_width();
+    m.width = trunk_.modulation_width();
     m.table = a.template take<A>({batch * times, m.width});
     return m;
   }
@@ -412,14 +387,14 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   }
 
   // Whether the sampler runs the condition front ahead (SamplerOptions::pipelined_condition).
-  bool pipelines_condition(const JointRows& rows) const {
-    return options_.pipelined_condition && !double_blocks_.empty() && !streams_pairable(rows);
+  bool pipelines_condition(const nn::JointRows& rows) const {
+    return options_.pipelined_condition && trunk_.has_double_blocks() && !nn::streams_pairable(rows);
   }
   template <class Alloc>
-  ConditionFront plan_front(Alloc& a, std::int64_t batch, const JointRows& rows) const {
+  ConditionFront plan_front(Alloc& a, std::int64_t batch, const nn::JointRows& rows) const {
     ConditionFront f;
     if (!pipelines_condition(rows)) return f;
-    const std::int64_t D = cfg_.hidden_size, table_rows = rows.total() + paired_padding(rows);
+    const std::int64_t D = cfg_.hidden_size, table_rows = rows.total() + nn::paired_padding(rows);
     f.qkv = a.template take<A>({batch, table_rows, 3 * D});
     f.modulated = a.template take<A>({rows.cond, D});
     return f;
@@ -428,10 +403,10 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   // fork when the side queue has not yet seen this step's inputs).
   void issue_front(Context& ctx, const Conditioning& c, const Modulations& m, std::int64_t time, ConditionFront& f,
                    bool fork) const {
-    if (fork) side_.fork(ctx);
-    Context& side = side_.side(ctx);
+    if (fork) trunk_.queue().fork(ctx);
+    Context& side = trunk_.queue().side(ctx);
     for (std::int64_t b = 0; b < c.batch; ++b)
-      double_blocks_[0].condition_front(side, c.cond[b].data(), f.modulated, f.table(b), c.rows,
+      trunk_.condition_front(side, c.cond[b].data(), f.modulated, f.table(b), c.rows,
                                         item_rope(c, b), m.row(b, time));
     f.issued = time;
   }
@@ -443,7 +418,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   // One batch item's block scratch (padded for the double blocks' paired products), and its
   // input x as a GEMM operand (empty when A is float).
   template <class Alloc>
-  std::pair<Scratch, Tensor<A, B>> plan_velocity(Alloc& a, const JointRows& rows) const {
+  std::pair<Scratch, Tensor<A, B>> plan_velocity(Alloc& a, const nn::JointRows& rows) const {
     auto s = Scratch::plan(a, rows, widths_);
     Tensor<A, B> x_in;
     if (kConvertInputs) x_in = a.template take<A>({rows.target, cfg_.in_channels});
@@ -473,20 +448,18 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     return ids;
   }
 
-  // z = [cond_in(cond) | input(x)] of batch item b; the condition rows only when no double
-  // block reads them from c.cond itself. x is float32 (converted into x_in when the GEMMs take
-  // another type) or already of the GEMM type.
+  // The target rows of z = input(x) of one batch item (the trunk reads the condition rows from
+  // cond_in's output). x is float32 (converted into x_in when the GEMMs take another type) or
+  // already of the GEMM type.
   template <class X>
-  void embed_inputs(Context& ctx, Scratch& s, const Conditioning& c, std::int64_t b, const Tensor<X, B>& x,
-                    Tensor<A, B>& x_in) const {
-    auto target = s.z.slice(c.rows.cond, c.rows.total());
+  void embed_target(Context& ctx, Scratch& s, const nn::JointRows& rows, const Tensor<X, B>& x, Tensor<A, B>& x_in) const {
+    auto target = s.z.slice(rows.cond, rows.total());
     if constexpr (std::is_same_v<X, A>) {
       (void)x_in;
       input_(ctx, x, target);
     } else {
       input_(ctx, as_activation(ctx, x, x_in), target);
     }
-    if (double_blocks_.empty()) copy(ctx, c.cond[b].data(), s.z.data(), c.rows.cond * cfg_.hidden_size);
   }
 
   // velocity() for an input x of type X: float32 (converted per batch item when the GEMMs take
@@ -499,56 +472,36 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     check_shape(x, {c.batch, c.rows.target, cfg_.in_channels}, "DiT input x");
     check_shape(out, {c.batch, c.rows.target, cfg_.out_channels}, "DiT velocity output");
     EPONA_CHECK(time >= 0 && time < m.times, "DiT: timestep index ", time, " outside the ", m.times, " prepared");
-    const std::int64_t D = cfg_.hidden_size;
     if (front && front->issued != time) issue_front(ctx, c, m, time, *front, true);
     for (std::int64_t b = 0; b < c.batch; ++b) {
       ArenaScope<B> scope(arena);
       auto [s, x_in] = plan_velocity(arena, c.rows);
       const nn::RopeTable<B> rope = item_rope(c, b);
       const A* mods = m.row(b, time);
-      embed_inputs(ctx, s, c, b, x[b], x_in);
-      // Each block's last residual add also writes the next block's first modulated norm
-      // (`next`: its (shift, scale), the first entries of its table columns), so every block
-      // after the first finds its input normed. The first block reads the condition rows from
-      // cond_in's output (step-invariant) and writes their update into s.z: no per-step copy.
-      for (std::size_t j = 0; j < double_blocks_.size(); ++j) {
-        const A* next = mods + double_blocks_[j].modulation_width();
-        const bool next_double = j + 1 < double_blocks_.size();  // per-stream (shift, scale)
-        const bool ahead = j == 0 && front;  // this step's condition front ran on the side queue
-        DitScratch<B, A> sj = s;
-        if (ahead) sj.qkv = Tensor<A, B>::view(front->table(b), s.qkv.shape(), front->qkv.storage());
-        double_blocks_[j](ctx, side_, sj, c.rows, rope, mods, DoubleBlockEntry{j > 0, ahead}, next,
-                          next + (next_double ? 6 * D : 0), j == 0 ? c.cond[b].data() : nullptr);
-        mods = next;
-      }
-      for (std::size_t j = 0; j < single_blocks_.size(); ++j) {
-        const A* next = mods + single_blocks_[j].modulation_width();
-        single_blocks_[j](ctx, side_, s, c.rows, rope, mods, first_updated_row(j, c.rows),
-                          j > 0 || !double_blocks_.empty(), next);
-        mods = next;
-      }
+      embed_target(ctx, s, c.rows, x[b], x_in);
+      // The first block reads the condition rows from cond_in's output (step-invariant) and
+      // writes their update into s.z: no per-step copy.
+      nn::TrunkInputs<B, A> in{c.cond[b].data(), {}};
+      if (front) in.cond_qkv = Tensor<A, B>::view(front->table(b), s.qkv.shape(), front->qkv.storage());
       auto o = out[b];
-      final_layer_(ctx, s, c.rows, mods, o, !double_blocks_.empty() || !single_blocks_.empty());
+      trunk_(ctx, s, c.rows, rope, m.row(b, time), o, in);
     }
     if (front && time + 1 < m.times) issue_front(ctx, c, m, time + 1, *front, false);
   }
 
   FluxDitConfig cfg_;
-  DitWidths widths_;
+  nn::DitWidths widths_;
   nn::Linear<B, W> input_;  // img_in / traj_in
   nn::MlpEmbedder<B, W> time_in_;
   std::optional<nn::MlpEmbedder<B, W>> vector_in_;
   nn::Linear<B, W> cond_in_;
-  std::vector<DoubleStreamBlock<B, W>> double_blocks_;
-  std::vector<SingleStreamBlock<B, W>> single_blocks_;
-  LastLayer<B, W> final_layer_;
+  nn::DitTrunk<B, W> trunk_;  // double_blocks., single_blocks., final_layer.
   mutable typename BackendTraits<B>::GraphCache graph_;  // the recorded sampling loop
   struct RopeCache {
     Tensor<float, Cpu> ids;
     nn::RopeTable<Cpu> table;
   };
   mutable RopeCache rope_cache_;
-  mutable SideQueue<B> side_;  // the second queue of the blocks (a second stream on the GPU)
   mutable SamplerOptions options_{};
 };
 

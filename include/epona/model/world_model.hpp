@@ -323,7 +323,7 @@ class WorldModel {
     persistent.template take<float>({Bt, cfg_.pose_emb_dim()});
     persistent.template take<float>(traj_noise_shape(Bt));
     persistent.template take<float>(latent_noise_shape(Bt));
-    const JointRows traj_rows{cfg_.tokens_per_frame(), cfg_.traj_len}, img_rows{cfg_.tokens_per_frame(), cfg_.img_tokens()};
+    const nn::JointRows traj_rows{cfg_.tokens_per_frame(), cfg_.traj_len}, img_rows{cfg_.tokens_per_frame(), cfg_.img_tokens()};
     const std::size_t stages[] = {
         mst_.evaluate_workspace_bytes(), mst_.pose_emb_workspace_bytes(),
         traj_.conditioning_bytes(Bt, traj_rows) + traj_.sample_bytes(Bt, traj_rows, s.plan.steps, s.plan.kind),
@@ -417,7 +417,7 @@ class WorldModel {
       persistent.template take<float>({rows, cfg_.pose_emb_dim()});
     }
     persistent.template take<float>(traj_noise_shape(K));
-    const JointRows traj_rows{cfg_.tokens_per_frame(), cfg_.traj_len};
+    const nn::JointRows traj_rows{cfg_.tokens_per_frame(), cfg_.traj_len};
     const std::size_t traj = traj_.conditioning_bytes(K, traj_rows) + traj_.sample_bytes(K, traj_rows, s.plan.steps, s.plan.kind);
     return persistent.bytes() + std::max({mst_.evaluate_workspace_bytes(), mst_.pose_emb_workspace_bytes(), traj});
   }

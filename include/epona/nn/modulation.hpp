@@ -16,6 +16,24 @@
 
 namespace epona::nn {
 
+// The adaLN vectors of one modulated sublayer, each `dim` wide, in Modulation's chunk order:
+// out = x + gate ⊙ f((1 + scale) ⊙ LN(x) + shift). gate is null for a (shift, scale) pair (the
+// final layer's, or the next block's first norm fused into a residual add); all null: none.
+template <class A>
+struct AdaLn {
+  const A* shift = nullptr;
+  const A* scale = nullptr;
+  const A* gate = nullptr;
+  explicit operator bool() const { return shift != nullptr; }
+
+  // The sublayer whose chunks start at chunk `first` of a modulation row (null row: none).
+  static AdaLn at(const A* row, std::int64_t dim, std::int64_t first = 0, bool gated = true) {
+    if (row == nullptr) return {};
+    return {row + first * dim, row + (first + 1) * dim, gated ? row + (first + 2) * dim : nullptr};
+  }
+  static AdaLn norm_at(const A* row, std::int64_t dim, std::int64_t first = 0) { return at(row, dim, first, false); }
+};
+
 template <class B, class T>
 struct Modulation : Bindable<Modulation<B, T>> {
   using Context = BackendContext<B>;

@@ -1,4 +1,4 @@
-// epona/model/dit_blocks.hpp — the FLUX-style blocks shared by Epona's two DiTs
+// epona/nn/blocks/dit_blocks.hpp — the FLUX-style blocks shared by Epona's two DiTs
 // (models/modules/dit_modules/layers.py): DoubleStreamBlock (separate condition and target
 // streams, joint attention), SingleStreamBlock (one stream, fused qkv+MLP projection) and
 // LastLayer (adaLN + Linear). All blocks work on one residual buffer z whose rows are
@@ -7,6 +7,8 @@
 // step only runs the token-wise work. Activations are Activation<B, W> (bf16 on the GPU, as
 // the official residual streams under autocast). On the GPU a double block runs each layer's
 // two per-stream products as one batched product where the streams' rows are close (StreamPair).
+// A block reaches its modulation vectors through named views (nn/modulation.hpp: AdaLn), and
+// DitTrunk (nn/blocks/dit_trunk.hpp) chains the blocks with each fusion in place.
 #pragma once
 
 #include <algorithm>
@@ -17,7 +19,6 @@
 #include "epona/core/arena.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
-#include "epona/model/config.hpp"
 #include "epona/nn/attention.hpp"
 #include "epona/nn/flops.hpp"
 #include "epona/nn/backend_context.hpp"
@@ -28,12 +29,13 @@
 #include "epona/nn/modulation.hpp"
 #include "epona/nn/rope.hpp"
 
-namespace epona::model {
+namespace epona::nn {
 
+// Widths of a DiT's blocks; the norms' eps are the FLUX layers' (LayerNorm and QK RMSNorm 1e-6).
 struct DitWidths {
   std::int64_t hidden = 0, heads = 0, mlp_hidden = 0;
-  float ln_eps = static_cast<float>(constants::dit_layernorm_eps);
-  float rms_eps = static_cast<float>(constants::dit_rmsnorm_eps);
+  float ln_eps = 1e-6f;
+  float rms_eps = 1e-6f;
   std::int64_t head_dim() const { return hidden / heads; }
 };
 
@@ -100,9 +102,20 @@ namespace detail {
 // rows are read from src instead of x.
 template <class Context, class B, class A>
 void modulate_rows(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& y, std::int64_t first, std::int64_t rows,
-                   const A* shift, const A* scale, float eps, const A* src = nullptr) {
+                   const AdaLn<A>& m, float eps, const A* src = nullptr) {
   const std::int64_t D = x.size(-1);
-  layer_norm_modulate(ctx, src ? src : x.data() + first * D, y.data() + first * D, rows, D, shift, scale, eps);
+  layer_norm_modulate(ctx, src ? src : x.data() + first * D, y.data() + first * D, rows, D, m.shift, m.scale, eps);
+}
+
+// x += gate ⊙ y over `rows` rows of width n, then, with `next`, out = its modulated norm of the
+// updated rows (the next sublayer's input, in the same pass).
+template <class Context, class A>
+void add_gated_then_norm(Context& ctx, A* x, const A* y, const A* gate, A* out, std::int64_t rows, std::int64_t n,
+                         const AdaLn<A>& next, float eps) {
+  if (next)
+    add_gated_layer_norm_modulate(ctx, x, y, gate, out, rows, n, next.shift, next.scale, eps);
+  else
+    add_gated(ctx, x, y, gate, rows, n);
 }
 
 // x_out = x + gate ⊙ y, then out = (1 + scale) ⊙ LN(x_out) + shift, with x read from `x` and the
@@ -124,10 +137,10 @@ void add_gated_norm_from(Context& ctx, const A* x, A* x_out, const A* y, const A
 template <class B>
 struct QkRows {
   std::int64_t first = 0, q_first = 0, end = 0;
-  const nn::QkNorm<B>* norm = nullptr;
+  const QkNorm<B>* norm = nullptr;
   const float* q_scale = nullptr;  // norm's, for the backend's joint kernel
   const float* k_scale = nullptr;
-  QkRows(std::int64_t f, std::int64_t q, std::int64_t e, const nn::QkNorm<B>& n)
+  QkRows(std::int64_t f, std::int64_t q, std::int64_t e, const QkNorm<B>& n)
       : first(f), q_first(q), end(e), norm(&n), q_scale(n.query_scale.data()), k_scale(n.key_scale.data()) {}
 };
 
@@ -135,7 +148,7 @@ struct QkRows {
 // launch where the backend has the joint kernel (the GPU: a double block's two streams, or a
 // single block's queries and keys), else one norm + RoPE call per range and kind.
 template <class B, class A, std::size_t S>
-void qk_norm_rope_rows(BackendContext<B>& ctx, A* qkv, const DitWidths& w, const nn::RopeTable<B>& rope,
+void qk_norm_rope_rows(BackendContext<B>& ctx, A* qkv, const DitWidths& w, const RopeTable<B>& rope,
                        const std::array<QkRows<B>, S>& parts) {
   const std::int64_t D = w.hidden, hd = w.head_dim();
   if constexpr (requires { qk_norm_rope(ctx, qkv, 3 * D, D, w.heads, hd, w.rms_eps, rope.cos.data(), rope.sin.data(), parts); }) {
@@ -157,13 +170,13 @@ template <class B, class A>
 void joint_attention(BackendContext<B>& ctx, const A* qkv, std::int64_t rows, std::int64_t q_first,
                      std::int64_t q_rows, const DitWidths& w, A* out, std::int64_t out_stride, std::int64_t in_stride) {
   const std::int64_t D = w.hidden;
-  nn::PackedAttention p{1, rows, w.heads, w.head_dim(), 0, in_stride, 0, out_stride, false};
+  PackedAttention p{1, rows, w.heads, w.head_dim(), 0, in_stride, 0, out_stride, false};
   p.q_len = q_rows;
   p.q_token_stride = in_stride;
-  nn::packed_attention(ctx, qkv + q_first * in_stride, qkv + D, qkv + 2 * D, out, p);
+  packed_attention(ctx, qkv + q_first * in_stride, qkv + D, qkv + 2 * D, out, p);
 }
 inline double joint_attention_flops(const DitWidths& w, std::int64_t q_rows, std::int64_t rows) {
-  return nn::attention_flops(1, w.heads, q_rows, rows, w.head_dim());
+  return attention_flops(1, w.heads, q_rows, rows, w.head_dim());
 }
 }  // namespace detail
 
@@ -173,15 +186,15 @@ struct DoubleStream {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   using Scratch = DitScratch<B, A>;
-  nn::Modulation<B, W> mod;
-  nn::Linear<B, W> qkv, proj;
-  nn::QkNorm<B> norm;
-  nn::SequentialMlp<B, W> mlp;
+  Modulation<B, W> mod;
+  Linear<B, W> qkv, proj;
+  QkNorm<B> norm;
+  SequentialMlp<B, W> mlp;
 
   DoubleStream() = default;
   explicit DoubleStream(const DitWidths& w)
       : mod(w.hidden, 6), qkv(w.hidden, 3 * w.hidden, true), proj(w.hidden, w.hidden, true),
-        norm(w.head_dim(), w.rms_eps), mlp(w.hidden, w.mlp_hidden, w.hidden, true, nn::Gelu::Tanh) {}
+        norm(w.head_dim(), w.rms_eps), mlp(w.hidden, w.mlp_hidden, w.hidden, true, Gelu::Tanh) {}
 
   // p names the stream ("double_blocks.0.img"): "<p>_mod.lin.", "<p>_attn.norm."; its Linear
   // layers ("<p>_attn.qkv.", "<p>_attn.proj.", "<p>_mlp.") are visited with the other
@@ -195,16 +208,16 @@ struct DoubleStream {
   // first), so a paired product's weight stride is one matrix (Linear::visit_pair).
   template <class V>
   static void visit_layers(V& v, DoubleStream& a, const std::string& pa, DoubleStream& b, const std::string& pb) {
-    nn::Linear<B, W>::visit_pair(v, a.qkv, pa + "_attn.qkv.", b.qkv, pb + "_attn.qkv.");
-    nn::Linear<B, W>::visit_pair(v, a.proj, pa + "_attn.proj.", b.proj, pb + "_attn.proj.");
-    nn::SequentialMlp<B, W>::visit_pair(v, a.mlp, pa + "_mlp.", b.mlp, pb + "_mlp.");
+    Linear<B, W>::visit_pair(v, a.qkv, pa + "_attn.qkv.", b.qkv, pb + "_attn.qkv.");
+    Linear<B, W>::visit_pair(v, a.proj, pa + "_attn.proj.", b.proj, pb + "_attn.proj.");
+    SequentialMlp<B, W>::visit_pair(v, a.mlp, pa + "_mlp.", b.mlp, pb + "_mlp.");
   }
 
   // The stream's Linear layers, as StreamPair::linear picks them.
-  static const nn::Linear<B, W>& qkv_of(const DoubleStream& s) { return s.qkv; }
-  static const nn::Linear<B, W>& proj_of(const DoubleStream& s) { return s.proj; }
-  static const nn::Linear<B, W>& fc1_of(const DoubleStream& s) { return s.mlp.fc1; }
-  static const nn::Linear<B, W>& fc2_of(const DoubleStream& s) { return s.mlp.fc2; }
+  static const Linear<B, W>& qkv_of(const DoubleStream& s) { return s.qkv; }
+  static const Linear<B, W>& proj_of(const DoubleStream& s) { return s.proj; }
+  static const Linear<B, W>& fc1_of(const DoubleStream& s) { return s.mlp.fc1; }
+  static const Linear<B, W>& fc2_of(const DoubleStream& s) { return s.mlp.fc2; }
 
   double flops(std::int64_t rows) const { return qkv.flops(rows) + proj.flops(rows) + mlp.flops(rows); }
 };
@@ -226,8 +239,8 @@ class StreamPair {
   struct Part {
     const DoubleStream<B, W>* layers = nullptr;
     std::int64_t first = 0, rows = 0;
-    const A* mv = nullptr;    // (shift, scale, gate) x 2
-    const A* next = nullptr;  // (shift, scale) of the next block's first norm on these rows, or null
+    AdaLn<A> attn, mlp;       // the stream's two sublayers' vectors
+    AdaLn<A> next;            // the next block's first norm on these rows, or none
     const A* src = nullptr;   // the rows' residual input when s.z does not hold it yet, or null
     Context* ctx = nullptr;
   };
@@ -241,7 +254,7 @@ class StreamPair {
   // Whether the block may pair: rows close enough and the scratch padded for it.
   template <class Scratch>
   static bool pairs(Context& ctx, const Scratch& s, const JointRows& rows) {
-    return nn::Linear<B, W>::pair_available(ctx) && streams_pairable(rows) && s.gemm_rows() >= 2 * rows.cond;
+    return Linear<B, W>::pair_available(ctx) && streams_pairable(rows) && s.gemm_rows() >= 2 * rows.cond;
   }
 
   // A stretch where the streams touch disjoint rows (per-stream products: on two queues).
@@ -292,7 +305,7 @@ struct DoubleBlockEntry {
 };
 
 template <class B, class W>
-struct DoubleStreamBlock : nn::Bindable<DoubleStreamBlock<B, W>> {
+struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   DitWidths widths;
@@ -321,8 +334,22 @@ struct DoubleStreamBlock : nn::Bindable<DoubleStreamBlock<B, W>> {
   // condition rows' modulated norm of src (their residual input), then rows [0, cond) of the
   // qkv table `qkv` (3D wide) = qkv(modulated) with their QK RMSNorm + RoPE.
   void condition_front(Context& ctx, const A* src, Tensor<A, B>& modulated, A* qkv, const JointRows& rows,
-                       const nn::RopeTable<B>& rope, const A* mods) const {
-    stream_front(ctx, cond, 0, rows.cond, modulated, src, modulated, qkv, mods + 6 * widths.hidden, rope, false);
+                       const RopeTable<B>& rope, const A* mods) const {
+    stream_front(ctx, cond, 0, rows.cond, modulated, src, modulated, qkv, cond_mods(mods).attn, rope, false);
+  }
+
+  // The streams' vectors in this block's table row [img 6D | cond 6D]: (attention, MLP) each.
+  struct StreamMods {
+    AdaLn<A> attn, mlp;
+  };
+  StreamMods img_mods(const A* row) const { return {AdaLn<A>::at(row, widths.hidden, 0), AdaLn<A>::at(row, widths.hidden, 3)}; }
+  StreamMods cond_mods(const A* row) const { return img_mods(row + 6 * widths.hidden); }
+  // This block's first norm of each stream, for the previous block to fuse into its last add.
+  struct FirstNorms {
+    AdaLn<A> img, cond;
+  };
+  FirstNorms first_norms(const A* row) const {
+    return {AdaLn<A>::norm_at(row, widths.hidden), AdaLn<A>::norm_at(row + 6 * widths.hidden, widths.hidden)};
   }
 
   // The two streams touch disjoint rows until the joint attention: their products run paired
@@ -331,10 +358,11 @@ struct DoubleStreamBlock : nn::Bindable<DoubleStreamBlock<B, W>> {
   // (shift, scale) of the next block's first norm for each stream's rows (null: none);
   // cond_src: the condition rows' residual input when s.z does not hold it yet (the first
   // block; s.z gets the updated rows). Each gated residual add is fused with the modulated
-  // norm after it.
+  // norm after it. Called alone with the defaults it is the plain block; DitTrunk passes
+  // `next` (and the rest) so that no norm runs as a pass of its own.
   void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
-                  const nn::RopeTable<B>& rope, const A* mods, DoubleBlockEntry entry = {},
-                  const A* next_img = nullptr, const A* next_cond = nullptr, const A* cond_src = nullptr) const {
+                  const RopeTable<B>& rope, const A* mods, DoubleBlockEntry entry = {}, const FirstNorms& next = {},
+                  const A* cond_src = nullptr) const {
     using Pair = detail::StreamPair<B, W>;
     using Part = typename Pair::Part;
     using Stream = DoubleStream<B, W>;
@@ -342,19 +370,20 @@ struct DoubleStreamBlock : nn::Bindable<DoubleStreamBlock<B, W>> {
     const float eps = widths.ln_eps;
     const bool paired = Pair::pairs(ctx, s, rows);
     EPONA_CHECK(!(paired && entry.cond_qkv), "DoubleStreamBlock: a condition front run ahead needs unpaired streams");
-    Pair pair(ctx, queue, paired, Part{&cond, 0, rows.cond, mods + 6 * D, next_cond, cond_src},
-              Part{&img, rows.cond, rows.target, mods, next_img, nullptr});
+    const StreamMods mc = cond_mods(mods), mi = img_mods(mods);
+    Pair pair(ctx, queue, paired, Part{&cond, 0, rows.cond, mc.attn, mc.mlp, next.cond, cond_src},
+              Part{&img, rows.cond, rows.target, mi.attn, mi.mlp, next.img, nullptr});
     const auto at = [](auto& t, const Part& p) { return t.data() + p.first * t.size(-1); };  // p's first row of t
     if (entry.cond_qkv) {
       // Only the target rows' front here; the join waits for the condition's on the side queue.
-      stream_front(ctx, img, rows.cond, rows.target, s.z, nullptr, s.modulated, s.qkv.data(), mods, rope,
+      stream_front(ctx, img, rows.cond, rows.target, s.z, nullptr, s.modulated, s.qkv.data(), mi.attn, rope,
                    entry.normed);
       queue.join(ctx);
     } else {
       pair.fork();
       if (!entry.normed)
         pair.each([&](Context& c, const Part& p) {
-          detail::modulate_rows(c, s.z, s.modulated, p.first, p.rows, p.mv, p.mv + D, eps, p.src);
+          detail::modulate_rows(c, s.z, s.modulated, p.first, p.rows, p.attn, eps, p.src);
         });
       pair.linear(Stream::qkv_of, s.modulated, s.qkv);
       pair.join();
@@ -366,22 +395,18 @@ struct DoubleStreamBlock : nn::Bindable<DoubleStreamBlock<B, W>> {
     pair.fork();
     pair.linear(Stream::proj_of, s.attn, s.sub);
     pair.each([&](Context& c, const Part& p) {
-      detail::add_gated_norm_from(c, p.src ? p.src : at(s.z, p), at(s.z, p), at(s.sub, p), p.mv + 2 * D,
-                                  at(s.modulated, p), p.rows, D, p.mv + 3 * D, p.mv + 4 * D, eps);
+      detail::add_gated_norm_from(c, p.src ? p.src : at(s.z, p), at(s.z, p), at(s.sub, p), p.attn.gate,
+                                  at(s.modulated, p), p.rows, D, p.mlp.shift, p.mlp.scale, eps);
     });
     pair.linear(Stream::fc1_of, s.modulated, s.mlp, img.mlp.fc1_epilogue());
     pair.linear(Stream::fc2_of, s.mlp, s.sub);
     pair.each([&](Context& c, const Part& p) {
-      if (p.next)
-        add_gated_layer_norm_modulate(c, at(s.z, p), at(s.sub, p), p.mv + 5 * D, at(s.modulated, p), p.rows, D, p.next,
-                                      p.next + D, eps);
-      else
-        add_gated(c, at(s.z, p), at(s.sub, p), p.mv + 5 * D, p.rows, D);
+      detail::add_gated_then_norm(c, at(s.z, p), at(s.sub, p), p.mlp.gate, at(s.modulated, p), p.rows, D, p.next, eps);
     });
     pair.join();
   }
 
-  nn::Flops flops(const JointRows& rows) const {
+  Flops flops(const JointRows& rows) const {
     return {img.mod.flops() + cond.mod.flops() + img.flops(rows.target) + cond.flops(rows.cond),
             detail::joint_attention_flops(widths, rows.total(), rows.total())};
   }
@@ -391,10 +416,10 @@ struct DoubleStreamBlock : nn::Bindable<DoubleStreamBlock<B, W>> {
   // the modulated norm of z's rows (or of src's) into `modulated` unless `normed`, the qkv
   // product into those rows of `qkv`, their QK RMSNorm + RoPE.
   void stream_front(Context& ctx, const DoubleStream<B, W>& st, std::int64_t first, std::int64_t count,
-                    const Tensor<A, B>& z, const A* src, Tensor<A, B>& modulated, A* qkv, const A* mv,
-                    const nn::RopeTable<B>& rope, bool normed) const {
+                    const Tensor<A, B>& z, const A* src, Tensor<A, B>& modulated, A* qkv, const AdaLn<A>& attn,
+                    const RopeTable<B>& rope, bool normed) const {
     const std::int64_t D = widths.hidden;
-    if (!normed) detail::modulate_rows(ctx, z, modulated, first, count, mv, mv + D, widths.ln_eps, src);
+    if (!normed) detail::modulate_rows(ctx, z, modulated, first, count, attn, widths.ln_eps, src);
     st.qkv.strided(ctx, modulated.data() + first * D, D, count, qkv + first * 3 * D, 3 * D);
     detail::qk_norm_rope_rows<B>(ctx, qkv, widths, rope,
                                  std::array{detail::QkRows<B>(first, first, first + count, st.norm)});
@@ -402,14 +427,14 @@ struct DoubleStreamBlock : nn::Bindable<DoubleStreamBlock<B, W>> {
 };
 
 template <class B, class W>
-struct SingleStreamBlock : nn::Bindable<SingleStreamBlock<B, W>> {
+struct SingleStreamBlock : Bindable<SingleStreamBlock<B, W>> {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   DitWidths widths;
-  nn::Linear<B, W> linear1, linear2;  // (3D + Dm, D), (D, D + Dm)
-  nn::QkNorm<B> norm;
-  nn::Modulation<B, W> modulation;
-  nn::Linear<B, W> q_part, kv_part, mlp_part;  // row views of linear1: [q | k v | mlp], set by bind
+  Linear<B, W> linear1, linear2;  // (3D + Dm, D), (D, D + Dm)
+  QkNorm<B> norm;
+  Modulation<B, W> modulation;
+  Linear<B, W> q_part, kv_part, mlp_part;  // row views of linear1: [q | k v | mlp], set by bind
 
   SingleStreamBlock() = default;
   explicit SingleStreamBlock(const DitWidths& w)
@@ -430,23 +455,26 @@ struct SingleStreamBlock : nn::Bindable<SingleStreamBlock<B, W>> {
     }
   }
 
-  // z ← z + gate ⊙ linear2([attention, GELU(mlp)]). Only the rows from `first_out` on are
-  // updated (keys and values still come from every row): the last single block passes
-  // rows.cond, since only the target tokens reach the final layer (docs/world-model.md,
-  // design notes: exact pruning of the last blocks).
   // Modulation vectors of this block in a table row: (shift, scale, gate).
   std::int64_t modulation_width() const { return 3 * widths.hidden; }
   void modulations(Context& ctx, const A* silu_vecs, std::int64_t n, A* table, std::int64_t ld) const {
     modulation.rows(ctx, silu_vecs, n, table, ld);
   }
+  // This block's norm, for the previous block to fuse into its last add.
+  AdaLn<A> first_norm(const A* row) const { return AdaLn<A>::norm_at(row, widths.hidden); }
 
-  // `normed`: s.modulated holds the modulated norm of every row already; `next`: (shift, scale)
-  // of the next block's norm over the updated rows, fused into the gated residual add.
+  // z ← z + gate ⊙ linear2([attention, GELU(mlp)]). Only the rows from `first_out` on are
+  // updated (keys and values still come from every row): the last single block passes
+  // rows.cond, since only the target tokens reach the final layer (docs/world-model.md,
+  // design notes: exact pruning of the last blocks). `normed`: s.modulated holds the modulated
+  // norm of every row already; `next`: the next block's norm over the updated rows, fused into
+  // the gated residual add (DitTrunk passes both).
   void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
-                  const nn::RopeTable<B>& rope, const A* mv, std::int64_t first_out = 0, bool normed = false,
-                  const A* next = nullptr) const {
+                  const RopeTable<B>& rope, const A* mods, std::int64_t first_out = 0, bool normed = false,
+                  const AdaLn<A>& next = {}) const {
     const std::int64_t D = widths.hidden, Dm = widths.mlp_hidden, n = rows.total(), m = n - first_out;
-    if (!normed) detail::modulate_rows(ctx, s.z, s.modulated, 0, n, mv, mv + D, widths.ln_eps);
+    const AdaLn<A> mv = AdaLn<A>::at(mods, D);
+    if (!normed) detail::modulate_rows(ctx, s.z, s.modulated, 0, n, mv, widths.ln_eps);
     A* qkv = s.qkv.data();
     const A* a_out = s.modulated.data() + first_out * D;
     // cat rows 0..m = [attention | GELU(mlp)] of the updated rows: the MLP GEMM writes its
@@ -464,14 +492,11 @@ struct SingleStreamBlock : nn::Bindable<SingleStreamBlock<B, W>> {
     detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D);
     queue.join(ctx);
     linear2.strided(ctx, s.cat.data(), D + Dm, m, s.sub.data(), D);
-    if (next)
-      add_gated_layer_norm_modulate(ctx, s.z.data() + first_out * D, s.sub.data(), mv + 2 * D,
-                                    s.modulated.data() + first_out * D, m, D, next, next + D, widths.ln_eps);
-    else
-      add_gated(ctx, s.z.data() + first_out * D, s.sub.data(), mv + 2 * D, m, D);
+    detail::add_gated_then_norm(ctx, s.z.data() + first_out * D, s.sub.data(), mv.gate,
+                                s.modulated.data() + first_out * D, m, D, next, widths.ln_eps);
   }
 
-  nn::Flops flops(const JointRows& rows, std::int64_t first_out = 0) const {
+  Flops flops(const JointRows& rows, std::int64_t first_out = 0) const {
     const std::int64_t n = rows.total(), m = n - first_out;
     return {modulation.flops() + kv_part.flops(n) + q_part.flops(m) + mlp_part.flops(m) + linear2.flops(m),
             detail::joint_attention_flops(widths, m, n)};
@@ -479,12 +504,12 @@ struct SingleStreamBlock : nn::Bindable<SingleStreamBlock<B, W>> {
 };
 
 template <class B, class W>
-struct LastLayer : nn::Bindable<LastLayer<B, W>> {
+struct LastLayer : Bindable<LastLayer<B, W>> {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   DitWidths widths;
-  nn::Modulation<B, W> adaLN_modulation;  // "adaLN_modulation.1." (index 0 is the SiLU)
-  nn::Linear<B, W> linear;
+  Modulation<B, W> adaLN_modulation;  // "adaLN_modulation.1." (index 0 is the SiLU)
+  Linear<B, W> linear;
 
   LastLayer() = default;
   LastLayer(const DitWidths& w, std::int64_t out_channels)
@@ -502,16 +527,17 @@ struct LastLayer : nn::Bindable<LastLayer<B, W>> {
   void modulations(Context& ctx, const A* silu_vecs, std::int64_t n, A* table, std::int64_t ld) const {
     adaLN_modulation.rows(ctx, silu_vecs, n, table, ld);
   }
+  AdaLn<A> first_norm(const A* row) const { return AdaLn<A>::norm_at(row, widths.hidden); }
 
   // `normed`: the previous block's last residual add wrote the target rows' modulated norm.
-  void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const A* mv, Tensor<A, B>& out,
+  void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const A* mods, Tensor<A, B>& out,
                   bool normed = false) const {
     if (!normed)
-      detail::modulate_rows(ctx, s.z, s.modulated, rows.cond, rows.target, mv, mv + widths.hidden, widths.ln_eps);
+      detail::modulate_rows(ctx, s.z, s.modulated, rows.cond, rows.target, first_norm(mods), widths.ln_eps);
     linear(ctx, s.modulated.slice(rows.cond, rows.total()), out);
   }
 
-  nn::Flops flops(const JointRows& rows) const { return {adaLN_modulation.flops() + linear.flops(rows.target), 0}; }
+  Flops flops(const JointRows& rows) const { return {adaLN_modulation.flops() + linear.flops(rows.target), 0}; }
 };
 
-}  // namespace epona::model
+}  // namespace epona::nn

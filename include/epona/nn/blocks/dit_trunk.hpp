@@ -1,0 +1,158 @@
+// epona/nn/blocks/dit_trunk.hpp — the body of a FLUX-style DiT (Epona's VisDiT and TrajDiT, or a
+// DiT of one's own): double-stream blocks, then single-stream blocks, then the final layer, over
+// one residual table z = [condition rows | target rows] (nn/blocks/dit_blocks.hpp). The trunk owns
+// the fusions between its blocks, so calling it is the fast path: each block's last residual add
+// also writes the next block's first modulated norm, the last single block updates only the
+// target rows (they alone reach the final layer), and the first double block reads the condition
+// rows from where they lie (no copy into z). Every block's adaLN vectors for one conditioning
+// vector are one row of a table (modulations()), computed once per timestep, not per token.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "epona/core/tensor.hpp"
+#include "epona/nn/backend_context.hpp"
+#include "epona/nn/blocks/dit_blocks.hpp"
+#include "epona/nn/flops.hpp"
+#include "epona/nn/modulation.hpp"
+#include "epona/nn/parameter.hpp"
+#include "epona/nn/rope.hpp"
+
+namespace epona::nn {
+
+// Where a trunk evaluation finds its condition rows (both optional).
+template <class B, class A>
+struct TrunkInputs {
+  // The condition rows' residual input when s.z does not hold them (e.g. a step-invariant
+  // projection of the condition): the first block reads them here and writes the update into s.z.
+  const A* cond = nullptr;
+  // A qkv table whose condition rows the first double block's condition_front() filled ahead
+  // (the samplers' pipelined front; unpaired streams only). Empty: none.
+  Tensor<A, B> cond_qkv;
+};
+
+template <class B, class W>
+class DitTrunk : public Bindable<DitTrunk<B, W>> {
+ public:
+  using Context = BackendContext<B>;
+  using A = Activation<B, W>;
+  using Scratch = DitScratch<B, A>;
+
+  DitTrunk() = default;
+  // `double_blocks` double-stream and `single_blocks` single-stream blocks of `widths`, and a
+  // final layer projecting the target rows to `out_channels`.
+  DitTrunk(const DitWidths& widths, std::int64_t double_blocks, std::int64_t single_blocks, std::int64_t out_channels)
+      : widths_(widths), final_(widths, out_channels) {
+    EPONA_CHECK(widths.heads > 0 && widths.hidden % widths.heads == 0 && double_blocks >= 0 && single_blocks >= 0,
+                "DiT trunk: hidden ", widths.hidden, ", heads ", widths.heads, ", blocks ", double_blocks, " + ",
+                single_blocks);
+    for (std::int64_t i = 0; i < double_blocks; ++i) doubles_.emplace_back(widths);
+    for (std::int64_t i = 0; i < single_blocks; ++i) singles_.emplace_back(widths);
+  }
+
+  // The official names under the DiT's prefix: double_blocks.i., single_blocks.j., final_layer.
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    for (std::size_t i = 0; i < doubles_.size(); ++i)
+      doubles_[i].visit_params(prefix + "double_blocks." + std::to_string(i) + ".", v);
+    for (std::size_t i = 0; i < singles_.size(); ++i)
+      singles_[i].visit_params(prefix + "single_blocks." + std::to_string(i) + ".", v);
+    final_.visit_params(prefix + "final_layer.", v);
+  }
+
+  const DitWidths& widths() const { return widths_; }
+  std::int64_t out_channels() const { return final_.linear.out; }
+  bool has_double_blocks() const { return !doubles_.empty(); }
+
+  // Width of one modulation table row: [double 0: img 6D, cond 6D | ... | single 0: 3D | ... |
+  // final layer 2D].
+  std::int64_t modulation_width() const {
+    std::int64_t w = final_.modulation_width();
+    for (const auto& b : doubles_) w += b.modulation_width();
+    for (const auto& b : singles_) w += b.modulation_width();
+    return w;
+  }
+  // Table rows for n vectors: silu_vecs (n, D) = SiLU(conditioning vector), rows of `table` ld
+  // apart (each block's Linear is one GEMM over the n rows).
+  void modulations(Context& ctx, const A* silu_vecs, std::int64_t n, A* table, std::int64_t ld) const {
+    std::int64_t offset = 0;
+    const auto fill = [&](const auto& block) {
+      block.modulations(ctx, silu_vecs, n, table + offset, ld);
+      offset += block.modulation_width();
+    };
+    for (const auto& b : doubles_) fill(b);
+    for (const auto& b : singles_) fill(b);
+    fill(final_);
+  }
+
+  // The block scratch of one evaluation over `rows` (z and the buffers the blocks share).
+  template <class Alloc>
+  Scratch plan_scratch(Alloc& a, const JointRows& rows) const {
+    return Scratch::plan(a, rows, widths_);
+  }
+
+  // out (target, out_channels) = the trunk over z, with the vectors of one table row `mods`.
+  // s.z's target rows hold the embedded target tokens, its condition rows the embedded condition
+  // unless `in.cond` points at them. s is clobbered.
+  void operator()(Context& ctx, Scratch& s, const JointRows& rows, const RopeTable<B>& rope, const A* mods,
+                  Tensor<A, B>& out, const TrunkInputs<B, A>& in = {}) const {
+    if (doubles_.empty() && in.cond) copy(ctx, in.cond, s.z.data(), rows.cond * widths_.hidden);
+    for (std::size_t j = 0; j < doubles_.size(); ++j) {
+      const A* next = mods + doubles_[j].modulation_width();
+      const bool ahead = j == 0 && !in.cond_qkv.empty();
+      Scratch sj = s;
+      if (ahead) sj.qkv = in.cond_qkv;
+      doubles_[j](ctx, side_, sj, rows, rope, mods, DoubleBlockEntry{j > 0, ahead}, first_norms_after_double(j, next),
+                  j == 0 ? in.cond : nullptr);
+      mods = next;
+    }
+    for (std::size_t j = 0; j < singles_.size(); ++j) {
+      const A* next = mods + singles_[j].modulation_width();
+      const AdaLn<A> next_norm = j + 1 < singles_.size() ? singles_[j + 1].first_norm(next) : final_.first_norm(next);
+      singles_[j](ctx, side_, s, rows, rope, mods, first_updated_row(j, rows), j > 0 || !doubles_.empty(), next_norm);
+      mods = next;
+    }
+    final_(ctx, s, rows, mods, out, !doubles_.empty() || !singles_.empty());
+  }
+
+  // The first double block's condition stream up to its attention, for a caller that runs it
+  // ahead on the side queue (TrunkInputs::cond_qkv); see DoubleStreamBlock::condition_front.
+  void condition_front(Context& ctx, const A* src, Tensor<A, B>& modulated, A* qkv, const JointRows& rows,
+                       const RopeTable<B>& rope, const A* mods) const {
+    doubles_.front().condition_front(ctx, src, modulated, qkv, rows, rope, mods);
+  }
+  // The blocks' second queue (a second CUDA stream; the CPU runs in order).
+  SideQueue<B>& queue() const { return side_; }
+
+  // FLOPs of one evaluation: `executed` counts what runs (the last single block updates only the
+  // target rows); otherwise what the official code computes (every row of every block).
+  Flops flops(const JointRows& rows, bool executed = true) const {
+    Flops f{0, 0};
+    for (const auto& b : doubles_) f += b.flops(rows);
+    for (std::size_t j = 0; j < singles_.size(); ++j) f += singles_[j].flops(rows, executed ? first_updated_row(j, rows) : 0);
+    return f + final_.flops(rows);
+  }
+
+ private:
+  // The last single block updates only the target rows.
+  std::int64_t first_updated_row(std::size_t single_index, const JointRows& rows) const {
+    return single_index + 1 == singles_.size() ? rows.cond : 0;
+  }
+  // The norm after double block j, per stream: the next double block's own per-stream norms, or
+  // the one norm of the single block or final layer after it, on both streams' rows.
+  typename DoubleStreamBlock<B, W>::FirstNorms first_norms_after_double(std::size_t j, const A* next) const {
+    if (j + 1 < doubles_.size()) return doubles_[j + 1].first_norms(next);
+    const AdaLn<A> n = singles_.empty() ? final_.first_norm(next) : singles_.front().first_norm(next);
+    return {n, n};
+  }
+
+  DitWidths widths_;
+  std::vector<DoubleStreamBlock<B, W>> doubles_;
+  std::vector<SingleStreamBlock<B, W>> singles_;
+  LastLayer<B, W> final_;
+  mutable SideQueue<B> side_;
+};
+
+}  // namespace epona::nn
