@@ -63,6 +63,9 @@ class DitTrunk : public Bindable<DitTrunk<B, W>> {
   }
 
   const DitWidths& widths() const { return widths_; }
+  const std::vector<DoubleStreamBlock<B, W>>& double_blocks() const { return doubles_; }
+  const std::vector<SingleStreamBlock<B, W>>& single_blocks() const { return singles_; }
+  const LastLayer<B, W>& final_layer() const { return final_; }
   std::int64_t out_channels() const { return final_.linear.out; }
   bool has_double_blocks() const { return !doubles_.empty(); }
 
