@@ -76,7 +76,7 @@ Tensor<float, Cpu> sample_tiny_dit(BackendContext<B>& ctx, std::int64_t steps, s
   // RoPE over one axis: the condition at positions 0..Lc-1, the targets after them.
   Tensor<float, Cpu> ids({Lc + Lx, 1});
   for (std::int64_t i = 0; i < Lc + Lx; ++i) ids.data()[i] = float(i);
-  const auto rope = nn::upload<B>(nn::nd_rope_table(ids, {Model::hidden / Model::heads}, 10000.0));
+  const auto rope = nn::upload<B>(nn::nd_rope_table(ids, std::vector<std::int64_t>{Model::hidden / Model::heads}, 10000.0));
 
   flow::FlowSolver<B, flow::EulerRule> solver(flow::get_schedule(steps, Lx));
   solver.sample(ctx, x, v, [&](std::int64_t, float t, const Tensor<float, B>& state, Tensor<float, B>& vel) {

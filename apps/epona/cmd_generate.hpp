@@ -295,9 +295,7 @@ inline int run_generate_clips(const ParsedArgs& a, const Console& console) {
 
 inline int run_generate(const ParsedArgs& a, const Console& con) {
   if (a.has("clips")) return run_generate_clips(a, con);
-  const dist::Launch launch = dist::launch_from_environment();
-  EPONA_CHECK(!launch.several(), "generate of one clip runs as one process, but ", launch.launcher, " started ",
-              launch.size, ": give --clips DIR to split a clip set over the processes");
+  check_launch(dist::launch_from_environment(), "generate of one clip");
   const ComputeOptions compute = compute_options(a);
   const ModelFiles files = resolve_models(a, true, true);
   const WorldModelConfig& wc = files.configs.world;

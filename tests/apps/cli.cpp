@@ -602,6 +602,7 @@ TEST_CASE("several processes: refused without MPI, and by commands that do not s
   ::setenv("OMPI_COMM_WORLD_SIZE", "2", 1);
   ::setenv("OMPI_COMM_WORLD_RANK", "1", 1);
   const Result plan = cli({"plan", "-q", "--out", t / "plan"});
+  const Result one_clip = cli({"generate", "-q", "-n", "1", "--out", t / "one"});
   const Result eval = cli({"eval", "--clips", t / "none", "--json", t / "r.json", "-q"});
   ::setenv("OMPI_COMM_WORLD_SIZE", "many", 1);
   const Result garbled = cli({"eval", "--clips", t / "none", "--json", t / "r.json", "-q"});
@@ -609,6 +610,8 @@ TEST_CASE("several processes: refused without MPI, and by commands that do not s
   ::unsetenv("OMPI_COMM_WORLD_RANK");
   check_error(plan, "plan runs as one process, but openmpi started 2 (this is rank 1)");
   CHECK_FALSE(fs::exists(t.path / "plan"));
+  check_error(one_clip, "generate of one clip runs as one process, but openmpi started 2 (this is rank 1)");
+  CHECK_FALSE(fs::exists(t.path / "one"));
   check_error(eval, "openmpi started 2 processes (this is rank 1), but this epona was built without MPI");
   check_error(garbled, "OMPI_COMM_WORLD_SIZE is not a process count or index: 'many'");
 }

@@ -296,9 +296,10 @@ struct PairBlockCase {
     const auto dm = to<B, A>(ctx, mods), dn = to<B, A>(ctx, next), dsrc = to<B, A>(ctx, cond_src);
     const nn::RopeTable<B> r{to<B, float>(ctx, rope.cos), to<B, float>(ctx, rope.sin)};
     nn::SideQueue<B> queue;
-    CHECK(model::detail::StreamPair<B, W>::pairs(ctx, s, rows) == expect_paired);
+    CHECK(nn::detail::StreamPair<B, W>::pairs(ctx, s, rows) == expect_paired);
     if (first)
-      block(ctx, queue, s, rows, r, dm.data(), {}, dn.data(), dn.data() + 2 * D, dsrc.data());
+      block(ctx, queue, s, rows, r, dm.data(), {},
+            {nn::AdaLn<A>::norm_at(dn.data(), D), nn::AdaLn<A>::norm_at(dn.data() + 2 * D, D)}, dsrc.data());
     else
       block(ctx, queue, s, rows, r, dm.data(), nn::DoubleBlockEntry::already_normed());
     if constexpr (std::is_same_v<B, Cuda>) {
@@ -396,7 +397,7 @@ TEST_CASE("double block pairs only padded scratch and close row counts") {
   cuda::Context ctx;
   const nn::DitWidths w{256, 2, 1024};
   ArenaCounter<Cuda> c;
-  using Pair = model::detail::StreamPair<Cuda, bf16>;
+  using Pair = nn::detail::StreamPair<Cuda, bf16>;
   const auto padded = nn::DitScratch<Cuda, bf16>::plan(c, nn::JointRows{37, 34}, w);
   const auto unpadded = nn::DitScratch<Cuda, bf16>::plan(c, std::int64_t{71}, w);
   CHECK(Pair::pairs(ctx, padded, {37, 34}));

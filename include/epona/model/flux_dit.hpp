@@ -99,13 +99,20 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     const A* row(std::int64_t b, std::int64_t i) const { return table.data() + (b * times + i) * width; }
   };
 
-  // How sample() runs the steps (on by default, off with EPONA_DIT_PIPELINE=0; it changes no
-  // result bit, and benchmarks compare both). It applies where the model's shapes allow it.
+  // How sample() runs the steps (it changes no result bit, and benchmarks compare both). It
+  // applies where the model's shapes allow it.
   struct SamplerOptions {
     // With unpaired streams (the TrajDiT's 515 / 15 rows), step i + 1's condition front of the
     // first double block (modulated norm, qkv, QK-norm + RoPE: step-invariant but for its
     // modulation) runs on the side queue during step i's few-row tail.
-    bool pipelined_condition = env_flag("EPONA_DIT_PIPELINE", true);
+    bool pipelined_condition = true;
+
+    // Every model's starting options: the defaults, unless EPONA_DIT_PIPELINE=0 (read once per
+    // process, here only).
+    static SamplerOptions from_environment() {
+      static const SamplerOptions read{env_flag("EPONA_DIT_PIPELINE", true)};
+      return read;
+    }
   };
 
   FluxDiT() = default;
@@ -502,7 +509,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     nn::RopeTable<Cpu> table;
   };
   mutable RopeCache rope_cache_;
-  mutable SamplerOptions options_{};
+  mutable SamplerOptions options_ = SamplerOptions::from_environment();
 };
 
 }  // namespace epona::model
