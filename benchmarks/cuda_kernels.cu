@@ -286,7 +286,7 @@ void bench_temporal(cuda::Context& ctx, bool last_only, int reps) {
   bf16 *qn = qk.data() + (q - qkv.data()), *kn = qk.data() + plane;
   const float *w = params.data(), *b = params.data() + c;
   const std::int64_t rows_q = a.lq * spatial, rows_k = frames * spatial;
-  const auto separate = [&] {  // as MstLayer::normalize_qk: one launch where it fits, else two
+  const auto separate = [&] {  // as QkNormTransformerLayer::normalize_qk: one launch where it fits, else two
     if (!cuda::layer_norm_rope_qk(ctx, qn, rows_q, kn, rows_k, c, w, b, 1e-5f, w + 2 * c, b + 2 * c, 1e-5f, 128,
                                   nullptr, nullptr)) {
       cuda::layer_norm(ctx, qn, qn, rows_q, c, w, b, 1e-5f);

@@ -19,6 +19,7 @@
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
 #include "epona/nn/attention.hpp"
+#include "epona/nn/blocks/qk_norm_transformer_layer.hpp"
 #include "epona/nn/backend_context.hpp"
 #include "epona/nn/embeddings.hpp"
 #include "epona/nn/flops.hpp"
@@ -93,162 +94,13 @@ struct Projector : nn::Bindable<Projector<B, W>> {
   }
 };
 
-// One pre-LN transformer layer of the MST (`CausalTimeBlock` and `SpaceBlock` share the
-// parameter layout): QK-LayerNorm over the full width before the head split, no biases.
-template <class B, class W>
-struct MstLayer : nn::Bindable<MstLayer<B, W>> {
-  using Context = BackendContext<B>;
-  using A = Activation<B, W>;
-  nn::LayerNorm<B> ln1, ln2, q_norm, k_norm;
-  nn::Linear<B, W> query, key, value, proj;
-  nn::SequentialMlp<B, W> mlp;
-
-  MstLayer() = default;
-  explicit MstLayer(const MstConfig& c)
-      : ln1(c.n_embd, c.ln_eps, true), ln2(c.n_embd, c.ln_eps, true), q_norm(c.n_embd, c.ln_eps, true),
-        k_norm(c.n_embd, c.ln_eps, true), query(c.n_embd, c.n_embd, false), key(c.n_embd, c.n_embd, false),
-        value(c.n_embd, c.n_embd, false), proj(c.n_embd, c.n_embd, false),
-        mlp(c.n_embd, c.mlp_hidden(), c.n_embd, false, nn::Gelu::Erf) {}
-
-  template <class V>
-  void visit_params(const std::string& p, V& v) {
-    ln1.visit_params(p + "ln1.", v);
-    ln2.visit_params(p + "ln2.", v);
-    // key, value, query stacked in that order: one grouped product (key and value alone in the
-    // pruned last block, whose queries are a subset of the rows).
-    nn::Linear<B, W>::visit_group(v, {{&key, p + "attn.key."}, {&value, p + "attn.value."}, {&query, p + "attn.query."}});
-    proj.visit_params(p + "attn.proj.", v);
-    q_norm.visit_params(p + "attn.q_norm.", v);
-    k_norm.visit_params(p + "attn.k_norm.", v);
-    mlp.visit_params(p + "mlp.", v);
-  }
-
-  // Scratch of one layer over n tokens of width C.
-  struct Scratch {
-    Tensor<A, B> u, q, k, v;  // (n, C); k, v, q one (3, n, C) block in that order (grouped product)
-    Tensor<A, B> hidden;      // (n, 4C)
-  };
-  template <class Alloc>
-  static Scratch plan(Alloc& a, std::int64_t n, const MstConfig& c) {
-    auto u = a.template take<A>({n, c.n_embd});
-    auto kvq = a.template take<A>({3, n, c.n_embd});
-    return {u, kvq[2], kvq[0], kvq[1], a.template take<A>({n, c.mlp_hidden()})};
-  }
-
-  // x (n, C) += attn(ln1 x); x += mlp(ln2 x) on rows [first, first + count) of x, the queries
-  // (keys and values come from all n rows; the pruned last block updates a subset).
-  // `rope` (or null) rotates q and k after their norms, table row r for row r (the space layers,
-  // where q and k cover the same rows); `shape` arranges the tokens into sequences.
-  // Each residual add runs with the LayerNorm after it:
-  // with `normed`, s.u already holds ln1(x) (written by the previous layer's last add); with
-  // `next` (the following layer, whose x is exactly the rows updated here), the last add also
-  // writes next->ln1 of those rows into s.u.
-  void operator()(Context& ctx, Tensor<float, B>& x, Scratch& s, std::int64_t first, std::int64_t count,
-                  const nn::RopeTable<B>* rope, const nn::PackedAttention& shape, bool normed = false,
-                  const MstLayer* next = nullptr) const {
-    const std::int64_t n = x.size(0);
-    auto rows = x.slice(first, first + count);
-    auto u = s.u.slice(0, n), k = s.k.slice(0, n), v = s.v.slice(0, n);
-    auto q = s.q.slice(0, count), o = s.u.slice(0, count), hidden = s.hidden.slice(0, count);
-    if (!normed) ln1(ctx, x, u);
-    project_kvq(ctx, u, s, first, count);
-    if (rope || !attend_normalized(ctx, q, k, v, o, shape)) {
-      normalize_qk(ctx, q, k, rope, shape.heads);
-      nn::packed_attention(ctx, q.data(), k.data(), v.data(), o.data(), shape);  // the output reuses u
-    }
-    add_branch(ctx, proj, o, rows, q, &ln2, o);  // float32 residual += projection; o = ln2(x)
-    mlp.fc1(ctx, o, hidden, mlp.fc1_epilogue());
-    add_branch(ctx, mlp.fc2, hidden, rows, q, next ? &next->ln1 : nullptr, o);
-  }
-
-  // s.k, s.v = key, value of all rows of u; s.q = query of rows [first, first + count). One
-  // grouped product where the backend has it (the query joins it where all rows are queries).
-  void project_kvq(Context& ctx, const Tensor<A, B>& u, Scratch& s, std::int64_t first, std::int64_t count) const {
-    const std::int64_t n = u.size(0), C = u.size(-1);
-    auto q = s.q.slice(0, count);
-    if (!nn::Linear<B, W>::pair_available(ctx)) {
-      auto k = s.k.slice(0, n), v = s.v.slice(0, n);
-      key(ctx, u, k);
-      value(ctx, u, v);
-    } else {
-      const std::int64_t apart = s.v.data() - s.k.data();  // plan: one block, k, v, q in that order
-      EPONA_CHECK(s.q.data() - s.v.data() == apart, "MST layer scratch: k, v, q are not equally far apart");
-      std::vector<const nn::Linear<B, W>*> layers{&key, &value};
-      if (count == n) layers.push_back(&query);
-      nn::Linear<B, W>::group(ctx, layers, u.data(), C, 0, n, s.k.data(), C, apart);
-      if (count == n) return;
-    }
-    query(ctx, u.slice(first, first + count), q);
-  }
-
-  // rows (float32) += layer(in), then out = norm(rows) unless norm is null. The product adds to
-  // the residual itself where the backend can (linear_accumulate: the branch is not rounded to
-  // the activation type, and the norm pass reads the residual alone); otherwise the branch is
-  // written to the scratch `branch` and added by the norm's pass.
-  void add_branch(Context& ctx, const nn::Linear<B, W>& layer, const Tensor<A, B>& in, Tensor<float, B>& rows,
-                  Tensor<A, B>& branch, const nn::LayerNorm<B>* norm, Tensor<A, B>& out) const {
-    if constexpr (requires { linear_accumulate(ctx, in, layer.weight, rows); }) {
-      if (residual_gemm_enabled(ctx)) {
-        linear_accumulate(ctx, in, layer.weight, rows);
-        if (norm) (*norm)(ctx, rows, out);
-        return;
-      }
-    }
-    layer(ctx, in, branch);
-    if (norm) norm->add_and_normalize(ctx, rows, branch, out);
-    else add_inplace(ctx, rows.data(), branch.data(), rows.numel());
-  }
-
-  // o = attention(q_norm(q), k_norm(k), v) in one kernel where the backend has one for this shape
-  // (CUDA: the time layers' sequences of <= 16 frames, attention_qk_layer_norm); q and k are then
-  // left as the products. False: nothing done.
-  bool attend_normalized(Context& ctx, const Tensor<A, B>& q, const Tensor<A, B>& k, const Tensor<A, B>& v,
-                         Tensor<A, B>& o, const nn::PackedAttention& shape) const {
-    if constexpr (requires { attention_qk_layer_norm(ctx, q.data(), k.data(), v.data(), o.data(),
-                                                     nn::attention_shape<B>(shape), q_norm.weight.data(),
-                                                     q_norm.bias.data(), q_norm.eps, k_norm.weight.data(),
-                                                     k_norm.bias.data(), k_norm.eps); }) {
-      return attention_qk_layer_norm(ctx, q.data(), k.data(), v.data(), o.data(), nn::attention_shape<B>(shape),
-                                     q_norm.weight.data(), q_norm.bias.data(), q_norm.eps, k_norm.weight.data(),
-                                     k_norm.bias.data(), k_norm.eps);
-    } else {
-      return false;
-    }
-  }
-
-  // q = q_norm(q), k = k_norm(k), then the rotation: one launch on the GPU where its fused
-  // kernel applies (layer_norm_rope_qk: bf16 rounded once, after the rotation, as the official
-  // float32 q/k are rounded by the attention), the ops in turn otherwise (rounding twice in bf16).
-  void normalize_qk(Context& ctx, Tensor<A, B>& q, Tensor<A, B>& k, const nn::RopeTable<B>* rope,
-                    std::int64_t heads) const {
-    const std::int64_t C = q.size(-1), head_dim = C / heads;
-    EPONA_CHECK(!rope || (q.size(0) == k.size(0) && rope->rows() >= q.size(0) && 2 * rope->pairs() == head_dim),
-                "MST RoPE: table (", rope ? rope->rows() : 0, " rows, ", rope ? rope->pairs() : 0,
-                " pairs) for q/k of ", q.size(0), "/", k.size(0), " rows and head_dim ", head_dim);
-    if constexpr (!std::is_same_v<B, Cpu>) {
-      const float* cos = rope ? rope->cos.data() : nullptr;
-      const float* sin = rope ? rope->sin.data() : nullptr;
-      if (layer_norm_rope_qk(ctx, q.data(), q.size(0), k.data(), k.size(0), C, q_norm.weight.data(),
-                             q_norm.bias.data(), q_norm.eps, k_norm.weight.data(), k_norm.bias.data(), k_norm.eps,
-                             head_dim, cos, sin))
-        return;
-    }
-    q_norm(ctx, q, q);
-    k_norm(ctx, k, k);
-    if (rope) nn::apply_rope_qk(ctx, q.data(), k.data(), q.size(0), C, heads, *rope);
-  }
-
-  nn::Flops flops(std::int64_t n, std::int64_t count) const {
-    return {key.flops(n) + value.flops(n) + query.flops(count) + proj.flops(count) + mlp.flops(count), 0};
-  }
-};
-
 template <class B, class W>
 struct CausalTimeSpaceBlock : nn::Bindable<CausalTimeSpaceBlock<B, W>> {
-  MstLayer<B, W> causal_time_block, space_block;
+  nn::QkNormTransformerLayer<B, W> causal_time_block, space_block;
 
   CausalTimeSpaceBlock() = default;
-  explicit CausalTimeSpaceBlock(const MstConfig& c) : causal_time_block(c), space_block(c) {}
+  explicit CausalTimeSpaceBlock(const MstConfig& c)
+      : causal_time_block(c.n_embd, c.mlp_hidden(), c.ln_eps), space_block(c.n_embd, c.mlp_hidden(), c.ln_eps) {}
   template <class V>
   void visit_params(const std::string& p, V& v) {
     causal_time_block.visit_params(p + "causal_time_block.", v);
@@ -338,7 +190,7 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
         // Only the last frame of the last block is consumed; an observer sees every frame.
         const bool prune = i + 1 == blocks_.size() && !observe;
         // Every layer's last residual add writes the next layer's ln1 (none after the last).
-        const MstLayer<B, W>* next = i + 1 < blocks_.size() ? &blocks_[i + 1].causal_time_block : nullptr;
+        const nn::QkNormTransformerLayer<B, W>* next = i + 1 < blocks_.size() ? &blocks_[i + 1].causal_time_block : nullptr;
         if (prune) run_last_block(ctx, blocks_[i], s, i > 0);
         else run_block(ctx, blocks_[i], s, i > 0, next);
         if (observe) observe(b, "block" + std::to_string(i) + "_out", s.x);
@@ -404,7 +256,7 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
     Tensor<A, B> latents;           // (F·L, token_dim) the latents as GEMM input (empty when A is float)
     Tensor<A, B> img_hidden;        // (F·L, C/2)
     Tensor<float, B> x;             // (F, T, C) residual stream
-    typename MstLayer<B, W>::Scratch layer;  // (F·T) tokens
+    typename nn::QkNormTransformerLayer<B, W>::Scratch layer;  // (F·T) tokens
   };
 
   template <class Alloc>
@@ -416,7 +268,7 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
     if (kConvertInputs) s.latents = a.template take<A>({F * cfg_.img_tokens(), cfg_.token_dim});
     s.img_hidden = a.template take<A>({F * cfg_.img_tokens(), cfg_.img_hidden()});
     s.x = a.template take<float>({F, T, C});
-    s.layer = MstLayer<B, W>::plan(a, F * T, cfg_);
+    s.layer = nn::QkNormTransformerLayer<B, W>::plan(a, F * T, cfg_.n_embd, cfg_.mlp_hidden());
     return s;
   }
   template <class Alloc>
@@ -496,7 +348,7 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
 
   // `normed`: s.layer.u holds the time layer's ln1(x) already; `next`: the layer after the block.
   void run_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s, bool normed,
-                 const MstLayer<B, W>* next) const {
+                 const nn::QkNormTransformerLayer<B, W>* next) const {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
     const std::int64_t H = cfg_.n_head, d = cfg_.head_dim();
     auto x = s.x.reshape({F * T, C});
@@ -524,8 +376,8 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
 
   // Space attention over `frames` consecutive frames of x (frames·T, C).
   // Its ln1 is in s.u already (the time layer's last residual add wrote it).
-  void run_space(Context& ctx, const MstLayer<B, W>& layer, Tensor<float, B>& x, typename MstLayer<B, W>::Scratch& s,
-                 std::int64_t frames, const MstLayer<B, W>* next) const {
+  void run_space(Context& ctx, const nn::QkNormTransformerLayer<B, W>& layer, Tensor<float, B>& x, typename nn::QkNormTransformerLayer<B, W>::Scratch& s,
+                 std::int64_t frames, const nn::QkNormTransformerLayer<B, W>* next) const {
     const std::int64_t T = cfg_.tokens_per_frame(), C = cfg_.n_embd, H = cfg_.n_head, d = cfg_.head_dim();
     const nn::PackedAttention space{frames, T, H, d, T * C, C, T * C, C, false};
     // One pass over all frames' tokens: the table leaves the action tokens unrotated
