@@ -484,7 +484,6 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
       ArenaScope<B> scope(arena);
       auto [s, x_in] = plan_velocity(arena, c.rows);
       const nn::RopeTable<B> rope = item_rope(c, b);
-      const A* mods = m.row(b, time);
       embed_target(ctx, s, c.rows, x[b], x_in);
       // The first block reads the condition rows from cond_in's output (step-invariant) and
       // writes their update into s.z: no per-step copy.
