@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "epona/core/arena.hpp"
+#include "epona/core/backend_capabilities.hpp"
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
@@ -187,7 +188,7 @@ struct MstLayer : nn::Bindable<MstLayer<B, W>> {
   // written to the scratch `branch` and added by the norm's pass.
   void add_branch(Context& ctx, const nn::Linear<B, W>& layer, const Tensor<A, B>& in, Tensor<float, B>& rows,
                   Tensor<A, B>& branch, const nn::LayerNorm<B>* norm, Tensor<A, B>& out) const {
-    if constexpr (requires { linear_accumulate(ctx, in, layer.weight, rows); }) {
+    if constexpr (ResidualGemm<Context, A, W>) {
       if (residual_gemm_enabled(ctx)) {
         linear_accumulate(ctx, in, layer.weight, rows);
         if (norm) (*norm)(ctx, rows, out);
@@ -204,10 +205,7 @@ struct MstLayer : nn::Bindable<MstLayer<B, W>> {
   // left as the products. False: nothing done.
   bool attend_normalized(Context& ctx, const Tensor<A, B>& q, const Tensor<A, B>& k, const Tensor<A, B>& v,
                          Tensor<A, B>& o, const nn::PackedAttention& shape) const {
-    if constexpr (requires { attention_qk_layer_norm(ctx, q.data(), k.data(), v.data(), o.data(),
-                                                     nn::attention_shape<B>(shape), q_norm.weight.data(),
-                                                     q_norm.bias.data(), q_norm.eps, k_norm.weight.data(),
-                                                     k_norm.bias.data(), k_norm.eps); }) {
+    if constexpr (ShortAttentionQkNorm<Context, A>) {
       return attention_qk_layer_norm(ctx, q.data(), k.data(), v.data(), o.data(), nn::attention_shape<B>(shape),
                                      q_norm.weight.data(), q_norm.bias.data(), q_norm.eps, k_norm.weight.data(),
                                      k_norm.bias.data(), k_norm.eps);
@@ -479,8 +477,7 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
     const auto projected = s.layer.u.slice(0, F * L);
     const auto& ln = img_projector_.norm;
     const FrameTokens tokens{F, L, constants::action_tokens, s.actions.size(1), C, ln.eps};
-    if constexpr (requires { try_assemble_frame_tokens(ctx, projected.data(), s.actions.data(), time_emb_.data(),
-                                                       ln.weight.data(), ln.bias.data(), s.x.data(), tokens); }) {
+    if constexpr (FusedFrameTokens<Context, A>) {
       if (try_assemble_frame_tokens(ctx, projected.data(), s.actions.data(), time_emb_.data(), ln.weight.data(),
                                     ln.bias.data(), s.x.data(), tokens))
         return;
