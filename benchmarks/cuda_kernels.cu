@@ -177,8 +177,8 @@ void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const
   const bool fits_short = a.lq <= 16 && a.lk <= 16;
   const auto params = cuda::detail::flash_params(q, k, v, o, a);
   const bool fits_wgmma = cuda::detail::wgmma_kernel_fits(ctx, params, cuda::detail::exact_head_dim(params));
-  auto& split = cuda::detail::attention_split_setting();
-  const bool saved = split.load();
+  bool& split = ctx.policy().attention_split;
+  const bool saved = split;
   // Eager (one launch after another: small kernels are bound by the host's launch cost) and
   // from a graph of kGraphCalls calls (as the samplers run them: kernel and dependency time).
   const auto time = [&](const std::string& name, FlashKernel kernel, const TmaPlan* plan) {
@@ -196,7 +196,7 @@ void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const
   };
   double auto_ms[2] = {};
   for (const bool on : {false, true}) {
-    split.store(on);
+    split = on;
     const FlashKernel kernel = cuda::detail::auto_flash_kernel(ctx, q, k, v, o, a);
     std::string name = std::string(on ? "Auto, planned: " : "Auto, unplanned: ") + cuda::detail::flash_kernel_name(kernel);
     if (kernel == FlashKernel::TmaPlanned)
@@ -206,7 +206,7 @@ void bench_attention_kernels(cuda::Context& ctx, const std::string& label, const
   if (auto_ms[0] > 0 && auto_ms[1] > 0)
     std::printf("  -> %s: Auto in a graph: unplanned %.1f us, planned %.1f us (x%.2f)\n", label.c_str(), 1e3 * auto_ms[0],
                 1e3 * auto_ms[1], auto_ms[0] / auto_ms[1]);
-  split.store(saved);
+  split = saved;
   for (const FlashKernel kernel : {FlashKernel::Rows64, FlashKernel::Rows128, FlashKernel::Rows64Split4,
                                    FlashKernel::Short, FlashKernel::Wgmma64, FlashKernel::Tma64,
                                    FlashKernel::Tma128, FlashKernel::Auto}) {
@@ -347,14 +347,13 @@ void bench_row_tail(cuda::Context& ctx, cuda::SideStream& side, std::int64_t M, 
 // erf GELU through cuda::linear (switch on: fused; off: cuBLASLt + the table pass), and with
 // no activation calling both directly.
 void bench_own_gemm(cuda::Context& ctx, std::int64_t M, std::int64_t N, std::int64_t K, const char* what) {
-  auto& flag = cuda::detail::own_gemm_flag();
-  const bool saved = flag.load();
+  const bool saved = ctx.policy().own_gemm;
   for (const bool on : {false, true, false, true}) {
-    flag.store(on);
+    ctx.policy().own_gemm = on;
     bench_linear<bf16>(ctx, M, N, K, false, cuda::Epilogue::GeluErf, 30,
                        (std::string(what) + (on ? " [own GEMM, GELU fused]" : " [cuBLASLt + GELU pass]")).c_str());
   }
-  flag.store(saved);
+  ctx.policy().own_gemm = saved;
   auto o = operand_sets<bf16>(ctx, 1, M, N, K, false);
   char name[200];
   std::snprintf(name, sizeof name, "%s bf16 M=%lld N=%lld K=%lld no act", what, static_cast<long long>(M),

@@ -165,7 +165,7 @@ void time_product(const Options& o, cuda::Context& ctx, const ProductShape& s) {
   };
   const auto via_linear = [&](bool skinny) {
     return [&, skinny](int i) {
-      cuda::set_skinny_linear(skinny);
+      ctx.policy().skinny_linear = skinny;
       const auto a = args(i);
       cuda::linear(ctx, a.x, a.ldx, a.w, a.bias, a.y, a.ldy, s.M, s.N, s.K, epi);
     };
@@ -177,7 +177,7 @@ void time_product(const Options& o, cuda::Context& ctx, const ProductShape& s) {
     variants.insert(variants.end(), {{"skinny_u1", skinny_with<1, T>(ctx, args, epi)},
                                      {"skinny_u4", skinny_with<4, T>(ctx, args, epi)}});
   time_variants(o, ctx, tag, p.calls, bytes, variants, "cuBLASLt");
-  cuda::set_skinny_linear(true);
+  ctx.policy().skinny_linear = true;
 }
 
 // A product of the DiTs' condition streams in cuBLASLt, the few-rows GEMM through linear (its
@@ -185,14 +185,13 @@ void time_product(const Options& o, cuda::Context& ctx, const ProductShape& s) {
 // and each of its tiles called directly.
 void time_few_rows(const Options& o, cuda::Context& ctx, const ProductShape& s) {
   ProductOperands<bf16> p(ctx, s, 13);
-  auto& flag = cuda::detail::few_rows_flag();
   const auto via_linear = [&](bool few_rows, bool pdl) {
     return [&, few_rows, pdl](int i) {
-      flag.store(few_rows);
-      cuda::set_programmatic_launch(pdl);
+      const cuda::KernelPolicy was = ctx.policy();
+      ctx.policy().few_rows_gemm = few_rows;
+      ctx.policy().programmatic_launch = pdl;
       cuda::linear(ctx, p.x.data(), s.K, p.w(i), p.bias.data(), p.y.data(), s.N, s.M, s.N, s.K, p.epi);
-      flag.store(false);
-      cuda::set_programmatic_launch(true);
+      ctx.policy() = was;
     };
   };
   Variants variants{{"cublaslt", via_linear(false, true)},
@@ -239,14 +238,14 @@ void time_qk(const Options& o, cuda::Context& ctx, const char* name, std::int64_
   Variants variants;
   for (const int accesses : {0, 2, 4, 8})  // 0: the head-per-warp kernel
     variants.emplace_back(accesses ? "rows_a" + std::to_string(accesses) : "heads", [&, accesses](int i) {
-      cuda::set_qk_norm_rope_rows(accesses > 0);
+      ctx.policy().qk_norm_rope_rows = accesses > 0;
       cuda::detail::qk_rows_forced() = accesses > 0;  // timed where it does not pay too
       cuda::detail::qk_rows_accesses() = accesses > 0 ? accesses : default_accesses;
       cuda::qk_norm_rope(ctx, pool.data() + i * n, stride, width, heads, 128, 1e-6f, cos.data(), sin.data(),
                          segs);
     });
   time_variants(o, ctx, tag, calls, moved, variants, "head-per-warp");
-  cuda::set_qk_norm_rope_rows(true);
+  ctx.policy().qk_norm_rope_rows = true;
   cuda::detail::qk_rows_forced() = false;
   cuda::detail::qk_rows_accesses() = default_accesses;
 }

@@ -128,7 +128,7 @@ void bench_model(cuda::Context& ctx, const Options& o, const char* dtype) {
     if (!fp32) variants.push_back({cuda::ConvEngine::Gemm, true});  // float32 Auto already is the GEMM engine
   }
   for (const auto& v : variants) {
-    cuda::set_conv_engine(v.engine);
+    ctx.policy().conv_engine = v.engine;
     model.use_graphs = v.graphs;
     const char* eng = v.engine != cuda::ConvEngine::Auto ? engine_name(v.engine)
                       : fp32 || !cudnn.empty()          ? "auto(gemm)"
@@ -154,17 +154,17 @@ void bench_model(cuda::Context& ctx, const Options& o, const char* dtype) {
     std::snprintf(extra, sizeof extra,
                   ", \"graph\": %s, \"fusion\": %s, \"convs_eager_first_3\": {\"cudnn\": %lld, \"fused\": %lld, "
                   "\"gemm\": %lld, \"depthwise\": %lld}",
-                  v.graphs ? "true" : "false", cuda::conv_fusion() ? "true" : "false", (long long)counts.cudnn,
+                  v.graphs ? "true" : "false", ctx.policy().conv_fusion ? "true" : "false", (long long)counts.cudnn,
                   (long long)counts.fused, (long long)counts.gemm, (long long)counts.depthwise);
     line("dcae_decode", dtype, eng, dec_ms, flops.decode_total() * 1e-9, dec_peak, reps, extra);
     const double enc_ms = median_ms(ctx, 3, reps, encode);
     const double enc_peak = peak_of(encode, io);
     std::snprintf(extra, sizeof extra, ", \"graph\": %s, \"fusion\": %s", v.graphs ? "true" : "false",
-                  cuda::conv_fusion() ? "true" : "false");
+                  ctx.policy().conv_fusion ? "true" : "false");
     line("dcae_encode", dtype, eng, enc_ms, flops.encode * 1e-9, enc_peak, reps, extra);
   }
   model.use_graphs = true;
-  cuda::set_conv_engine(cuda::ConvEngine::Auto);
+  ctx.policy().conv_engine = cuda::ConvEngine::Auto;
 }
 
 // Where decode time goes: the decoder's pieces timed one by one (median each), in bf16 with
@@ -313,14 +313,14 @@ void bench_convs(cuda::Context& ctx, const Options& o, const char* dtype) {
     for (const auto engine : {cuda::ConvEngine::Cudnn, cuda::ConvEngine::Gemm}) {
       if (engine == cuda::ConvEngine::Cudnn && !cuda::cudnn_unavailable(ctx).empty()) continue;
       if (depthwise && engine == cuda::ConvEngine::Gemm) continue;  // one kernel either way
-      cuda::set_conv_engine(engine);
+      ctx.policy().conv_engine = engine;
       const double ms = median_ms(ctx, 3, 20, [&] { cuda::conv2d(ctx, x.data(), wt.data(), b.data(), y.data(), s, ConvAct::Relu); });
       char extra[64];
       std::snprintf(extra, sizeof extra, ", \"gb_per_s\": %.0f", bytes / (ms * 1e-3) * 1e-9);
       line(c.name, dtype, depthwise ? "own" : engine_name(engine), ms, gflop, 0, 20, extra);
     }
   }
-  cuda::set_conv_engine(cuda::ConvEngine::Auto);
+  ctx.policy().conv_engine = cuda::ConvEngine::Auto;
 }
 
 // The memory-bound passes of the biggest maps: GB/s (bytes read + written).
@@ -374,7 +374,7 @@ int main(int argc, char** argv) {
     std::printf("# %s, %d SMs; DC-AE f32c32 at %lldx%lld; cuDNN: %s\n", ctx.info().name.c_str(),
                 ctx.info().multiprocessors, (long long)o.height, (long long)o.width,
                 cudnn.empty() ? "available" : cudnn.c_str());
-    std::printf("# fused conv epilogues + BatchNorm folding: %s\n", cuda::conv_fusion() ? "on" : "off (EPONA_CUDA_CONV_FUSE=0)");
+    std::printf("# fused conv epilogues + BatchNorm folding: %s\n", ctx.policy().conv_fusion ? "on" : "off (EPONA_CUDA_CONV_FUSE=0)");
     bench_model<bf16>(ctx, o, "bf16");
     if (!o.quick || o.stages) bench_decoder_stages<bf16>(ctx, o, "bf16");
     if (o.layers) bench_decoder_layers<bf16>(ctx, o, "bf16");

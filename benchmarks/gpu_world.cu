@@ -23,7 +23,7 @@
 // rounds; --front-compare: the TrajDiT sample with its pipelined condition front off and on,
 // FluxDiT::SamplerOptions, two rounds; --order-compare: the MST with its large row passes
 // walking the rows first to last and last to first, two rounds; --group-compare: the MST with
-// its key, value and query products one grouped product or three (set_pair_gemm), two rounds;
+// its key, value and query products one grouped product or three (policy().pair_gemm), two rounds;
 // --mst-tune-compare: the MST with its large products' cuBLASLt candidates timed or not;
 // --sampler-compare SOLVER:PLAN:VIDEO (e.g. midpoint:10:10, `epona --sampler fast`): the step row
 // again with that flow solver and those planner / video steps, alternating with the official
@@ -459,32 +459,33 @@ int run(const Options& o) {
                           }), 0);
   // The MST again with one switch off and on, twice (off, on, off, on: drift shows as a round
   // difference), then the switch as it was.
-  const auto mst_switch_rounds = [&](const std::string& what, bool was_on, const auto& set) {
+  // Rounds of the MST with one choice of the context's kernel policy off and on (set(policy,
+  // on)), then the policy as it was.
+  const auto mst_switch_rounds = [&](const std::string& what, const auto& set) {
+    const cuda::KernelPolicy was = ctx.policy();
     for (const char* round : {"_r1", "_r2"})
       for (const bool on : {false, true}) {
-        set(on);
+        set(ctx.policy(), on);
         mst_once();
         emit("mst_" + what + (on ? "_on" : "_off") + round, event_times_ms(ctx, R, 3, mst_once), mst_tflop);
       }
-    set(was_on);
+    ctx.policy() = was;
   };
+  using Policy = cuda::KernelPolicy;
   if (o.residual_compare && o.want("mst"))
-    mst_switch_rounds("residual_gemm", cuda::residual_gemm_enabled(ctx), cuda::set_residual_gemm);
+    mst_switch_rounds("residual_gemm", [](Policy& p, bool on) { p.residual_gemm = on; });
   if (o.qk_norm_compare && o.want("mst"))
-    mst_switch_rounds("qk_norm_attention", cuda::detail::attention_qk_norm_flag(), cuda::set_attention_qk_norm);
+    mst_switch_rounds("qk_norm_attention", [](Policy& p, bool on) { p.attention_qk_norm = on; });
   if (o.pdl_compare && o.want("mst"))
-    mst_switch_rounds("pdl", cuda::detail::programmatic_launch_flag(), cuda::set_programmatic_launch);
+    mst_switch_rounds("pdl", [](Policy& p, bool on) { p.programmatic_launch = on; });
   if (o.order_compare && o.want("mst"))
-    mst_switch_rounds("reverse_passes", cuda::detail::reversed_passes_flag(), cuda::set_reversed_passes);
+    mst_switch_rounds("reverse_passes", [](Policy& p, bool on) { p.reversed_passes = on; });
   if (o.group_compare && o.want("mst"))
-    mst_switch_rounds("grouped_kvq", cuda::detail::pair_gemm_flag(), cuda::set_pair_gemm);
-  if (o.mst_tune_compare && o.want("mst")) {
-    const auto was = cuda::gemm_tuning();
-    mst_switch_rounds("gemm_tuning", was != cuda::GemmTuning::Off, [](bool on) {
-      cuda::set_gemm_tuning(on ? cuda::GemmTuning::Large : cuda::GemmTuning::Off);
+    mst_switch_rounds("grouped_kvq", [](Policy& p, bool on) { p.pair_gemm = on; });
+  if (o.mst_tune_compare && o.want("mst"))
+    mst_switch_rounds("gemm_tuning", [](Policy& p, bool on) {
+      p.gemm_tuning = on ? cuda::GemmTuning::Large : cuda::GemmTuning::Off;
     });
-    cuda::set_gemm_tuning(was);
-  }
 
   const auto dit_rows = [&](bool is_vis) -> const nn::JointRows& { return is_vis ? img_rows : traj_rows; };
   // The DiT rows; `suffix` names a second pass with the GEMM tuning switched (--tune-compare).
@@ -534,15 +535,15 @@ int run(const Options& o) {
   };
   time_dits("");
   if (o.pdl_compare) {  // off, on, off, on (drift shows as a round difference), then as it was
-    const bool was_on = cuda::detail::programmatic_launch_flag();
+    const bool was_on = ctx.policy().programmatic_launch;
     for (const char* round : {"_r1", "_r2"})
       for (const bool on : {false, true}) {
-        cuda::set_programmatic_launch(on);
+        ctx.policy().programmatic_launch = on;
         traj.reset_sampler_graph();  // the recorded loops hold the launches of the switch's old state
         vis.reset_sampler_graph();
         time_dits(std::string("_pdl") + (on ? "_on" : "_off") + round);
       }
-    cuda::set_programmatic_launch(was_on);
+    ctx.policy().programmatic_launch = was_on;
     traj.reset_sampler_graph();
     vis.reset_sampler_graph();
   }
@@ -591,16 +592,16 @@ int run(const Options& o) {
     if (o.sampler_compare && o.want("step")) time_step_samplers();
   } else {  // the component arena stays (the memory row then counts it too)
     time_step("");
-    const auto was = cuda::gemm_tuning();
+    const auto was = ctx.policy().gemm_tuning;
     const bool tuned = was != cuda::GemmTuning::All;  // every product timed, or none
-    cuda::set_gemm_tuning(tuned ? cuda::GemmTuning::All : cuda::GemmTuning::Off);
+    ctx.policy().gemm_tuning = tuned ? cuda::GemmTuning::All : cuda::GemmTuning::Off;
     traj.reset_sampler_graph();
     vis.reset_sampler_graph();
     std::printf("# GEMM tuning %s for the rows suffixed _%s\n", tuned ? "on" : "off", tuned ? "tuned" : "untuned");
     const std::string suffix = tuned ? "_tuned" : "_untuned";
     time_dits(suffix);
     time_step(suffix);
-    cuda::set_gemm_tuning(was);
+    ctx.policy().gemm_tuning = was;
     arena = Arena<Cuda>();
   }
   if (o.rollout_frames > 0) time_rollouts(o, wm, h);

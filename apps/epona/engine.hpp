@@ -58,10 +58,18 @@ class ModelEngine final : public Engine {
   // `fn` runs when the engine is destroyed, after the models and their context (the CUDA
   // engine releases the process-wide cuDNN handles there).
   void after_destruction(std::function<void()> fn) { after_destruction_.fn = std::move(fn); }
+  // `fn` runs on each of the engine's contexts: the DC-AE's now, the world model's now or when it
+  // is loaded (the CUDA engine sets its kernel policy there).
+  void configure_contexts(std::function<void(BackendContext<B>&)> fn) {
+    configure_ = std::move(fn);
+    configure_(ctx_);
+    if (world_) configure_(world_->context());
+  }
 
   void load_dcae(const ModelFiles& f, const Console& con) override { dcae_.emplace(app::load_dcae<B, W>(f, con)); }
   void load_world(const ModelFiles& f, const Console& con) override {
     world_.emplace(app::load_world<B, W>(f, compute_, con));
+    if (configure_) configure_(world_->context());
   }
   void release_dcae() override { dcae_.reset(); }
   const DcaeConfig& dcae_config() const override { return dcae().config(); }
@@ -120,6 +128,7 @@ class ModelEngine final : public Engine {
   };
   AtDestruction after_destruction_;  // first member: destroyed after all the others
   ComputeOptions compute_;
+  std::function<void(BackendContext<B>&)> configure_;
   BackendContext<B> ctx_;  // the DC-AE's (the world model owns its own)
   std::optional<Dcae<B, W>> dcae_;
   std::optional<WorldModel<B, W>> world_;

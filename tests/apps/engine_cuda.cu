@@ -142,9 +142,13 @@ TEST_CASE("CUDA engine, float32: plan hypotheses match the CPU engine's, and hyp
   opt.seed = 5;
   opt.steps = 3;
   const std::int64_t K = 6;
-  cuda::set_poison_new_buffers(true);  // scratch handed out as NaN: an unwritten element shows
+  auto& model_engine = dynamic_cast<app::ModelEngine<Cuda, float>&>(*gpu_engine);
+  const auto poison = [&](bool on) {  // scratch handed out as NaN: an unwritten element shows
+    model_engine.configure_contexts([on](cuda::Context& ctx) { ctx.policy().poison_new_buffers = on; });
+  };
+  poison(true);
   const Tensor<float> gpu = gpu_engine->plan_hypotheses(h, K, opt);
-  cuda::set_poison_new_buffers(false);
+  poison(false);
   CHECK(gpu.shape() == Shape{K, files.configs.world.traj_len, 3});
   CHECK(all_finite(gpu));
   CHECK(rel_max(gpu, cpu_engine->plan_hypotheses(h, K, opt)) <= 1e-4);

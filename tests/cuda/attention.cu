@@ -466,12 +466,12 @@ TEST_CASE("cuda attention bf16: Auto takes the wgmma kernel where it applies, th
   const auto pick = [&](const bf16* q) { return cuda::detail::auto_flash_kernel(ctx, q, d + 128, d + 256, d, a); };
   CHECK(cuda::detail::is_wgmma(pick(d)) == wgmma);
   if (wgmma) {
-    const bool saved = cuda::detail::attention_split_setting().load();
-    cuda::set_attention_split(false);
+    const bool saved = ctx.policy().attention_split;
+    ctx.policy().attention_split = false;
     CHECK(pick(d) == FlashKernel::Tma64);  // 9 blocks of 64 rows: one wave
     a.heads = 4, a.seqs = 40;              // 1440 blocks of 64 rows, more than a wave: 128-row blocks
     CHECK(pick(d) == FlashKernel::Tma128);
-    cuda::set_attention_split(true);
+    ctx.policy().attention_split = true;
     CHECK(pick(d) == FlashKernel::TmaPlanned);
     // Auto's plans: 128-row blocks over many waves; the short last row blocks cut into key ranges
     // where they alone would make a second wave; 64-row blocks within a wave, keys cut into
@@ -492,7 +492,7 @@ TEST_CASE("cuda attention bf16: Auto takes the wgmma kernel where it applies, th
     CHECK(plan().rows == 64);
     CHECK(plan().splits > 1);  // 8 blocks of 15 rows: the keys are cut into ranges
     a.lq = 530;
-    cuda::set_attention_split(saved);
+    ctx.policy().attention_split = saved;
     a.heads = 1, a.seqs = 1;
   }
   CHECK(!cuda::detail::is_wgmma(pick(d + 1)));  // rows not 16-byte aligned: the generic path
@@ -579,16 +579,16 @@ TEST_CASE("cuda attention bf16 model shapes: the planned TMA kernel") {
   check_plans(ctx, packed(1, 8, 530, 128, /*o_pad=*/24), seed++, "TrajDiT joint 8 x 530", plans);
   check_plans(ctx, packed_tail(1, 8, 530, 515, 128), seed++, "TrajDiT last single 15 of 530", plans);
   // Auto's plan, with the switch on and off.
-  const bool saved = cuda::detail::attention_split_setting().load();
+  const bool saved = ctx.policy().attention_split;
   for (const bool split : {true, false}) {
-    cuda::detail::attention_split_setting().store(split);
+    ctx.policy().attention_split = split;
     const std::string name = split ? " (Auto, planned)" : " (Auto, unplanned)";
     check_attention<bf16>(ctx, packed(1, 16, 1027, 128), seed++, "VisDiT joint 16 x 1027" + name);
     check_attention<bf16>(ctx, packed(10, 16, 515, 128), seed++, "MST spatial 10 x 16 x 515" + name);
     check_attention<bf16>(ctx, packed(1, 8, 530, 128), seed++, "TrajDiT joint 8 x 530" + name);
     check_attention<bf16>(ctx, packed_tail(1, 8, 530, 515, 128), seed++, "TrajDiT last single 15 of 530" + name);
   }
-  cuda::set_attention_split(saved);
+  ctx.policy().attention_split = saved;
 }
 
 TEST_CASE("cuda attention bf16: planned TMA kernel in a CUDA graph, bad plans rejected") {
@@ -618,7 +618,7 @@ TEST_CASE("cuda attention bf16: planned TMA kernel in a CUDA graph, bad plans re
     check_error(measure(out.data(), ref.data(), out.numel(), written), Bound{1e-2, 2 * kBf16Roundoff * 2.0},
                 "planned TMA kernel in a graph, run " + std::to_string(run));
   }
-  if (cuda::graphs_enabled()) CHECK(graph.captures() == 1);
+  if (ctx.policy().graphs) CHECK(graph.captures() == 1);
 
   const auto run_plan = [&](const Layout& lay, TmaPlan p) {
     cuda::detail::attention(ctx, din.data(), din.data(), din.data(), dout.data(), device_shape(lay, nullptr),
@@ -773,9 +773,9 @@ TEST_CASE("cuda attention bf16: the QK LayerNorm inside the short kernel (MST ti
   Dev<float> f32({64 * 4096});
   CHECK_FALSE(cuda::attention_qk_layer_norm(ctx, f32.data(), f32.data(), f32.data(), f32.data(), a, par.data(),
                                             par.data(), 1e-5f, par.data(), par.data(), 1e-5f));
-  cuda::set_attention_qk_norm(false);
+  ctx.policy().attention_qk_norm = false;
   CHECK_FALSE(runs(a));
-  cuda::set_attention_qk_norm(true);
+  ctx.policy().attention_qk_norm = true;
   a.seqs = -1;
   CHECK_THROWS_WITH_AS(runs(a), doctest::Contains("negative extent"), epona::Error);
   EPONA_CUDA_CHECK(cudaStreamSynchronize(ctx.stream()));

@@ -212,10 +212,10 @@ void check_qk_rows(std::int64_t heads, std::int64_t rows, std::uint32_t seed, st
                                    QkRows{half, half + 3, rows, scales[2].data(), scales[3].data()}};
   const auto run = [&](bool row_path) {  // the row path wherever it can run (not only where it pays)
     auto dx = test::upload<T>(ctx, x, misalign);
-    cuda::set_qk_norm_rope_rows(row_path);
+    ctx.policy().qk_norm_rope_rows = row_path;
     cuda::detail::qk_rows_forced() = row_path;
     cuda::qk_norm_rope(ctx, dx.data(), stride, width, heads, 128, 1e-6f, dcos.data(), dsin.data(), segs);
-    cuda::set_qk_norm_rope_rows(true);
+    ctx.policy().qk_norm_rope_rows = true;
     cuda::detail::qk_rows_forced() = false;
     return download(dx);
   };
@@ -476,7 +476,7 @@ void dit_network(bool vis) {
     expect_close(name + " DiT 10-step sample, batch 2, run " + std::to_string(run) + tag, sampled, sample_cpu,
                  bound<W>(name + ".sample.out", 1e-4));
   }
-  if (cuda::graphs_enabled()) CHECK(gpu_dit.sampler_graph().captures() == 1);
+  if (gpu().policy().graphs) CHECK(gpu_dit.sampler_graph().captures() == 1);
   // The sampler's pipelined condition front changes no bit of the sample: off against on.
   gpu_dit.set_sampler_options({false});
   const auto unpipelined = sample_gpu();
@@ -531,7 +531,7 @@ void dit_solvers(bool vis) {
       if (run == 0) first = sampled;
       else CHECK(test::count_bit_differences(first, sampled) == 0);  // the replay gives the recording's bits
     }
-    if (cuda::graphs_enabled()) CHECK(gpu_dit.sampler_graph().captures() == captures_before + 1);
+    if (gpu().policy().graphs) CHECK(gpu_dit.sampler_graph().captures() == captures_before + 1);
   }
 }
 

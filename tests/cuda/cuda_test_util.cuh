@@ -28,15 +28,16 @@
 
 namespace epona::test {
 
-// Sets one of the CUDA backend's global switches while alive, then restores its previous value.
-template <auto Get, auto Set>
-struct ScopedSwitch {
-  using Value = decltype(Get());
+// Sets one field of a context's kernel policy (ctx.policy().field) while alive, then restores
+// its previous value.
+template <class Value>
+struct ScopedPolicy {
+  Value& field;
   Value before;
-  explicit ScopedSwitch(Value v) : before(Get()) { Set(v); }
-  ~ScopedSwitch() { Set(before); }
-  ScopedSwitch(const ScopedSwitch&) = delete;
-  ScopedSwitch& operator=(const ScopedSwitch&) = delete;
+  ScopedPolicy(Value& f, Value v) : field(f), before(f) { field = v; }
+  ~ScopedPolicy() { field = before; }
+  ScopedPolicy(const ScopedPolicy&) = delete;
+  ScopedPolicy& operator=(const ScopedPolicy&) = delete;
 };
 
 using HostF = Tensor<float, Cpu>;

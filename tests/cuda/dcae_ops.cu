@@ -60,7 +60,7 @@ void check_conv(const ConvCase& c, ConvAct act, bool with_bias) {
   const Bound bound = std::is_same_v<T, float> ? one_rounding<T>(max_abs(ref)) : Bound{3 * kBf16Roundoff, 3.5 * kBf16Roundoff * M + kF32Tol * M};
   char what[160];
   std::snprintf(what, sizeof what, "conv2d %s %s N%lld C%lld %lldx%lld O%lld k%lld g%lld %s%s", type_name<T>(),
-                engine_name(cuda::conv_engine()), (long long)c.N, (long long)c.C, (long long)c.H, (long long)c.W,
+                engine_name(ctx.policy().conv_engine), (long long)c.N, (long long)c.C, (long long)c.H, (long long)c.W,
                 (long long)c.O, (long long)c.k, (long long)c.groups, act_name(act), with_bias ? "+bias" : "");
   check_error(measure(out, ref), bound, what);
 }
@@ -125,9 +125,8 @@ TEST_CASE("cuda conv2d: cuDNN runs the model's aligned geometries when it is ava
 TEST_CASE("cuda conv2d Auto bf16: the measured engine choice gives the same results as either engine") {
   EPONA_REQUIRE_GPU();
   UseEngine use(cuda::ConvEngine::Auto);
-  const bool before = cuda::conv_tuning();
   for (const bool tune : {true, false}) {
-    cuda::set_conv_tuning(tune);
+    ScopedPolicy tuning(gpu().policy().conv_tuning, tune);
     // the decoder's upsampling shapes, scaled down (many output channels on a small map), twice:
     // the first call times both engines, the second runs the remembered one
     for (int call = 0; call < 2; ++call) {
@@ -135,7 +134,6 @@ TEST_CASE("cuda conv2d Auto bf16: the measured engine choice gives the same resu
       check_conv<bf16>({1, 128, 4, 8, 512, 3, 1}, ConvAct::Relu, true);
     }
   }
-  cuda::set_conv_tuning(before);
   std::printf("  sent to the GEMM engine: %s\n",
               cuda::conv_tuning_report().empty() ? "none" : cuda::conv_tuning_report().c_str());
 }
@@ -169,7 +167,7 @@ void check_conv_residual(const ConvCase& c, bool with_bias) {
                                                : Bound{3 * kBf16Roundoff, 3.5 * kBf16Roundoff * M + kF32Tol * M};
   char what[160];
   std::snprintf(what, sizeof what, "conv2d_residual %s %s%s N%lld C%lld %lldx%lld O%lld k%lld g%lld%s", type_name<T>(),
-                engine_name(cuda::conv_engine()), cuda::conv_fusion() ? "" : " unfused", (long long)c.N,
+                engine_name(ctx.policy().conv_engine), ctx.policy().conv_fusion ? "" : " unfused", (long long)c.N,
                 (long long)c.C, (long long)c.H, (long long)c.W, (long long)c.O, (long long)c.k, (long long)c.groups,
                 with_bias ? " +bias" : "");
   check_error(measure(out, ref), bound, what);
@@ -247,19 +245,19 @@ TEST_CASE("fold_batch_norm: BatchNorm folded into conv weights and bias; off wit
   EPONA_REQUIRE_GPU();
   check_fold<float>(37, 9 * 13);
   check_fold<bf16>(64, 9 * 64);
-  UseFusion off(false);
+  cuda::KernelPolicy unfused;
+  unfused.conv_fusion = false;
   Dev<float> w({4, 9}), g({4}), b({4}), m({4}), v({4}), fw, fb;
-  CHECK_FALSE(fold_batch_norm(w, g, b, m, v, 1e-5f, fw, fb));
+  CHECK_FALSE(fold_batch_norm(w, g, b, m, v, 1e-5f, fw, fb, unfused));
   CHECK(fw.empty());
 }
 
 TEST_CASE("cuda conv2d: GEMM engine over several im2col panels") {
   EPONA_REQUIRE_GPU();
   UseEngine use(cuda::ConvEngine::Gemm);
-  cuda::set_conv_panel_bytes(64 * 9 * 4 * 100);  // 100 rows of a 64-channel 3x3 float32 panel
+  ScopedPolicy<std::int64_t> panel(gpu().policy().conv_panel_bytes, 64 * 9 * 4 * 100);  // 100 rows of a 64-channel 3x3 float32 panel
   check_conv<float>({2, 64, 19, 23, 32, 3, 1}, ConvAct::Relu, true);
   check_conv<bf16>({1, 64, 19, 23, 32, 3, 1}, ConvAct::None, true);
-  cuda::set_conv_panel_bytes(0);
 }
 
 TEST_CASE("cuda conv2d refuses bad geometry and a forced cuDNN engine it cannot run") {

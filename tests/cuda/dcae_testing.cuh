@@ -9,7 +9,6 @@
 
 #include "cuda_test_util.cuh"
 #include "epona/cpu/context.hpp"
-#include "epona/cuda/conv/dcae_fusion.hpp"
 #include "epona/cuda/dcae_ops.cuh"
 #include "epona/nn/feature_map.hpp"
 
@@ -64,20 +63,24 @@ Bound stage_bound(double max_ref) {
   return bf16_stage_bound(max_ref);
 }
 
-// Poisons every scratch/result buffer handed out while alive (tests only).
-struct PoisonBuffers {
-  PoisonBuffers() { cuda::set_poison_new_buffers(true); }
-  ~PoisonBuffers() { cuda::set_poison_new_buffers(false); }
-  PoisonBuffers(const PoisonBuffers&) = delete;
-  PoisonBuffers& operator=(const PoisonBuffers&) = delete;
+// Poisons every scratch/result buffer gpu() hands out while alive (tests only).
+struct PoisonBuffers : ScopedPolicy<bool> {
+  PoisonBuffers() : ScopedPolicy(gpu().policy().poison_new_buffers, true) {}
 };
 
-// The engine of the dense convolutions.
-using UseEngine = ScopedSwitch<cuda::conv_engine, cuda::set_conv_engine>;
-// The fused conv epilogues (and BatchNorm folding at bind time).
-using UseFusion = ScopedSwitch<cuda::conv_fusion, cuda::set_conv_fusion>;
-// The DC-AE's fused kernels (temporal blocks, upsampling pair).
-using UseDcaeFusion = ScopedSwitch<cuda::dcae_fusion, cuda::set_dcae_fusion>;
+// The engine of gpu()'s dense convolutions.
+struct UseEngine : ScopedPolicy<cuda::ConvEngine> {
+  explicit UseEngine(cuda::ConvEngine e) : ScopedPolicy(gpu().policy().conv_engine, e) {}
+};
+// gpu()'s fused conv epilogues. BatchNorm folding happens at bind time, before any context, and
+// follows the environment (EPONA_CUDA_CONV_FUSE); folded or not, a block computes the same.
+struct UseFusion : ScopedPolicy<bool> {
+  explicit UseFusion(bool on) : ScopedPolicy(gpu().policy().conv_fusion, on) {}
+};
+// gpu()'s DC-AE fused kernels (temporal blocks, upsampling pair).
+struct UseDcaeFusion : ScopedPolicy<bool> {
+  explicit UseDcaeFusion(bool on) : ScopedPolicy(gpu().policy().dcae_fusion, on) {}
+};
 
 inline const char* engine_name(cuda::ConvEngine e) {
   return e == cuda::ConvEngine::Gemm ? "gemm" : e == cuda::ConvEngine::Cudnn ? "cudnn" : "auto";

@@ -356,14 +356,13 @@ void paired_block(bool first) {
   cpu::Context cctx;
   cuda::Context ctx;
   const auto cpu_out = k.run<Cpu, float>(cctx, first, false);
-  cuda::set_pair_gemm(true);
+  ctx.policy().pair_gemm = true;
   const auto paired = k.run<Cuda, W>(ctx, first, true);
   CHECK(batch_plans(ctx, 2) == 4);  // qkv, proj, fc1, fc2: one product each
-  cuda::set_pair_gemm(false);
   cuda::Context other;
+  other.policy().pair_gemm = false;
   const auto per_stream = k.run<Cuda, W>(other, first, false);
   CHECK(batch_plans(other, 2) == 0);
-  cuda::set_pair_gemm(true);
   // A float32 GPU block matches the CPU to float32 rounding; bf16 activations to 1e-2. Paired and
   // per-stream differ only where cuBLASLt's algorithm sums in another order: float32 1e-5, bf16
   // a few roundings (a flipped bf16 rounding travels through the norms and the attention).

@@ -5,7 +5,7 @@
 //   output), a ragged tail of packs, no table created while a stream is captured into a graph;
 // * the MST's fused QK LayerNorm + RoPE (cuda/attention/qk_layer_norm_rope.cuh): the same bits as
 //   layer_norm then apply_rope on q and k, and a float64 reference within the bf16 bounds;
-// * the large row passes in either row order (cuda::set_reversed_passes): the same bits, every
+// * the large row passes in either row order (ctx.policy().reversed_passes): the same bits, every
 //   element written (poisoned outputs).
 #include "cuda_test_util.cuh"
 
@@ -274,7 +274,6 @@ TEST_CASE("fused MST QK LayerNorm + RoPE: rounded once, within one bf16 rounding
 TEST_CASE("the large row passes give the same bits walking the rows first to last and last to first") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
-  const bool saved = cuda::detail::reversed_passes_flag();
   const std::int64_t rows = cuda::detail::warp_rows_min(ctx) + 37, n = 2048, heads = 16;  // the warp-per-row kernels
   const HostF x = random_tensor({rows, n}, 31, -3.f, 4.f), y = random_tensor({rows, n}, 32, -1.f, 1.f);
   const HostF w = random_tensor({n}, 33, 0.5f, 1.5f), b = random_tensor({n}, 34);
@@ -291,7 +290,7 @@ TEST_CASE("the large row passes give the same bits walking the rows first to las
   };
   // Every pass's outputs in one order.
   const auto run = [&](bool reverse) {
-    cuda::set_reversed_passes(reverse);
+    ctx.policy().reversed_passes = reverse;
     Dev<bf16> normed({rows * n}), gelu({kLarge});
     Dev<float> resid({rows * n});
     poison(ctx, normed), poison(ctx, gelu);
@@ -310,7 +309,6 @@ TEST_CASE("the large row passes give the same bits walking the rows first to las
                                {"updated residual", std::vector<std::uint16_t>(r16, r16 + 2 * r.numel()), false}};
   };
   const auto forward = run(false), reverse = run(true);
-  cuda::set_reversed_passes(saved);
   for (std::size_t i = 0; i < forward.size(); ++i) {
     const Output& f = forward[i];
     std::int64_t differ = 0, unwritten = 0;

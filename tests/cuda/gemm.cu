@@ -133,8 +133,6 @@ std::size_t plans_of(cuda::Context& ctx, std::int64_t M, bool tuned) {
   return n;
 }
 
-// Sets the tuning for a scope, then restores what it was.
-using TuningScope = ScopedSwitch<cuda::gemm_tuning, cuda::set_gemm_tuning>;
 
 }  // namespace
 
@@ -145,8 +143,8 @@ TEST_CASE_TEMPLATE("cuda linear with cuBLASLt's candidates timed matches cpu::li
   EPONA_REQUIRE_GPU();
   const std::int64_t large = cuda::detail::kTuneRowsMin + 5;
   {
-    TuningScope scope(cuda::GemmTuning::Large);
     cuda::Context ctx;
+    ctx.policy().gemm_tuning = cuda::GemmTuning::Large;
     check_linear<T>(ctx, {large, 96, 64, true, cuda::Epilogue::GeluErf}, 800);
     check_linear<T>(ctx, {37, 96, 64, true, cuda::Epilogue::None}, 801);
     CHECK(plans_of(ctx, large, true) == 1);
@@ -154,14 +152,14 @@ TEST_CASE_TEMPLATE("cuda linear with cuBLASLt's candidates timed matches cpu::li
     check_linear<T>(ctx, {large, 96, 64, true, cuda::Epilogue::GeluErf}, 802);  // the cached tuned plan again
   }
   {
-    TuningScope scope(cuda::GemmTuning::All);
     cuda::Context ctx;
+    ctx.policy().gemm_tuning = cuda::GemmTuning::All;
     check_linear<T>(ctx, {37, 96, 64, true, cuda::Epilogue::GeluTanh}, 803);
     CHECK(plans_of(ctx, 37, true) == 1);
   }
   {
-    TuningScope scope(cuda::GemmTuning::Off);
     cuda::Context ctx;
+    ctx.policy().gemm_tuning = cuda::GemmTuning::Off;
     check_linear<T>(ctx, {large, 96, 64, false, cuda::Epilogue::None}, 804);
     CHECK(plans_of(ctx, large, false) == 1);
   }
@@ -200,8 +198,8 @@ TEST_CASE_TEMPLATE("cuda linear_accumulate adds the unrounded product to float32
   struct Shape { std::int64_t M, N, K, ldx, ldy, col0; };
   for (const auto tuning : {cuda::GemmTuning::Off, cuda::GemmTuning::All}) {
     for (const Shape& c : {Shape{45, 72, 40, 56, 100, 16}, Shape{515, 2048, 2048, 2048, 2048, 0}}) {
-      TuningScope scope(tuning);
       cuda::Context ctx;  // a fresh plan cache: the plan is made (and timed) here
+      ctx.policy().gemm_tuning = tuning;
       HostF xw = random_tensor({c.M, c.ldx}, 900), w = random_tensor({c.N, c.K}, 901, -0.05f, 0.05f);
       round_to<T>(xw), round_to<T>(w);
       const HostF y0 = random_tensor({c.M, c.N}, 902, -4.f, 4.f);
@@ -259,14 +257,6 @@ bool skipped_without_sm90a(cuda::Context& ctx, const char* what) {
   MESSAGE((std::string("skipped: ") + what + " needs an sm_90a GPU and build"));
   return true;
 }
-
-// ScopedSwitch for the kernel switches that are a detail:: flag without a setter.
-struct SwitchScope {
-  std::atomic<bool>& flag;
-  bool was = flag.load();
-  SwitchScope(std::atomic<bool>& f, bool on) : flag(f) { flag.store(on); }
-  ~SwitchScope() { flag.store(was); }
-};
 
 // A product written by one of our own GEMMs into a column block of a wider (poisoned) buffer:
 // x rows ldx apart, y's block at column col0 of rows ldy wide.
@@ -399,7 +389,7 @@ TEST_CASE("cuda few-rows GEMM behind a late producer reads its operands after th
                           [&](const bf16* x, const bf16* w, const bf16* b, bf16* y) {
                             Dev<bf16> late(late_w ? Shape{c.N, c.K} : Shape{c.M, c.ldx});
                             poison(ctx, late);
-                            cuda::detail::launch_after(late_copy_kernel, dim3(64), dim3(256), 0, ctx.stream(),
+                            cuda::detail::launch_after(late_copy_kernel, dim3(64), dim3(256), 0, ctx,
                                                        late_w ? w : x, late.data(), late.numel(), 200000LL);
                             const bool ran = cuda::detail::few_rows_gemm(
                                 ctx, late_w ? x : late.data(), c.ldx, late_w ? late.data() : w, b, y, c.ldy, c.M, c.N,
@@ -414,7 +404,7 @@ TEST_CASE("cuda few-rows GEMM behind a late producer reads its operands after th
 TEST_CASE("cuda linear with the few-rows switch on at the DiTs' shapes") {
   EPONA_REQUIRE_GPU();
   cuda::Context ctx;
-  const SwitchScope few_rows(cuda::detail::few_rows_flag(), true);
+  ctx.policy().few_rows_gemm = true;
   check_linear<bf16>(ctx, {515, 3072, 1024, true, cuda::Epilogue::None}, 1400);      // qkv
   check_linear<bf16>(ctx, {515, 4096, 1024, true, cuda::Epilogue::GeluTanh}, 1401);  // mlp fc1 + GELU
   check_linear<bf16>(ctx, {515, 1024, 4096, true, cuda::Epilogue::None}, 1402);      // mlp fc2
@@ -436,7 +426,7 @@ TEST_CASE("cuda linear with the erf GELU: own GEMM and cuBLASLt + pass agree") {
   Dev<bf16> none, on({M, N}), off({M, N});
   poison(ctx, on), poison(ctx, off);
   for (const bool own : {true, false}) {
-    const SwitchScope scope(cuda::detail::own_gemm_flag(), own);
+    ctx.policy().own_gemm = own;
     cuda::linear(ctx, dx, dw, none, own ? on : off, cuda::Epilogue::GeluErf);
   }
   HostF z({M, N}), y({M, N});

@@ -410,11 +410,11 @@ TEST_CASE("cuda assemble_frame_tokens: the MST's tokens in one pass, against flo
   // The MST's window (10 frames of 3 action + 512 image rows, 11 action entries, width 2048) in
   // both pass orders, then small widths (one and a partial pack round per lane) and no actions.
   for (bool reverse : {true, false}) {
-    cuda::set_reversed_passes(reverse);
+    ctx.policy().reversed_passes = reverse;
     check_frame_tokens<bf16>(ctx, {10, 512, 3, 11, 2048, 1e-5f}, true, seed++);
     check_frame_tokens<float>(ctx, {10, 512, 3, 11, 2048, 1e-5f}, true, seed++);
   }
-  cuda::set_reversed_passes(true);
+  ctx.policy().reversed_passes = true;
   check_frame_tokens<float>(ctx, {3, 5, 3, 4, 64, 1e-6f}, false, seed++);
   check_frame_tokens<bf16>(ctx, {2, 7, 1, 2, 520, 1e-5f}, true, seed++);
   check_frame_tokens<float>(ctx, {4, 9, 0, 0, 128, 1e-5f}, true, seed++);
@@ -571,7 +571,7 @@ TEST_CASE("cuda programmatic dependent launches: each kernel of a chain sees wha
       ref.data()[i] = ref.data()[i] + float(bf16(kA * v));
     }
   const auto run = [&](bool programmatic, bool graph) {
-    cuda::set_programmatic_launch(programmatic);
+    ctx.policy().programmatic_launch = programmatic;
     auto x = upload<float>(ctx, x0);
     Dev<bf16> xb({n});
     const auto chain = [&] {
@@ -583,7 +583,7 @@ TEST_CASE("cuda programmatic dependent launches: each kernel of a chain sees wha
     if (graph) {
       cuda::GraphCache recorded;  // the samplers' graph path (EPONA_CUDA_GRAPHS=0: runs directly)
       recorded.run(ctx, {1}, chain);
-      CHECK(recorded.captures() == (cuda::graphs_enabled() ? 1 : 0));
+      CHECK(recorded.captures() == (ctx.policy().graphs ? 1 : 0));
     } else {
       chain();
     }
@@ -596,5 +596,4 @@ TEST_CASE("cuda programmatic dependent launches: each kernel of a chain sees wha
       CHECK_MESSAGE(differ == 0, (graph ? "graph" : "eager"), (programmatic ? ", programmatic" : ", plain"), ": ",
                     differ, " of ", n, " elements differ from the host");
     }
-  cuda::set_programmatic_launch(true);
 }

@@ -256,7 +256,7 @@ TEST_CASE("GPU float32: TrajDiT and VisDiT, one velocity and a full sample (traj
     }
   }
   // The sampling loop was recorded once per DiT and replayed (twice would mean a key mismatch).
-  if (cuda::graphs_enabled()) {
+  if (gpu_model<float>().context().policy().graphs) {
     CHECK(gpu_model<float>().traj_dit().sampler_graph().captures() == 1);
     CHECK(gpu_model<float>().vis_dit().sampler_graph().captures() == 1);
   }

@@ -4,6 +4,7 @@
 // call unqualified. Include it (from a .cu file) before instantiating a model on Cuda.
 #pragma once
 
+#include "epona/core/backend_capabilities.hpp"
 #include "epona/core/backend_traits.hpp"
 #include "epona/cuda/runtime/graph.hpp"
 #include "epona/cuda/runtime/memory.hpp"
@@ -57,5 +58,23 @@ template <> struct BackendTraits<Cuda> {
 };
 
 template <> struct BackendOf<cuda::Context> { using type = Cuda; };
+
+// The CUDA backend has every optional fused kernel of the contract (core/backend_capabilities.hpp),
+// for both activation types: a kernel whose signature drifts fails here, not as a silent
+// fallback to the composed passes.
+template <class A>
+constexpr bool cuda_has_every_capability() {
+  using C = cuda::Context;
+  static_assert(AddGatedNormFromInput<C, A>, "CUDA backend lacks capability AddGatedNormFromInput");
+  static_assert(JointQkNormRope<C, A>, "CUDA backend lacks capability JointQkNormRope");
+  static_assert(ResidualGemm<C, A>, "CUDA backend lacks capability ResidualGemm");
+  static_assert(ShortAttentionQkNorm<C, A>, "CUDA backend lacks capability ShortAttentionQkNorm");
+  static_assert(FusedFrameTokens<C, A>, "CUDA backend lacks capability FusedFrameTokens");
+  static_assert(QkLayerNormRope<C, A>, "CUDA backend lacks capability QkLayerNormRope");
+  static_assert(PairedGemm<C>, "CUDA backend lacks capability PairedGemm");
+  static_assert(GroupedLinear<C, A>, "CUDA backend lacks capability GroupedLinear");
+  return true;
+}
+static_assert(cuda_has_every_capability<float>() && cuda_has_every_capability<bf16>());
 
 }  // namespace epona

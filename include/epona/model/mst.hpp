@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "epona/core/arena.hpp"
+#include "epona/core/backend_capabilities.hpp"
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
@@ -331,8 +332,7 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
     const auto projected = s.layer.u.slice(0, F * L);
     const auto& ln = img_projector_.norm;
     const FrameTokens tokens{F, L, constants::action_tokens, s.actions.size(1), C, ln.eps};
-    if constexpr (requires { try_assemble_frame_tokens(ctx, projected.data(), s.actions.data(), time_emb_.data(),
-                                                       ln.weight.data(), ln.bias.data(), s.x.data(), tokens); }) {
+    if constexpr (FusedFrameTokens<Context, A>) {
       if (try_assemble_frame_tokens(ctx, projected.data(), s.actions.data(), time_emb_.data(), ln.weight.data(),
                                     ln.bias.data(), s.x.data(), tokens))
         return;

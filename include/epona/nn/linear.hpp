@@ -11,6 +11,7 @@
 #include <utility>
 #include <vector>
 
+#include "epona/core/backend_capabilities.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/nn/backend_context.hpp"
@@ -92,7 +93,7 @@ struct Linear : Bindable<Linear<B, T>> {
   // Whether `group` runs as one product on this backend (the GPU's strided-batched cuBLASLt
   // product, unless switched off), rather than one per layer.
   static bool pair_available(Context& ctx) {
-    if constexpr (requires { pair_gemm_enabled(ctx); })
+    if constexpr (PairedGemm<Context>)
       return pair_gemm_enabled(ctx);
     else
       return false;
@@ -111,8 +112,7 @@ struct Linear : Bindable<Linear<B, T>> {
       weights.push_back(l->weight.data());
       biases.push_back(l->has_bias ? l->bias.data() : nullptr);
     }
-    if constexpr (requires { linear_group(ctx, x, ldx, x_stride, weights, biases, y, ldy, y_stride, rows, a.out, a.in,
-                                          epilogue); }) {
+    if constexpr (GroupedLinear<Context, A, T>) {
       linear_group(ctx, x, ldx, x_stride, weights, biases, y, ldy, y_stride, rows, a.out, a.in, epilogue);
     } else {
       for (std::size_t i = 0; i < layers.size(); ++i) {

@@ -274,12 +274,6 @@ inline bool aligned_rows(const void* p, std::int64_t seq, std::int64_t row, std:
   return reinterpret_cast<std::uintptr_t>(p) % 16 == 0 && seq % elems == 0 && row % elems == 0;
 }
 
-// EPONA_CUDA_ATTN_SPLIT=0: Auto takes the Tma64 / Tma128 kernels as before the plans (to time
-// both in one binary); set_attention_split switches at run time.
-inline std::atomic<bool>& attention_split_setting() {
-  static std::atomic<bool> on{env_flag("EPONA_CUDA_ATTN_SPLIT", true)};
-  return on;
-}
 
 inline const char* flash_kernel_name(FlashKernel k) {
   switch (k) {
@@ -354,7 +348,8 @@ inline FlashKernel auto_flash_kernel(const Context& ctx, const FlashParams<bf16>
   // spatial 160 x 515: 119.2 -> 95.6 us, its last block 16 x 515: 27.8 -> 18.2 us). Without keys
   // (no tensor map to describe) the cp.async wgmma kernel.
   //
-  // The planned TMA kernel (auto_tma_plan) replaces both where EPONA_CUDA_ATTN_SPLIT is on; same
+  // The planned TMA kernel (auto_tma_plan) replaces both where ctx.policy().attention_split is on
+  // (EPONA_CUDA_ATTN_SPLIT=0: off, the Tma64 / Tma128 kernels as before the plans); same
   // run, from CUDA graphs: VisDiT 16 x 1027 39.5 -> 30.5 us (its short last row blocks cut into
   // key ranges), its last single block 18.9 -> 14.8, MST spatial 97.1 -> 85.4, its last block
   // 16.0 -> 14.8, TrajDiT 8 x 530 12.3 -> 9.9 (consumers sharing 64 rows), its last single block
@@ -363,7 +358,7 @@ inline FlashKernel auto_flash_kernel(const Context& ctx, const FlashParams<bf16>
   if (short_kernel_fits(p)) return FlashKernel::Short;
   if (wgmma_kernel_fits(ctx, p, exact))
     return p.lk == 0                                 ? FlashKernel::Wgmma64
-           : attention_split_setting().load()        ? FlashKernel::TmaPlanned
+           : ctx.policy().attention_split            ? FlashKernel::TmaPlanned
            : blocks64 <= ctx.info().multiprocessors ? FlashKernel::Tma64
                                                     : FlashKernel::Tma128;
   return blocks64 < ctx.info().multiprocessors ? FlashKernel::Rows64Split4
@@ -465,10 +460,6 @@ template <class T>
 void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const AttentionShape& a) {
   detail::attention(ctx, q, k, v, o, a, detail::FlashKernel::Auto);
 }
-
-// Whether Auto takes the planned TMA kernel (EPONA_CUDA_ATTN_SPLIT; tests and benchmarks
-// compare it with the unplanned kernels in one process).
-inline void set_attention_split(bool on) { detail::attention_split_setting().store(on); }
 
 }  // namespace epona::cuda
 

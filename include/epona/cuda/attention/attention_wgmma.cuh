@@ -498,7 +498,7 @@ template <class Tile>
 void launch_flash_wgmma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seqs, std::int64_t heads) {
   const std::int64_t blocks = (p.lq + Tile::rows - 1) / Tile::rows * heads * seqs;
   allow_dynamic_smem<fa::flash_wgmma_kernel<Tile>>(Tile::smem_bytes);
-  launch_after(fa::flash_wgmma_kernel<Tile>, static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx.stream(),
+  launch_after(fa::flash_wgmma_kernel<Tile>, static_cast<unsigned>(blocks), Tile::threads, Tile::smem_bytes, ctx,
                p, static_cast<int>(heads), static_cast<int>(seqs));
 }
 
@@ -589,12 +589,12 @@ bool launch_flash_tma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seq
   }
   const std::int64_t grid = plan.ctas > 0 ? std::min<std::int64_t>(g.blocks, plan.ctas) : g.blocks;
   allow_dynamic_smem<fa::flash_tma_kernel<Tile>>(Tile::smem_bytes);
-  launch_after(fa::flash_tma_kernel<Tile>, static_cast<unsigned>(grid), Tile::threads, Tile::smem_bytes, ctx.stream(),
+  launch_after(fa::flash_tma_kernel<Tile>, static_cast<unsigned>(grid), Tile::threads, Tile::smem_bytes, ctx,
                q_map, k_map, v_map, p, g);
   if (bytes > 0) {
     const std::int64_t rows = heads * seqs * (p.lq - g.split_row0);
     launch_after(fa::combine_splits_kernel, static_cast<unsigned>((rows + fa::kCombineWarps - 1) / fa::kCombineWarps),
-                 32 * fa::kCombineWarps, 0, ctx.stream(), p, g);
+                 32 * fa::kCombineWarps, 0, ctx, p, g);
   }
   return true;
 }

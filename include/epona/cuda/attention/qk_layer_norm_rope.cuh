@@ -109,11 +109,11 @@ bool layer_norm_rope_qk(Context& ctx, T* q, std::int64_t rows_q, T* k, std::int6
   if (!fits) return false;
   const detail::QkNormRopeArgs<T> a{q,      k,     rows_q, rows_k,  n,   q_weight, q_bias, k_weight, k_bias,
                                     q_eps,  k_eps, static_cast<int>(head_dim), cos, sin,
-                                    detail::reversed_passes_flag()};
+                                    ctx.policy().reversed_passes};
   const auto blocks = static_cast<unsigned>((rows_q + rows_k + detail::kNormWarps - 1) / detail::kNormWarps);
   detail::with_warp_row_packs(n, [&](auto packs_per_lane) {  // the choice layer_norm makes
     detail::launch_after(detail::qk_layer_norm_rope_kernel<T, decltype(packs_per_lane)::value>, blocks,
-                         32 * detail::kNormWarps, 0, ctx.stream(), a);
+                         32 * detail::kNormWarps, 0, ctx, a);
   });
   EPONA_CUDA_CHECK_LAUNCH();
   return true;

@@ -237,12 +237,6 @@ bool row_path(Context& ctx, const QkRopeParts<T>& a) {
   return ok;
 }
 
-// EPONA_CUDA_QK_ROWS=0 keeps the head-per-warp kernel for qk_norm_rope; set_qk_norm_rope_rows
-// switches it at run time (benchmarks compare both in one process).
-inline bool& qk_rows_flag() {
-  static bool on = env_flag("EPONA_CUDA_QK_ROWS", true);
-  return on;
-}
 // Warp accesses per head group of the row path (2, 4 or 8; benchmarks compare them).
 inline int& qk_rows_accesses() {
   static int accesses = 4;
@@ -255,7 +249,7 @@ void launch_qk_rows(Context& ctx, const QkRopeParts<T>& a) {
   const std::int64_t warps = a.start[a.parts] / a.heads * ((a.heads + group_heads - 1) / group_heads);
   const std::int64_t blocks = (warps + threads / 32 - 1) / (threads / 32);
   EPONA_CHECK(blocks <= 0x7fffffff, "qk_norm_rope: ", warps, " head groups exceed one launch");
-  launch_after(qk_norm_rope_rows_kernel<T, Accesses>, static_cast<unsigned>(blocks), threads, 0, ctx.stream(), a);
+  launch_after(qk_norm_rope_rows_kernel<T, Accesses>, static_cast<unsigned>(blocks), threads, 0, ctx, a);
 }
 template <class T>
 void launch_qk_rows(Context& ctx, const QkRopeParts<T>& a) {
@@ -297,7 +291,7 @@ void rms_norm_rope_heads(Context& ctx, T* x, std::int64_t rows, std::int64_t row
   const unsigned blocks = detail::norm_rope_blocks(rows * heads, "rms_norm_rope_heads");
   const auto kernel = detail::vector_heads(x, row_stride, head_dim) ? detail::rms_norm_rope_kernel<true, T>
                                                                     : detail::rms_norm_rope_kernel<false, T>;
-  detail::launch_after(kernel, blocks, detail::kNormRopeThreads, 0, ctx.stream(), x, rows, row_stride,
+  detail::launch_after(kernel, blocks, detail::kNormRopeThreads, 0, ctx, x, rows, row_stride,
                        static_cast<int>(heads), static_cast<int>(head_dim), scale, eps, cos, sin);
 }
 
@@ -333,17 +327,14 @@ void qk_norm_rope(Context& ctx, T* qkv, std::int64_t row_stride, std::int64_t k_
     }
   }
   if (a.start[a.parts] == 0) return;
-  if (detail::qk_rows_flag() && detail::row_path(ctx, a)) {
+  if (ctx.policy().qk_norm_rope_rows && detail::row_path(ctx, a)) {  // EPONA_CUDA_QK_ROWS=0: head per warp
     detail::launch_qk_rows(ctx, a);
   } else {
     const auto kernel = detail::vector_heads(qkv, row_stride, head_dim, k_offset) ? detail::qk_norm_rope_kernel<true, T>
                                                                                 : detail::qk_norm_rope_kernel<false, T>;
     detail::launch_after(kernel, detail::norm_rope_blocks(a.start[a.parts], "qk_norm_rope"), detail::kNormRopeThreads, 0,
-                         ctx.stream(), a);
+                         ctx, a);
   }
 }
-
-// Turns qk_norm_rope's row path on or off at run time (see detail::qk_rows_flag).
-inline void set_qk_norm_rope_rows(bool on) { detail::qk_rows_flag() = on; }
 
 }  // namespace epona::cuda

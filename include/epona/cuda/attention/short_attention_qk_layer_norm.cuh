@@ -147,12 +147,6 @@ __global__ void __launch_bounds__(kShortThreads, 6) flash_short_qk_norm_kernel(c
 }
 }  // namespace fa
 
-// EPONA_CUDA_QK_NORM_ATTN=0 keeps the separate norm pass (layer_norm_rope_qk) before the
-// attention; set_attention_qk_norm switches it at run time (benchmarks compare both).
-inline bool& attention_qk_norm_flag() {
-  static bool on = env_flag("EPONA_CUDA_QK_NORM_ATTN", true);
-  return on;
-}
 // Where the kernel pays: as many queries as keys (the time layers). Measured on the H200, graph
 // of calls, separate pass + short kernel -> norm inside: 515 x 16 heads x 10 x 10 (causal)
 // 57.2 -> 47.4 us; the pruned last block, 1 query x 10 keys, 31.6 -> 33.3 us (its k rows cost
@@ -165,13 +159,12 @@ inline bool& attention_qk_norm_forced() {
 
 }  // namespace detail
 
-inline void set_attention_qk_norm(bool on) { detail::attention_qk_norm_flag() = on; }
-
 // o = attention(LN_q(q), LN_k(k), v) with the shape's strides; each LayerNorm is over all
 // heads x head_dim channels of a token (contiguous in q and in k), affine, float32 parameters.
 // q and k are only read. Runs (returning true) for bf16 sequences of <= 16 queries and keys,
 // head dim 128 with 16-byte aligned rows, no additive mask, heads a multiple of 4 and at most
-// 32, on a GPU and build with thread-block clusters, where it pays (as many queries as keys);
+// 32, on a GPU and build with thread-block clusters, with ctx.policy().attention_qk_norm on
+// (EPONA_CUDA_QK_NORM_ATTN=0: off), where it pays (as many queries as keys);
 // otherwise returns false with nothing done, and the caller normalises and attends separately.
 template <class T>
 bool attention_qk_layer_norm(Context& ctx, const T* q, const T* k, const T* v, T* o, const AttentionShape& a,
@@ -182,7 +175,7 @@ bool attention_qk_layer_norm(Context& ctx, const T* q, const T* k, const T* v, T
     return false;  // float32 keeps the SIMT attention and its separate norm
   } else {
     namespace fa = detail::fa;
-    if (!detail::attention_qk_norm_flag() || !detail::clusters_available(ctx)) return false;
+    if (!ctx.policy().attention_qk_norm || !detail::clusters_available(ctx)) return false;
     EPONA_CHECK(a.seqs >= 0 && a.heads >= 0 && a.lq >= 0 && a.lk >= 0, "attention_qk_layer_norm: negative extent");
     EPONA_CHECK(q && k && v && o && q_weight && q_bias && k_weight && k_bias, "attention_qk_layer_norm: null tensor");
     const auto p = detail::flash_params(q, k, v, o, a);
@@ -200,7 +193,7 @@ bool attention_qk_layer_norm(Context& ctx, const T* q, const T* k, const T* v, T
     const int smem = fa::qk_norm_smem_bytes(static_cast<int>(a.lq), static_cast<int>(a.lk));
     detail::allow_dynamic_smem<fa::flash_short_qk_norm_kernel>(fa::qk_norm_smem_bytes(fa::kShortLen, fa::kShortLen));
     detail::launch_in_clusters(fa::flash_short_qk_norm_kernel, dim3(static_cast<unsigned>(a.seqs * groups)),
-                               static_cast<unsigned>(groups), fa::kShortThreads, smem, ctx.stream(), p, n, groups);
+                               static_cast<unsigned>(groups), fa::kShortThreads, smem, ctx, p, n, groups);
     return true;
   }
 }

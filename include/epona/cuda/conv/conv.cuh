@@ -31,34 +31,12 @@
 
 namespace epona::cuda {
 
-// Which implementation runs the dense (non-depthwise) convolutions. Auto: bf16 k x k
-// convolutions through cuDNN where it is loadable and has an exact algorithm for the geometry
-// (implicit GEMM on tensor cores, no im2col traffic); 1x1 ones (plain GEMMs over pixels) and
-// every float32 one through cuBLASLt (float32: cuDNN's FMA-only kernels measured 1.4x slower
-// than an im2col panel + cuBLASLt's float32 GEMM on an H200). Cudnn: every dense conv through
-// cuDNN (an error where it cannot); Gemm: never cuDNN (im2col panel + cuBLASLt for k > 1).
-enum class ConvEngine { Auto, Cudnn, Gemm };
+// Which implementation runs the dense convolutions: ctx.policy().conv_engine (ConvEngine,
+// runtime/kernel_policy.hpp; EPONA_CUDA_CONV). The fused epilogues: ctx.policy().conv_fusion
+// (EPONA_CUDA_CONV_FUSE=0 keeps the unfused path runnable for side-by-side timing and checks;
+// the BatchNorm folding at bind time, before any context, follows the environment: conv_fold.cuh).
 
 namespace conv_detail {
-
-inline ConvEngine engine_from_env() {
-  const char* e = std::getenv("EPONA_CUDA_CONV");
-  if (!e || !*e || std::strcmp(e, "auto") == 0) return ConvEngine::Auto;
-  if (std::strcmp(e, "cudnn") == 0) return ConvEngine::Cudnn;
-  if (std::strcmp(e, "gemm") == 0) return ConvEngine::Gemm;
-  fail("EPONA_CUDA_CONV must be auto, cudnn or gemm, got '", e, "'");
-}
-inline std::atomic<ConvEngine>& engine_setting() {
-  static std::atomic<ConvEngine> e{engine_from_env()};
-  return e;
-}
-
-// EPONA_CUDA_CONV_FUSE=0 turns off the fused epilogues (and the BatchNorm folding that feeds
-// them): the unfused path stays runnable for side-by-side timing and checks.
-inline std::atomic<bool>& fusion_setting() {
-  static std::atomic<bool> on{env_flag("EPONA_CUDA_CONV_FUSE", true)};
-  return on;
-}
 
 // Convolutions run per engine since the start (or the last reset): reports and tests.
 struct EngineCounts {
@@ -294,11 +272,12 @@ struct Im2colEach {
   }
 };
 
-// Largest im2col panel (bytes): bounds the engine's scratch memory on big maps.
-inline constexpr std::int64_t kMaxPanelBytes = std::int64_t{512} << 20;
-inline std::atomic<std::int64_t>& panel_bytes_setting() {
-  static std::atomic<std::int64_t> bytes{kMaxPanelBytes};
-  return bytes;
+// Largest im2col panel (bytes): bounds the engine's scratch memory on big maps. Tests set a
+// smaller ctx.policy().conv_panel_bytes (0 or less: this default).
+inline constexpr std::int64_t kMaxPanelBytes = KernelPolicy::default_conv_panel_bytes;
+inline std::int64_t panel_bytes(const Context& ctx) {
+  const std::int64_t b = ctx.policy().conv_panel_bytes;
+  return b > 0 ? b : kMaxPanelBytes;
 }
 
 template <class T>
@@ -313,7 +292,7 @@ void gemm_conv(Context& ctx, const T* x, const T* w, const T* bias, T* y, const 
   if (k == 1) {
     for (std::int64_t g = 0; g < s.groups; ++g) product(x + g * cg, C, s.batch * HW, g, y);
   } else {
-    const std::int64_t rows = std::clamp<std::int64_t>(panel_bytes_setting().load() / (K * std::int64_t{sizeof(T)}), 1, HW);
+    const std::int64_t rows = std::clamp<std::int64_t>(panel_bytes(ctx) / (K * std::int64_t{sizeof(T)}), 1, HW);
     Tensor<T, Cuda> panel = scratch_tensor<T>(ctx, {rows, K});
     const bool packed = cg % detail::kPack == 0 && detail::aligned16(x) && detail::aligned16(panel.data());
     for (std::int64_t n = 0; n < s.batch; ++n)
@@ -323,7 +302,7 @@ void gemm_conv(Context& ctx, const T* x, const T* w, const T* bias, T* y, const 
           const Im2colEach<T> f{x + n * HW * C, panel.data(), p0, static_cast<int>(s.height),
                                 static_cast<int>(s.width), static_cast<int>(C), static_cast<int>(g * cg),
                                 static_cast<int>(cg), static_cast<int>(k)};
-          detail::for_each(ctx.stream(), r, K, packed, f);
+          detail::for_each(ctx, r, K, packed, f);
           product(panel.data(), K, r, g, y + (n * HW + p0) * O);
         }
   }
@@ -332,26 +311,14 @@ void gemm_conv(Context& ctx, const T* x, const T* w, const T* bias, T* y, const 
 
 }  // namespace conv_detail
 
-// The engine for dense convolutions from now on (process-wide; EPONA_CUDA_CONV sets the start).
-inline void set_conv_engine(ConvEngine e) { conv_detail::engine_setting().store(e); }
-inline ConvEngine conv_engine() { return conv_detail::engine_setting().load(); }
-// The GEMM engine's im2col panel budget in bytes (0: the default, 512 MiB); tests use small ones.
-inline void set_conv_panel_bytes(std::int64_t bytes) {
-  conv_detail::panel_bytes_setting().store(bytes > 0 ? bytes : conv_detail::kMaxPanelBytes);
-}
 // Why cuDNN does not run on ctx's device ("" when it does).
 inline std::string cudnn_unavailable(Context& ctx) { return cudnn::Engine::get().unavailable(ctx); }
-// What a recorded graph of convolutions depends on beyond its buffers and sizes: the engine
-// setting and the GEMM engine's panel budget (model code keys its graphs with it).
-inline std::uint64_t graph_variant(const Context&) {
-  return static_cast<std::uint64_t>(conv_engine()) | (conv_detail::fusion_setting().load() ? 16u : 0u) |
-         (static_cast<std::uint64_t>(conv_detail::panel_bytes_setting().load()) << 8);
+// What a recorded graph of convolutions depends on beyond its buffers and sizes: ctx's engine,
+// fusion and the GEMM engine's panel budget (model code keys its graphs with it).
+inline std::uint64_t graph_variant(const Context& ctx) {
+  return static_cast<std::uint64_t>(ctx.policy().conv_engine) | (ctx.policy().conv_fusion ? 16u : 0u) |
+         (static_cast<std::uint64_t>(conv_detail::panel_bytes(ctx)) << 8);
 }
-// Fused conv epilogues (cuDNN's conv + bias + residual + ReLU in one call) and the BatchNorm
-// folding into conv weights that uses them: on unless EPONA_CUDA_CONV_FUSE=0 (process-wide).
-// Folding happens when weights are bound or randomised, so set this before loading a model.
-inline void set_conv_fusion(bool on) { conv_detail::fusion_setting().store(on); }
-inline bool conv_fusion() { return conv_detail::fusion_setting().load(); }
 // Geometries where cuDNN refused the fused form so far, with its reasons ("" when none).
 inline std::string conv_fusion_report() { return cudnn::Engine::get().fused_report(); }
 // Destroys the cuDNN handles and plans (they are made again on the next convolution): frees
@@ -382,13 +349,13 @@ namespace conv_detail {
 // Whether the dense conv of shape s runs on cuDNN under the current engine setting (Auto: bf16
 // k x k only); an explicit Cudnn request that cuDNN cannot serve is an error.
 template <class T>
-bool wants_cudnn(const Conv2dShape& s) {
-  const ConvEngine engine = conv_engine();
+bool wants_cudnn(const Context& ctx, const Conv2dShape& s) {
+  const ConvEngine engine = ctx.policy().conv_engine;
   return engine == ConvEngine::Cudnn || (engine == ConvEngine::Auto && s.kernel > 1 && !std::is_same_v<T, float>);
 }
 template <class T>
 void require_cudnn(Context& ctx, const Conv2dShape& s) {
-  EPONA_CHECK(conv_engine() != ConvEngine::Cudnn, "conv2d: the cuDNN engine was requested but cannot run ",
+  EPONA_CHECK(ctx.policy().conv_engine != ConvEngine::Cudnn, "conv2d: the cuDNN engine was requested but cannot run ",
               s.in_channels, "->", s.out_channels, " k=", s.kernel, " at ", s.height, "x", s.width, ": ",
               cudnn::Engine::get().plan_problem<T>(ctx, s));
 }
@@ -404,12 +371,9 @@ inline void check_conv_args(const void* x, const void* weight, const void* y, co
 // most kTunePanelBytes) is timed once on both engines, eagerly (3 runs each, the best of each),
 // and remembered; the GEMM engine is taken only when at least 10% faster, so that the choice
 // does not flip on noise. Never during a graph recording (cuDNN is used then, undecided).
-// EPONA_CUDA_CONV_TUNE=0 turns it off (cuDNN for every bf16 k x k conv, as before).
+// ctx.policy().conv_tuning off (EPONA_CUDA_CONV_TUNE=0) turns it off (cuDNN for every bf16
+// k x k conv, as before).
 inline constexpr std::int64_t kTunePanelBytes = std::int64_t{128} << 20;
-inline std::atomic<bool>& tune_setting() {
-  static std::atomic<bool> on{env_flag("EPONA_CUDA_CONV_TUNE", true)};
-  return on;
-}
 struct TuneState {
   std::mutex mutex;
   std::map<std::array<std::int64_t, 9>, bool> gemm_faster;  // (device, geometry, act, bias) -> choice
@@ -432,7 +396,8 @@ float best_ms(Context& ctx, int reps, const F& f) {
 template <class T, class CudnnRun, class GemmRun>
 bool tuned_to_gemm(Context& ctx, const Conv2dShape& s, ConvAct act, bool has_bias, const CudnnRun& run_cudnn,
                    const GemmRun& run_gemm) {
-  if (std::is_same_v<T, float> || conv_engine() != ConvEngine::Auto || !tune_setting().load() || s.groups != 1 ||
+  const KernelPolicy& policy = ctx.policy();
+  if (std::is_same_v<T, float> || policy.conv_engine != ConvEngine::Auto || !policy.conv_tuning || s.groups != 1 ||
       s.batch * s.height * s.width * s.kernel * s.kernel * s.in_channels * std::int64_t{sizeof(T)} > kTunePanelBytes)
     return false;
   const std::array<std::int64_t, 9> key{ctx.info().device, s.batch, s.in_channels, s.height, s.width, s.out_channels,
@@ -455,10 +420,8 @@ bool tuned_to_gemm(Context& ctx, const Conv2dShape& s, ConvAct act, bool has_bia
 }
 }  // namespace conv_detail
 
-// The measured engine choice for small bf16 k x k convs under Auto (on unless EPONA_CUDA_CONV_TUNE=0),
-// and the geometries it sent to the GEMM engine so far (with both timings).
-inline void set_conv_tuning(bool on) { conv_detail::tune_setting().store(on); }
-inline bool conv_tuning() { return conv_detail::tune_setting().load(); }
+// The geometries the measured engine choice (small bf16 k x k convs under Auto, with
+// ctx.policy().conv_tuning) sent to the GEMM engine so far, with both timings.
 inline std::string conv_tuning_report() {
   auto& t = conv_detail::tune_state();
   std::lock_guard<std::mutex> lock(t.mutex);
@@ -482,10 +445,10 @@ void conv2d(Context& ctx, const T* x, const T* weight, const T* bias, T* y, cons
     ++counts.depthwise;
     return;
   }
-  if (conv_detail::wants_cudnn<T>(s)) {
+  if (conv_detail::wants_cudnn<T>(ctx, s)) {
     auto& engine = cudnn::Engine::get();
     const auto run_cudnn = [&]() -> int {  // 2: fused call, 1: conv + epilogue pass, 0: cuDNN cannot
-      if (conv_fusion() && bias && act != ConvAct::Silu &&
+      if (ctx.policy().conv_fusion && bias && act != ConvAct::Silu &&
           engine.forward_fused(ctx, x, weight, bias, static_cast<const T*>(nullptr), y, s, act == ConvAct::Relu))
         return 2;
       if (!engine.forward(ctx, x, weight, y, s)) return 0;
@@ -519,7 +482,7 @@ void conv2d_residual(Context& ctx, const T* x, const T* weight, const T* bias, T
   conv_detail::check_conv_args(x, weight, residual, s);
   if (s.batch == 0) return;
   const bool dense = !(s.in_channels == s.groups && s.out_channels == s.groups);
-  if (dense && conv_fusion() && conv_detail::wants_cudnn<T>(s) &&
+  if (dense && ctx.policy().conv_fusion && conv_detail::wants_cudnn<T>(ctx, s) &&
       cudnn::Engine::get().forward_fused(ctx, x, weight, bias, residual, residual, s, false)) {
     auto& counts = conv_detail::counts();
     ++counts.cudnn, ++counts.fused;
@@ -529,7 +492,7 @@ void conv2d_residual(Context& ctx, const T* x, const T* weight, const T* bias, T
   Tensor<T, Cuda> y = scratch_tensor<T>(ctx, {pixels, O});
   conv2d(ctx, x, weight, static_cast<const T*>(nullptr), y.data(), s);
   const bool packed = O % detail::kPack == 0 && detail::aligned16(y.data()) && detail::aligned16(residual);
-  detail::for_each(ctx.stream(), pixels, O, packed, conv_detail::BiasResidualEach<T>{y.data(), bias, residual, O});
+  detail::for_each(ctx, pixels, O, packed, conv_detail::BiasResidualEach<T>{y.data(), bias, residual, O});
 }
 
 // out[r·out_stride + i] = value[r·in_stride + i] · act(gate[r·in_stride + i]) for i < width
@@ -544,7 +507,7 @@ void gated_act(Context& ctx, const T* value, const T* gate, T* out, std::int64_t
   const bool packed = detail::packable(value, width, in_stride) && detail::packable(gate, width, in_stride) &&
                       detail::packable(out, width, out_stride);
   conv_detail::with_act(act, [&](auto op) {
-    detail::for_each(ctx.stream(), rows, width, packed,
+    detail::for_each(ctx, rows, width, packed,
                      conv_detail::GatedEach<T, decltype(op)>{value, gate, out, in_stride, out_stride, op});
   });
 }

@@ -12,6 +12,7 @@
 #include "epona/cuda/runtime/check.hpp"
 #include "epona/cuda/conv/conv.cuh"
 #include "epona/cuda/runtime/device.cuh"
+#include "epona/cuda/runtime/kernel_policy.hpp"
 #include "epona/cuda/runtime/memory.hpp"
 
 namespace epona {
@@ -41,12 +42,14 @@ __global__ void fold_batch_norm_kernel(const T* __restrict__ w, const float* __r
 // beta, running mean/var, eps) as one conv: folded_weight (same shape) and folded_bias [O] in T.
 // Found by nn::ResBlock through argument-dependent lookup. False, leaving the outputs alone, when
 // the fused epilogues are off (EPONA_CUDA_CONV_FUSE=0: the block keeps conv -> norm_2d_add).
-// Synchronous (runs while weights are bound, before any model context exists).
+// Synchronous (runs while weights are bound, before any model context exists): the policy is
+// the environment's unless the caller passes one (tests); folded or not, the block is exact.
 template <class T>
 bool fold_batch_norm(const Tensor<T, Cuda>& weight, const Tensor<float, Cuda>& gamma, const Tensor<float, Cuda>& beta,
                      const Tensor<float, Cuda>& mean, const Tensor<float, Cuda>& var, float eps,
-                     Tensor<T, Cuda>& folded_weight, Tensor<T, Cuda>& folded_bias) {
-  if (!cuda::conv_fusion()) return false;
+                     Tensor<T, Cuda>& folded_weight, Tensor<T, Cuda>& folded_bias,
+                     const cuda::KernelPolicy& policy = cuda::KernelPolicy::from_environment()) {
+  if (!policy.conv_fusion) return false;
   EPONA_CHECK(weight.dim() >= 1 && weight.numel() > 0, "fold_batch_norm: empty conv weight");
   const std::int64_t O = weight.size(0);
   for (const auto* t : {&gamma, &beta, &mean, &var})

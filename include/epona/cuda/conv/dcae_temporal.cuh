@@ -12,7 +12,6 @@
 #include <vector>
 
 #include "epona/cuda/runtime/context.hpp"
-#include "epona/cuda/conv/dcae_fusion.hpp"
 #include "epona/cuda/runtime/device.cuh"
 #include "epona/cuda/runtime/scratch.hpp"
 
@@ -241,7 +240,7 @@ __global__ void __launch_bounds__(kThreads) block_kernel(float* __restrict__ x, 
 template <class Steps>
 bool fused_transformer_blocks(Context& ctx, float* x, std::int64_t rows, const Steps& steps) {
   using namespace temporal_detail;
-  if (!dcae_fusion() || steps.empty() || rows <= 0) return false;
+  if (!ctx.policy().dcae_fusion || steps.empty() || rows <= 0) return false;
   using Block = std::remove_cv_t<std::remove_pointer_t<decltype(steps.front().block)>>;
   using T = std::remove_cv_t<std::remove_reference_t<decltype(*steps.front().block->wq.data())>>;
   static_assert(is_device_float<T>, "fused_transformer_blocks takes float or bf16 weights");

@@ -17,12 +17,6 @@ namespace epona::cuda {
 
 namespace detail {
 
-// EPONA_CUDA_PAIR_GEMM=0 keeps the double blocks' one product per stream (side-by-side runs);
-// set_pair_gemm switches it at run time (tests compare both in one process).
-inline bool& pair_gemm_flag() {
-  static bool on = env_flag("EPONA_CUDA_PAIR_GEMM", true);
-  return on;
-}
 
 // p advanced by `elems` elements, computed on the address: batch items may lie in different
 // allocations (two layers' weights), where pointer arithmetic would not be defined.
@@ -70,9 +64,9 @@ inline bool no_positive_stride(const GemmBatch& b) { return b.x <= 0 && b.w <= 0
 
 }  // namespace detail
 
-inline void set_pair_gemm(bool on) { detail::pair_gemm_flag() = on; }
-// Whether linear_pair is the double blocks' path (ADL hook of nn::Linear::pair_available).
-inline bool pair_gemm_enabled(const Context&) { return detail::pair_gemm_flag(); }
+// Whether linear_pair is the double blocks' path (ADL hook of nn::Linear::pair_available):
+// ctx.policy().pair_gemm (EPONA_CUDA_PAIR_GEMM=0: one product per stream, side-by-side runs).
+inline bool pair_gemm_enabled(const Context& ctx) { return ctx.policy().pair_gemm; }
 
 // y_b[M, N] = act(x_b[M, K] · w_bᵀ + bias_b) for b < batch.count, with x_b = x + b·batch.x and
 // likewise for w, bias (null: none) and y; rows ldx / ldy apart within an item. The items'

@@ -58,25 +58,12 @@ void set_desc(cublasLtMatmulDesc_t d, cublasLtMatmulDescAttributes_t attr, const
 // pay inside their sampler graphs (same run, bf16: TrajDiT-100 13.41 -> 13.29 ms, VisDiT-100
 // 280.1 -> 283.6 ms). Which candidate wins can differ between processes; every candidate sums
 // in float32 and rounds once, so the outputs agree to the rounding of the output type.
-enum class GemmTuning { Off, Large, All };
+// The choice is ctx.policy().gemm_tuning (KernelPolicy, runtime/kernel_policy.hpp).
 inline constexpr std::int64_t kTuneRowsMin = 4096;
-inline GemmTuning& gemm_tuning_setting() {
-  static GemmTuning t = [] {
-    const char* v = std::getenv("EPONA_CUDA_GEMM_TUNE");
-    if (!v || !*v) return GemmTuning::Large;
-    return env_flag("EPONA_CUDA_GEMM_TUNE", false) ? GemmTuning::All : GemmTuning::Off;
-  }();
-  return t;
-}
 // Whether a new plan of a product of `rows` rows is timed.
-inline bool gemm_tuning(std::int64_t rows) {
-  const GemmTuning t = gemm_tuning_setting();
+inline bool gemm_tuning(const Context& ctx, std::int64_t rows) {
+  const GemmTuning t = ctx.policy().gemm_tuning;
   return t == GemmTuning::All || (t == GemmTuning::Large && rows >= kTuneRowsMin);
-}
-// EPONA_CUDA_SMALL_GEMM=0 sends every product to cuBLASLt (side-by-side runs).
-inline bool small_linear_enabled() {
-  static const bool on = env_flag("EPONA_CUDA_SMALL_GEMM", true);
-  return on;
 }
 constexpr int kTuneCandidates = 8, kTuneRuns = 10;
 // Untuned plans (tuning off, or made during a capture where nothing can be timed) are kept
@@ -233,7 +220,7 @@ struct BiasActivationEach {
 template <class T, class Op>
 void bias_activation(Context& ctx, T* y, std::int64_t ldy, std::int64_t rows, std::int64_t n, const T* bias, Op op) {
   const bool packed = packable(y, n, ldy) && packable(bias, n, 0);
-  for_each(ctx.stream(), rows, n, packed, BiasActivationEach<T, Op>{y, ldy, bias, op});
+  for_each(ctx, rows, n, packed, BiasActivationEach<T, Op>{y, ldy, bias, op});
 }
 
 // The activation pass after cuBLASLt: contiguous bf16 with no bias left goes through the
@@ -260,7 +247,7 @@ template <class T, class TY = T>
 LtPlan& plan_for(Context& ctx, const LtPlanKey& key, cublasLtEpilogue_t wanted, const GemmBatch& batch, const T* x,
                  const T* w, const T* bias, TY* y, bool accumulates = false) {
   auto& plans = ctx.gemm_plans();
-  const bool tuning = gemm_tuning(key[1]) && (!accumulates || batch.count == 1);
+  const bool tuning = gemm_tuning(ctx, key[1]) && (!accumulates || batch.count == 1);
   if (auto it = plans.find(key); tuning && it != plans.end()) return *it->second;
   if (!tuning || capturing(ctx.stream())) {
     auto untuned = key;
@@ -329,25 +316,13 @@ template <class T, class TY = T> constexpr std::int64_t dtype_tag() {
   return std::is_same_v<T, float> ? 0 : std::is_same_v<TY, float> ? 2 : 1;
 }
 
-// EPONA_CUDA_RESIDUAL_GEMM=0 keeps pre-LN blocks' residual adds in the norm pass after a
-// product that writes its own output (side-by-side runs); on by default.
-inline bool& residual_gemm_flag() {
-  static bool on = env_flag("EPONA_CUDA_RESIDUAL_GEMM", true);
-  return on;
-}
-
 }  // namespace detail
 
-using detail::GemmTuning;
-// Which new plans time cuBLASLt's candidates (see detail::gemm_tuning_setting); plans made
-// before keep their algorithm.
-inline void set_gemm_tuning(GemmTuning t) { detail::gemm_tuning_setting() = t; }
-inline GemmTuning gemm_tuning() { return detail::gemm_tuning_setting(); }
-
 // Whether models add residual branches inside the product (linear_accumulate) rather than in
-// the norm pass after it; set_residual_gemm switches it at run time (benchmarks compare both).
-inline bool residual_gemm_enabled(const Context&) { return detail::residual_gemm_flag(); }
-inline void set_residual_gemm(bool on) { detail::residual_gemm_flag() = on; }
+// the norm pass after it: ctx.policy().residual_gemm (EPONA_CUDA_RESIDUAL_GEMM=0: in the norm
+// pass after a product that writes its own output, for side-by-side runs). Plans made before a
+// change of ctx.policy().gemm_tuning keep their algorithm.
+inline bool residual_gemm_enabled(const Context& ctx) { return ctx.policy().residual_gemm; }
 
 // Pointer form with row strides (x rows ldx apart, y rows ldy apart, so y can be a column
 // block of a wider buffer): y[M, N] = act(x[M, K] · w[N, K]ᵀ + bias[N]); bias may be null.
@@ -360,12 +335,13 @@ void linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const T* bia
   if (M == 0) return;
   // Shapes cuBLASLt's tiles fit badly (a few outputs per row, a tiny K): our own kernels, which
   // say which epilogues they take (small_linear.cuh).
-  if (detail::small_linear_enabled() && detail::small_linear(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi)) return;
+  // ctx.policy().small_gemm off (EPONA_CUDA_SMALL_GEMM=0) sends every product to cuBLASLt.
+  if (ctx.policy().small_gemm && detail::small_linear(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi)) return;
   if constexpr (std::is_same_v<T, bf16>) {
-    if (epi == Epilogue::GeluErf && detail::own_gemm_wins(M, K) &&  // the erf GELU fused (cuBLASLt lacks it)
+    if (epi == Epilogue::GeluErf && detail::own_gemm_wins(ctx, M, K) &&  // the erf GELU fused (cuBLASLt lacks it)
         detail::own_gemm(ctx, x, ldx, w, bias, y, ldy, M, N, K, detail::GeluErfOp{}))
       return;
-    if (detail::few_rows_wins(M, K) &&  // a programmatic launch in the DiTs' condition chains
+    if (detail::few_rows_wins(ctx, M, K) &&  // a programmatic launch in the DiTs' condition chains
         detail::few_rows_gemm(ctx, x, ldx, w, bias, y, ldy, M, N, K, epi))
       return;
   }

@@ -275,14 +275,10 @@ inline Choice choose(std::int64_t M, std::int64_t N, std::int64_t K, int multipr
 
 // EPONA_CUDA_FEW_ROWS_GEMM=1 routes linear's bf16 products of 64-2048 rows (no activation or
 // the tanh GELU) to few_rows_gemm; off by default (measured slower than cuBLASLt, see the top).
-inline std::atomic<bool>& few_rows_flag() {
-  static std::atomic<bool> on{env_flag("EPONA_CUDA_FEW_ROWS_GEMM", false)};
-  return on;
-}
 
 // Where linear tries it (few_rows_gemm itself declines the epilogues it lacks).
-inline bool few_rows_wins(std::int64_t M, std::int64_t K) {
-  return few_rows_flag() && M >= 64 && M <= 2048 && K >= fr::kDepth;
+inline bool few_rows_wins(const Context& ctx, std::int64_t M, std::int64_t K) {
+  return ctx.policy().few_rows_gemm && M >= 64 && M <= 2048 && K >= fr::kDepth;
 }
 
 // y = act(x · wᵀ + bias) by the kernel above, as a programmatic launch. early_weights: w's
@@ -311,7 +307,7 @@ inline bool few_rows_gemm(Context& ctx, const bf16* x, std::int64_t ldx, const b
     const auto launch = [&](auto op) {
       allow_dynamic_smem<fr::few_rows_kernel<S, decltype(op)>>(S::smem_bytes);
       launch_in_clusters(fr::few_rows_kernel<S, decltype(op)>, dim3(static_cast<unsigned>(ctas)), S::splits, S::threads,
-                         S::smem_bytes, ctx.stream(), x_map, w_map, g, op);
+                         S::smem_bytes, ctx, x_map, w_map, g, op);
     };
     if (epi == Epilogue::GeluTanh) launch(GeluTanhOp{});
     else launch(Identity{});

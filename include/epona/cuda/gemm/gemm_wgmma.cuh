@@ -231,15 +231,11 @@ inline bool matrix_tensor_map(CUtensorMap& map, const bf16* base, std::int64_t r
 // H200 it does the MST's c_fc in 261-270 µs against 270 for cuBLASLt + the pass, and the MST as
 // a whole measured the same either way (22.17 / 22.15 ms against 22.17 / 22.14); without an
 // activation it runs at 670 TFLOP/s where cuBLASLt reaches 720-770.
-inline std::atomic<bool>& own_gemm_flag() {
-  static std::atomic<bool> on{env_flag("EPONA_CUDA_OWN_GEMM", false)};
-  return on;
-}
 
 // Where the kernel replaces cuBLASLt (+ a pass): products of at least a tile of rows and a
 // stage of depth (smaller ones keep their measured paths), with the switch on.
-inline bool own_gemm_wins(std::int64_t M, std::int64_t K) {
-  return own_gemm_flag() && M >= hg::kRows && K >= hg::kDepth;
+inline bool own_gemm_wins(const Context& ctx, std::int64_t M, std::int64_t K) {
+  return ctx.policy().own_gemm && M >= hg::kRows && K >= hg::kDepth;
 }
 
 // Whether the kernel can take this product: bf16 rows whose strides and starts TMA and the

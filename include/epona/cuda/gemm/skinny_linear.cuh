@@ -34,12 +34,7 @@ constexpr int kSkinnyWarps = 8, kSkinnyThreads = 32 * kSkinnyWarps;
 template <class T> constexpr int kSkinnyUnroll = std::is_same_v<T, float> ? 2 : 1;
 constexpr int kSkinnyMaxSplit = 8;               // CTAs per cluster (the portable limit)
 
-// EPONA_CUDA_SKINNY=0 sends these products back to cuBLASLt; set_skinny_linear switches it at
-// run time (benchmarks compare both in one process).
-inline bool& skinny_linear_flag() {
-  static bool on = env_flag("EPONA_CUDA_SKINNY", true);
-  return on;
-}
+// KernelPolicy::skinny_linear off (EPONA_CUDA_SKINNY=0) sends these products back to cuBLASLt.
 
 // The operands of one product y = act(x · wᵀ + bias) (the small kernels' argument).
 template <class T>
@@ -265,7 +260,7 @@ void launch_skinny(Context& ctx, const LinearArgs<T>& a, int split, std::int64_t
   constexpr int smem = skinny_smem_bytes<T, Unroll>();
   allow_dynamic_smem<skinny_linear_kernel<T, Gelu, Unroll>>(smem);
   launch_in_clusters(skinny_linear_kernel<T, Gelu, Unroll>, dim3(static_cast<unsigned>(split), static_cast<unsigned>(bands)),
-                     static_cast<unsigned>(split), kSkinnyThreads, smem, ctx.stream(), a, split);
+                     static_cast<unsigned>(split), kSkinnyThreads, smem, ctx, a, split);
 }
 
 // Runs the product when it is skinny (M <= 16), K a multiple of 8 with 16-byte aligned rows,
@@ -289,7 +284,5 @@ bool skinny_linear(Context& ctx, const LinearArgs<T>& a, Epilogue epi) {
 
 }  // namespace detail
 
-// Turns the skinny-M kernel on or off at run time (see detail::skinny_linear_flag).
-inline void set_skinny_linear(bool on) { detail::skinny_linear_flag() = on; }
 
 }  // namespace epona::cuda

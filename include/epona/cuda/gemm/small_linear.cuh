@@ -70,13 +70,13 @@ bool few_outputs_linear(Context& ctx, const LinearArgs<T>& a) {
   constexpr int threads = 256;
   if (a.K <= kSmallKMax && items <= kTinyKItems) {
     launch_after(small_linear_thread_kernel<T>, static_cast<unsigned>((items + threads - 1) / threads), threads, 0,
-                 ctx.stream(), a);
+                 ctx, a);
   } else if (a.N <= kFewOutputsMax && items <= kFewOutputsItems) {
     const unsigned blocks = static_cast<unsigned>((items + threads / 32 - 1) / (threads / 32));
     if (packable(a.x, a.K, a.ldx) && packable(a.w, a.K, a.K))
-      launch_after(small_linear_warp_kernel<T, true>, blocks, threads, 0, ctx.stream(), a);
+      launch_after(small_linear_warp_kernel<T, true>, blocks, threads, 0, ctx, a);
     else
-      launch_after(small_linear_warp_kernel<T, false>, blocks, threads, 0, ctx.stream(), a);
+      launch_after(small_linear_warp_kernel<T, false>, blocks, threads, 0, ctx, a);
   } else {
     return false;
   }
@@ -93,7 +93,7 @@ bool small_linear(Context& ctx, const T* x, std::int64_t ldx, const T* w, const 
   if (M > 0x7fffffff || N > 0x7fffffff || K > 0x7fffffff) return false;
   const LinearArgs<T> a{x, ldx, w, bias, y, ldy, static_cast<int>(M), static_cast<int>(N), static_cast<int>(K)};
   if (epi == Epilogue::None && few_outputs_linear(ctx, a)) return true;
-  return skinny_linear_flag() && skinny_wins(M, K) && skinny_linear(ctx, a, epi);
+  return ctx.policy().skinny_linear && skinny_wins(M, K) && skinny_linear(ctx, a, epi);
 }
 
 }  // namespace detail

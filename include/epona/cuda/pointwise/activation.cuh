@@ -81,7 +81,7 @@ __device__ __forceinline__ unsigned look_up_pair(const std::uint16_t* lut, unsig
 // stores the current ones (loading after the stores took 55 µs for the MST's 5150 x 8192 on
 // the H200, this 50-52; a copy of the same bytes takes 46.5). x and y may be the same buffer:
 // a pack is read before it is written, by the same thread. reverse: pack i is pack
-// packs - 1 - i (reversed_passes_flag).
+// packs - 1 - i (KernelPolicy::reversed_passes).
 __global__ void __launch_bounds__(kTableThreads, 1)
     table_map_kernel(const uint4* __restrict__ table, const uint4* x, uint4* y, std::int64_t packs, bool reverse) {
   extern __shared__ uint4 lut_packs[];
@@ -133,20 +133,15 @@ template <class TX, class TY, class Op>
 void map(Context& ctx, const TX* x, TY* y, std::int64_t n, Op op) {
   static_assert(is_device_float<TX> && is_device_float<TY>, "activations take float or bf16");
   EPONA_CHECK(n >= 0, "activation: negative element count ", n);
-  for_each(ctx.stream(), 1, n, packable(x, n, n) && packable(y, n, n), MapEach<TX, TY, Op>{x, y, op});
+  for_each(ctx, 1, n, packable(x, n, n) && packable(y, n, n), MapEach<TX, TY, Op>{x, y, op});
 }
 
 // map() for bf16 -> bf16, through op's table where that pays (large, packable, a
-// table available); bit-identical to map() either way.
-// EPONA_CUDA_TABLES=0 turns the tables off (to time the direct path in the same binary).
-inline bool tables_enabled() {
-  static const bool on = env_flag("EPONA_CUDA_TABLES", true);
-  return on;
-}
-
+// table available); bit-identical to map() either way. ctx.policy().activation_tables off
+// (EPONA_CUDA_TABLES=0) turns the tables off (to time the direct path in the same binary).
 template <class Op>
 void map_bf16(Context& ctx, const bf16* x, bf16* y, std::int64_t n, Op op) {
-  const bool large = tables_enabled() && n >= kTableMinElements && packable(x, n, n) && packable(y, n, n);
+  const bool large = ctx.policy().activation_tables && n >= kTableMinElements && packable(x, n, n) && packable(y, n, n);
   const std::uint16_t* table = large ? bf16_table(ctx, op) : nullptr;
   if (!table) return map(ctx, x, y, n, op);
   allow_dynamic_smem<table_map_kernel>(kTableBytes);
@@ -154,7 +149,7 @@ void map_bf16(Context& ctx, const bf16* x, bf16* y, std::int64_t n, Op op) {
   const auto blocks = std::min<std::int64_t>(ctx.info().multiprocessors, (packs + kTableThreads - 1) / kTableThreads);
   table_map_kernel<<<static_cast<unsigned>(blocks), kTableThreads, kTableBytes, ctx.stream()>>>(
       reinterpret_cast<const uint4*>(table), reinterpret_cast<const uint4*>(x), reinterpret_cast<uint4*>(y), packs,
-      reversed_passes_flag());
+      ctx.policy().reversed_passes);
   EPONA_CUDA_CHECK_LAUNCH();
 }
 

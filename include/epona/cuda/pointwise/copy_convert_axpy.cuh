@@ -87,7 +87,7 @@ void axpy(Context& ctx, float* x, const V* v, float a, std::int64_t n) {
   static_assert(is_device_float<V>, "axpy takes a float or bf16 velocity");
   EPONA_CHECK(n >= 0 && x != nullptr && v != nullptr, "axpy: bad arguments (n ", n, ")");
   const bool packed = detail::packable(x, n, n) && detail::packable(v, n, n);
-  detail::for_each(ctx.stream(), 1, n, packed, detail::EulerEach<V>{x, v, a});
+  detail::for_each(ctx, 1, n, packed, detail::EulerEach<V>{x, v, a});
 }
 
 // axpy, then xc[i] = x[i] rounded to C (nearest even): the Euler step fused with the conversion
@@ -97,7 +97,7 @@ void axpy_convert(Context& ctx, float* x, const V* v, float a, C* xc, std::int64
   static_assert(is_device_float<V> && is_device_float<C>, "axpy_convert takes float or bf16");
   EPONA_CHECK(n >= 0 && x != nullptr && v != nullptr && xc != nullptr, "axpy_convert: bad arguments (n ", n, ")");
   const bool packed = detail::packable(x, n, n) && detail::packable(v, n, n) && detail::packable(xc, n, n);
-  detail::for_each(ctx.stream(), 1, n, packed, detail::EulerEach<V, C>{x, v, a, xc});
+  detail::for_each(ctx, 1, n, packed, detail::EulerEach<V, C>{x, v, a, xc});
 }
 
 }  // namespace epona::cuda

@@ -44,7 +44,7 @@ void add_rows(Context& ctx, TX* x, const TY* y, const TG* gate, std::int64_t row
   static_assert(is_device_float<TX> && is_device_float<TY> && is_device_float<TG>, "residual ops take float or bf16");
   EPONA_CHECK(rows >= 0 && n >= 0, what, ": negative extent (rows ", rows, ", width ", n, ")");
   const bool packed = packable(x, n, n) && packable(y, n, n) && packable(gate, n, 0);
-  for_each(ctx.stream(), rows, n, packed, AddEach<TX, TY, TG>{x, y, gate, n});
+  for_each(ctx, rows, n, packed, AddEach<TX, TY, TG>{x, y, gate, n});
 }
 
 }  // namespace detail

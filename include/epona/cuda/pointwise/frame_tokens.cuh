@@ -90,12 +90,12 @@ bool try_assemble_frame_tokens(Context& ctx, const TI* image, const float* actio
       !packable(weight, n, 0) || !packable(bias, n, 0) || !packable(out, n, n))
     return false;
   const detail::FrameTokenArgs<TI> args{{image, nullptr, nullptr, nullptr, out, weight, bias, rows, n, t.eps,
-                                         detail::reversed_passes_flag()},
+                                         ctx.policy().reversed_passes},
                                         actions, time_emb, t};
   const auto blocks = static_cast<unsigned>((items + detail::kNormWarps - 1) / detail::kNormWarps);
   detail::with_warp_row_packs(n, [&](auto packs) {
     detail::launch_after(detail::frame_tokens_kernel<TI, decltype(packs)::value>, blocks, 32 * detail::kNormWarps, 0,
-                         ctx.stream(), args);
+                         ctx, args);
   });
   EPONA_CUDA_CHECK_LAUNCH();
   return true;

@@ -189,8 +189,8 @@ void with_warp_row_packs(std::int64_t n, F&& f) {
 template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, class TO, class TP>
 void launch_row_norm_warp(Context& ctx, RowNormArgs<TX, TY, TG, TO, TP> a) {
   const auto blocks = static_cast<unsigned>((a.rows + kNormWarps - 1) / kNormWarps);
-  a.reverse = reversed_passes_flag();
-  launch_after(row_norm_warp_kernel<TX, TY, TG, TO, TP, P, Modulate, Residual>, blocks, 32 * kNormWarps, 0, ctx.stream(),
+  a.reverse = ctx.policy().reversed_passes;
+  launch_after(row_norm_warp_kernel<TX, TY, TG, TO, TP, P, Modulate, Residual>, blocks, 32 * kNormWarps, 0, ctx,
                a);
 }
 
@@ -209,7 +209,7 @@ bool try_row_norm_packed(Context& ctx, const RowNormArgs<TX, TY, TG, TO, TP>& a)
   } else if (packs <= 256 * kRowPacks) {
     const int threads = static_cast<int>(std::min<std::int64_t>(256, (packs + 31) / 32 * 32));
     launch_after(row_norm_block_kernel<TX, TY, TG, TO, TP, Modulate, Residual>, static_cast<unsigned>(a.rows), threads,
-                 0, ctx.stream(), a);
+                 0, ctx, a);
   } else {
     return false;
   }
@@ -247,7 +247,7 @@ void launch_layer_norm(Context& ctx, const TX* x, TY* y, std::int64_t rows, std:
   if (rows == 0) return;
   const RowNormArgs<TX, TX, TX, TY, TP> args{x, nullptr, nullptr, nullptr, y, mul, add, rows, n, eps};
   if (try_row_norm_packed<Modulate, false>(ctx, args)) return;
-  launch_after(layer_norm_kernel<TX, TY, TP, Modulate>, static_cast<unsigned>(rows), norm_threads(n), 0, ctx.stream(), x,
+  launch_after(layer_norm_kernel<TX, TY, TP, Modulate>, static_cast<unsigned>(rows), norm_threads(n), 0, ctx, x,
                y, n, mul, add, eps);
 }
 
@@ -338,7 +338,7 @@ void rms_norm_heads(Context& ctx, T* x, std::int64_t rows, std::int64_t row_stri
   constexpr int threads = 256, warps = threads / 32;
   const std::int64_t blocks = (rows * heads + warps - 1) / warps;
   EPONA_CHECK(blocks <= 0x7fffffff, "rms_norm_heads: ", rows * heads, " heads exceed one launch");
-  detail::launch_after(detail::rms_norm_heads_kernel<T, TP>, static_cast<unsigned>(blocks), threads, 0, ctx.stream(), x, rows,
+  detail::launch_after(detail::rms_norm_heads_kernel<T, TP>, static_cast<unsigned>(blocks), threads, 0, ctx, x, rows,
                        row_stride, static_cast<int>(heads), static_cast<int>(head_dim), scale, eps);
 }
 

@@ -10,7 +10,6 @@
 
 #include "epona/core/shapes.hpp"
 #include "epona/cuda/runtime/context.hpp"
-#include "epona/cuda/conv/dcae_fusion.hpp"
 #include "epona/cuda/runtime/device.cuh"
 
 namespace epona::cuda {
@@ -234,7 +233,7 @@ template <class T>
 bool pixel_shuffle_add_duplicate_fused(Context& ctx, const T* main, const T* x, T* out, const ShuffleShape& s,
                                  std::int64_t channels_out, std::int64_t x_channels) {
   static_assert(is_device_float<T>, "pixel_shuffle_add_duplicate_fused takes float or bf16");
-  if (!dcae_fusion() || s.factor != 2 || channels_out % detail::kPack != 0 || x_channels <= 0 ||
+  if (!ctx.policy().dcae_fusion || s.factor != 2 || channels_out % detail::kPack != 0 || x_channels <= 0 ||
       s.channels != 4 * channels_out || (4 * channels_out) % x_channels != 0 || x_channels % detail::kPack != 0)
     return false;
   const std::int64_t rep = 4 * channels_out / x_channels;
@@ -263,7 +262,7 @@ bool pixel_shuffle_to_nchw_fused(Context& ctx, const T* x, float* out, std::int6
                                  std::int64_t W, std::int64_t r) {
   static_assert(is_device_float<T>, "pixel_shuffle_to_nchw_fused takes float or bf16");
   EPONA_CHECK(N >= 0 && C > 0 && H > 0 && W > 0 && r >= 1, "pixel_shuffle_to_nchw: bad extents");
-  if (!dcae_fusion() || std::max({C * r * r, H * r, W * r}) >= (std::int64_t{1} << 31)) return false;
+  if (!ctx.policy().dcae_fusion || std::max({C * r * r, H * r, W * r}) >= (std::int64_t{1} << 31)) return false;
   const std::int64_t total = N * C * H * r * W * r;
   if (total == 0) return true;
   const auto u32 = [](std::int64_t v) { return static_cast<std::uint32_t>(v); };

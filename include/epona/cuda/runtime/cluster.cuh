@@ -70,18 +70,18 @@ inline bool clusters_available(const Context& ctx) {
 // with wait_for_producer).
 template <class... Params, class... Args>
 void launch_in_clusters(void (*kernel)(Params...), dim3 grid, unsigned cluster_x, int threads, int smem,
-                        cudaStream_t stream, Args... args) {
+                        const Context& ctx, Args... args) {
   cudaLaunchConfig_t cfg{};
   cfg.gridDim = grid;
   cfg.blockDim = dim3(static_cast<unsigned>(threads));
   cfg.dynamicSmemBytes = static_cast<std::size_t>(smem);
-  cfg.stream = stream;
+  cfg.stream = ctx.stream();
   cudaLaunchAttribute cluster{};
   cluster.id = cudaLaunchAttributeClusterDimension;
   cluster.val.clusterDim.x = cluster_x, cluster.val.clusterDim.y = 1, cluster.val.clusterDim.z = 1;
   cfg.attrs = &cluster;
   cfg.numAttrs = 1;
-  launch_programmatic(cfg, kernel, args...);
+  launch_programmatic(cfg, ctx.policy().programmatic_launch, kernel, args...);
 }
 
 }  // namespace epona::cuda::detail

@@ -1,6 +1,7 @@
 // epona/cuda/runtime/context.hpp — the CUDA backend's execution context: one device, one stream that
 // every kernel and copy of the context is ordered on, the cuBLASLt handle with its workspace
-// and cached matmul plans, and the device's properties. has_gpu() lets tests skip cleanly.
+// and cached matmul plans, the device's properties and the kernel policy its kernels read
+// (kernel_policy.hpp). has_gpu() lets tests skip cleanly.
 #pragma once
 
 #include <cublasLt.h>
@@ -16,6 +17,7 @@
 #include "epona/core/error.hpp"
 #include "epona/cuda/runtime/check.hpp"
 #include "epona/cuda/runtime/host_staging.hpp"
+#include "epona/cuda/runtime/kernel_policy.hpp"
 
 namespace epona::cuda {
 
@@ -119,6 +121,9 @@ class Context {
   void* workspace() const { return workspace_.get(); }
   std::size_t workspace_bytes() const { return workspace_bytes_; }
   const DeviceInfo& info() const { return info_; }
+  // The tuning choices the kernels on this context take (the environment's at construction).
+  KernelPolicy& policy() { return policy_; }
+  const KernelPolicy& policy() const { return policy_; }
 
   // Waits for everything queued on the context's stream; surfaces asynchronous kernel faults.
   void synchronize() const { EPONA_CUDA_CHECK(cudaStreamSynchronize(stream())); }
@@ -163,6 +168,7 @@ class Context {
   };
 
   DeviceInfo info_;
+  KernelPolicy policy_ = KernelPolicy::from_environment();
   std::unique_ptr<CUstream_st, StreamDeleter> stream_;
   std::unique_ptr<HostStaging> staging_;  // after the stream: its transfers end before the stream goes
   std::unique_ptr<cublasLtContext, LtDeleter> lt_;

@@ -11,9 +11,9 @@
 #include <type_traits>
 
 #include "epona/core/dtype.hpp"
-#include "epona/core/env.hpp"
 #include "epona/core/error.hpp"
 #include "epona/cuda/runtime/check.hpp"
+#include "epona/cuda/runtime/context.hpp"
 
 namespace epona::cuda {
 
@@ -151,29 +151,21 @@ inline unsigned grid_for(std::int64_t n, int threads) {
 // calls wait_for_producer() before touching global memory: that waits until the earlier kernel
 // has finished and its writes are visible, then lets the next kernel in the stream be scheduled
 // (its blocks wait in their own wait_for_producer until this grid has finished). Without a
-// programmatic dependency both instructions return at once. EPONA_CUDA_PDL=0 (or
-// set_programmatic_launch(false)) launches plainly.
+// programmatic dependency both instructions return at once. The context's
+// policy().programmatic_launch off (EPONA_CUDA_PDL=0) launches plainly.
 __device__ __forceinline__ void wait_for_producer() {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
   asm volatile("griddepcontrol.wait;\n" ::: "memory");
   asm volatile("griddepcontrol.launch_dependents;\n" ::: "memory");
 #endif
 }
-inline bool& programmatic_launch_flag() {
-  static bool on = env_flag("EPONA_CUDA_PDL", true);
-  return on;
-}
-// Whether the large row passes (the MST's warp-per-row LayerNorms and QK LayerNorm + RoPE, the
-// bf16 table pass) walk their rows last to first (EPONA_CUDA_REVERSE_PASSES=0: first to last).
-// The product before a pass writes its last rows last, so those are still in L2 when the pass
-// starts, and the pass's first rows, written last, are in L2 for the next product. Measured on
-// the H200 (MST, medians, docs/gpu-log.md "Session 16"): 0.16–0.3 ms faster, up to 1.1 ms once
-// the board has been at its power limit for a while; the DC-AE decode unchanged.
-inline bool& reversed_passes_flag() {
-  static bool on = env_flag("EPONA_CUDA_REVERSE_PASSES", true);
-  return on;
-}
-// Index i of n items in the pass order.
+// Index i of n items in the pass order. The large row passes (the MST's warp-per-row LayerNorms
+// and QK LayerNorm + RoPE, the bf16 table pass) walk their rows last to first where
+// ctx.policy().reversed_passes (EPONA_CUDA_REVERSE_PASSES=0: first to last). The product before
+// a pass writes its last rows last, so those are still in L2 when the pass starts, and the
+// pass's first rows, written last, are in L2 for the next product. Measured on the H200 (MST,
+// medians, docs/gpu-log.md "Session 16"): 0.16–0.3 ms faster, up to 1.1 ms once the board has
+// been at its power limit for a while; the DC-AE decode unchanged.
 __device__ __forceinline__ std::int64_t pass_index(std::int64_t i, std::int64_t n, bool reverse) {
   return reverse ? n - 1 - i : i;
 }
@@ -185,30 +177,31 @@ inline bool programmatic_launch_available() {
   return major >= 9;
 }
 // Launches kernel with cfg, its own attributes (at most one, e.g. a cluster shape) plus the
-// programmatic-serialisation one where on; the kernel must begin with wait_for_producer().
-// launch_after and launch_in_clusters (cluster.cuh) both launch through it.
+// programmatic-serialisation one where `programmatic` (the context's policy); the kernel must
+// begin with wait_for_producer(). launch_after and launch_in_clusters (cluster.cuh) both launch
+// through it.
 template <class... Params, class... Args>
-void launch_programmatic(cudaLaunchConfig_t cfg, void (*kernel)(Params...), const Args&... args) {
+void launch_programmatic(cudaLaunchConfig_t cfg, bool programmatic, void (*kernel)(Params...), const Args&... args) {
   static const bool available = programmatic_launch_available();
   cudaLaunchAttribute attrs[2]{};
   if (cfg.numAttrs == 1) attrs[0] = cfg.attrs[0];
   attrs[cfg.numAttrs].id = cudaLaunchAttributeProgrammaticStreamSerialization;
   attrs[cfg.numAttrs].val.programmaticStreamSerializationAllowed = 1;
   cfg.attrs = attrs;
-  cfg.numAttrs += programmatic_launch_flag() && available ? 1 : 0;
+  cfg.numAttrs += programmatic && available ? 1 : 0;
   EPONA_CUDA_CHECK(cudaLaunchKernelEx(&cfg, kernel, static_cast<Params>(args)...));
 }
-// kernel<<<grid, block, smem, stream>>>(args...) as a programmatic dependent launch where on;
-// the kernel must begin with wait_for_producer().
+// kernel<<<grid, block, smem, ctx.stream()>>>(args...) as a programmatic dependent launch where
+// ctx's policy has them on; the kernel must begin with wait_for_producer().
 template <class... Params, class... Args>
-void launch_after(void (*kernel)(Params...), dim3 grid, dim3 block, std::size_t smem, cudaStream_t stream,
+void launch_after(void (*kernel)(Params...), dim3 grid, dim3 block, std::size_t smem, const Context& ctx,
                   const Args&... args) {
   cudaLaunchConfig_t cfg{};
   cfg.gridDim = grid;
   cfg.blockDim = block;
   cfg.dynamicSmemBytes = smem;
-  cfg.stream = stream;
-  launch_programmatic(cfg, kernel, args...);
+  cfg.stream = ctx.stream();
+  launch_programmatic(cfg, ctx.policy().programmatic_launch, kernel, args...);
 }
 
 // Element-wise work over rows x n: f.pack(r, c) handles columns [c, c + 8) of row r with
@@ -236,13 +229,13 @@ __global__ void for_each_one_kernel(std::int64_t rows, std::int64_t n, F f) {
 
 // Runs f over rows x n, in packs when `packed` (n % 8 == 0 and 16-byte aligned operands).
 template <class F>
-void for_each(cudaStream_t stream, std::int64_t rows, std::int64_t n, bool packed, const F& f) {
+void for_each(const Context& ctx, std::int64_t rows, std::int64_t n, bool packed, const F& f) {
   if (rows <= 0 || n <= 0) return;
   constexpr int threads = 256;
   if (packed)
-    launch_after(for_each_pack_kernel<F>, grid_for(rows * (n / kPack), threads), threads, 0, stream, rows, n, f);
+    launch_after(for_each_pack_kernel<F>, grid_for(rows * (n / kPack), threads), threads, 0, ctx, rows, n, f);
   else
-    launch_after(for_each_one_kernel<F>, grid_for(rows * n, threads), threads, 0, stream, rows, n, f);
+    launch_after(for_each_one_kernel<F>, grid_for(rows * n, threads), threads, 0, ctx, rows, n, f);
 }
 
 // Named barrier `id` (1..15; 0 is __syncthreads) over `threads` threads of the block (a
@@ -263,11 +256,5 @@ void allow_dynamic_smem(int bytes) {
 
 }  // namespace detail
 
-// Programmatic dependent launches of the kernels that take them (detail::launch_after) on or off
-// (EPONA_CUDA_PDL=0 starts with them off); graphs recorded before keep what they recorded.
-inline void set_programmatic_launch(bool on) { detail::programmatic_launch_flag() = on; }
-// The large row passes' order, last row first or not (EPONA_CUDA_REVERSE_PASSES); graphs
-// recorded before keep what they recorded.
-inline void set_reversed_passes(bool on) { detail::reversed_passes_flag() = on; }
 
 }  // namespace epona::cuda

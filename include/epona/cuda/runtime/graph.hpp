@@ -1,8 +1,8 @@
 // epona/cuda/runtime/graph.hpp — replaying a recorded sequence of kernels as a CUDA graph. A sampler's
 // loop (100 steps of a few hundred small launches) is captured once from the context's stream
 // and then relaunched as one graph while it is fed the same buffers: the key names those
-// buffers and sizes, and a different key records the loop again. EPONA_CUDA_GRAPHS=0 turns
-// capture off (the work then runs directly on the stream, e.g. for debugging). The recorded
+// buffers and sizes, and a different key records the loop again. ctx.policy().graphs off
+// (EPONA_CUDA_GRAPHS=0) turns capture off (the work then runs directly on the stream, e.g. for debugging). The recorded
 // graph's nodes are counted (kernels per sampling step, for the benchmark).
 #pragma once
 
@@ -19,10 +19,6 @@
 
 namespace epona::cuda {
 
-inline bool graphs_enabled() {
-  static const bool on = env_flag("EPONA_CUDA_GRAPHS", true);
-  return on;
-}
 
 class GraphCache {
  public:
@@ -54,7 +50,7 @@ class GraphCache {
   // when the key is new.
   template <class Work>
   void run(Context& ctx, const std::vector<std::uint64_t>& key, Work&& work) {
-    if (!graphs_enabled()) {
+    if (!ctx.policy().graphs) {
       work();
       return;
     }

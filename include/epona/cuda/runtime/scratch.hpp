@@ -45,22 +45,17 @@ inline cudaMemPool_t pool_of(int device) {
   return pools[device];
 }
 
-inline std::atomic<bool>& poison_flag() {
-  static std::atomic<bool> on{false};
-  return on;
-}
-
 template <class T>
 void maybe_poison(Context& ctx, Tensor<T, Cuda>& t) {
-  if (poison_flag().load() && t.numel())
+  if (ctx.policy().poison_new_buffers && t.numel())
     EPONA_CUDA_CHECK(cudaMemsetAsync(t.data(), 0xFF, t.nbytes(), ctx.stream()));
 }
 
 }  // namespace scratch_detail
 
-// Tests: fill every scratch and result tensor with 0xFF bytes (NaN in float32 and bf16) when it
-// is handed out, so an element that a kernel fails to write shows as NaN, even in reused memory.
-inline void set_poison_new_buffers(bool on) { scratch_detail::poison_flag().store(on); }
+// Tests set ctx.policy().poison_new_buffers: every scratch and result tensor is filled with 0xFF
+// bytes (NaN in float32 and bf16) when it is handed out, so an element that a kernel fails to
+// write shows as NaN, even in reused memory.
 
 // A device tensor of `shape` whose memory comes from the pool in the order of ctx's stream.
 // It must not outlive ctx (its release is queued on ctx's stream). Results handed to callers

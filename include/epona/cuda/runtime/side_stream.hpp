@@ -44,6 +44,7 @@ class SideStream {
       EPONA_CUDA_CHECK(cudaEventCreateWithFlags(&fork_, cudaEventDisableTiming));
       EPONA_CUDA_CHECK(cudaEventCreateWithFlags(&join_, cudaEventDisableTiming));
     }
+    side_->policy() = main.policy();  // the side stream's kernels take the main context's choices
     return *side_;
   }
   // The side stream waits for everything queued on main so far.

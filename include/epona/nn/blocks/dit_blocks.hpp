@@ -124,7 +124,7 @@ void add_gated_then_norm(Context& ctx, A* x, const A* y, const A* gate, A* out, 
 template <class Context, class A>
 void add_gated_norm_from(Context& ctx, const A* x, A* x_out, const A* y, const A* gate, A* out, std::int64_t rows,
                          std::int64_t n, const A* shift, const A* scale, float eps) {
-  if constexpr (requires { add_gated_layer_norm_modulate(ctx, x, x_out, y, gate, out, rows, n, shift, scale, eps); }) {
+  if constexpr (AddGatedNormFromInput<Context, A>) {
     add_gated_layer_norm_modulate(ctx, x, x_out, y, gate, out, rows, n, shift, scale, eps);
   } else {
     if (x != x_out) copy(ctx, x, x_out, rows * n);
@@ -151,7 +151,7 @@ template <class B, class A, std::size_t S>
 void qk_norm_rope_rows(BackendContext<B>& ctx, A* qkv, const DitWidths& w, const RopeTable<B>& rope,
                        const std::array<QkRows<B>, S>& parts) {
   const std::int64_t D = w.hidden, hd = w.head_dim();
-  if constexpr (requires { qk_norm_rope(ctx, qkv, 3 * D, D, w.heads, hd, w.rms_eps, rope.cos.data(), rope.sin.data(), parts); }) {
+  if constexpr (JointQkNormRope<BackendContext<B>, A, QkRows<B>, S>) {
     for (const auto& p : parts)
       EPONA_CHECK(p.end <= rope.rows() && 2 * rope.pairs() == hd && p.norm->eps == parts[0].norm->eps,
                   "QK-norm RoPE: rows up to ", p.end, " of a table of ", rope.rows(), " x ", rope.pairs(),

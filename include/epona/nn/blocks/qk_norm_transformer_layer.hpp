@@ -11,6 +11,7 @@
 #include <type_traits>
 #include <vector>
 
+#include "epona/core/backend_capabilities.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/nn/attention.hpp"
 #include "epona/nn/backend_context.hpp"
@@ -115,7 +116,7 @@ struct QkNormTransformerLayer : Bindable<QkNormTransformerLayer<B, W>> {
   // written to the scratch `branch` and added by the norm's pass.
   void add_branch(Context& ctx, const Linear<B, W>& layer, const Tensor<A, B>& in, Tensor<float, B>& rows,
                   Tensor<A, B>& branch, const LayerNorm<B>* norm, Tensor<A, B>& out) const {
-    if constexpr (requires { linear_accumulate(ctx, in, layer.weight, rows); }) {
+    if constexpr (ResidualGemm<Context, A, W>) {
       if (residual_gemm_enabled(ctx)) {
         linear_accumulate(ctx, in, layer.weight, rows);
         if (norm) (*norm)(ctx, rows, out);
@@ -132,10 +133,7 @@ struct QkNormTransformerLayer : Bindable<QkNormTransformerLayer<B, W>> {
   // left as the products. False: nothing done.
   bool attend_normalized(Context& ctx, const Tensor<A, B>& q, const Tensor<A, B>& k, const Tensor<A, B>& v,
                          Tensor<A, B>& o, const PackedAttention& shape) const {
-    if constexpr (requires { attention_qk_layer_norm(ctx, q.data(), k.data(), v.data(), o.data(),
-                                                     attention_shape<B>(shape), q_norm.weight.data(),
-                                                     q_norm.bias.data(), q_norm.eps, k_norm.weight.data(),
-                                                     k_norm.bias.data(), k_norm.eps); }) {
+    if constexpr (ShortAttentionQkNorm<Context, A>) {
       return attention_qk_layer_norm(ctx, q.data(), k.data(), v.data(), o.data(), attention_shape<B>(shape),
                                      q_norm.weight.data(), q_norm.bias.data(), q_norm.eps, k_norm.weight.data(),
                                      k_norm.bias.data(), k_norm.eps);
@@ -153,7 +151,7 @@ struct QkNormTransformerLayer : Bindable<QkNormTransformerLayer<B, W>> {
     EPONA_CHECK(!rope || (q.size(0) == k.size(0) && rope->rows() >= q.size(0) && 2 * rope->pairs() == head_dim),
                 "MST RoPE: table (", rope ? rope->rows() : 0, " rows, ", rope ? rope->pairs() : 0,
                 " pairs) for q/k of ", q.size(0), "/", k.size(0), " rows and head_dim ", head_dim);
-    if constexpr (!std::is_same_v<B, Cpu>) {
+    if constexpr (QkLayerNormRope<Context, A>) {
       const float* cos = rope ? rope->cos.data() : nullptr;
       const float* sin = rope ? rope->sin.data() : nullptr;
       if (layer_norm_rope_qk(ctx, q.data(), q.size(0), k.data(), k.size(0), C, q_norm.weight.data(),
