@@ -190,6 +190,24 @@ inline Vec attention(const Vec& x, i64 n, i64 stride, i64 q_off, i64 k_off, i64 
   return attention(q, {0, stride}, k, {0, stride}, v, {0, stride}, 1, heads, n, n, d, causal);
 }
 
+// ---- the world model's fused token ops ----
+// The MST's input tokens (core/kernel_options.hpp, FrameTokens): out (frames, actions +
+// image_rows, width); frame f's slot s < actions is actions[s·entries + f] + time_emb[f], its
+// row actions + l is LN(image[f·image_rows + l])·weight + bias + time_emb[f].
+inline Vec frame_tokens(const Vec& image, const Vec& actions, const Vec& time_emb, const Vec& weight, const Vec& bias,
+                        i64 frames, i64 image_rows, i64 n_actions, i64 entries, i64 width, double eps) {
+  const Vec ln = layer_norm(image, frames * image_rows, width, eps, &weight, &bias);
+  const i64 tokens = n_actions + image_rows;
+  Vec out(static_cast<std::size_t>(frames * tokens * width));
+  for (i64 f = 0; f < frames; ++f)
+    for (i64 t = 0; t < tokens; ++t)
+      for (i64 c = 0; c < width; ++c)
+        out[(f * tokens + t) * width + c] =
+            time_emb[f * width + c] + (t < n_actions ? actions[(t * entries + f) * width + c]
+                                                     : ln[(f * image_rows + t - n_actions) * width + c]);
+  return out;
+}
+
 // ---- convolutions and shuffles (NCHW) ----
 // out[n,o,y,x] = b[o] + Σ_{i in group(o)} Σ_{dy,dx} W[o, i - first, dy, dx] · in[n, i, y+dy-k/2, x+dx-k/2].
 inline Vec conv2d(const Vec& in, i64 N, i64 C, i64 H, i64 W, const Vec& w, const Vec* bias, i64 O, i64 k, i64 groups) {
@@ -212,9 +230,10 @@ inline Vec conv2d(const Vec& in, i64 N, i64 C, i64 H, i64 W, const Vec& w, const
         }
   return out;
 }
-// Unshuffle (dcae.md §3.4): out[c·r² + i·r + j, y, x] = in[c, r·y + i, r·x + j].
-inline Vec unshuffle(const Vec& in, i64 N, i64 C, i64 H, i64 W, i64 r) {
-  Vec out(in.size());
+// Calls f(i, j) for every element of a map (N, C, H, W): i its index there, j its index in the
+// unshuffled map (N, C·r², H/r, W/r), where element [c, r·y + i', r·x + j'] goes to [c·r² + i'·r + j', y, x].
+template <class F>
+void unshuffle_pairs(i64 N, i64 C, i64 H, i64 W, i64 r, F f) {
   const i64 Ho = H / r, Wo = W / r, Co = C * r * r;
   for (i64 n = 0; n < N; ++n)
     for (i64 c = 0; c < C; ++c)
@@ -222,20 +241,18 @@ inline Vec unshuffle(const Vec& in, i64 N, i64 C, i64 H, i64 W, i64 r) {
         for (i64 j = 0; j < r; ++j)
           for (i64 y = 0; y < Ho; ++y)
             for (i64 x = 0; x < Wo; ++x)
-              out[((n * Co + c * r * r + i * r + j) * Ho + y) * Wo + x] = in[((n * C + c) * H + r * y + i) * W + r * x + j];
+              f(((n * C + c) * H + r * y + i) * W + r * x + j, ((n * Co + c * r * r + i * r + j) * Ho + y) * Wo + x);
+}
+// Unshuffle (dcae.md §3.4): out[c·r² + i·r + j, y, x] = in[c, r·y + i, r·x + j].
+inline Vec unshuffle(const Vec& in, i64 N, i64 C, i64 H, i64 W, i64 r) {
+  Vec out(in.size());
+  unshuffle_pairs(N, C, H, W, r, [&](i64 i, i64 j) { out[j] = in[i]; });
   return out;
 }
-// Shuffle (dcae.md §3.4): out[c, r·y + i, r·x + j] = in[c·r² + i·r + j, y, x]; in has C·r² channels.
+// Shuffle (dcae.md §3.4), the inverse: out[c, r·y + i, r·x + j] = in[c·r² + i·r + j, y, x]; in has C·r² channels.
 inline Vec shuffle(const Vec& in, i64 N, i64 Cin, i64 H, i64 W, i64 r) {
   Vec out(in.size());
-  const i64 C = Cin / (r * r);
-  for (i64 n = 0; n < N; ++n)
-    for (i64 c = 0; c < C; ++c)
-      for (i64 i = 0; i < r; ++i)
-        for (i64 j = 0; j < r; ++j)
-          for (i64 y = 0; y < H; ++y)
-            for (i64 x = 0; x < W; ++x)
-              out[((n * C + c) * H * r + r * y + i) * W * r + r * x + j] = in[((n * Cin + c * r * r + i * r + j) * H + y) * W + x];
+  unshuffle_pairs(N, Cin / (r * r), H * r, W * r, r, [&](i64 i, i64 j) { out[i] = in[j]; });
   return out;
 }
 // Averaging shortcut (dcae.md §3.5): mean of g consecutive unshuffled channels.

@@ -17,11 +17,13 @@
 // Ops on one backend only (the sweep runs each where `requires` finds it, and says so):
 //   CPU only:  softmax_rows, fill.
 //   CUDA only: linear_accumulate, linear_group, add_gated_layer_norm_modulate with a separate
-//              input (x, x_out), convert.
-//   CUDA only, not in the sweep yet (covered by tests/cuda/*.cu against the CPU): linear_batched,
-//   qk_norm_rope (segments), layer_norm_rope_qk, attention_qk_layer_norm,
-//   try_assemble_frame_tokens, conv2d_residual, norm_2d_add, rms_norm_rows, the fused shuffles;
-//   relu_linear_attention (both backends, tests/nn/dcae_lite_mla.cpp and tests/cuda).
+//              input (x, x_out), convert, layer_norm_rope_qk, qk_norm_rope (segments),
+//              try_assemble_frame_tokens, attention_qk_layer_norm (the last three and
+//              layer_norm_rope_qk may decline a shape, returning false: counted, not failed;
+//              the CPU composes the separate ops instead).
+//   Not in the sweep yet (covered by tests/cuda/*.cu against the CPU): linear_batched,
+//   conv2d_residual, norm_2d_add, rms_norm_rows, the fused shuffles (CUDA only);
+//   relu_linear_attention (both backends: tests/nn/dcae_lite_mla.cpp, tests/cuda/dcae_ops.cu).
 //
 // To add an op: its float64 loop in reference.hpp, its shapes in the table below, a run_<op>
 // function drawing inputs with Case::in, calling the op, returning the error, and a line in sweep().
@@ -30,6 +32,7 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -45,6 +48,7 @@
 #include "epona/core/dtype.hpp"
 #include "epona/core/kernel_options.hpp"
 #include "epona/core/shapes.hpp"
+#include "names.hpp"
 #include "reference.hpp"
 
 namespace ops_sweep {
@@ -63,6 +67,8 @@ struct AttnShape { i64 seqs, heads, lq, lk, d; epona::Mask mask; bool additive; 
 struct ConvShape { i64 N, C, H, W, O, k, groups; bool bias; ConvAct act; };
 struct Map2d { i64 N, C, HW; };
 struct ShuffleCase { i64 N, C, H, W, r, channels_out; };
+struct QkShape { i64 rows_q, rows_k, heads, head_dim; };
+struct FrameShape { i64 frames, image_rows, actions, entries, width; };
 
 inline const std::vector<i64> kLengths{1, 7, 16, 33, 257, 1000};  // elementwise ops
 inline const std::vector<RowsN> kRows{{1, 7}, {3, 64}, {5, 129}, {2, 1000}, {4, 20}};  // row ops, norms
@@ -72,6 +78,10 @@ inline const std::vector<AttnShape> kAttention{
     {1, 1, 5, 5, 8, epona::Mask::None, false},     {2, 3, 17, 17, 64, epona::Mask::Causal, false},
     {1, 2, 3, 11, 32, epona::Mask::None, false},   {1, 2, 9, 9, 128, epona::Mask::None, true},
     {1, 2, 7, 12, 24, epona::Mask::Causal, false}, {2, 1, 20, 33, 20, epona::Mask::None, true}};
+inline const std::vector<QkShape> kQkNorms{{5, 7, 2, 64}, {3, 3, 4, 32}, {16, 16, 1, 128}, {9, 4, 3, 16}};
+inline const std::vector<AttnShape> kQkNormAttention{{2, 4, 16, 16, 128, epona::Mask::None, false},
+                                                     {1, 8, 9, 9, 128, epona::Mask::None, false}};
+inline const std::vector<FrameShape> kFrames{{2, 5, 3, 2, 64}, {3, 4, 2, 4, 128}, {1, 7, 0, 0, 256}, {2, 3, 1, 2, 40}};
 inline const std::vector<ConvShape> kConvs{
     {1, 3, 5, 7, 4, 1, 1, true, ConvAct::None},  {2, 4, 6, 5, 6, 3, 1, false, ConvAct::Relu},
     {1, 8, 9, 9, 8, 3, 8, true, ConvAct::Silu},  {1, 6, 4, 7, 9, 3, 3, true, ConvAct::None},
@@ -126,6 +136,27 @@ struct Case {
     for (auto& v : f) v = stored<T>(v);
     return Device<B>::template upload<T>(ctx, f);
   }
+  // RoPE tables (rows, head_dim/2) of random angles, float32 on the backend; `angle` gets the
+  // tables' own angles (atan2 of the stored cos, sin) for the reference.
+  struct RopeTables {
+    Buf<B, float> cos, sin;
+    std::vector<Vec> angle;
+  };
+  RopeTables rope_tables(i64 rows, i64 head_dim) {
+    Vec a;
+    in<float>(rows * head_dim / 2, a, -3.f, 3.f);
+    Vec cosv(a.size()), sinv(a.size());
+    RopeTables t;
+    t.angle.resize(static_cast<std::size_t>(rows));
+    for (std::size_t i = 0; i < a.size(); ++i) {
+      cosv[i] = float(std::cos(a[i]));
+      sinv[i] = float(std::sin(a[i]));
+      t.angle[i / (head_dim / 2)].push_back(std::atan2(sinv[i], cosv[i]));
+    }
+    t.cos = put<float>(cosv);
+    t.sin = put<float>(sinv);
+    return t;
+  }
   template <class T>
   Buf<B, T> out(i64 n) {
     return Device<B>::template output<T>(ctx, n);
@@ -152,16 +183,8 @@ Vec from_layout(const Vec& v, i64 N, i64 C, i64 HW) {
   return Device<B>::channels_last ? ops_ref::transpose_last2(v, N, HW, C) : v;
 }
 
-inline const char* label(Epilogue e) {
-  switch (e) {
-    case Epilogue::None: return "none";
-    case Epilogue::GeluErf: return "gelu_erf";
-    case Epilogue::GeluTanh: return "gelu_tanh";
-    case Epilogue::Silu: return "silu";
-  }
-  return "?";
-}
-inline const char* label(ConvAct a) { return a == ConvAct::None ? "none" : a == ConvAct::Relu ? "relu" : "silu"; }
+inline const char* label(Epilogue e) { return epona::test::epilogue_name(e); }
+inline const char* label(ConvAct a) { return epona::test::conv_act_name(a); }
 inline double act_ref(Epilogue e, double v) {
   switch (e) {
     case Epilogue::None: return v;
@@ -179,7 +202,7 @@ inline double act_ref(ConvAct a, double v) {
 struct OpLog {
   std::string op;
   double bound;
-  int cases = 0;
+  int cases = 0, declined = 0;  // declined: an op that may refuse a shape (returns false) did
   double worst = 0;
   std::string worst_case;
 
@@ -190,12 +213,12 @@ struct OpLog {
     CHECK(err <= bound);
   }
   void summary(const std::string& backend, const std::string& types) const {
-    if (cases == 0) {
+    if (cases == 0 && declined == 0) {
       MESSAGE(backend, " ", types, " ", op, ": not on this backend");
       return;
     }
     MESSAGE(backend, " ", types, " ", op, ": ", cases, " cases, worst error ", worst, " at ", worst_case, " (bound ",
-            bound, ")");
+            bound, ")", declined ? ", shapes declined: " + std::to_string(declined) : std::string());
   }
 };
 
@@ -215,7 +238,7 @@ template <class B, class W, class Body>
 void run_op(Context<B>& ctx, const char* op, Tol tol, std::uint32_t seed, Body body, bool weights_round = false) {
   using A = typename epona::BackendTraits<B>::template Activation<W>;
   const bool bf16_bound = std::is_same_v<A, bf16> || (weights_round && std::is_same_v<W, bf16>);
-  OpLog log{op, bf16_bound ? tol.bf16 : tol.f32, 0, 0, {}};
+  OpLog log{op, bf16_bound ? tol.bf16 : tol.f32, 0, 0, 0, {}};
   Case<B> c{ctx, std::mt19937(seed)};
   body(c, log);
   log.summary(Device<B>::name, std::is_same_v<W, bf16> ? "bf16" : "f32");
@@ -427,29 +450,20 @@ void sweep(Context<B>& ctx) {
     run_op<B, W>(ctx, op, kPointwise, seed, [&](Case<B>& c, OpLog& log) {
       for (const auto [rows, heads, hd, pad] : kHeads) {
         const i64 stride = heads * hd + pad;
-        Vec x, scale, angle_flat;
+        Vec x, scale;
         auto dx = c.template in<A>(rows * stride, x, -2.f, 2.f);
         auto dscale = c.template in<float>(hd, scale, 0.5f, 1.5f);
-        c.template in<float>(rows * hd / 2, angle_flat, -3.f, 3.f);
-        Vec cosv(angle_flat.size()), sinv(angle_flat.size());
-        std::vector<Vec> angle(static_cast<std::size_t>(rows));
-        for (std::size_t i = 0; i < angle_flat.size(); ++i) {
-          cosv[i] = float(std::cos(angle_flat[i]));
-          sinv[i] = float(std::sin(angle_flat[i]));
-          angle[i / (hd / 2)].push_back(std::atan2(sinv[i], cosv[i]));  // the tables' own angle
-        }
-        auto dcos = c.template put<float>(cosv);
-        auto dsin = c.template put<float>(sinv);
+        const auto t = c.rope_tables(rows, hd);
         A* p = dx.data() + pad;
         if (norm && rotate)
-          rms_norm_rope_heads(ctx, p, rows, stride, heads, hd, dscale.data(), eps, dcos.data(), dsin.data());
+          rms_norm_rope_heads(ctx, p, rows, stride, heads, hd, dscale.data(), eps, t.cos.data(), t.sin.data());
         else if (norm)
           rms_norm_heads(ctx, p, rows, stride, heads, hd, dscale.data(), eps);
         else
-          apply_rope(ctx, p, rows, stride, heads, hd, dcos.data(), dsin.data());
+          apply_rope(ctx, p, rows, stride, heads, hd, t.cos.data(), t.sin.data());
         Vec ref = x;
         if (norm) ops_ref::rms_heads(ref, rows, stride, pad, heads, hd, scale, eps);
-        if (rotate) ops_ref::rope(ref, rows, stride, pad, heads, hd, angle);
+        if (rotate) ops_ref::rope(ref, rows, stride, pad, heads, hd, t.angle);
         log.record(shape("rows", rows, "heads", heads, "head_dim", hd, "pad", pad), c.error(dx, ref));
       }
     });
@@ -457,6 +471,143 @@ void sweep(Context<B>& ctx) {
   heads_op("rms_norm_heads", 16, true, false);
   heads_op("apply_rope", 17, false, true);
   heads_op("rms_norm_rope_heads", 18, true, true);
+
+  // q = LN_q(q), k = LN_k(k) (affine, over the whole row) then RoPE on both, in place; the op may
+  // decline a width (returns false): such shapes are counted, not failed.
+  run_op<B, W>(ctx, "layer_norm_rope_qk", kPointwise, 34, [&](Case<B>& c, OpLog& log) {
+    if constexpr (requires(Ctx& cx, A* p, const float* f) {
+                    layer_norm_rope_qk(cx, p, i64{}, p, i64{}, i64{}, f, f, 0.f, f, f, 0.f, i64{}, f, f);
+                  }) {
+      for (const auto [rows_q, rows_k, heads, hd] : kQkNorms) {
+        const i64 n = heads * hd;
+        Vec q, k, qw, qb, kw, kb;
+        auto dq = c.template in<A>(rows_q * n, q, -2.f, 3.f);
+        auto dk = c.template in<A>(rows_k * n, k, -2.f, 3.f);
+        auto dqw = c.template in<float>(n, qw, 0.5f, 1.5f);
+        auto dqb = c.template in<float>(n, qb);
+        auto dkw = c.template in<float>(n, kw, 0.5f, 1.5f);
+        auto dkb = c.template in<float>(n, kb);
+        const auto t = c.rope_tables(std::max(rows_q, rows_k), hd);
+        if (!layer_norm_rope_qk(ctx, dq.data(), rows_q, dk.data(), rows_k, n, dqw.data(), dqb.data(), eps, dkw.data(),
+                                dkb.data(), 1e-6f, hd, t.cos.data(), t.sin.data())) {
+          ++log.declined;
+          continue;
+        }
+        Vec rq = ops_ref::layer_norm(q, rows_q, n, eps, &qw, &qb), rk = ops_ref::layer_norm(k, rows_k, n, 1e-6, &kw, &kb);
+        ops_ref::rope(rq, rows_q, n, 0, heads, hd, t.angle);
+        ops_ref::rope(rk, rows_k, n, 0, heads, hd, t.angle);
+        log.record(shape("rows_q", rows_q, "rows_k", rows_k, "heads", heads, "head_dim", hd, "q"), c.error(dq, rq));
+        log.record(shape("rows_q", rows_q, "rows_k", rows_k, "heads", heads, "head_dim", hd, "k"), c.error(dk, rk));
+      }
+    }
+  });
+
+  // The joint QK RMSNorm + RoPE over segments of a packed qkv buffer: keys of rows [first, end),
+  // queries of rows [q_first, end), each with its segment's scales; other rows stay as they were.
+  struct Segment {
+    i64 first, q_first, end;
+    const float* q_scale;
+    const float* k_scale;
+  };
+  run_op<B, W>(ctx, "qk_norm_rope (segments)", kPointwise, 35, [&](Case<B>& c, OpLog& log) {
+    if constexpr (requires(Ctx& cx, A* p, const float* f, std::array<Segment, 2> s) {
+                    qk_norm_rope(cx, p, i64{}, i64{}, i64{}, i64{}, 0.f, f, f, s);
+                  }) {
+      for (const auto [rows_q, rows_k, heads, hd] : kQkNorms) {
+        const i64 rows = rows_q + rows_k, hw = heads * hd, stride = 3 * hw;
+        Vec x, qs0, ks0, qs1, ks1;
+        auto dx = c.template in<A>(rows * stride, x, -2.f, 2.f);
+        auto dqs0 = c.template in<float>(hd, qs0, 0.5f, 1.5f);
+        auto dks0 = c.template in<float>(hd, ks0, 0.5f, 1.5f);
+        auto dqs1 = c.template in<float>(hd, qs1, 0.5f, 1.5f);
+        auto dks1 = c.template in<float>(hd, ks1, 0.5f, 1.5f);
+        const auto t = c.rope_tables(rows, hd);
+        // Segment 0: rows [0, rows_q), queries from row 1 (row 0's queries untouched); segment 1
+        // the rest.
+        const std::array<Segment, 2> segs{Segment{0, std::min<i64>(1, rows_q), rows_q, dqs0.data(), dks0.data()},
+                                          Segment{rows_q, rows_q, rows, dqs1.data(), dks1.data()}};
+        qk_norm_rope(ctx, dx.data(), stride, hw, heads, hd, eps, t.cos.data(), t.sin.data(), segs);
+        Vec ref = x;
+        // The reference on rows [a, b) at column offset `off`: per head RMSNorm, then RoPE.
+        const auto norm_rope_rows = [&](i64 a, i64 b, i64 off, const Vec& scale) {
+          Vec part(ref.begin() + a * stride, ref.begin() + b * stride);
+          ops_ref::rms_heads(part, b - a, stride, off, heads, hd, scale, eps);
+          const std::vector<Vec> angle(t.angle.begin() + a, t.angle.begin() + b);
+          ops_ref::rope(part, b - a, stride, off, heads, hd, angle);
+          std::copy(part.begin(), part.end(), ref.begin() + a * stride);
+        };
+        norm_rope_rows(0, rows_q, hw, ks0);
+        norm_rope_rows(std::min<i64>(1, rows_q), rows_q, 0, qs0);
+        norm_rope_rows(rows_q, rows, hw, ks1);
+        norm_rope_rows(rows_q, rows, 0, qs1);
+        log.record(shape("rows", rows_q, "+", rows_k, "heads", heads, "head_dim", hd), c.error(dx, ref));
+      }
+    }
+  });
+
+  // The MST's frame tokens (FrameTokens): LN of the image rows + time embedding, action rows +
+  // time embedding, into float32 tokens; the op may decline (returns false).
+  run_op<B, W>(ctx, "try_assemble_frame_tokens", kPointwise, 36, [&](Case<B>& c, OpLog& log) {
+    if constexpr (requires(Ctx& cx, const A* p, const float* f, float* o, epona::FrameTokens t) {
+                    try_assemble_frame_tokens(cx, p, f, f, f, f, o, t);
+                  }) {
+      for (const auto [frames, image_rows, actions, entries, width] : kFrames) {
+        const epona::FrameTokens ft{frames, image_rows, actions, entries, width, eps};
+        Vec img, act, te, w, b;
+        auto dimg = c.template in<A>(frames * image_rows * width, img, -2.f, 3.f);
+        auto dact = c.template in<float>(std::max<i64>(1, actions * entries * width), act);
+        auto dte = c.template in<float>(frames * width, te);
+        auto dw = c.template in<float>(width, w, 0.5f, 1.5f);
+        auto db = c.template in<float>(width, b);
+        auto dout = c.template out<float>(frames * ft.tokens() * width);
+        if (!try_assemble_frame_tokens(ctx, dimg.data(), dact.data(), dte.data(), dw.data(), db.data(), dout.data(), ft)) {
+          ++log.declined;
+          continue;
+        }
+        log.record(shape("frames", frames, "image_rows", image_rows, "actions", actions, "entries", entries, "width", width),
+                   c.error(dout, ops_ref::frame_tokens(img, act, te, w, b, frames, image_rows, actions, entries, width, eps)));
+      }
+    }
+  });
+
+  // Attention over LN_q(q), LN_k(k) (each over a token's heads·head_dim channels, affine) in one
+  // kernel; q, k only read; it declines what it does not fit (float32, long sequences, ...).
+  run_op<B, W>(ctx, "attention_qk_layer_norm", kReduction, 37, [&](Case<B>& c, OpLog& log) {
+    if constexpr (requires(Ctx& cx, const A* p, A* o, const float* f, epona::AttentionShape a) {
+                    attention_qk_layer_norm(cx, p, p, p, o, a, f, f, 0.f, f, f, 0.f);
+                  }) {
+      for (const auto [seqs, heads, lq, lk, d, mask, additive] : kQkNormAttention) {
+        const i64 hd = heads * d, kv_row = 2 * hd;
+        Vec q, kv, qw, qb, kw, kb;
+        auto dq = c.template in<A>(seqs * lq * hd, q, -2.f, 2.f);
+        auto dkv = c.template in<A>(seqs * lk * kv_row, kv, -2.f, 2.f);
+        auto dqw = c.template in<float>(hd, qw, 0.5f, 1.5f);
+        auto dqb = c.template in<float>(hd, qb);
+        auto dkw = c.template in<float>(hd, kw, 0.5f, 1.5f);
+        auto dkb = c.template in<float>(hd, kb);
+        auto dout = c.template out<A>(seqs * lq * hd);
+        epona::AttentionShape a;
+        a.seqs = seqs, a.heads = heads, a.lq = lq, a.lk = lk, a.head_dim = d, a.mask = mask;
+        a.q_seq = lq * hd, a.q_row = hd, a.k_seq = a.v_seq = lk * kv_row, a.k_row = a.v_row = kv_row;
+        a.o_seq = lq * hd, a.o_row = hd;
+        if (!attention_qk_layer_norm(ctx, static_cast<const A*>(dq.data()), dkv.data(), dkv.data() + hd, dout.data(), a,
+                                     dqw.data(), dqb.data(), eps, dkw.data(), dkb.data(), 1e-6f)) {
+          ++log.declined;
+          continue;
+        }
+        Vec k, v;
+        for (i64 r = 0; r < seqs * lk; ++r) {
+          k.insert(k.end(), kv.begin() + r * kv_row, kv.begin() + r * kv_row + hd);
+          v.insert(v.end(), kv.begin() + r * kv_row + hd, kv.begin() + (r + 1) * kv_row);
+        }
+        const Vec qn = ops_ref::layer_norm(q, seqs * lq, hd, eps, &qw, &qb);
+        const Vec kn = ops_ref::layer_norm(k, seqs * lk, hd, 1e-6, &kw, &kb);
+        const Vec ref = ops_ref::attention(qn, {lq * hd, hd}, kn, {lk * hd, hd}, v, {lk * hd, hd}, seqs, heads, lq, lk, d,
+                                           false);
+        log.record(shape("seqs", seqs, "heads", heads, "lq", lq, "lk", lk, "d", d), c.error(dout, ref));
+      }
+    }
+  });
 
   // Attention over strided q (rows padded by 8) and packed k|v rows; o dense.
   run_op<B, W>(ctx, "attention", kReduction, 19, [&](Case<B>& c, OpLog& log) {
