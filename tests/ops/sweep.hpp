@@ -8,25 +8,28 @@
 // Error rule: err = max_i |got_i − ref_i| / max_i |ref_i| (rel_max, tests/metrics.hpp: infinite
 // when any output is NaN or infinite, so an unwritten, poisoned element always fails). Inputs are
 // rounded to their storage type before the reference sees them, so the error is the op's own.
-// Bounds by activation type (kF32, kBf16 below): float32 activations 1e-5 for pointwise ops and
-// 1e-4 for sums over a product dimension (GEMM, convolution, attention: accumulation order);
-// bf16 activations (and GEMMs with bf16 weights, see run_op) 1e-2 (a rounding to bf16 moves a value by at most 2^-9 of itself, 2^-8 with
-// the intermediate bf16 roundings the GPU kernels share with PyTorch) and 2e-2 for GEMM,
-// convolution and attention (bf16 probabilities before P·V, bf16 pre-activations).
+// Bounds (kPointwise, kReduction below) by activation type: float32 activations 1e-5 for
+// pointwise ops and norms, 1e-4 for sums over a product dimension (GEMM, convolution, attention:
+// accumulation order); bf16 activations, and GEMMs with bf16 weights (see run_op), 1e-2 for
+// pointwise ops (one rounding to bf16 moves a value by at most 2^-9 of itself; the GPU kernels
+// round some intermediates to bf16 as PyTorch does) and 2e-2 for GEMM, convolution and attention
+// (bf16 products and probabilities before P·V).
 //
-// Ops on one backend only (the sweep runs each where `requires` finds it, and says so):
+// Ops on one backend only (the concepts below; the sweep runs each where it exists, prints
+// "not on this backend" elsewhere, and each program static_asserts which exist on its backend):
 //   CPU only:  softmax_rows, fill.
-//   CUDA only: linear_accumulate, linear_group, add_gated_layer_norm_modulate with a separate
-//              input (x, x_out), convert, layer_norm_rope_qk, qk_norm_rope (segments),
-//              try_assemble_frame_tokens, attention_qk_layer_norm (the last three and
-//              layer_norm_rope_qk may decline a shape, returning false: counted, not failed;
-//              the CPU composes the separate ops instead).
+//   CUDA only: linear_accumulate, linear_group, add_gated_layer_norm_modulate reading x and
+//              writing x_out, convert, layer_norm_rope_qk, qk_norm_rope (segments),
+//              try_assemble_frame_tokens, attention_qk_layer_norm (the CPU's layers compose the
+//              separate ops instead). layer_norm_rope_qk, try_assemble_frame_tokens and
+//              attention_qk_layer_norm may decline a shape (return false): counted, not failed.
 //   Not in the sweep yet (covered by tests/cuda/*.cu against the CPU): linear_batched,
 //   conv2d_residual, norm_2d_add, rms_norm_rows, the fused shuffles (CUDA only);
 //   relu_linear_attention (both backends: tests/nn/dcae_lite_mla.cpp, tests/cuda/dcae_ops.cu).
 //
-// To add an op: its float64 loop in reference.hpp, its shapes in the table below, a run_<op>
-// function drawing inputs with Case::in, calling the op, returning the error, and a line in sweep().
+// To add an op: its float64 loop in reference.hpp, its shapes in the table below (every shape
+// lives there), and a run_op block in sweep() that draws inputs with Case::in, calls the op and
+// records the error per case (log.record).
 #pragma once
 
 #include <doctest/doctest.h>
@@ -71,13 +74,14 @@ struct QkShape { i64 rows_q, rows_k, heads, head_dim; };
 struct FrameShape { i64 frames, image_rows, actions, entries, width; };
 
 inline const std::vector<i64> kLengths{1, 7, 16, 33, 257, 1000};  // elementwise ops
-inline const std::vector<RowsN> kRows{{1, 7}, {3, 64}, {5, 129}, {2, 1000}, {4, 20}};  // row ops, norms
-inline const std::vector<GemmShape> kGemms{{1, 7, 5}, {3, 33, 17}, {5, 16, 64}, {17, 31, 40}, {70, 9, 33}};
+inline const std::vector<RowsN> kRows{{1, 7}, {3, 64}, {5, 129}, {2, 1000}, {4, 20}, {2, 4099}};  // row ops, norms
+inline const std::vector<GemmShape> kGemms{{1, 7, 5}, {3, 33, 17}, {5, 16, 64}, {17, 31, 40}, {70, 9, 33}, {33, 128, 96}, {8, 300, 257}};
 inline const std::vector<HeadsShape> kHeads{{3, 2, 8, 5}, {5, 3, 64, 0}, {2, 1, 128, 16}, {4, 2, 6, 3}};
 inline const std::vector<AttnShape> kAttention{
     {1, 1, 5, 5, 8, epona::Mask::None, false},     {2, 3, 17, 17, 64, epona::Mask::Causal, false},
     {1, 2, 3, 11, 32, epona::Mask::None, false},   {1, 2, 9, 9, 128, epona::Mask::None, true},
-    {1, 2, 7, 12, 24, epona::Mask::Causal, false}, {2, 1, 20, 33, 20, epona::Mask::None, true}};
+    {1, 2, 7, 12, 24, epona::Mask::Causal, false}, {2, 1, 20, 33, 20, epona::Mask::None, true},
+    {1, 2, 70, 130, 64, epona::Mask::None, false}, {1, 1, 65, 65, 128, epona::Mask::Causal, true}};
 inline const std::vector<QkShape> kQkNorms{{5, 7, 2, 64}, {3, 3, 4, 32}, {16, 16, 1, 128}, {9, 4, 3, 16}};
 inline const std::vector<AttnShape> kQkNormAttention{{2, 4, 16, 16, 128, epona::Mask::None, false},
                                                      {1, 8, 9, 9, 128, epona::Mask::None, false}};
@@ -86,7 +90,8 @@ inline const std::vector<ConvShape> kConvs{
     {1, 3, 5, 7, 4, 1, 1, true, ConvAct::None},  {2, 4, 6, 5, 6, 3, 1, false, ConvAct::Relu},
     {1, 8, 9, 9, 8, 3, 8, true, ConvAct::Silu},  {1, 6, 4, 7, 9, 3, 3, true, ConvAct::None},
     {1, 16, 10, 10, 16, 3, 1, true, ConvAct::Silu}, {1, 5, 3, 3, 3, 3, 1, false, ConvAct::Relu},
-    {1, 12, 4, 4, 6, 1, 2, false, ConvAct::Silu}};
+    {1, 12, 4, 4, 6, 1, 2, false, ConvAct::Silu}, {1, 32, 16, 16, 32, 3, 1, true, ConvAct::Relu},
+    {2, 24, 7, 9, 48, 1, 1, true, ConvAct::None}};
 inline const std::vector<Map2d> kMaps{{1, 3, 10}, {2, 16, 7}, {1, 33, 5}};
 inline const std::vector<ShuffleCase> kUnshuffles{{1, 3, 4, 6, 2, 12}, {2, 4, 6, 6, 2, 8}, {1, 2, 6, 3, 3, 6}};
 inline const std::vector<ShuffleCase> kShuffles{{1, 12, 2, 3, 2, 3}, {1, 4, 3, 2, 2, 4}, {2, 8, 2, 2, 2, 4}};
@@ -97,6 +102,58 @@ inline const std::vector<ConvAct> kConvActs{ConvAct::None, ConvAct::Relu, ConvAc
 struct Tol { double f32, bf16; };
 inline constexpr Tol kPointwise{1e-5, 1e-2};
 inline constexpr Tol kReduction{1e-4, 2e-2};
+
+// ---- the ops that exist on one backend only, as concepts (Ctx a backend context, A its
+// activation type): the sweep runs each where it holds, and each program static_asserts which
+// hold on its backend, so a misspelt signature cannot silently skip an op ----
+// A segment of qk_norm_rope: keys of rows [first, end), queries of rows [q_first, end).
+struct Segment {
+  i64 first, q_first, end;
+  const float* q_scale;
+  const float* k_scale;
+};
+template <class Ctx, class A>
+concept HasLinearAccumulate = requires(Ctx& cx, const A* p, float* y) {
+  linear_accumulate(cx, p, i64{}, p, y, i64{}, i64{}, i64{}, i64{});
+};
+template <class Ctx, class A>
+concept HasLinearGroup = requires(Ctx& cx, const A* p, A* y, std::vector<const A*> v) {
+  linear_group(cx, p, i64{}, i64{}, v, v, y, i64{}, i64{}, i64{}, i64{}, i64{}, Epilogue::None);
+};
+template <class Ctx, class A>
+concept HasSeparateAddGatedLnModulate = requires(Ctx& cx, A* p) {
+  add_gated_layer_norm_modulate(cx, p, p, p, p, p, i64{}, i64{}, p, p, 0.f);
+};
+template <class Ctx, class A>
+concept HasLayerNormRopeQk = requires(Ctx& cx, A* p, const float* f) {
+  layer_norm_rope_qk(cx, p, i64{}, p, i64{}, i64{}, f, f, 0.f, f, f, 0.f, i64{}, f, f);
+};
+template <class Ctx, class A>
+concept HasQkNormRope = requires(Ctx& cx, A* p, const float* f, std::array<Segment, 2> s) {
+  qk_norm_rope(cx, p, i64{}, i64{}, i64{}, i64{}, 0.f, f, f, s);
+};
+template <class Ctx, class A>
+concept HasFrameTokens = requires(Ctx& cx, const A* p, const float* f, float* o, epona::FrameTokens t) {
+  try_assemble_frame_tokens(cx, p, f, f, f, f, o, t);
+};
+template <class Ctx, class A>
+concept HasAttentionQkLayerNorm = requires(Ctx& cx, const A* p, A* o, const float* f, epona::AttentionShape a) {
+  attention_qk_layer_norm(cx, p, p, p, o, a, f, f, 0.f, f, f, 0.f);
+};
+template <class Ctx, class A>
+concept HasConvert = requires(Ctx& cx, const float* s, A* p) { convert(cx, s, p, i64{}); };
+template <class Ctx, class A>
+concept HasSoftmaxRows = requires(Ctx& cx, A* p) { softmax_rows(cx, p, i64{}, i64{}); };
+template <class Ctx, class A>
+concept HasFill = requires(Ctx& cx, A* p) { fill(cx, p, 0.f, i64{}); };
+// Every one-backend op on the GPU (the CPU has exactly the last two).
+template <class Ctx, class A>
+concept HasCudaOnlyOps = HasLinearAccumulate<Ctx, A> && HasLinearGroup<Ctx, A> &&
+                         HasSeparateAddGatedLnModulate<Ctx, A> && HasLayerNormRopeQk<Ctx, A> &&
+                         HasQkNormRope<Ctx, A> && HasFrameTokens<Ctx, A> && HasAttentionQkLayerNorm<Ctx, A> &&
+                         HasConvert<Ctx, A>;
+template <class Ctx, class A>
+concept HasCpuOnlyOps = HasSoftmaxRows<Ctx, A> && HasFill<Ctx, A>;
 
 // What a backend program provides (specialised in sweep_cpu.cpp, sweep_cuda.cu):
 //   static constexpr const char* name; static constexpr bool channels_last (the DC-AE's maps);
@@ -270,7 +327,7 @@ void sweep(Context<B>& ctx) {
 
   // linear_accumulate: y += x · wᵀ into a float32 y.
   run_op<B, W>(ctx, "linear_accumulate", kReduction, 2, [&](Case<B>& c, OpLog& log) {
-    if constexpr (requires(Ctx& cx, const A* p, float* y) { linear_accumulate(cx, p, i64{}, p, y, i64{}, i64{}, i64{}, i64{}); }) {
+    if constexpr (HasLinearAccumulate<Ctx, A>) {
       for (const auto [M, N, K] : kGemms) {
         Vec x, w, y0;
         auto dx = c.template in<A>(M * K, x);
@@ -284,9 +341,7 @@ void sweep(Context<B>& ctx) {
 
   // linear_group: `count` products of one x (or of x blocks x_stride apart) into y blocks.
   run_op<B, W>(ctx, "linear_group", kReduction, 3, [&](Case<B>& c, OpLog& log) {
-    if constexpr (requires(Ctx& cx, const A* p, A* y, std::vector<const A*> v) {
-                    linear_group(cx, p, i64{}, i64{}, v, v, y, i64{}, i64{}, i64{}, i64{}, i64{}, Epilogue::None);
-                  }) {
+    if constexpr (HasLinearGroup<Ctx, A>) {
       for (const auto [M, N, K] : kGemms)
         for (const i64 x_stride : {i64{0}, M * K}) {
           const i64 count = 3;
@@ -414,8 +469,7 @@ void sweep(Context<B>& ctx) {
   // x += gate ⊙ y; out = modulate(x): in place, and (where it exists) reading x, writing x_out.
   const auto agln = [&](const char* op, std::uint32_t seed, bool separate) {
     run_op<B, W>(ctx, op, kPointwise, seed, [&](Case<B>& c, OpLog& log) {
-      constexpr bool has_separate =
-          requires(Ctx& cx, A* p) { add_gated_layer_norm_modulate(cx, p, p, p, p, p, i64{}, i64{}, p, p, 0.f); };
+      constexpr bool has_separate = HasSeparateAddGatedLnModulate<Ctx, A>;
       if (separate && !has_separate) return;
       for (const auto [rows, n] : kRows) {
         Vec x, y, g, sh, sc;
@@ -475,9 +529,7 @@ void sweep(Context<B>& ctx) {
   // q = LN_q(q), k = LN_k(k) (affine, over the whole row) then RoPE on both, in place; the op may
   // decline a width (returns false): such shapes are counted, not failed.
   run_op<B, W>(ctx, "layer_norm_rope_qk", kPointwise, 34, [&](Case<B>& c, OpLog& log) {
-    if constexpr (requires(Ctx& cx, A* p, const float* f) {
-                    layer_norm_rope_qk(cx, p, i64{}, p, i64{}, i64{}, f, f, 0.f, f, f, 0.f, i64{}, f, f);
-                  }) {
+    if constexpr (HasLayerNormRopeQk<Ctx, A>) {
       for (const auto [rows_q, rows_k, heads, hd] : kQkNorms) {
         const i64 n = heads * hd;
         Vec q, k, qw, qb, kw, kb;
@@ -504,15 +556,8 @@ void sweep(Context<B>& ctx) {
 
   // The joint QK RMSNorm + RoPE over segments of a packed qkv buffer: keys of rows [first, end),
   // queries of rows [q_first, end), each with its segment's scales; other rows stay as they were.
-  struct Segment {
-    i64 first, q_first, end;
-    const float* q_scale;
-    const float* k_scale;
-  };
   run_op<B, W>(ctx, "qk_norm_rope (segments)", kPointwise, 35, [&](Case<B>& c, OpLog& log) {
-    if constexpr (requires(Ctx& cx, A* p, const float* f, std::array<Segment, 2> s) {
-                    qk_norm_rope(cx, p, i64{}, i64{}, i64{}, i64{}, 0.f, f, f, s);
-                  }) {
+    if constexpr (HasQkNormRope<Ctx, A>) {
       for (const auto [rows_q, rows_k, heads, hd] : kQkNorms) {
         const i64 rows = rows_q + rows_k, hw = heads * hd, stride = 3 * hw;
         Vec x, qs0, ks0, qs1, ks1;
@@ -548,9 +593,7 @@ void sweep(Context<B>& ctx) {
   // The MST's frame tokens (FrameTokens): LN of the image rows + time embedding, action rows +
   // time embedding, into float32 tokens; the op may decline (returns false).
   run_op<B, W>(ctx, "try_assemble_frame_tokens", kPointwise, 36, [&](Case<B>& c, OpLog& log) {
-    if constexpr (requires(Ctx& cx, const A* p, const float* f, float* o, epona::FrameTokens t) {
-                    try_assemble_frame_tokens(cx, p, f, f, f, f, o, t);
-                  }) {
+    if constexpr (HasFrameTokens<Ctx, A>) {
       for (const auto [frames, image_rows, actions, entries, width] : kFrames) {
         const epona::FrameTokens ft{frames, image_rows, actions, entries, width, eps};
         Vec img, act, te, w, b;
@@ -573,9 +616,7 @@ void sweep(Context<B>& ctx) {
   // Attention over LN_q(q), LN_k(k) (each over a token's heads·head_dim channels, affine) in one
   // kernel; q, k only read; it declines what it does not fit (float32, long sequences, ...).
   run_op<B, W>(ctx, "attention_qk_layer_norm", kReduction, 37, [&](Case<B>& c, OpLog& log) {
-    if constexpr (requires(Ctx& cx, const A* p, A* o, const float* f, epona::AttentionShape a) {
-                    attention_qk_layer_norm(cx, p, p, p, o, a, f, f, 0.f, f, f, 0.f);
-                  }) {
+    if constexpr (HasAttentionQkLayerNorm<Ctx, A>) {
       for (const auto [seqs, heads, lq, lk, d, mask, additive] : kQkNormAttention) {
         const i64 hd = heads * d, kv_row = 2 * hd;
         Vec q, kv, qw, qb, kw, kb;
@@ -633,7 +674,7 @@ void sweep(Context<B>& ctx) {
   });
 
   run_op<B, W>(ctx, "softmax_rows", kPointwise, 20, [&](Case<B>& c, OpLog& log) {
-    if constexpr (requires(Ctx& cx, A* p) { softmax_rows(cx, p, i64{}, i64{}); }) {
+    if constexpr (HasSoftmaxRows<Ctx, A>) {
       for (const auto [rows, n] : kRows) {
         Vec x;
         auto dx = c.template in<A>(rows * n, x, -5.f, 5.f);
@@ -670,7 +711,7 @@ void sweep(Context<B>& ctx) {
     }
   });
   run_op<B, W>(ctx, "fill", kPointwise, 23, [&](Case<B>& c, OpLog& log) {
-    if constexpr (requires(Ctx& cx, A* p) { fill(cx, p, 0.f, i64{}); }) {
+    if constexpr (HasFill<Ctx, A>) {
       for (const i64 n : kLengths) {
         auto dy = c.template out<A>(n);
         fill(ctx, dy.data(), 0.75f, n);
@@ -679,7 +720,7 @@ void sweep(Context<B>& ctx) {
     }
   });
   run_op<B, W>(ctx, "convert", kPointwise, 24, [&](Case<B>& c, OpLog& log) {
-    if constexpr (requires(Ctx& cx, const float* s, A* p) { convert(cx, s, p, i64{}); }) {
+    if constexpr (HasConvert<Ctx, A>) {
       for (const i64 n : kLengths) {
         Vec x;
         auto dx = c.template in<float>(n, x);

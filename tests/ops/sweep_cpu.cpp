@@ -50,3 +50,15 @@ TEST_CASE("op sweep: CPU, bf16 weights") {
   epona::cpu::Context ctx;
   ops_sweep::sweep<epona::Cpu, epona::bf16>(ctx);
 }
+
+// The one-backend ops (sweep.hpp): the CPU has its own and none of the GPU's, so the sweep's
+// "not on this backend" lines are these and no others.
+static_assert(ops_sweep::HasCpuOnlyOps<epona::cpu::Context, float>);
+static_assert(!ops_sweep::HasLinearAccumulate<epona::cpu::Context, float> &&
+              !ops_sweep::HasLinearGroup<epona::cpu::Context, float> &&
+              !ops_sweep::HasSeparateAddGatedLnModulate<epona::cpu::Context, float> &&
+              !ops_sweep::HasLayerNormRopeQk<epona::cpu::Context, float> &&
+              !ops_sweep::HasQkNormRope<epona::cpu::Context, float> &&
+              !ops_sweep::HasFrameTokens<epona::cpu::Context, float> &&
+              !ops_sweep::HasAttentionQkLayerNorm<epona::cpu::Context, float> &&
+              !ops_sweep::HasConvert<epona::cpu::Context, float>);
