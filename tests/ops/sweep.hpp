@@ -26,6 +26,7 @@
 //   Not in the sweep yet (covered by tests/cuda/*.cu against the CPU): linear_batched,
 //   conv2d_residual, norm_2d_add, rms_norm_rows, the fused shuffles (CUDA only);
 //   relu_linear_attention (both backends: tests/nn/dcae_lite_mla.cpp, tests/cuda/dcae_ops.cu).
+//   BatchNorm folding (cuda/conv/conv_fold.cuh) is a bind-time weight transform, not an op.
 //
 // To add an op: its float64 loop in reference.hpp, its shapes in the table below (every shape
 // lives there), and a run_op block in sweep() that draws inputs with Case::in, calls the op and
