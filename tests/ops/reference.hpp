@@ -209,6 +209,35 @@ inline Vec frame_tokens(const Vec& image, const Vec& actions, const Vec& time_em
 }
 
 // ---- convolutions and shuffles (NCHW) ----
+// LiteMLA attention core (dcae.md §4.2.1 steps 2-5) by its defining sums: per head, S(m,n) = Σ_j k[j,m] q[j,n]
+// with q, k ReLU'd; out[i,n] = Σ_m v[i,m] S(m,n) / (Σ_m S(m,n) + eps).
+inline Vec relu_linear_attention(const Vec& qkv, i64 N, i64 heads, i64 d, i64 HW, double eps) {
+  Vec out(static_cast<std::size_t>(N * heads * d * HW));
+  for (i64 n = 0; n < N; ++n)
+    for (i64 a = 0; a < heads; ++a) {
+      const double* base = qkv.data() + (n * heads * 3 + 3 * a) * d * HW;
+      auto q = [&](i64 j, i64 p) { return relu(base[j * HW + p]); };
+      auto k = [&](i64 j, i64 p) { return relu(base[(d + j) * HW + p]); };
+      auto v = [&](i64 j, i64 p) { return base[(2 * d + j) * HW + p]; };
+      for (i64 p = 0; p < HW; ++p) {
+        Vec S(static_cast<std::size_t>(HW));
+        double den = 0;
+        for (i64 m = 0; m < HW; ++m) {
+          double s = 0;
+          for (i64 j = 0; j < d; ++j) s += k(j, m) * q(j, p);
+          S[m] = s;
+          den += s;
+        }
+        for (i64 i = 0; i < d; ++i) {
+          double num = 0;
+          for (i64 m = 0; m < HW; ++m) num += v(i, m) * S[m];
+          out[((n * heads + a) * d + i) * HW + p] = num / (den + eps);
+        }
+      }
+    }
+  return out;
+}
+
 // out[n,o,y,x] = b[o] + Σ_{i in group(o)} Σ_{dy,dx} W[o, i - first, dy, dx] · in[n, i, y+dy-k/2, x+dx-k/2].
 inline Vec conv2d(const Vec& in, i64 N, i64 C, i64 H, i64 W, const Vec& w, const Vec* bias, i64 O, i64 k, i64 groups) {
   Vec out(static_cast<std::size_t>(N * O * H * W));

@@ -25,7 +25,6 @@
 //              attention_qk_layer_norm may decline a shape (return false): counted, not failed.
 //   Not in the sweep yet (covered by tests/cuda/*.cu against the CPU): linear_batched,
 //   conv2d_residual, norm_2d_add, rms_norm_rows, the fused shuffles (CUDA only);
-//   relu_linear_attention (both backends: tests/nn/dcae_lite_mla.cpp, tests/cuda/dcae_ops.cu).
 //   BatchNorm folding (cuda/conv/conv_fold.cuh) is a bind-time weight transform, not an op.
 //
 // To add an op: its float64 loop in reference.hpp, its shapes in the table below (every shape
@@ -73,6 +72,7 @@ struct Map2d { i64 N, C, HW; };
 struct ShuffleCase { i64 N, C, H, W, r, channels_out; };
 struct QkShape { i64 rows_q, rows_k, heads, head_dim; };
 struct FrameShape { i64 frames, image_rows, actions, entries, width; };
+struct MlaShape { i64 N, heads, d, HW; };
 
 inline const std::vector<i64> kLengths{1, 7, 16, 33, 257, 1000};  // elementwise ops
 inline const std::vector<RowsN> kRows{{1, 7}, {3, 64}, {5, 129}, {2, 1000}, {4, 20}, {2, 4099}};  // row ops, norms
@@ -93,6 +93,9 @@ inline const std::vector<ConvShape> kConvs{
     {1, 16, 10, 10, 16, 3, 1, true, ConvAct::Silu}, {1, 5, 3, 3, 3, 3, 1, false, ConvAct::Relu},
     {1, 12, 4, 4, 6, 1, 2, false, ConvAct::Silu}, {1, 32, 16, 16, 32, 3, 1, true, ConvAct::Relu},
     {2, 24, 7, 9, 48, 1, 1, true, ConvAct::None}};
+inline const std::vector<MlaShape> kLiteMla{{1, 2, 8, 12}, {2, 1, 16, 9}, {1, 3, 32, 40}};
+inline const std::vector<epona::AttentionOrder> kMlaOrders{epona::AttentionOrder::Auto, epona::AttentionOrder::Linear,
+                                                           epona::AttentionOrder::Quadratic};
 inline const std::vector<Map2d> kMaps{{1, 3, 10}, {2, 16, 7}, {1, 33, 5}};
 inline const std::vector<ShuffleCase> kUnshuffles{{1, 3, 4, 6, 2, 12}, {2, 4, 6, 6, 2, 8}, {1, 2, 6, 3, 3, 6}};
 inline const std::vector<ShuffleCase> kShuffles{{1, 12, 2, 3, 2, 3}, {1, 4, 3, 2, 2, 4}, {2, 8, 2, 2, 2, 4}};
@@ -839,6 +842,21 @@ void sweep(Context<B>& ctx) {
   };
   shuffle_op("pixel_unshuffle_average", 31, false);
   shuffle_op("pixel_shuffle_duplicate", 32, true);
+  // LiteMLA's ReLU linear attention over qkv maps (N, heads·3·d, HW), each evaluation order.
+  run_op<B, W>(ctx, "relu_linear_attention", kReduction, 38, [&](Case<B>& c, OpLog& log) {
+    for (const auto [N, heads, d, HW] : kLiteMla)
+      for (const epona::AttentionOrder order : kMlaOrders) {
+        const i64 C = heads * 3 * d;
+        Vec qkv;
+        c.template in<A>(N * C * HW, qkv);
+        auto dqkv = c.template put<A>(to_layout<B>(qkv, N, C, HW));
+        auto dout = c.template out<A>(N * heads * d * HW);
+        relu_linear_attention(ctx, dqkv.data(), dout.data(), N, heads, d, HW, 1e-6f, order);
+        const Vec ref = ops_ref::relu_linear_attention(qkv, N, heads, d, HW, 1e-6);
+        log.record(shape("N", N, "heads", heads, "d", d, "HW", HW, "order", int(order)),
+                   c.error(dout, to_layout<B>(ref, N, heads * d, HW)));
+      }
+  });
   run_op<B, W>(ctx, "transpose_last2", kPointwise, 33, [&](Case<B>& c, OpLog& log) {
     for (const auto [rows, n] : kRows) {
       const i64 N = 1 + rows % 2, A_ = rows, B_ = n;
