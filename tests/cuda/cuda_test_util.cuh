@@ -16,6 +16,7 @@
 
 #include "epona/cpu/ops.hpp"
 #include "epona/cuda/ops.cuh"
+#include "../ops/names.hpp"  // epilogue_name
 
 // Every GPU test case starts with this: on a machine without a GPU it passes with a message.
 #define EPONA_REQUIRE_GPU()                    \
@@ -174,17 +175,6 @@ inline double max_abs(const HostF& t) {
   double m = 0;
   for (std::int64_t i = 0; i < t.numel(); ++i) m = std::max(m, double(std::abs(t.data()[i])));
   return m;
-}
-
-// A GEMM epilogue's name, for test messages.
-inline const char* epilogue_name(Epilogue e) {
-  switch (e) {
-    case Epilogue::None: return "none";
-    case Epilogue::GeluErf: return "gelu_erf";
-    case Epilogue::GeluTanh: return "gelu_tanh";
-    case Epilogue::Silu: return "silu";
-  }
-  return "?";
 }
 
 }  // namespace epona::test

@@ -10,12 +10,13 @@
 #include <vector>
 
 #include "../metrics.hpp"
+#include "../ops/reference.hpp"
 #include "epona/core/tensor.hpp"
 
 namespace reference_common {
 
-using Vec = std::vector<double>;
-using i64 = std::int64_t;
+using ops_ref::Vec;
+using ops_ref::i64;
 using HostTensor = epona::Tensor<float, epona::Cpu>;
 
 inline HostTensor random_tensor(const epona::Shape& shape, std::uint64_t seed, float lo = -1.f, float hi = 1.f) {
