@@ -24,11 +24,12 @@
 #include "epona/flow/solvers.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/tensor_map.hpp"
-#include "epona/model/config.hpp"
+#include "epona/model/config/world_config.hpp"
 #include "epona/model/flux_dit.hpp"
 #include "epona/model/mst.hpp"
 #include "epona/model/pose_tokenizer.hpp"
 #include "epona/nn/backend_context.hpp"
+#include "epona/nn/parameter.hpp"
 
 namespace epona {
 
@@ -155,7 +156,7 @@ class WorldModel {
   // Binds the three networks from one weight map (all keys under "module." must be used;
   // other keys, e.g. a merged DC-AE, are ignored). Every problem is reported at once.
   static WorldModel load(const io::TensorMap& weights, const WorldModelConfig& config = {}) {
-    config.validate();
+    config.check_size(parameter_list(config).count());
     WorldModel m(config);
     io::BindReport report(weights);
     bool any_traj = false;  // named first: the list of its missing keys may get truncated
@@ -178,9 +179,23 @@ class WorldModel {
   // The parameter tree of the three networks under their official prefixes (nn/parameter.hpp).
   template <class V>
   void visit_params(V& v) {
-    mst_.visit_params("module.model.", v);
-    vis_.visit_params("module.dit.", v);
-    traj_.visit_params("module.traj_dit.", v);
+    visit_parts(mst_, vis_, traj_, v);
+  }
+
+  // The parameter tree of a configuration without weights (names, shapes; counts by prefix):
+  // the three networks' skeleton visited with nn::ParamList. `config` is validated, but for its
+  // sizes (WorldModelConfig::check_size). No parameter depends on the frame size or the window,
+  // which size the MST's RoPE table (the one thing its constructor allocates): the skeleton's MST
+  // gets the smallest, so that a configuration refused for its size allocates nothing large.
+  static nn::ParamList parameter_list(const WorldModelConfig& config) {
+    config.validate();
+    MstConfig skeleton = MstConfig::from(config);
+    skeleton.condition_frames = skeleton.latent_h = skeleton.latent_w = 1;
+    SpatialTemporalTransformer<B, W> mst(skeleton);
+    FluxDiT<B, W> vis(FluxDitConfig::vis(config)), traj(FluxDitConfig::traj(config));
+    nn::ParamList list;
+    visit_parts(mst, vis, traj, list);
+    return list;
   }
 
   const WorldModelConfig& config() const { return cfg_; }
@@ -309,6 +324,14 @@ class WorldModel {
  private:
   explicit WorldModel(const WorldModelConfig& c)
       : cfg_(c), mst_(MstConfig::from(c)), vis_(FluxDitConfig::vis(c)), traj_(FluxDitConfig::traj(c)) {}
+
+  // The official prefixes of the three networks.
+  template <class V>
+  static void visit_parts(SpatialTemporalTransformer<B, W>& mst, FluxDiT<B, W>& vis, FluxDiT<B, W>& traj, V& v) {
+    mst.visit_params("module.model.", v);
+    vis.visit_params("module.dit.", v);
+    traj.visit_params("module.traj_dit.", v);
+  }
 
   static void check_finite(const Tensor<float, Cpu>& t, const char* what) {
     for (std::int64_t i = 0; i < t.numel(); ++i)
