@@ -195,6 +195,17 @@ TEST_CASE("parameter counts equal the weights listed in manifest.json") {
   CHECK(d.total == manifest_numel(dcae, [](auto& k) { return !is_bn_buffer(k); }));
 }
 
+TEST_CASE("parameter counts need only the values that shape a parameter") {
+  // epona info counts a configuration read from a checkpoint's shapes, whose RoPE split may be
+  // assumed from another model: the split shapes no parameter.
+  WorldModelConfig c;
+  c.axes_dim_dit = {2, 2, 2};
+  CHECK_THROWS_WITH_AS(c.validate(), doctest::Contains("axes_dim_dit sums to 6"), Error);
+  CHECK(model::world_parameter_counts(c).total == model::world_parameter_counts(WorldModelConfig{}).total);
+  c.n_head = 3;  // what does shape one is still refused
+  CHECK_THROWS_WITH_AS((void)model::world_parameter_counts(c), doctest::Contains("n_head (3) does not divide"), Error);
+}
+
 TEST_CASE("defaults are the shipped model (configs/dit_config_dcae_nuplan.py, dc-ae-f32c32-mix)") {
   const WorldModelConfig w;
   CHECK(w.image_h == 512);

@@ -14,7 +14,8 @@
 namespace epona::model {
 
 // The parameters of a configuration (names and shapes in visiting order; the official prefixes).
-// The config is validated, but for its sizes (validate_with_size).
+// The config is validated (the world model's but for what shapes no parameter, its RoPE split),
+// its sizes are not (validate_with_size).
 inline nn::ParamList world_parameter_list(const WorldModelConfig& c) { return WorldModel<Cpu, float>::parameter_list(c); }
 inline nn::ParamList dcae_parameter_list(const DcaeConfig& c) { return Dcae<Cpu, float>::parameter_list(c); }
 
@@ -42,7 +43,10 @@ inline DcaeParameterCounts dcae_parameter_counts(const DcaeConfig& c) {
 
 // validate() and the size limits (what WorldModel::load and Dcae's constructor check): throws
 // one error naming every problem, the parameter count past the limit among them.
-inline void validate_with_size(const WorldModelConfig& c) { c.check_size(world_parameter_counts(c).total); }
+inline void validate_with_size(const WorldModelConfig& c) {
+  c.validate();
+  c.check_size(world_parameter_counts(c).total);
+}
 inline void validate_with_size(const DcaeConfig& c) { c.check_size(dcae_parameter_counts(c).total); }
 
 }  // namespace epona::model

@@ -16,6 +16,7 @@ namespace epona::model {
 
 // Throws (as WorldModel::load would) for a configuration that does not validate or is too large.
 inline io::TensorMap random_world_weights(const WorldModelConfig& c, std::uint64_t seed = 1) {
+  c.validate();
   const nn::ParamList list = WorldModel<Cpu, float>::parameter_list(c);
   c.check_size(list.count());
   return list.random_map(seed, "random world weights");

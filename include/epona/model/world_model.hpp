@@ -7,6 +7,7 @@
 #pragma once
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <functional>
@@ -156,6 +157,7 @@ class WorldModel {
   // Binds the three networks from one weight map (all keys under "module." must be used;
   // other keys, e.g. a merged DC-AE, are ignored). Every problem is reported at once.
   static WorldModel load(const io::TensorMap& weights, const WorldModelConfig& config = {}) {
+    config.validate();
     config.check_size(parameter_list(config).count());
     WorldModel m(config);
     io::BindReport report(weights);
@@ -183,16 +185,20 @@ class WorldModel {
   }
 
   // The parameter tree of a configuration without weights (names, shapes; counts by prefix):
-  // the three networks' skeleton visited with nn::ParamList. `config` is validated, but for its
-  // sizes (WorldModelConfig::check_size). No parameter depends on the frame size or the window,
-  // which size the MST's RoPE table (the one thing its constructor allocates): the skeleton's MST
-  // gets the smallest, so that a configuration refused for its size allocates nothing large.
+  // the three networks' skeleton visited with nn::ParamList. Values that shape no parameter need
+  // not fit: the DiTs' RoPE split (a configuration read from a checkpoint's shapes may assume
+  // one from another model) and the frame size and window, which size the MST's RoPE table (the
+  // one thing its constructor allocates: the skeleton's is 1x1, one frame). The rest is
+  // validated; the sizes are not (WorldModelConfig::check_size).
   static nn::ParamList parameter_list(const WorldModelConfig& config) {
-    config.validate();
-    MstConfig skeleton = MstConfig::from(config);
-    skeleton.condition_frames = skeleton.latent_h = skeleton.latent_w = 1;
-    SpatialTemporalTransformer<B, W> mst(skeleton);
-    FluxDiT<B, W> vis(FluxDitConfig::vis(config)), traj(FluxDitConfig::traj(config));
+    WorldModelConfig shapes = config;
+    fit_rope_axes(shapes.axes_dim_dit, shapes.n_embd_dit, shapes.n_head_dit);
+    fit_rope_axes(shapes.axes_dim_dit_traj, shapes.n_embd_dit_traj, shapes.n_head_dit_traj);
+    shapes.validate();
+    MstConfig mst_shapes = MstConfig::from(shapes);
+    mst_shapes.condition_frames = mst_shapes.latent_h = mst_shapes.latent_w = 1;
+    SpatialTemporalTransformer<B, W> mst(mst_shapes);
+    FluxDiT<B, W> vis(FluxDitConfig::vis(shapes)), traj(FluxDitConfig::traj(shapes));
     nn::ParamList list;
     visit_parts(mst, vis, traj, list);
     return list;
@@ -324,6 +330,13 @@ class WorldModel {
  private:
   explicit WorldModel(const WorldModelConfig& c)
       : cfg_(c), mst_(MstConfig::from(c)), vis_(FluxDitConfig::vis(c)), traj_(FluxDitConfig::traj(c)) {}
+
+  // A RoPE split of the head dim width/heads that validate() accepts, where one exists.
+  static void fit_rope_axes(std::array<std::int64_t, 3>& axes, std::int64_t width, std::int64_t heads) {
+    if (width <= 0 || heads <= 0 || width % heads != 0) return;
+    const std::int64_t head_dim = width / heads;
+    if (head_dim >= 6 && head_dim % 2 == 0) axes = {2, 2, head_dim - 4};
+  }
 
   // The official prefixes of the three networks.
   template <class V>
