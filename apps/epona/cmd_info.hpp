@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <filesystem>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -22,6 +23,7 @@
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/io/sha256.hpp"
+#include "epona/model/parameter_counts.hpp"
 
 namespace epona::app {
 
@@ -81,14 +83,29 @@ inline void print_comparison(std::ostream& out, const std::vector<std::string>& 
   for (const auto& d : diffs) out << "    " << d << "\n";
 }
 
-inline void print_prefix_counts(std::ostream& out, const io::TensorMap& m,
-                                const std::vector<std::pair<std::string, double>>& expected) {
-  for (const auto& [prefix, implied] : expected) {
+// Each prefix's parameters in the file beside the count the detected configuration implies,
+// summed over its parameter tree (`parameter_list()`, built once). A configuration that does not
+// validate has no tree: the note after the listing says why.
+template <class List>
+void print_prefix_counts(std::ostream& out, const io::TensorMap& m, const std::vector<std::string>& prefixes,
+                         List&& parameter_list) {
+  std::optional<nn::ParamList> list;
+  try {
+    list = parameter_list();
+  } catch (const Error&) {
+  }
+  for (const auto& prefix : prefixes) {
     double n = 0;
     for (const auto& [name, t] : m.entries())
       if (starts_with(name, prefix) && !is_buffer(name)) n += double(t.numel());
-    out << "    " << printable(prefix, kNameCut) << "* " << count_text(n) << " parameters; the detected configuration implies "
-        << count_text(implied) << (n == implied ? " (match)" : " (MISMATCH)") << "\n";
+    out << "    " << printable(prefix, kNameCut) << "* " << count_text(n) << " parameters; ";
+    if (!list) {
+      out << "the detected configuration does not validate (see the note below)\n";
+      continue;
+    }
+    const double implied = list->learned_count(prefix);
+    out << "the detected configuration implies " << count_text(implied) << (n == implied ? " (match)" : " (MISMATCH)")
+        << "\n";
   }
 }
 
@@ -131,9 +148,8 @@ inline void print_detection(std::ostream& out, const io::TensorMap& m, const Det
     print_facts(out, d.world_facts);
     out << "  assumed (no shape shows them; from " << base_name << "): " << join(d.world_assumed, ", ") << "\n";
     print_comparison(out, world_differences(w, base.world), base_name);
-    print_prefix_counts(out, m, {{"module.model.", w.mst_parameter_count()},
-                                 {"module.dit.", w.vis_dit_parameter_count()},
-                                 {"module.traj_dit.", w.traj_dit_parameter_count()}});
+    print_prefix_counts(out, m, {"module.model.", "module.dit.", "module.traj_dit."},
+                        [&] { return model::world_parameter_list(w); });
   }
   if (d.has_dcae) {
     const auto& c = d.configs.dcae;
@@ -141,11 +157,8 @@ inline void print_detection(std::ostream& out, const io::TensorMap& m, const Det
     print_facts(out, d.dcae_facts);
     out << "  assumed (no shape shows them; from " << base_name << "): " << join(d.dcae_assumed, ", ") << "\n";
     print_comparison(out, dcae_differences(c, base.dcae), base_name);
-    const double half = c.temporal_parameter_count() / 2;
-    print_prefix_counts(out, m, {{"encoder.", c.encoder_parameter_count()},
-                                 {"decoder.", c.decoder_parameter_count()},
-                                 {"causal_time_block.", half},
-                                 {"space_block.", half}});
+    print_prefix_counts(out, m, {"encoder.", "decoder.", "causal_time_block.", "space_block."},
+                        [&] { return model::dcae_parameter_list(c); });
   }
   for (const auto& p : d.problems) out << "  cannot read: " << printable(p, 4 * kNameCut) << "\n";
 }
@@ -235,7 +248,7 @@ inline int run_info(const ParsedArgs& a, const Console& con) {
   }
   for (const auto* what : {"world model", "DC-AE"}) {
     try {
-      std::string(what) == "DC-AE" ? combined.dcae.validate() : combined.world.validate();
+      std::string(what) == "DC-AE" ? model::validate_with_size(combined.dcae) : model::validate_with_size(combined.world);
     } catch (const Error& e) {
       // The shapes are what they are: what does not fit is a value assumed from the base.
       con.out << "note: the " << what << " read from the shapes does not fit the values assumed from " << base_name

@@ -20,6 +20,7 @@
 #include "epona/io/limits.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/model/dcae.hpp"
+#include "epona/model/parameter_counts.hpp"
 #include "epona/model/world_model.hpp"
 
 namespace epona::app {
@@ -242,7 +243,7 @@ WorldModel<B, W> load_world(const ModelFiles& f, const ComputeOptions& c, const 
     auto wm = WorldModel<B, W>::load(weights, f.configs.world);
     if constexpr (std::is_same_v<B, Cpu>)
       if (c.threads > 0) wm.context().set_threads(c.threads);
-    con.note("  ", grouped(std::int64_t(f.configs.world.parameter_count())), " parameters in ",
+    con.note("  ", grouped(std::int64_t(model::world_parameter_counts(f.configs.world).total)), " parameters in ",
              duration_text(seconds_since(t0)));
     return wm;
   } catch (const Error& e) {
@@ -270,7 +271,7 @@ Dcae<B, T> load_dcae(const ModelFiles& f, const Console& con) {
          "); give the DC-AE checkpoint with --dcae FILE");
   try {
     auto model = Dcae<B, T>::load(weights, f.configs.dcae);
-    con.note("  ", grouped(std::int64_t(f.configs.dcae.parameter_count())), " parameters in ",
+    con.note("  ", grouped(std::int64_t(model::dcae_parameter_counts(f.configs.dcae).total)), " parameters in ",
              duration_text(seconds_since(t0)));
     return model;
   } catch (const Error& e) {

@@ -29,6 +29,7 @@
 #include "epona/model/config.hpp"
 #include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
+#include "epona/model/parameter_counts.hpp"
 #include "epona/model/plan_choice.hpp"
 #include "epona/model/relative_pose.hpp"
 #include "epona/model/rollout.hpp"

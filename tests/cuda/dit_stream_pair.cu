@@ -21,7 +21,6 @@
 #include "../metrics.hpp"
 #include "epona/cuda/backend.cuh"
 #include "epona/nn/blocks/dit_blocks.hpp"
-#include "epona/model/random_weights.hpp"
 
 using namespace epona;
 using namespace epona::test;
@@ -263,11 +262,8 @@ namespace {
 struct PairBlockCase {
   nn::DitWidths widths{256, 2, 1024};
   nn::JointRows rows{37, 34};
-  io::TensorMap weights = [] {
-    model::detail::WeightSynth w(5);
-    model::detail::synth_dit(w, "dit.", "img_in", 4, 256, 2, 0, 1, 0, 96);
-    return w.take();
-  }();
+  io::TensorMap weights =
+      nn::DoubleStreamBlock<Cpu, float>(widths).parameters("dit.double_blocks.0.").random_map(5, "random double block");
   const std::int64_t D = widths.hidden, n = rows.total();
   HostF z = random_tensor({n, D}, 31, -2.f, 2.f);
   HostF cond_src = random_tensor({rows.cond, D}, 32, -2.f, 2.f);  // the first block's condition rows

@@ -18,6 +18,8 @@
 #include "epona/model/plan_choice.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
+#include "epona/nn/linear.hpp"
+#include "epona/nn/parameter.hpp"
 
 namespace epona::api_snippets {
 
@@ -95,6 +97,24 @@ inline void loading_snippet() {
   (void)wm, (void)wm2, (void)dcae;
 }
 
+// "The parameter tree"
+template <class B, class W>
+struct GatedMlp : nn::Bindable<GatedMlp<B, W>> {
+  nn::Linear<B, W> gate{64, 256, true}, out{256, 64, true};
+  template <class V>
+  void visit_params(const std::string& prefix, V& v) {
+    gate.visit_params(prefix + "gate.", v);
+    out.visit_params(prefix + "out.", v);
+  }
+};
+inline io::TensorMap parameter_tree_snippet() {
+  GatedMlp<Cpu, float> mlp;
+  mlp.randomize(/*seed=*/1);                                        // or bind(map, "mlp.", report)
+  const nn::ParamList list = mlp.parameters("mlp.");                // mlp.gate.weight [256, 64], ...
+  const io::TensorMap stand_in = list.random_map(7, "stand-in");    // a checkpoint of its names
+  return stand_in;
+}
+
 }  // namespace epona::api_snippets
 
 TEST_CASE("docs/api.md: the snippets compile (see the functions above)") {
@@ -103,6 +123,7 @@ TEST_CASE("docs/api.md: the snippets compile (see the functions above)") {
   const bool taken = &s::window_snippet && &s::planning_snippet && &s::decoding_snippet && &s::loading_snippet &&
                      &s::session_snippet;
   CHECK(taken);
+  CHECK(s::parameter_tree_snippet().size() == 4);  // this one needs no files: it runs
 }
 
 // stb is compiled in exactly one translation unit, after every other include.

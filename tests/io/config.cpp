@@ -1,7 +1,7 @@
-// Tests for epona/model/config.hpp and epona/domain/config_json.hpp: the golden configs.json is
-// read and every value compared with the JSON itself (generic, no numbers of this set), the
-// derived sizes with its "derived"/"mst"/"vis_dit"/"traj_dit"/"dcae" sections, the parameter
-// counts with the weights listed in manifest.json; defaults equal the shipped model; every
+// Tests for epona/model/config.hpp, model/parameter_counts.hpp and domain/config_json.hpp: the
+// golden configs.json is read and every value compared with the JSON itself (generic, no numbers
+// of this set), the derived sizes with its "derived"/"mst"/"vis_dit"/"traj_dit"/"dcae" sections,
+// the parameter counts (from the parameter tree) with the weights listed in manifest.json; defaults equal the shipped model; every
 // invalid or malformed input is refused with an error that names the problem.
 #include <doctest/doctest.h>
 
@@ -12,6 +12,7 @@
 
 #include "epona/domain/config_json.hpp"
 #include "epona/model/config.hpp"
+#include "epona/model/parameter_counts.hpp"
 
 using namespace epona;
 using nlohmann::json;
@@ -180,17 +181,29 @@ TEST_CASE("parameter counts equal the weights listed in manifest.json") {
   const json& m = golden_manifest();
   const json& world = m.at("weights_world");
   const json& dcae = m.at("weights_dcae");
-  CHECK(c.world.mst_parameter_count() == manifest_numel(world, [](auto& k) { return starts_with(k, "module.model."); }));
-  CHECK(c.world.vis_dit_parameter_count() == manifest_numel(world, [](auto& k) { return starts_with(k, "module.dit."); }));
-  CHECK(c.world.traj_dit_parameter_count() ==
-        manifest_numel(world, [](auto& k) { return starts_with(k, "module.traj_dit."); }));
-  CHECK(c.world.parameter_count() == manifest_numel(world, [](auto&) { return true; }));
-  CHECK(c.dcae.encoder_parameter_count() == manifest_numel(dcae, [](auto& k) { return starts_with(k, "encoder."); }));
-  CHECK(c.dcae.decoder_parameter_count() ==
-        manifest_numel(dcae, [](auto& k) { return starts_with(k, "decoder.") && !is_bn_buffer(k); }));
-  CHECK(c.dcae.buffer_count() == manifest_numel(dcae, [](auto& k) { return is_bn_buffer(k); }));
-  CHECK(c.dcae.temporal_parameter_count() ==
+  const auto w = model::world_parameter_counts(c.world);
+  CHECK(w.mst == manifest_numel(world, [](auto& k) { return starts_with(k, "module.model."); }));
+  CHECK(w.vis_dit == manifest_numel(world, [](auto& k) { return starts_with(k, "module.dit."); }));
+  CHECK(w.traj_dit == manifest_numel(world, [](auto& k) { return starts_with(k, "module.traj_dit."); }));
+  CHECK(w.total == manifest_numel(world, [](auto&) { return true; }));
+  const auto d = model::dcae_parameter_counts(c.dcae);
+  CHECK(d.encoder == manifest_numel(dcae, [](auto& k) { return starts_with(k, "encoder."); }));
+  CHECK(d.decoder == manifest_numel(dcae, [](auto& k) { return starts_with(k, "decoder.") && !is_bn_buffer(k); }));
+  CHECK(d.buffers == manifest_numel(dcae, [](auto& k) { return is_bn_buffer(k); }));
+  CHECK(d.temporal() ==
         manifest_numel(dcae, [](auto& k) { return starts_with(k, "causal_time_block.") || starts_with(k, "space_block."); }));
+  CHECK(d.total == manifest_numel(dcae, [](auto& k) { return !is_bn_buffer(k); }));
+}
+
+TEST_CASE("parameter counts need only the values that shape a parameter") {
+  // epona info counts a configuration read from a checkpoint's shapes, whose RoPE split may be
+  // assumed from another model: the split shapes no parameter.
+  WorldModelConfig c;
+  c.axes_dim_dit = {2, 2, 2};
+  CHECK_THROWS_WITH_AS(c.validate(), doctest::Contains("axes_dim_dit sums to 6"), Error);
+  CHECK(model::world_parameter_counts(c).total == model::world_parameter_counts(WorldModelConfig{}).total);
+  c.n_head = 3;  // what does shape one is still refused
+  CHECK_THROWS_WITH_AS((void)model::world_parameter_counts(c), doctest::Contains("n_head (3) does not divide"), Error);
 }
 
 TEST_CASE("defaults are the shipped model (configs/dit_config_dcae_nuplan.py, dc-ae-f32c32-mix)") {
@@ -213,11 +226,12 @@ TEST_CASE("defaults are the shipped model (configs/dit_config_dcae_nuplan.py, dc
   CHECK(w.num_sampling_steps == 100);
   CHECK(w.yaw_vocab_size == 512);
   // world-model.md §9.1
-  CHECK(w.mst_parameter_count() == 1214533632.0);
-  CHECK(w.vis_dit_parameter_count() == 1318191648.0);
-  CHECK(w.traj_dit_parameter_count() == 59037443.0);
-  CHECK(w.parameter_count() == 2591762723.0);
-  CHECK_NOTHROW(w.validate());
+  const auto wn = model::world_parameter_counts(w);
+  CHECK(wn.mst == 1214533632.0);
+  CHECK(wn.vis_dit == 1318191648.0);
+  CHECK(wn.traj_dit == 59037443.0);
+  CHECK(wn.total == 2591762723.0);
+  CHECK_NOTHROW(model::validate_with_size(w));
 
   const DcaeConfig d;
   CHECK(d.encoder_width_list == DcaeConfig::Ints{128, 256, 512, 512, 1024, 1024});
@@ -226,12 +240,13 @@ TEST_CASE("defaults are the shipped model (configs/dit_config_dcae_nuplan.py, dc
   CHECK(d.token_size() == 512);
   CHECK(d.temporal_ffn_hidden == DcaeConfig::llama_ffn_hidden(32));
   // dcae.md §1
-  CHECK(d.encoder_parameter_count() == 123172384.0);
-  CHECK(d.decoder_parameter_count() == 200184076.0);
-  CHECK(d.temporal_parameter_count() == 287360.0);
-  CHECK(d.parameter_count() == 323643820.0);
-  CHECK(d.buffer_count() == 12815.0);
-  CHECK_NOTHROW(d.validate());
+  const auto dn = model::dcae_parameter_counts(d);
+  CHECK(dn.encoder == 123172384.0);
+  CHECK(dn.decoder == 200184076.0);
+  CHECK(dn.temporal() == 287360.0);
+  CHECK(dn.total == 323643820.0);
+  CHECK(dn.buffers == 12815.0);
+  CHECK_NOTHROW(model::validate_with_size(d));
 }
 
 TEST_CASE("WorldModelConfig::validate refuses each impossible value") {
@@ -269,14 +284,16 @@ TEST_CASE("WorldModelConfig::validate refuses each impossible value") {
       {[](auto& c) { c.yaw_bound = std::nan(""); }, "yaw_bound"},
       {[](auto& c) { c.num_sampling_steps = 0; }, "num_sampling_steps"},
       {[](auto& c) { c.n_embd = std::int64_t{1} << 40; }, "n_embd must be in"},
-      {[](auto& c) { c.n_embd = 1 << 20, c.n_head = 8192; }, "parameters"},
+      {[](auto& c) { c.n_layer[0] = 4000000; }, "n_layer[0] (MST blocks) must be in [1, 256]"},
+      {[](auto& c) { c.n_layer_traj[1] = 257; }, "n_layer_traj[1] (TrajDiT single blocks) must be in [0, 256]"},
+      {[](auto& c) { c.n_embd = 1 << 20, c.n_head = 8192; }, "the world model would have "},
       {[](auto& c) { c.image_h = 1 << 20, c.image_w = 1 << 20; }, "of activations"},
   };
   for (const auto& bad : cases) {
     WorldModelConfig c;
     bad.edit(c);
     CAPTURE(bad.message);
-    CHECK_THROWS_WITH_AS(c.validate(), doctest::Contains(bad.message), Error);
+    CHECK_THROWS_WITH_AS(model::validate_with_size(c), doctest::Contains(bad.message), Error);
   }
   // Several problems are reported together.
   WorldModelConfig c;
@@ -313,6 +330,8 @@ TEST_CASE("DcaeConfig::validate refuses each impossible value") {
       {[](auto& c) { c.temporal_heads = 3; }, "temporal n_heads (3)"},
       {[](auto& c) { c.temporal_dim = 64; }, "must equal latent_channels"},
       {[](auto& c) { c.temporal_blocks = 0; }, "temporal n_blocks"},
+      {[](auto& c) { c.temporal_blocks = 1 << 20; }, "temporal n_blocks must be in [1, 256]"},
+      {[](auto& c) { c.encoder_depth_list[3] = 5000; }, "encoder depth_list[3] must be in [0, 256]"},
       {[](auto& c) { c.temporal_rmsnorm_eps = -1; }, "rmsnorm_eps"},
       {[](auto& c) { c.encoder_width_list = {1 << 20, 1 << 20, 1 << 20, 1 << 20, 1 << 20, 1 << 20}; }, "parameters"},
       {[](auto& c) { c.image_h = 1 << 18, c.image_w = 1 << 18; }, "of activations"},
@@ -321,13 +340,13 @@ TEST_CASE("DcaeConfig::validate refuses each impossible value") {
     DcaeConfig c;
     bad.edit(c);
     CAPTURE(bad.message);
-    CHECK_THROWS_WITH_AS(c.validate(), doctest::Contains(bad.message), Error);
+    CHECK_THROWS_WITH_AS(model::validate_with_size(c), doctest::Contains(bad.message), Error);
   }
   DcaeConfig off;
   off.add_decoder_temporal = false;  // nuScenes: no temporal blocks, their fields do not matter
   off.temporal_dim = 0;
-  CHECK_NOTHROW(off.validate());
-  CHECK(off.temporal_parameter_count() == 0);
+  CHECK_NOTHROW(model::validate_with_size(off));
+  CHECK(model::dcae_parameter_counts(off).temporal() == 0);
 }
 
 TEST_CASE("to_json round-trips, and a plain world_model_config object is accepted") {

@@ -34,39 +34,6 @@ model::FluxDitConfig small_config(bool vis) {
   return c;
 }
 
-void make_weights(RandomWeights& w, const model::FluxDitConfig& c) {
-  const i64 D = c.hidden_size, Dm = c.mlp_ratio * D, d = D / c.num_heads;
-  w.linear(c.input_name + ".", c.in_channels, D, true);
-  w.linear("time_in.in_layer.", c.time_dim, D, true);
-  w.linear("time_in.out_layer.", D, D, true);
-  if (c.vec_in_dim) {
-    w.linear("vector_in.in_layer.", c.vec_in_dim, D, true);
-    w.linear("vector_in.out_layer.", D, D, true);
-  }
-  w.linear("cond_in.", c.context_in_dim, D, true);
-  for (i64 i = 0; i < c.depth; ++i)
-    for (const std::string s : {"img", "cond"}) {
-      const std::string p = "double_blocks." + std::to_string(i) + "." + s;
-      w.linear(p + "_mod.lin.", D, 6 * D, true);
-      w.linear(p + "_attn.qkv.", D, 3 * D, true);
-      w.add(p + "_attn.norm.query_norm.scale", {d}, 0.3, 1.0);
-      w.add(p + "_attn.norm.key_norm.scale", {d}, 0.3, 1.0);
-      w.linear(p + "_attn.proj.", D, D, true);
-      w.linear(p + "_mlp.0.", D, Dm, true);
-      w.linear(p + "_mlp.2.", Dm, D, true);
-    }
-  for (i64 j = 0; j < c.depth_single_blocks; ++j) {
-    const std::string p = "single_blocks." + std::to_string(j) + ".";
-    w.linear(p + "linear1.", D, 3 * D + Dm, true);
-    w.linear(p + "linear2.", D + Dm, D, true);
-    w.add(p + "norm.query_norm.scale", {d}, 0.3, 1.0);
-    w.add(p + "norm.key_norm.scale", {d}, 0.3, 1.0);
-    w.linear(p + "modulation.lin.", D, 3 * D, true);
-  }
-  w.linear("final_layer.linear.", D, c.out_channels, true);
-  w.linear("final_layer.adaLN_modulation.1.", D, 2 * D, true);
-}
-
 // ---- float64 reference of one batch item ----
 struct RefDit {
   const RandomWeights& w;
@@ -154,8 +121,8 @@ template <class W>
 void check_dit(bool vis, bool bf16_storage) {
   const auto c = small_config(vis);
   RandomWeights w(vis ? 101 : 202, bf16_storage);
-  make_weights(w, c);
   model::FluxDiT<Cpu, W> dit(c);
+  w.add_all(dit.parameters());
   io::BindReport report(w.map());
   dit.bind(w.map(), "", report);
   report.finish(true);

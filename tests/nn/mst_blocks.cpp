@@ -30,30 +30,6 @@ model::MstConfig small_config() {
   return c;
 }
 
-void make_weights(RandomWeights& w, const model::MstConfig& c) {
-  const i64 C = c.n_embd;
-  w.add("time_emb", {c.time_emb_rows, C}, 0.5);
-  w.linear("img_projector.0.", c.token_dim, C / 2, false);
-  w.linear("img_projector.2.", C / 2, C, false);
-  w.layer_norm("img_projector.3.", C);
-  for (const std::string p : {"pose_x", "pose_y", "yaw"}) {
-    w.linear(p + "_projector.0.", c.fourier_dim, c.projector_hidden, false);
-    w.linear(p + "_projector.2.", c.projector_hidden, C, false);
-    w.layer_norm(p + "_projector.3.", C);
-  }
-  for (i64 i = 0; i < c.n_layer; ++i)
-    for (const std::string s : {"causal_time_block", "space_block"}) {
-      const std::string p = "causal_time_space_blocks." + std::to_string(i) + "." + s + ".";
-      w.layer_norm(p + "ln1.", C);
-      w.layer_norm(p + "ln2.", C);
-      for (const std::string l : {"query", "key", "value", "proj"}) w.linear(p + "attn." + l + ".", C, C, false);
-      w.layer_norm(p + "attn.q_norm.", C);
-      w.layer_norm(p + "attn.k_norm.", C);
-      w.linear(p + "mlp.0.", C, 4 * C, false);
-      w.linear(p + "mlp.2.", 4 * C, C, false);
-    }
-}
-
 struct RefMst {
   const RandomWeights& w;
   const model::MstConfig& c;
@@ -149,8 +125,8 @@ struct RefMst {
 TEST_CASE("MST evaluate and get_pose_emb at head dim 128 vs float64") {
   const auto c = small_config();
   RandomWeights w(303);
-  make_weights(w, c);
   model::SpatialTemporalTransformer<Cpu, float> mst(c);
+  w.add_all(mst.parameters());
   io::BindReport report(w.map());
   mst.bind(w.map(), "", report);
   report.finish(true);

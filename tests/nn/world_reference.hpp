@@ -14,6 +14,7 @@
 
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
+#include "epona/nn/parameter.hpp"
 #include "../ops/reference.hpp"
 #include "reference_common.hpp"
 
@@ -61,6 +62,18 @@ class RandomWeights {
   void layer_norm(const std::string& prefix, i64 n) {
     add(prefix + "weight", {n}, 0.2, 1.0);
     add(prefix + "bias", {n}, 0.2);
+  }
+  // Every parameter of a layer's tree (its `parameters()`): matrices as `linear`'s weights,
+  // vectors named `weight` or `scale` (norm scales) near 1, others (biases) near 0. The names
+  // come from the layer; the reference reads them back by the names it expects.
+  void add_all(const epona::nn::ParamList& list) {
+    for (const auto& e : list.entries()) {
+      const bool scale = e.name.ends_with("weight") || e.name.ends_with("scale");
+      if (e.shape.size() != 1)
+        add(e.name, e.shape, 1.0 / std::sqrt(double(epona::shape_numel(e.shape) / e.shape[0])));
+      else
+        add(e.name, e.shape, 0.2, scale ? 1.0 : 0.0);
+    }
   }
   const Vec& operator[](const std::string& name) const { return values_.at(name); }
   const epona::io::TensorMap& map() const { return map_; }

@@ -119,8 +119,9 @@ TEST_CASE("config files asking for absurd sizes are refused by name before any l
   const Bad cases[] = {
       {"terabytes of activations", [](json& w) { w["image_size"] = {1 << 20, 1 << 20}; }, "of activations; the limit is"},
       {"a 10^12-wide MST", [](json& w) { w["n_embd"] = std::int64_t{1} << 40; }, "n_embd must be in [1, 16777216]"},
-      {"10^11 parameters", [](json& w) { w["n_layer"] = {4000000, 1, 1}, w["n_embd"] = 8192, w["n_head"] = 64; },
+      {"10^11 parameters", [](json& w) { w["n_layer"] = {256, 1, 1}, w["n_embd"] = 8192, w["n_head"] = 64; },
        "the world model would have "},
+      {"four million MST blocks", [](json& w) { w["n_layer"] = {4000000, 1, 1}; }, "n_layer[0] (MST blocks) must be in [1, 256]"},
       {"an int64-overflowing size", [](json& w) { w["n_embd_dit"] = 9223372036854775807.0 * 4; }, "n_embd_dit must be an integer"},
       {"a size past int64", [](json& w) { w["traj_len"] = std::uint64_t{1} << 63; }, "traj_len is out of range"},
       {"zero sampling steps", [](json& w) { w["num_sampling_steps"] = 0; }, "num_sampling_steps must be in [1,"},

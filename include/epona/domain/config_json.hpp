@@ -18,6 +18,7 @@
 #include "epona/core/printable.hpp"
 #include "epona/io/json_reader.hpp"
 #include "epona/model/config.hpp"
+#include "epona/model/parameter_counts.hpp"
 #include "epona/model/plan_choice.hpp"
 
 namespace epona::io {
@@ -320,7 +321,7 @@ inline ModelConfigs configs_from_json(const nlohmann::json& j, const std::string
   if (top.has("planner")) c.planner = planning_rule_from_json(top.object("planner"));
   auto validate = [&](auto& cfg) {
     try {
-      cfg.validate();
+      model::validate_with_size(cfg);
     } catch (const Error& e) {
       fail(source, ": ", e.what());
     }

@@ -19,13 +19,14 @@
 
 #include "epona/core/tensor.hpp"
 #include "epona/io/tensor_map.hpp"
-#include "epona/model/config.hpp"
+#include "epona/model/config/dcae_config.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/nn/conv2d.hpp"
 #include "epona/nn/blocks/dcae_blocks.hpp"
 #include "epona/nn/feature_map.hpp"
 #include "epona/nn/blocks/llama_block.hpp"
 #include "epona/nn/norm2d.hpp"
+#include "epona/nn/parameter.hpp"
 #include "epona/nn/pixel_shuffle.hpp"
 
 namespace epona {
@@ -428,11 +429,16 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
   using Act = activation_t<B, T>;  // feature maps inside (float on the CPU; T on CUDA)
   using Map = Tensor<Act, B>;
 
-  explicit Dcae(DcaeConfig config) : config_((config.validate(), std::move(config))) {
-    encoder = DcaeEncoder<B, T>(config_);
-    decoder = DcaeDecoder<B, T>(config_);
-    if (config_.add_decoder_temporal) temporal = DcaeTemporalBlocks<B, T>(config_);
+  // The layers, sized from `config` (validated, its sizes included); no weights until bound or
+  // randomised.
+  explicit Dcae(DcaeConfig config) : Dcae(std::move(config), Skeleton{}) {
+    config_.check_size(this->parameters().learned_count());
   }
+
+  // The parameter tree of a configuration without weights (names, shapes; counts by prefix
+  // "encoder.", "decoder.", "causal_time_block.", "space_block."): the layers' skeleton visited
+  // with nn::ParamList. `config` is validated, but for its sizes (DcaeConfig::check_size).
+  static nn::ParamList parameter_list(const DcaeConfig& config) { return Dcae(config, Skeleton{}).parameters(); }
 
   // Binds every parameter from `weights` (official names, no prefix); throws one error naming
   // every missing / mis-shaped key, and with `strict` every unexpected one. BatchNorm's
@@ -495,6 +501,13 @@ class Dcae : public nn::Bindable<Dcae<B, T>> {
   DcaeTemporalBlocks<B, T> temporal;  // empty without add_decoder_temporal
 
  private:
+  struct Skeleton {};
+  Dcae(DcaeConfig config, Skeleton) : config_((config.validate(), std::move(config))) {
+    encoder = DcaeEncoder<B, T>(config_);
+    decoder = DcaeDecoder<B, T>(config_);
+    if (config_.add_decoder_temporal) temporal = DcaeTemporalBlocks<B, T>(config_);
+  }
+
   static void check_multiple(std::int64_t h, std::int64_t w, const char* what) {
     const std::int64_t f = constants::dcae_downsample;
     EPONA_CHECK(h > 0 && w > 0 && h % f == 0 && w % f == 0, what, " size ", h, "x", w, " is not a multiple of ", f);

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <functional>
@@ -24,11 +25,12 @@
 #include "epona/flow/solvers.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/tensor_map.hpp"
-#include "epona/model/config.hpp"
+#include "epona/model/config/world_config.hpp"
 #include "epona/model/flux_dit.hpp"
 #include "epona/model/mst.hpp"
 #include "epona/model/pose_tokenizer.hpp"
 #include "epona/nn/backend_context.hpp"
+#include "epona/nn/parameter.hpp"
 
 namespace epona {
 
@@ -156,6 +158,7 @@ class WorldModel {
   // other keys, e.g. a merged DC-AE, are ignored). Every problem is reported at once.
   static WorldModel load(const io::TensorMap& weights, const WorldModelConfig& config = {}) {
     config.validate();
+    config.check_size(parameter_list(config).count());
     WorldModel m(config);
     io::BindReport report(weights);
     bool any_traj = false;  // named first: the list of its missing keys may get truncated
@@ -178,9 +181,27 @@ class WorldModel {
   // The parameter tree of the three networks under their official prefixes (nn/parameter.hpp).
   template <class V>
   void visit_params(V& v) {
-    mst_.visit_params("module.model.", v);
-    vis_.visit_params("module.dit.", v);
-    traj_.visit_params("module.traj_dit.", v);
+    visit_parts(mst_, vis_, traj_, v);
+  }
+
+  // The parameter tree of a configuration without weights (names, shapes; counts by prefix):
+  // the three networks' skeleton visited with nn::ParamList. Values that shape no parameter need
+  // not fit: the DiTs' RoPE split (a configuration read from a checkpoint's shapes may assume
+  // one from another model) and the frame size and window, which size the MST's RoPE table (the
+  // one thing its constructor allocates: the skeleton's is 1x1, one frame). The rest is
+  // validated; the sizes are not (WorldModelConfig::check_size).
+  static nn::ParamList parameter_list(const WorldModelConfig& config) {
+    WorldModelConfig shapes = config;
+    fit_rope_axes(shapes.axes_dim_dit, shapes.n_embd_dit, shapes.n_head_dit);
+    fit_rope_axes(shapes.axes_dim_dit_traj, shapes.n_embd_dit_traj, shapes.n_head_dit_traj);
+    shapes.validate();
+    MstConfig mst_shapes = MstConfig::from(shapes);
+    mst_shapes.condition_frames = mst_shapes.latent_h = mst_shapes.latent_w = 1;
+    SpatialTemporalTransformer<B, W> mst(mst_shapes);
+    FluxDiT<B, W> vis(FluxDitConfig::vis(shapes)), traj(FluxDitConfig::traj(shapes));
+    nn::ParamList list;
+    visit_parts(mst, vis, traj, list);
+    return list;
   }
 
   const WorldModelConfig& config() const { return cfg_; }
@@ -309,6 +330,21 @@ class WorldModel {
  private:
   explicit WorldModel(const WorldModelConfig& c)
       : cfg_(c), mst_(MstConfig::from(c)), vis_(FluxDitConfig::vis(c)), traj_(FluxDitConfig::traj(c)) {}
+
+  // A RoPE split of the head dim width/heads that validate() accepts, where one exists.
+  static void fit_rope_axes(std::array<std::int64_t, 3>& axes, std::int64_t width, std::int64_t heads) {
+    if (width <= 0 || heads <= 0 || width % heads != 0) return;
+    const std::int64_t head_dim = width / heads;
+    if (head_dim >= 6 && head_dim % 2 == 0) axes = {2, 2, head_dim - 4};
+  }
+
+  // The official prefixes of the three networks.
+  template <class V>
+  static void visit_parts(SpatialTemporalTransformer<B, W>& mst, FluxDiT<B, W>& vis, FluxDiT<B, W>& traj, V& v) {
+    mst.visit_params("module.model.", v);
+    vis.visit_params("module.dit.", v);
+    traj.visit_params("module.traj_dit.", v);
+  }
 
   static void check_finite(const Tensor<float, Cpu>& t, const char* what) {
     for (std::int64_t i = 0; i < t.numel(); ++i)

@@ -199,12 +199,25 @@ class ParamList {
   const std::vector<Entry>& entries() const { return entries_; }
   // BatchNorm counters (int64 scalars, not learnable).
   const std::vector<std::string>& counters() const { return counters_; }
-  // Values of the parameters whose names start with `prefix`.
+  // Values of the parameters whose names start with `prefix` (BatchNorm's running statistics
+  // included: they are bound and randomised like the rest).
   double count(const std::string& prefix = "") const {
-    double n = 0;
-    for (const auto& e : entries_)
-      if (e.name.compare(0, prefix.size(), prefix) == 0) n += double(shape_numel(e.shape));
+    return sum(prefix, [](const std::string&) { return true; });
+  }
+  // Learned values only: BatchNorm's `running_mean` / `running_var` left out (a state_dict's
+  // parameters as PyTorch counts them).
+  double learned_count(const std::string& prefix = "") const {
+    return sum(prefix, [](const std::string& name) { return !is_running_stat(name); });
+  }
+  // BatchNorm's stored, unlearned elements: running statistics plus one per counter.
+  double buffer_count(const std::string& prefix = "") const {
+    double n = sum(prefix, is_running_stat);
+    for (const auto& c : counters_)
+      if (c.compare(0, prefix.size(), prefix) == 0) n += 1;
     return n;
+  }
+  static bool is_running_stat(const std::string& name) {
+    return name.ends_with("running_mean") || name.ends_with("running_var");
   }
   // A float32 weight map holding RandomValues under every name (a checkpoint's stand-in).
   io::TensorMap random_map(std::uint64_t seed, const std::string& source) const {
@@ -223,6 +236,14 @@ class ParamList {
   }
 
  private:
+  template <class Keep>
+  double sum(const std::string& prefix, Keep keep) const {
+    double n = 0;
+    for (const auto& e : entries_)
+      if (e.name.compare(0, prefix.size(), prefix) == 0 && keep(e.name)) n += double(shape_numel(e.shape));
+    return n;
+  }
+
   std::vector<Entry> entries_;
   std::vector<std::string> counters_;
 };
