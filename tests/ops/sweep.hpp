@@ -83,7 +83,10 @@ inline const std::vector<AttnShape> kAttention{
     {1, 2, 3, 11, 32, epona::Mask::None, false},   {1, 2, 9, 9, 128, epona::Mask::None, true},
     {1, 2, 7, 12, 24, epona::Mask::Causal, false}, {2, 1, 20, 33, 20, epona::Mask::None, true},
     {1, 2, 70, 130, 64, epona::Mask::None, false}, {1, 1, 65, 65, 128, epona::Mask::Causal, true}};
-inline const std::vector<QkShape> kQkNorms{{5, 7, 2, 64}, {3, 3, 4, 32}, {16, 16, 1, 128}, {9, 4, 3, 16}};
+// The GPU's fused layer_norm_rope_qk takes only rows its warp-per-row LayerNorm would (at least
+// 8 per multiprocessor: 1056 on an H200), hence the long shape; it declines the others.
+inline const std::vector<QkShape> kQkNorms{{5, 7, 2, 64}, {3, 3, 4, 32}, {16, 16, 1, 128}, {9, 4, 3, 16},
+                                           {1100, 1060, 2, 64}};
 inline const std::vector<AttnShape> kQkNormAttention{{2, 4, 16, 16, 128, epona::Mask::None, false},
                                                      {1, 8, 9, 9, 128, epona::Mask::None, false}};
 inline const std::vector<FrameShape> kFrames{{2, 5, 3, 2, 64}, {3, 4, 2, 4, 128}, {1, 7, 0, 0, 256}, {2, 3, 1, 2, 40}};

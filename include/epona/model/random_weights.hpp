@@ -2,8 +2,8 @@
 // official key (docs/checkpoints.md: `module.model.`, `module.dit.`, `module.traj_dit.`),
 // sized from a WorldModelConfig: for benchmarks and examples at any size without a checkpoint.
 // The names and shapes are the parameter tree's (WorldModel::parameter_list), the values
-// nn::RandomValues' (matrices ~ U(±sqrt(3/fan_in)) so activations stay O(1); norm scales near 1,
-// biases near 0).
+// nn::RandomValues' under WeightInit::torch_linear (matrices ~ U(±1/sqrt(fan_in)), as PyTorch
+// initialises the official nn.Linear layers; norm scales near 1, biases near 0).
 #pragma once
 
 #include <cstdint>
@@ -19,7 +19,7 @@ inline io::TensorMap random_world_weights(const WorldModelConfig& c, std::uint64
   c.validate();
   const nn::ParamList list = WorldModel<Cpu, float>::parameter_list(c);
   c.check_size(list.count());
-  return list.random_map(seed, "random world weights");
+  return list.random_map(seed, "random world weights", nn::WeightInit::torch_linear);
 }
 
 }  // namespace epona::model

@@ -122,13 +122,18 @@ class ParamBinder {
   std::set<std::string> counters_;
 };
 
+// How large random matrices are: `unit_variance` uniform with variance 1/fan_in (activations stay
+// O(1); the DC-AE's convolutions), or `torch_linear` U(±1/sqrt(fan_in)) as PyTorch initialises
+// an untrained nn.Linear (the world model's layers; the GPU tests' bf16 bounds were set on it).
+enum class WeightInit { unit_variance, torch_linear };
+
 // Seeded random values of a sensible scale for a parameter, by its shape and name: matrices and
-// conv weights uniform with variance 1/fan_in (activations stay O(1)); vectors named `weight`,
-// `scale` or `running_var` (norm scales, variances) near 1; other vectors (biases, means) near 0.
-// Values depend only on the seed and the order of the calls, not on the backend.
+// conv weights by the WeightInit; vectors named `weight`, `scale` or `running_var` (norm scales,
+// variances) near 1; other vectors (biases, means) near 0 (the spread of vectors halved under
+// torch_linear). Values depend only on the seed and the order of the calls, not on the backend.
 class RandomValues {
  public:
-  explicit RandomValues(std::uint64_t seed) : rng_(seed) {}
+  explicit RandomValues(std::uint64_t seed, WeightInit init = WeightInit::unit_variance) : rng_(seed), init_(init) {}
 
   template <class T>
   Tensor<T, Cpu> operator()(const std::string& name, const Shape& shape) {
@@ -137,12 +142,13 @@ class RandomValues {
       const std::string suffix(s);
       return name.size() >= suffix.size() && name.compare(name.size() - suffix.size(), suffix.size(), suffix) == 0;
     };
-    float center = 0.f, half_width = 0.1f;
+    const bool torch = init_ == WeightInit::torch_linear;
+    float center = 0.f, half_width = torch ? 0.05f : 0.1f;
     if (shape.size() != 1) {
       const std::int64_t fan_in = shape.empty() || shape[0] == 0 ? 1 : std::max<std::int64_t>(1, shape_numel(shape) / shape[0]);
-      half_width = std::sqrt(3.0f / static_cast<float>(fan_in));
+      half_width = std::sqrt((torch ? 1.0f : 3.0f) / static_cast<float>(fan_in));
     } else if (ends_with("weight") || ends_with("scale") || ends_with("running_var")) {
-      center = 1.f, half_width = 0.2f;
+      center = 1.f, half_width = torch ? 0.1f : 0.2f;
     }
     // 24 random bits per value -> uniform in [center - half_width, center + half_width): one
     // generator step per value (the real model has 324 M of them).
@@ -156,6 +162,7 @@ class RandomValues {
 
  private:
   std::mt19937_64 rng_;
+  WeightInit init_;
 };
 
 // Fills parameter slots with RandomValues (benchmarks, tests, examples without a checkpoint).
@@ -220,9 +227,10 @@ class ParamList {
     return name.ends_with("running_mean") || name.ends_with("running_var");
   }
   // A float32 weight map holding RandomValues under every name (a checkpoint's stand-in).
-  io::TensorMap random_map(std::uint64_t seed, const std::string& source) const {
+  io::TensorMap random_map(std::uint64_t seed, const std::string& source,
+                           WeightInit init = WeightInit::unit_variance) const {
     io::TensorMap map(source);
-    RandomValues values(seed);
+    RandomValues values(seed, init);
     for (const auto& e : entries_) {
       auto data = std::make_shared<Tensor<float, Cpu>>(values.operator()<float>(e.name, e.shape));
       io::RawTensor r;
