@@ -20,11 +20,11 @@
 //   CPU only:  softmax_rows, fill.
 //   CUDA only: linear_accumulate, linear_group, add_gated_layer_norm_modulate reading x and
 //              writing x_out, convert, layer_norm_rope_qk, qk_norm_rope (segments),
-//              try_assemble_frame_tokens, attention_qk_layer_norm (the CPU's layers compose the
-//              separate ops instead). layer_norm_rope_qk, try_assemble_frame_tokens and
+//              try_assemble_frame_tokens, attention_qk_layer_norm, norm_2d_add, rms_norm_rows,
+//              conv2d_residual (the CPU's layers compose the separate ops instead). layer_norm_rope_qk, try_assemble_frame_tokens and
 //              attention_qk_layer_norm may decline a shape (return false): counted, not failed.
-//   Not in the sweep yet (covered by tests/cuda/*.cu against the CPU): linear_batched,
-//   conv2d_residual, norm_2d_add, rms_norm_rows, the fused shuffles (CUDA only);
+//   Not in the sweep yet (covered by tests/cuda/*.cu against the CPU): linear_batched called
+//   directly (linear_group reaches it with equal strides), the fused shuffles (CUDA only);
 //   BatchNorm folding (cuda/conv/conv_fold.cuh) is a bind-time weight transform, not an op.
 //
 // To add an op: its float64 loop in reference.hpp, its shapes in the table below (every shape
@@ -150,6 +150,18 @@ concept HasAttentionQkLayerNorm = requires(Ctx& cx, const A* p, A* o, const floa
 template <class Ctx, class A>
 concept HasConvert = requires(Ctx& cx, const float* s, A* p) { convert(cx, s, p, i64{}); };
 template <class Ctx, class A>
+concept HasNorm2dAdd = requires(Ctx& cx, const A* p, A* q, const float* f) {
+  norm_2d_add(cx, p, q, i64{}, i64{}, f, f, f, f, 0.f);
+};
+template <class Ctx, class A>
+concept HasRmsNormRows = requires(Ctx& cx, const float* x, A* y, const float* f) {
+  rms_norm_rows(cx, x, y, i64{}, i64{}, f, 0.f);
+};
+template <class Ctx, class A>
+concept HasConv2dResidual = requires(Ctx& cx, const A* p, A* q, epona::Conv2dShape s) {
+  conv2d_residual(cx, p, p, p, q, s);
+};
+template <class Ctx, class A>
 concept HasSoftmaxRows = requires(Ctx& cx, A* p) { softmax_rows(cx, p, i64{}, i64{}); };
 template <class Ctx, class A>
 concept HasFill = requires(Ctx& cx, A* p) { fill(cx, p, 0.f, i64{}); };
@@ -158,7 +170,8 @@ template <class Ctx, class A>
 concept HasCudaOnlyOps = HasLinearAccumulate<Ctx, A> && HasLinearGroup<Ctx, A> &&
                          HasSeparateAddGatedLnModulate<Ctx, A> && HasLayerNormRopeQk<Ctx, A> &&
                          HasQkNormRope<Ctx, A> && HasFrameTokens<Ctx, A> && HasAttentionQkLayerNorm<Ctx, A> &&
-                         HasConvert<Ctx, A>;
+                         HasConvert<Ctx, A> && HasNorm2dAdd<Ctx, A> && HasRmsNormRows<Ctx, A> &&
+                         HasConv2dResidual<Ctx, A>;
 template <class Ctx, class A>
 concept HasCpuOnlyOps = HasSoftmaxRows<Ctx, A> && HasFill<Ctx, A>;
 
@@ -771,6 +784,28 @@ void sweep(Context<B>& ctx) {
                  epona::test::rel_max(g.data(), ref.data(), i64(g.size())));
     }
   });
+  // residual += conv(x) + bias, no activation (a ResBlock's branch with its BatchNorm folded in).
+  run_op<B, W>(ctx, "conv2d_residual", kReduction, 39, [&](Case<B>& c, OpLog& log) {
+    if constexpr (HasConv2dResidual<Ctx, A>) {
+      for (const auto [N, C, H, Wd, O, k, groups, with_bias, act] : kConvs) {
+        (void)with_bias, (void)act;
+        const i64 HW = H * Wd, cg = C / groups;
+        Vec x, w, b, r;
+        c.template in<A>(N * C * HW, x);
+        c.template in<A>(O * cg * k * k, w, -0.5f, 0.5f);
+        auto db = c.template in<A>(O, b);
+        c.template in<A>(N * O * HW, r, -1.f, 1.f);
+        auto dx = c.template put<A>(to_layout<B>(x, N, C, HW));
+        auto dw = c.template put<A>(to_layout<B>(w, O, cg, k * k));
+        auto dr = c.template put<A>(to_layout<B>(r, N, O, HW));
+        conv2d_residual(ctx, dx.data(), dw.data(), db.data(), dr.data(), epona::Conv2dShape{N, C, H, Wd, O, k, groups});
+        Vec ref = ops_ref::conv2d(x, N, C, H, Wd, w, &b, O, k, groups);
+        for (std::size_t i = 0; i < ref.size(); ++i) ref[i] += r[i];
+        log.record(shape("N", N, "C", C, "H", H, "W", Wd, "O", O, "k", k, "groups", groups),
+                   c.error(dr, to_layout<B>(ref, N, O, HW)));
+      }
+    }
+  });
   run_op<B, W>(ctx, "apply_conv_act", kPointwise, 27, [&](Case<B>& c, OpLog& log) {
     for (const i64 n : kLengths)
       for (const ConvAct act : kConvActs) {
@@ -821,6 +856,46 @@ void sweep(Context<B>& ctx) {
   };
   norm2d("rms_norm_2d", 29, false);
   norm2d("batch_norm_2d", 30, true);
+  // residual += norm(branch) in one pass (BatchNorm with running statistics, else RMSNorm2d).
+  const auto norm2d_add = [&](const char* op, std::uint32_t seed, bool batch) {
+    run_op<B, W>(ctx, op, kPointwise, seed, [&](Case<B>& c, OpLog& log) {
+      if constexpr (HasNorm2dAdd<Ctx, A>) {
+        for (const auto [N, C, HW] : kMaps) {
+          Vec x, r, w, b, mean, var;
+          c.template in<A>(N * C * HW, x, -2.f, 3.f);
+          c.template in<A>(N * C * HW, r, -1.f, 1.f);
+          auto dw = c.template in<float>(C, w, 0.5f, 1.5f);
+          auto db = c.template in<float>(C, b);
+          auto dmean = c.template in<float>(C, mean);
+          auto dvar = c.template in<float>(C, var, 0.25f, 2.f);
+          auto dx = c.template put<A>(to_layout<B>(x, N, C, HW));
+          auto dr = c.template put<A>(to_layout<B>(r, N, C, HW));
+          norm_2d_add(ctx, dx.data(), dr.data(), N * HW, C, dw.data(), db.data(), batch ? dmean.data() : nullptr,
+                      batch ? dvar.data() : nullptr, eps);
+          Vec ref = batch ? ops_ref::batch_norm_2d(x, N, C, HW, w, b, mean, var, eps)
+                          : ops_ref::rms_norm_2d(x, N, C, HW, w, b, eps);
+          for (std::size_t i = 0; i < ref.size(); ++i) ref[i] += r[i];
+          log.record(shape("N", N, "C", C, "HW", HW), c.error(dr, to_layout<B>(ref, N, C, HW)));
+        }
+      }
+    });
+  };
+  norm2d_add("norm_2d_add (RMSNorm2d)", 36, false);
+  norm2d_add("norm_2d_add (BatchNorm2d)", 37, true);
+  // RMSNorm without bias over float32 rows into the activation type (the temporal blocks' norms):
+  // the map reference over C = n channels of one-pixel maps, no bias.
+  run_op<B, W>(ctx, "rms_norm_rows", kPointwise, 38, [&](Case<B>& c, OpLog& log) {
+    if constexpr (HasRmsNormRows<Ctx, A>) {
+      for (const auto [rows, n] : kRows) {
+        Vec x, w;
+        auto dx = c.template in<float>(rows * n, x, -2.f, 3.f);
+        auto dw = c.template in<float>(n, w, 0.5f, 1.5f);
+        auto dy = c.template out<A>(rows * n);
+        rms_norm_rows(ctx, dx.data(), dy.data(), rows, n, dw.data(), eps);
+        log.record(shape("rows", rows, "n", n), c.error(dy, ops_ref::rms_norm_2d(x, rows, n, 1, w, Vec(n, 0.0), eps)));
+      }
+    }
+  });
   const auto shuffle_op = [&](const char* op, std::uint32_t seed, bool up) {
     run_op<B, W>(ctx, op, kPointwise, seed, [&](Case<B>& c, OpLog& log) {
       for (const auto [N, C, H, Wd, r, Co] : up ? kShuffles : kUnshuffles) {

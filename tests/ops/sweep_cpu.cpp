@@ -61,4 +61,7 @@ static_assert(!ops_sweep::HasLinearAccumulate<epona::cpu::Context, float> &&
               !ops_sweep::HasQkNormRope<epona::cpu::Context, float> &&
               !ops_sweep::HasFrameTokens<epona::cpu::Context, float> &&
               !ops_sweep::HasAttentionQkLayerNorm<epona::cpu::Context, float> &&
-              !ops_sweep::HasConvert<epona::cpu::Context, float>);
+              !ops_sweep::HasConvert<epona::cpu::Context, float> &&
+              !ops_sweep::HasNorm2dAdd<epona::cpu::Context, float> &&
+              !ops_sweep::HasRmsNormRows<epona::cpu::Context, float> &&
+              !ops_sweep::HasConv2dResidual<epona::cpu::Context, float>);
