@@ -47,6 +47,7 @@
 #include <vector>
 
 #include "../metrics.hpp"
+#include "epona/core/backend_capabilities.hpp"
 #include "epona/core/backend_traits.hpp"
 #include "epona/core/dtype.hpp"
 #include "epona/core/kernel_options.hpp"
@@ -113,40 +114,13 @@ inline constexpr Tol kReduction{1e-4, 2e-2};
 // ---- the ops that exist on one backend only, as concepts (Ctx a backend context, A its
 // activation type): the sweep runs each where it holds, and each program static_asserts which
 // hold on its backend, so a misspelt signature cannot silently skip an op ----
-// A segment of qk_norm_rope: keys of rows [first, end), queries of rows [q_first, end).
-struct Segment {
-  i64 first, q_first, end;
-  const float* q_scale;
-  const float* k_scale;
-};
 template <class Ctx, class A>
 concept HasLinearAccumulate = requires(Ctx& cx, const A* p, float* y) {
   linear_accumulate(cx, p, i64{}, p, y, i64{}, i64{}, i64{}, i64{});
 };
-template <class Ctx, class A>
-concept HasLinearGroup = requires(Ctx& cx, const A* p, A* y, std::vector<const A*> v) {
-  linear_group(cx, p, i64{}, i64{}, v, v, y, i64{}, i64{}, i64{}, i64{}, i64{}, Epilogue::None);
-};
-template <class Ctx, class A>
-concept HasSeparateAddGatedLnModulate = requires(Ctx& cx, A* p) {
-  add_gated_layer_norm_modulate(cx, p, p, p, p, p, i64{}, i64{}, p, p, 0.f);
-};
-template <class Ctx, class A>
-concept HasLayerNormRopeQk = requires(Ctx& cx, A* p, const float* f) {
-  layer_norm_rope_qk(cx, p, i64{}, p, i64{}, i64{}, f, f, 0.f, f, f, 0.f, i64{}, f, f);
-};
-template <class Ctx, class A>
-concept HasQkNormRope = requires(Ctx& cx, A* p, const float* f, std::array<Segment, 2> s) {
-  qk_norm_rope(cx, p, i64{}, i64{}, i64{}, i64{}, 0.f, f, f, s);
-};
-template <class Ctx, class A>
-concept HasFrameTokens = requires(Ctx& cx, const A* p, const float* f, float* o, epona::FrameTokens t) {
-  try_assemble_frame_tokens(cx, p, f, f, f, f, o, t);
-};
-template <class Ctx, class A>
-concept HasAttentionQkLayerNorm = requires(Ctx& cx, const A* p, A* o, const float* f, epona::AttentionShape a) {
-  attention_qk_layer_norm(cx, p, p, p, o, a, f, f, 0.f, f, f, 0.f);
-};
+// The GPU's fused kernels are the library's named capabilities (core/backend_capabilities.hpp:
+// GroupedLinear, AddGatedNormFromInput, QkLayerNormRope, JointQkNormRope, FusedFrameTokens,
+// ShortAttentionQkNorm), so the sweep checks the very concepts the layers choose them by.
 template <class Ctx, class A>
 concept HasConvert = requires(Ctx& cx, const float* s, A* p) { convert(cx, s, p, i64{}); };
 template <class Ctx, class A>
@@ -167,9 +141,9 @@ template <class Ctx, class A>
 concept HasFill = requires(Ctx& cx, A* p) { fill(cx, p, 0.f, i64{}); };
 // Every one-backend op on the GPU (the CPU has exactly the last two).
 template <class Ctx, class A>
-concept HasCudaOnlyOps = HasLinearAccumulate<Ctx, A> && HasLinearGroup<Ctx, A> &&
-                         HasSeparateAddGatedLnModulate<Ctx, A> && HasLayerNormRopeQk<Ctx, A> &&
-                         HasQkNormRope<Ctx, A> && HasFrameTokens<Ctx, A> && HasAttentionQkLayerNorm<Ctx, A> &&
+concept HasCudaOnlyOps = HasLinearAccumulate<Ctx, A> && epona::GroupedLinear<Ctx, A> &&
+                         epona::AddGatedNormFromInput<Ctx, A> && epona::QkLayerNormRope<Ctx, A> &&
+                         epona::JointQkNormRope<Ctx, A> && epona::FusedFrameTokens<Ctx, A> && epona::ShortAttentionQkNorm<Ctx, A> &&
                          HasConvert<Ctx, A> && HasNorm2dAdd<Ctx, A> && HasRmsNormRows<Ctx, A> &&
                          HasConv2dResidual<Ctx, A>;
 template <class Ctx, class A>
@@ -361,7 +335,7 @@ void sweep(Context<B>& ctx) {
 
   // linear_group: `count` products of one x (or of x blocks x_stride apart) into y blocks.
   run_op<B, W>(ctx, "linear_group", kReduction, 3, [&](Case<B>& c, OpLog& log) {
-    if constexpr (HasLinearGroup<Ctx, A>) {
+    if constexpr (epona::GroupedLinear<Ctx, A>) {
       for (const auto [M, N, K] : kGemms)
         for (const i64 x_stride : {i64{0}, M * K}) {
           const i64 count = 3;
@@ -489,7 +463,7 @@ void sweep(Context<B>& ctx) {
   // x += gate ⊙ y; out = modulate(x): in place, and (where it exists) reading x, writing x_out.
   const auto agln = [&](const char* op, std::uint32_t seed, bool separate) {
     run_op<B, W>(ctx, op, kPointwise, seed, [&](Case<B>& c, OpLog& log) {
-      constexpr bool has_separate = HasSeparateAddGatedLnModulate<Ctx, A>;
+      constexpr bool has_separate = epona::AddGatedNormFromInput<Ctx, A>;
       if (separate && !has_separate) return;
       for (const auto [rows, n] : kRows) {
         Vec x, y, g, sh, sc;
@@ -549,7 +523,7 @@ void sweep(Context<B>& ctx) {
   // q = LN_q(q), k = LN_k(k) (affine, over the whole row) then RoPE on both, in place; the op may
   // decline a width (returns false): such shapes are counted, not failed.
   run_op<B, W>(ctx, "layer_norm_rope_qk", kPointwise, 34, [&](Case<B>& c, OpLog& log) {
-    if constexpr (HasLayerNormRopeQk<Ctx, A>) {
+    if constexpr (epona::QkLayerNormRope<Ctx, A>) {
       for (const auto [rows_q, rows_k, heads, hd] : kQkNorms) {
         const i64 n = heads * hd;
         Vec q, k, qw, qb, kw, kb;
@@ -577,7 +551,7 @@ void sweep(Context<B>& ctx) {
   // The joint QK RMSNorm + RoPE over segments of a packed qkv buffer: keys of rows [first, end),
   // queries of rows [q_first, end), each with its segment's scales; other rows stay as they were.
   run_op<B, W>(ctx, "qk_norm_rope (segments)", kPointwise, 35, [&](Case<B>& c, OpLog& log) {
-    if constexpr (HasQkNormRope<Ctx, A>) {
+    if constexpr (epona::JointQkNormRope<Ctx, A>) {
       for (const auto [rows_q, rows_k, heads, hd] : kQkNorms) {
         const i64 rows = rows_q + rows_k, hw = heads * hd, stride = 3 * hw;
         Vec x, qs0, ks0, qs1, ks1;
@@ -589,6 +563,7 @@ void sweep(Context<B>& ctx) {
         const auto t = c.rope_tables(rows, hd);
         // Segment 0: rows [0, rows_q), queries from row 1 (row 0's queries untouched); segment 1
         // the rest.
+        using Segment = epona::QkNormRopeSegment;
         const std::array<Segment, 2> segs{Segment{0, std::min<i64>(1, rows_q), rows_q, dqs0.data(), dks0.data()},
                                           Segment{rows_q, rows_q, rows, dqs1.data(), dks1.data()}};
         qk_norm_rope(ctx, dx.data(), stride, hw, heads, hd, eps, t.cos.data(), t.sin.data(), segs);
@@ -613,7 +588,7 @@ void sweep(Context<B>& ctx) {
   // The MST's frame tokens (FrameTokens): LN of the image rows + time embedding, action rows +
   // time embedding, into float32 tokens; the op may decline (returns false).
   run_op<B, W>(ctx, "try_assemble_frame_tokens", kPointwise, 36, [&](Case<B>& c, OpLog& log) {
-    if constexpr (HasFrameTokens<Ctx, A>) {
+    if constexpr (epona::FusedFrameTokens<Ctx, A>) {
       for (const auto [frames, image_rows, actions, entries, width] : kFrames) {
         const epona::FrameTokens ft{frames, image_rows, actions, entries, width, eps};
         Vec img, act, te, w, b;
@@ -636,7 +611,7 @@ void sweep(Context<B>& ctx) {
   // Attention over LN_q(q), LN_k(k) (each over a token's heads·head_dim channels, affine) in one
   // kernel; q, k only read; it declines what it does not fit (float32, long sequences, ...).
   run_op<B, W>(ctx, "attention_qk_layer_norm", kReduction, 37, [&](Case<B>& c, OpLog& log) {
-    if constexpr (HasAttentionQkLayerNorm<Ctx, A>) {
+    if constexpr (epona::ShortAttentionQkNorm<Ctx, A>) {
       for (const auto [seqs, heads, lq, lk, d, mask, additive] : kQkNormAttention) {
         const i64 hd = heads * d, kv_row = 2 * hd;
         Vec q, kv, qw, qb, kw, kb;
@@ -833,23 +808,38 @@ void sweep(Context<B>& ctx) {
         log.record(shape("rows", rows, "n", n, label(act)), epona::test::rel_max(kept.data(), ref.data(), i64(kept.size())));
       }
   });
+  // A channel norm's input map and parameters (in the backend's map layout), and its float64
+  // result: BatchNorm with running statistics, else RMSNorm2d.
+  struct NormCase {
+    Vec x, w, b, mean, var;
+    Buf<B, A> dx;
+    Buf<B, float> dw, db, dmean, dvar;
+    Vec reference(i64 N, i64 C, i64 HW, bool batch, float eps) const {
+      return batch ? ops_ref::batch_norm_2d(x, N, C, HW, w, b, mean, var, eps)
+                   : ops_ref::rms_norm_2d(x, N, C, HW, w, b, eps);
+    }
+  };
+  const auto norm_case = [&](Case<B>& c, i64 N, i64 C, i64 HW) {
+    NormCase n;
+    c.template in<A>(N * C * HW, n.x, -2.f, 3.f);
+    n.dw = c.template in<float>(C, n.w, 0.5f, 1.5f);
+    n.db = c.template in<float>(C, n.b);
+    n.dmean = c.template in<float>(C, n.mean);
+    n.dvar = c.template in<float>(C, n.var, 0.25f, 2.f);
+    n.dx = c.template put<A>(to_layout<B>(n.x, N, C, HW));
+    return n;
+  };
   const auto norm2d = [&](const char* op, std::uint32_t seed, bool batch) {
     run_op<B, W>(ctx, op, kPointwise, seed, [&](Case<B>& c, OpLog& log) {
       for (const auto [N, C, HW] : kMaps) {
-        Vec x, w, b, mean, var;
-        c.template in<A>(N * C * HW, x, -2.f, 3.f);
-        auto dw = c.template in<float>(C, w, 0.5f, 1.5f);
-        auto db = c.template in<float>(C, b);
-        auto dmean = c.template in<float>(C, mean);
-        auto dvar = c.template in<float>(C, var, 0.25f, 2.f);
-        auto dx = c.template put<A>(to_layout<B>(x, N, C, HW));
+        const NormCase n = norm_case(c, N, C, HW);
         auto dy = c.template out<A>(N * C * HW);
         if (batch)
-          batch_norm_2d(ctx, dx.data(), dy.data(), N, C, HW, dw.data(), db.data(), dmean.data(), dvar.data(), eps);
+          batch_norm_2d(ctx, n.dx.data(), dy.data(), N, C, HW, n.dw.data(), n.db.data(), n.dmean.data(), n.dvar.data(),
+                        eps);
         else
-          rms_norm_2d(ctx, dx.data(), dy.data(), N, C, HW, dw.data(), db.data(), eps);
-        const Vec ref = batch ? ops_ref::batch_norm_2d(x, N, C, HW, w, b, mean, var, eps)
-                              : ops_ref::rms_norm_2d(x, N, C, HW, w, b, eps);
+          rms_norm_2d(ctx, n.dx.data(), dy.data(), N, C, HW, n.dw.data(), n.db.data(), eps);
+        const Vec ref = n.reference(N, C, HW, batch, eps);
         log.record(shape("N", N, "C", C, "HW", HW), c.error(dy, to_layout<B>(ref, N, C, HW)));
       }
     });
@@ -861,19 +851,13 @@ void sweep(Context<B>& ctx) {
     run_op<B, W>(ctx, op, kPointwise, seed, [&](Case<B>& c, OpLog& log) {
       if constexpr (HasNorm2dAdd<Ctx, A>) {
         for (const auto [N, C, HW] : kMaps) {
-          Vec x, r, w, b, mean, var;
-          c.template in<A>(N * C * HW, x, -2.f, 3.f);
+          const NormCase n = norm_case(c, N, C, HW);
+          Vec r;
           c.template in<A>(N * C * HW, r, -1.f, 1.f);
-          auto dw = c.template in<float>(C, w, 0.5f, 1.5f);
-          auto db = c.template in<float>(C, b);
-          auto dmean = c.template in<float>(C, mean);
-          auto dvar = c.template in<float>(C, var, 0.25f, 2.f);
-          auto dx = c.template put<A>(to_layout<B>(x, N, C, HW));
           auto dr = c.template put<A>(to_layout<B>(r, N, C, HW));
-          norm_2d_add(ctx, dx.data(), dr.data(), N * HW, C, dw.data(), db.data(), batch ? dmean.data() : nullptr,
-                      batch ? dvar.data() : nullptr, eps);
-          Vec ref = batch ? ops_ref::batch_norm_2d(x, N, C, HW, w, b, mean, var, eps)
-                          : ops_ref::rms_norm_2d(x, N, C, HW, w, b, eps);
+          norm_2d_add(ctx, n.dx.data(), dr.data(), N * HW, C, n.dw.data(), n.db.data(),
+                      batch ? n.dmean.data() : nullptr, batch ? n.dvar.data() : nullptr, eps);
+          Vec ref = n.reference(N, C, HW, batch, eps);
           for (std::size_t i = 0; i < ref.size(); ++i) ref[i] += r[i];
           log.record(shape("N", N, "C", C, "HW", HW), c.error(dr, to_layout<B>(ref, N, C, HW)));
         }

@@ -55,12 +55,12 @@ TEST_CASE("op sweep: CPU, bf16 weights") {
 // "not on this backend" lines are these and no others.
 static_assert(ops_sweep::HasCpuOnlyOps<epona::cpu::Context, float>);
 static_assert(!ops_sweep::HasLinearAccumulate<epona::cpu::Context, float> &&
-              !ops_sweep::HasLinearGroup<epona::cpu::Context, float> &&
-              !ops_sweep::HasSeparateAddGatedLnModulate<epona::cpu::Context, float> &&
-              !ops_sweep::HasLayerNormRopeQk<epona::cpu::Context, float> &&
-              !ops_sweep::HasQkNormRope<epona::cpu::Context, float> &&
-              !ops_sweep::HasFrameTokens<epona::cpu::Context, float> &&
-              !ops_sweep::HasAttentionQkLayerNorm<epona::cpu::Context, float> &&
+              !epona::GroupedLinear<epona::cpu::Context, float> &&
+              !epona::AddGatedNormFromInput<epona::cpu::Context, float> &&
+              !epona::QkLayerNormRope<epona::cpu::Context, float> &&
+              !epona::JointQkNormRope<epona::cpu::Context, float> &&
+              !epona::FusedFrameTokens<epona::cpu::Context, float> &&
+              !epona::ShortAttentionQkNorm<epona::cpu::Context, float> &&
               !ops_sweep::HasConvert<epona::cpu::Context, float> &&
               !ops_sweep::HasNorm2dAdd<epona::cpu::Context, float> &&
               !ops_sweep::HasRmsNormRows<epona::cpu::Context, float> &&
