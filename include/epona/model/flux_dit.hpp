@@ -117,14 +117,14 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
 
   FluxDiT() = default;
   explicit FluxDiT(const FluxDitConfig& c)
-      : cfg_(c), widths_(c.widths()), input_(c.in_channels, c.hidden_size, true),
-        time_in_(c.time_dim, c.hidden_size), cond_in_(c.context_in_dim, c.hidden_size, true),
-        trunk_(widths_, c.depth, c.depth_single_blocks, c.out_channels) {
-    EPONA_CHECK(c.num_heads > 0 && c.hidden_size % c.num_heads == 0, "DiT: num_heads ", c.num_heads,
-                " does not divide hidden_size ", c.hidden_size);
+      : cfg_(c), input_(c.in_channels, c.hidden_size, true), time_in_(c.time_dim, c.hidden_size),
+        cond_in_(c.context_in_dim, c.hidden_size, true),
+        trunk_(c.widths(), c.depth, c.depth_single_blocks, c.out_channels) {
+    // The trunk has refused heads that do not divide the width.
     std::int64_t axes = 0;
     for (auto a : c.axes_dim) axes += a;
-    EPONA_CHECK(axes == widths_.head_dim(), "DiT: axes_dim sums to ", axes, ", the head dim is ", widths_.head_dim());
+    const std::int64_t head_dim = trunk_.widths().head_dim();
+    EPONA_CHECK(axes == head_dim, "DiT: axes_dim sums to ", axes, ", the head dim is ", head_dim);
     if (c.vec_in_dim > 0) vector_in_.emplace(c.vec_in_dim, c.hidden_size);
   }
 
@@ -345,7 +345,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
 
   template <class Alloc>
   Conditioning plan_conditioning(Alloc& a, std::int64_t batch, const nn::JointRows& rows) const {
-    const std::int64_t pairs = widths_.head_dim() / 2;
+    const std::int64_t pairs = trunk_.widths().head_dim() / 2;
     Conditioning c;
     c.batch = batch;
     c.rows = rows;
@@ -426,7 +426,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   // input x as a GEMM operand (empty when A is float).
   template <class Alloc>
   std::pair<Scratch, Tensor<A, B>> plan_velocity(Alloc& a, const nn::JointRows& rows) const {
-    auto s = Scratch::plan(a, rows, widths_);
+    auto s = trunk_.plan_scratch(a, rows);
     Tensor<A, B> x_in;
     if (kConvertInputs) x_in = a.template take<A>({rows.target, cfg_.in_channels});
     return {s, x_in};
@@ -496,7 +496,6 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   }
 
   FluxDitConfig cfg_;
-  nn::DitWidths widths_;
   nn::Linear<B, W> input_;  // img_in / traj_in
   nn::MlpEmbedder<B, W> time_in_;
   std::optional<nn::MlpEmbedder<B, W>> vector_in_;

@@ -46,8 +46,8 @@ class DitTrunk : public Bindable<DitTrunk<B, W>> {
   DitTrunk(const DitWidths& widths, std::int64_t double_blocks, std::int64_t single_blocks, std::int64_t out_channels)
       : widths_(widths), final_(widths, out_channels) {
     EPONA_CHECK(widths.heads > 0 && widths.hidden % widths.heads == 0 && double_blocks >= 0 && single_blocks >= 0,
-                "DiT trunk: hidden ", widths.hidden, ", heads ", widths.heads, ", blocks ", double_blocks, " + ",
-                single_blocks);
+                "DiT trunk: heads ", widths.heads, " must be positive and divide hidden ", widths.hidden, ", blocks ",
+                double_blocks, " + ", single_blocks, " must not be negative");
     for (std::int64_t i = 0; i < double_blocks; ++i) doubles_.emplace_back(widths);
     for (std::int64_t i = 0; i < single_blocks; ++i) singles_.emplace_back(widths);
   }
