@@ -25,6 +25,7 @@
 #include <thread>
 #include <vector>
 
+#include "bench_stats.hpp"
 #include "bench_mid_world.hpp"
 #include "epona/core/arena.hpp"
 #include "epona/cpu/conv.hpp"
@@ -111,11 +112,7 @@ Runs measure(const std::function<void()>& fn, int repeats, int warmup) {
   return r;
 }
 
-double median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  const std::size_t n = v.size();
-  return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
+using bench::median;
 double minimum(const std::vector<double>& v) { return *std::min_element(v.begin(), v.end()); }
 
 std::string json_list(const std::vector<double>& v) {

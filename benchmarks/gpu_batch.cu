@@ -22,6 +22,7 @@
 #include "epona/model/dcae.hpp"
 #include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
+#include "bench_stats.hpp"
 #include "gpu_event_timer.cuh"
 
 using namespace epona;
@@ -52,11 +53,7 @@ Options parse(int argc, char** argv) {
   return o;
 }
 
-double median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  const std::size_t n = v.size();
-  return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
+using bench::median;
 
 // A row: the call's median, per item, and per item against `single` (the batch-1 row's per item).
 struct Row {

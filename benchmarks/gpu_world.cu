@@ -59,6 +59,7 @@
 #include "epona/model/pose_tokenizer.hpp"
 #include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
+#include "bench_stats.hpp"
 #include "gpu_event_timer.cuh"
 
 using namespace epona;
@@ -137,11 +138,7 @@ Options parse(int argc, char** argv) {
   return o;
 }
 
-double median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  const std::size_t n = v.size();
-  return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
+using bench::median;
 
 using bench::event_times_ms;
 
