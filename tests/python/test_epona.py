@@ -159,11 +159,13 @@ def test_threads_share_a_model(model, clip, latents):
 
 def test_the_gil_is_released_while_the_model_computes(model, clip, latents):
     # A rollout in a thread; this thread keeps running meanwhile. Holding the GIL through the call
-    # would stop it for the whole rollout; released, it waits at most a few switch intervals.
+    # would stop it for the whole rollout; released, it waits at most a few switch intervals
+    # (5 ms each), so the rollout is made many of them long: 100 steps, not 10 (at 10 it took
+    # 7 ms and the check failed by chance about one run in three).
     t0 = time.perf_counter()
-    model.rollout(latents, clip[1], frames=4, steps=10)
+    model.rollout(latents, clip[1], frames=4, steps=100)
     alone = time.perf_counter() - t0
-    worker = threading.Thread(target=lambda: model.rollout(latents, clip[1], frames=4, steps=10))
+    worker = threading.Thread(target=lambda: model.rollout(latents, clip[1], frames=4, steps=100))
     longest, last = 0.0, time.perf_counter()
     worker.start()
     while worker.is_alive():
