@@ -1,14 +1,17 @@
 // bench_gpu_batch — issue #39's table on one GPU at the real configuration (512x1024 frames, the
 // shipped widths and depths, 100 sampling steps, bf16 weights, random weights): what Bt scenes
 // at once cost, and what a fan of K plan hypotheses of one scene costs.
-//   plan_bB    WorldModel::plan of a window of Bt scenes (MST + TrajDiT-100)
-//   step_bB    predict_next of Bt scenes (MST + TrajDiT-100 + VisDiT-100, self-predicted action)
-//   decode_bB  the DC-AE decode of Bt frames (its own context)
-//   hyp_kK     plan_hypotheses(K) of one scene, against plan_b1 (the MST once, the TrajDiT over K)
+//   plan_bB     WorldModel::plan of a window of Bt scenes (MST + TrajDiT-100)
+//   step_bB     predict_next of Bt scenes (MST + TrajDiT-100 + VisDiT-100, self-predicted action)
+//   decode_bB   the DC-AE decode of Bt frames (its own context)
+//   traj100_bB  the TrajDiT's 100-step sample of Bt items alone (conditioning prepared outside)
+//   vis100_bB   the VisDiT's 100-step sample of Bt items alone
+//   hyp_kK      plan_hypotheses(K) of one scene, against plan_b1 (the MST once, the TrajDiT over K)
 // Each row: median milliseconds per call over the repeats (CUDA events after a warm-up call,
-// host to host), the same per scene (or per hypothesis), and the ratio to batch 1 per scene.
-// One JSON object per line, then a readable table. The model runs a batch item by item today
-// (docs/world-model.md), so this is the baseline that true batching is measured against.
+// host to host), the same per scene (or per hypothesis), the ratio to batch 1 per scene and,
+// for the samples, the roofline fraction: the official FLOPs (every row, as compute-budget.md
+// counts them) / time / the bf16 GEMM ceiling measured in the same run. The DiTs fold a batch
+// into the rows of their products (docs/world-model.md); the MST and the DC-AE run item by item.
 // Usage: bench_gpu_batch [--repeats N] [--max-batch B] [--max-hypotheses K]
 #include <algorithm>
 #include <cstdio>
@@ -16,7 +19,9 @@
 #include <string>
 #include <vector>
 
+#include "epona/core/arena.hpp"
 #include "epona/core/rng.hpp"
+#include "epona/flow/schedule.hpp"
 #include "epona/cuda/backend.cuh"
 #include "epona/cuda/dcae_ops.cuh"
 #include "epona/model/dcae.hpp"
@@ -58,15 +63,48 @@ using bench::median;
 // A row: the call's median, per item, and per item against `single` (the batch-1 row's per item).
 struct Row {
   std::string name;
-  double ms = 0, per_item = 0, ratio = 0;
+  double ms = 0, per_item = 0, ratio = 0, roofline = 0;
 };
-Row emit(const std::string& name, const std::vector<double>& runs, std::int64_t items, double single_per_item) {
-  Row r{name, median(runs), median(runs) / double(items), 0};
+// `flops`: the official FLOPs of the whole call, for its roofline fraction against `ceiling`
+// (TFLOP/s); 0: none.
+Row emit(const std::string& name, const std::vector<double>& runs, std::int64_t items, double single_per_item,
+         double flops = 0, double ceiling = 0) {
+  Row r{name, median(runs), median(runs) / double(items), 0, 0};
   r.ratio = single_per_item > 0 ? r.per_item / single_per_item : 1.0;
-  std::printf("{\"name\": \"%s\", \"ms\": %.3f, \"items\": %lld, \"per_item_ms\": %.3f, \"per_item_vs_one\": %.3f}\n",
-              name.c_str(), r.ms, static_cast<long long>(items), r.per_item, r.ratio);
+  if (flops > 0 && ceiling > 0) r.roofline = flops / (r.ms * 1e-3) / (ceiling * 1e12);
+  std::printf("{\"name\": \"%s\", \"ms\": %.3f, \"items\": %lld, \"per_item_ms\": %.3f, \"per_item_vs_one\": %.3f, "
+              "\"roofline\": %.4f}\n",
+              name.c_str(), r.ms, static_cast<long long>(items), r.per_item, r.ratio, r.roofline);
   std::fflush(stdout);
   return r;
+}
+
+// One DiT's 100-step sample of Bt items with random conditioning (the window's shapes): the
+// call's milliseconds per repeat, after one warm-up that records its graph.
+template <class Time>
+std::vector<double> dit_sample_times(WorldModel<Cuda, bf16>& wm, const model::FluxDiT<Cuda, bf16>& dit, bool vis,
+                                     std::int64_t Bt, const Time& time) {
+  const auto& cfg = wm.config();
+  auto& ctx = wm.context();
+  const auto ids = model::prepare_ids(Bt, cfg.latent_h(), cfg.latent_w(), cfg.tokens_per_frame(), cfg.traj_len);
+  const auto& target_ids = vis ? ids.img : ids.traj;
+  const nn::JointRows rows{cfg.tokens_per_frame(), target_ids.size(1)};
+  const std::int64_t steps = cfg.num_sampling_steps;
+  TorchGenerator gen(5);
+  const auto cond = BackendTraits<Cuda>::upload(gen.randn({Bt, rows.cond, cfg.context_in_dim()}));
+  const auto y = BackendTraits<Cuda>::upload(gen.randn({Bt, cfg.pose_emb_dim()}));
+  const auto noise = gen.randn({Bt, rows.target, dit.config().in_channels});
+  auto state = BackendTraits<Cuda>::upload(noise);
+  Arena<Cuda> arena(dit.conditioning_bytes(Bt, rows) + dit.sample_bytes(Bt, rows, steps));
+  const auto c = dit.prepare(ctx, arena, cond, ids.cond, target_ids, y);
+  const auto grid = flow::get_schedule(steps, rows.target);
+  return time(ctx, [&] { dit.sample(ctx, arena, c, grid, state); });
+}
+
+// The official FLOPs of one DiT's 100-step sample of one item (every row of every block).
+double dit_sample_flops(const WorldModelConfig& cfg, const model::FluxDiT<Cuda, bf16>& dit, bool vis) {
+  const nn::JointRows rows{cfg.tokens_per_frame(), vis ? cfg.img_tokens() : cfg.traj_len};
+  return dit.forward_flops(rows, false).total() * double(cfg.num_sampling_steps);
 }
 
 // A window of Bt scenes driving forward: random latents, about 2 m per frame.
@@ -95,7 +133,10 @@ int run(const Options& o) {
   const auto time = [&](cuda::Context& c, const std::function<void()>& fn) {
     return bench::event_times_ms(c, o.repeats, 1, fn);  // the warm-up call records the graphs
   };
-  double plan1 = 0, step1 = 0, decode1 = 0;
+  const double ceiling = bench::gemm_ceiling_tflops(ctx);
+  std::printf("# bf16 GEMM ceiling (8192^3): %.1f TFLOP/s\n", ceiling);
+  const double vis_flops = dit_sample_flops(cfg, wm.vis_dit(), true), traj_flops = dit_sample_flops(cfg, wm.traj_dit(), false);
+  double plan1 = 0, step1 = 0, decode1 = 0, vis1 = 0, traj1 = 0, step_decode1 = 0;
   for (std::int64_t Bt = 1; Bt <= o.max_batch; Bt *= 2) {
     const History h = window(cfg, Bt);
     const std::string b = "_b" + std::to_string(Bt);
@@ -107,13 +148,26 @@ int run(const Options& o) {
     const auto z = BackendTraits<Cuda>::upload(gen.randn({Bt, dcfg.latent_channels, cfg.latent_h(), cfg.latent_w()}));
     rows.push_back(emit("decode" + b, time(dctx, [&] { (void)dcae.decode(dctx, z, false); }), Bt, decode1));
     if (Bt == 1) decode1 = rows.back().per_item;
+    // An AR step with its decode, per scene: the two rows' medians added (measured apart).
+    const double step_decode = rows[rows.size() - 2].per_item + rows.back().per_item;
+    if (Bt == 1) step_decode1 = step_decode;
+    std::printf("{\"name\": \"step_decode%s\", \"per_item_ms\": %.3f, \"per_item_vs_one\": %.3f}\n", b.c_str(),
+                step_decode, step_decode / step_decode1);
+    rows.push_back({"step_decode" + b, step_decode * double(Bt), step_decode, step_decode / step_decode1, 0});
+    rows.push_back(emit("traj100" + b, dit_sample_times(wm, wm.traj_dit(), false, Bt, time), Bt, traj1,
+                        traj_flops * double(Bt), ceiling));
+    if (Bt == 1) traj1 = rows.back().per_item;
+    rows.push_back(emit("vis100" + b, dit_sample_times(wm, wm.vis_dit(), true, Bt, time), Bt, vis1,
+                        vis_flops * double(Bt), ceiling));
+    if (Bt == 1) vis1 = rows.back().per_item;
   }
   const History one = window(cfg, 1);
   for (std::int64_t K = 1; K <= o.max_hypotheses; K *= 2)
     rows.push_back(emit("hyp_k" + std::to_string(K), time(ctx, [&] { (void)wm.plan_hypotheses(one, K, opt); }), 1,
                         plan1));
-  std::printf("\n%-12s %12s %14s %16s\n", "row", "ms / call", "ms / item", "item vs batch 1");
-  for (const Row& r : rows) std::printf("%-12s %12.2f %14.2f %16.3f\n", r.name.c_str(), r.ms, r.per_item, r.ratio);
+  std::printf("\n%-15s %12s %14s %16s %10s\n", "row", "ms / call", "ms / item", "item vs batch 1", "roofline");
+  for (const Row& r : rows)
+    std::printf("%-15s %12.2f %14.2f %16.3f %9.1f%%\n", r.name.c_str(), r.ms, r.per_item, r.ratio, 100 * r.roofline);
   std::printf("(hyp_kK: one scene, so 'item' is the call and the ratio is the call against one plan)\n");
   return 0;
 }

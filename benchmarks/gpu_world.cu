@@ -141,6 +141,7 @@ Options parse(int argc, char** argv) {
 using bench::median;
 
 using bench::event_times_ms;
+using bench::gemm_ceiling_tflops;
 
 
 void emit(const std::string& name, const std::vector<double>& runs, double tflop) {
@@ -182,30 +183,6 @@ std::size_t used_device_bytes() {
   std::size_t free_b = 0, total_b = 0;
   EPONA_CUDA_CHECK(cudaMemGetInfo(&free_b, &total_b));
   return total_b - free_b;
-}
-
-// The bf16 GEMM ceiling through epona's cuBLASLt path: 8192^3, operands rotating over buffers
-// larger than L2.
-double gemm_ceiling_tflops(cuda::Context& ctx) {
-  constexpr std::int64_t n = 8192;
-  constexpr int sets = 2;
-  std::vector<Tensor<bf16, Cuda>> x, w, y;
-  TorchGenerator gen(3);
-  auto host = gen.randn({n, n});
-  Tensor<bf16, Cpu> hb(host.shape());
-  for (std::int64_t i = 0; i < hb.numel(); ++i) hb.data()[i] = bf16(host.data()[i]);
-  for (int s = 0; s < sets; ++s) {
-    x.push_back(cuda::to_device(ctx, hb));
-    w.push_back(cuda::to_device(ctx, hb));
-    y.emplace_back(Shape{n, n});
-  }
-  const Tensor<bf16, Cuda> none;
-  int k = 0;
-  const auto runs = event_times_ms(ctx, 10, 3, [&] {
-    cuda::linear(ctx, x[k % sets], w[k % sets], none, y[k % sets]);
-    ++k;
-  });
-  return 2.0 * n * n * n / (median(runs) * 1e-3) / 1e12;
 }
 
 // A device tensor of standard normal values rounded to T.

@@ -324,6 +324,54 @@ void check_residual_norm(cuda::Context& ctx, std::int64_t rows, std::int64_t n, 
   check_error(measure(download(ctx, dout), ref), b, what);
 }
 
+// The item forms (a DiT's folded batch: the same rows of several items, each with its own
+// vectors) against the one-item kernels called item by item on the same buffers: bit-identical.
+// `rows` rows per item, `stride` rows between items' outputs, inputs read from a separate
+// contiguous buffer (x_stride = rows) or in place (x_stride = stride).
+template <class T>
+void check_norm_items(cuda::Context& ctx, std::int64_t count, std::int64_t rows, std::int64_t stride, std::int64_t n,
+                      bool separate, std::uint32_t seed) {
+  const std::int64_t mod_stride = 5 * n, x_stride = separate ? rows : stride;
+  const NormItems items{count, rows, stride, x_stride, mod_stride};
+  HostF x = random_tensor({count * stride, n}, seed, -2.f, 3.f), src = random_tensor({count * rows, n}, seed + 1);
+  HostF y = random_tensor({count * stride, n}, seed + 2), vecs = random_tensor({count * mod_stride}, seed + 3, -0.5f, 0.5f);
+  const auto dsrc = upload<T>(ctx, src), dy = upload<T>(ctx, y), dv = upload<T>(ctx, vecs);
+  const T* v = dv.data();  // item 0's gate, shift and scale at v, v + n, v + 2n
+  const std::string what = std::string(type_name<T>()) + " " + std::to_string(count) + " items of " +
+                           std::to_string(rows) + " rows (stride " + std::to_string(stride) + ") x " +
+                           std::to_string(n) + (separate ? ", from a separate input" : ", in place");
+  // Two runs over poisoned outputs (and the same residual): the item form, then item by item.
+  const auto run = [&](bool one_launch, bool residual) {
+    auto dx = upload<T>(ctx, x);
+    Dev<T> out({count * stride, n});
+    poison(ctx, out);
+    const T* in = separate ? dsrc.data() : dx.data();
+    if (one_launch && residual)
+      cuda::add_gated_layer_norm_modulate_items(ctx, in, dx.data(), dy.data(), v, out.data(), n, v + n, v + 2 * n, 1e-6f,
+                                                items);
+    else if (one_launch)
+      cuda::layer_norm_modulate_items(ctx, in, out.data(), n, v + n, v + 2 * n, 1e-6f, items);
+    for (std::int64_t b = 0; !one_launch && b < count; ++b) {
+      const std::int64_t at = b * stride * n, m = b * mod_stride;
+      const T* xb = in + b * x_stride * n;
+      if (residual)
+        cuda::add_gated_layer_norm_modulate(ctx, xb, dx.data() + at, dy.data() + at, v + m, out.data() + at, rows, n,
+                                            v + m + n, v + m + 2 * n, 1e-6f);
+      else
+        cuda::layer_norm_modulate(ctx, xb, out.data() + at, rows, n, v + m + n, v + m + 2 * n, 1e-6f);
+    }
+    return std::pair{download(ctx, dx), download(ctx, out)};
+  };
+  for (const bool residual : {false, true}) {
+    const auto [x1, o1] = run(true, residual);
+    const auto [x2, o2] = run(false, residual);
+    CAPTURE(what);
+    CAPTURE(residual);
+    CHECK(count_bit_differences(o1, o2) == 0);
+    CHECK(count_bit_differences(x1, x2) == 0);  // the residual (and the gap rows) alike
+  }
+}
+
 }  // namespace
 
 TEST_CASE("cuda add_layer_norm and add_gated_layer_norm_modulate match the CPU's add then norm") {
@@ -596,4 +644,15 @@ TEST_CASE("cuda programmatic dependent launches: each kernel of a chain sees wha
       CHECK_MESSAGE(differ == 0, (graph ? "graph" : "eager"), (programmatic ? ", programmatic" : ", plain"), ": ",
                     differ, " of ", n, " elements differ from the host");
     }
+}
+
+TEST_CASE_TEMPLATE("cuda item norms: several items' rows with their own vectors in one launch, as item by item", T,
+                   float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  for (const bool separate : {false, true}) {
+    check_norm_items<T>(ctx, 3, 5, 7, 256, separate, 11);      // a block per row, gaps between items
+    check_norm_items<T>(ctx, 4, 515, 518, 1024, separate, 12);  // the warp kernel (rows >= 8 per SM)
+    check_norm_items<T>(ctx, 2, 4, 6, 100, separate, 13);       // unpackable width: item by item
+  }
 }

@@ -120,7 +120,8 @@ concept HasLinearAccumulate = requires(Ctx& cx, const A* p, float* y) {
 };
 // The GPU's fused kernels are the library's named capabilities (core/backend_capabilities.hpp:
 // GroupedLinear, AddGatedNormFromInput, QkLayerNormRope, JointQkNormRope, FusedFrameTokens,
-// ShortAttentionQkNorm), so the sweep checks the very concepts the layers choose them by.
+// ShortAttentionQkNorm, ItemRowNorms), so the sweep checks the very concepts the layers choose
+// them by (ItemRowNorms is checked bit for bit against its one-item form in tests/cuda/pointwise.cu).
 template <class Ctx, class A>
 concept HasConvert = requires(Ctx& cx, const float* s, A* p) { convert(cx, s, p, i64{}); };
 template <class Ctx, class A>
@@ -144,6 +145,7 @@ template <class Ctx, class A>
 concept HasCudaOnlyOps = HasLinearAccumulate<Ctx, A> && epona::GroupedLinear<Ctx, A> &&
                          epona::AddGatedNormFromInput<Ctx, A> && epona::QkLayerNormRope<Ctx, A> &&
                          epona::JointQkNormRope<Ctx, A> && epona::FusedFrameTokens<Ctx, A> && epona::ShortAttentionQkNorm<Ctx, A> &&
+                         epona::ItemRowNorms<Ctx, A> &&
                          HasConvert<Ctx, A> && HasNorm2dAdd<Ctx, A> && HasRmsNormRows<Ctx, A> &&
                          HasConv2dResidual<Ctx, A>;
 template <class Ctx, class A>

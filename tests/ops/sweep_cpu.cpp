@@ -61,6 +61,7 @@ static_assert(!ops_sweep::HasLinearAccumulate<epona::cpu::Context, float> &&
               !epona::JointQkNormRope<epona::cpu::Context, float> &&
               !epona::FusedFrameTokens<epona::cpu::Context, float> &&
               !epona::ShortAttentionQkNorm<epona::cpu::Context, float> &&
+              !epona::ItemRowNorms<epona::cpu::Context, float> &&
               !ops_sweep::HasConvert<epona::cpu::Context, float> &&
               !ops_sweep::HasNorm2dAdd<epona::cpu::Context, float> &&
               !ops_sweep::HasRmsNormRows<epona::cpu::Context, float> &&

@@ -17,6 +17,7 @@
 //   QkLayerNormRope           -    yes
 //   PairedGemm                -    yes
 //   GroupedLinear             -    yes
+//   ItemRowNorms              -    yes
 #pragma once
 
 #include <array>
@@ -101,6 +102,15 @@ template <class Context, class A, class T = A>
 concept GroupedLinear = requires(Context& ctx, const A* x, std::int64_t n, const std::vector<const T*>& weights,
                                  A* y, BackendEpilogue<ContextBackend<Context>> epilogue) {
   linear_group(ctx, x, n, n, weights, weights, y, n, n, n, n, n, epilogue);
+};
+
+// The modulated norms of the same rows of several batch items (NormItems), with and without the
+// gated residual add before them, each in one launch: a DiT's folded batch, whose items have
+// their own adaLN vectors. Without it the items run one by one.
+template <class Context, class A>
+concept ItemRowNorms = requires(Context& ctx, const A* x, A* out, float eps, const NormItems& items) {
+  layer_norm_modulate_items(ctx, x, out, items.rows, x, x, eps, items);
+  add_gated_layer_norm_modulate_items(ctx, x, out, x, x, out, items.rows, x, x, eps, items);
 };
 
 }  // namespace epona

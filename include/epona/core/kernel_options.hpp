@@ -24,6 +24,14 @@ struct AttentionShape {
   const float* additive_mask = nullptr;
 };
 
+// The same rows of several batch items for one row pass (a DiT's folded batch): item b's
+// `rows` rows start at row b·stride of the output (and of the residual it updates), at row
+// b·x_stride of a separate input, and its per-column vectors (shift, scale, gate) at +b·mod_stride
+// elements. Pointers passed with it are item 0's first row and vectors.
+struct NormItems {
+  std::int64_t count = 1, rows = 0, stride = 0, x_stride = 0, mod_stride = 0;
+};
+
 // The MST's input tokens of `frames` frames, (frames, actions + image_rows, width) float32:
 // frame f's row slot < actions is action entry f of that slot plus time_emb[f]; its row
 // actions + l is LN(image[f·image_rows + l]) · weight + bias + time_emb[f]. Action slot s,

@@ -73,6 +73,7 @@ constexpr bool cuda_has_every_capability() {
   static_assert(QkLayerNormRope<C, A>, "CUDA backend lacks capability QkLayerNormRope");
   static_assert(PairedGemm<C>, "CUDA backend lacks capability PairedGemm");
   static_assert(GroupedLinear<C, A>, "CUDA backend lacks capability GroupedLinear");
+  static_assert(ItemRowNorms<C, A>, "CUDA backend lacks capability ItemRowNorms");
   return true;
 }
 static_assert(cuda_has_every_capability<float>() && cuda_has_every_capability<bf16>());

@@ -144,10 +144,15 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   std::size_t conditioning_bytes(std::int64_t batch, const nn::JointRows& rows) const {
     return conditioning_sizes(batch, rows).total();
   }
-  // One velocity evaluation of one batch item.
-  std::size_t velocity_bytes(const nn::JointRows& rows) const {
+  // Items folded into one pass through the blocks at most: a larger batch runs in passes of this
+  // many (the scratch grows with the items: 64 VisDiT items take ~4 GiB of bf16 scratch).
+  static constexpr std::int64_t kMaxFoldedItems = 64;
+  static std::int64_t folded_items(std::int64_t batch) { return std::min(batch, kMaxFoldedItems); }
+
+  // One velocity evaluation of `batch` items (folded into passes through the blocks).
+  std::size_t velocity_bytes(std::int64_t batch, const nn::JointRows& rows) const {
     ArenaCounter<B> c;
-    plan_velocity(c, rows);
+    plan_velocity(c, folded_items(batch), rows);
     return c.bytes();
   }
   // Everything sample() takes on top of its conditioning, for `steps` steps of `solver`.
@@ -159,13 +164,13 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     plan_front(v, batch, rows);
     for (int j = 0; j < flow::solver_scratch_states(solver); ++j) v.template take<float>({batch, rows.target, cfg_.in_channels});
     const auto m = modulation_sizes(batch, flow::solver_evaluations(solver, steps));
-    return m.kept + std::max(m.scratch, v.bytes() + velocity_bytes(rows));
+    return m.kept + std::max(m.scratch, v.bytes() + velocity_bytes(batch, rows));
   }
   // Everything forward() takes.
   std::size_t forward_bytes(std::int64_t batch, const nn::JointRows& rows) const {
     const auto c = conditioning_sizes(batch, rows);
     const auto m = modulation_sizes(batch, 1);
-    return c.kept + std::max(c.scratch, m.kept + std::max(m.scratch, velocity_bytes(rows)));
+    return c.kept + std::max(c.scratch, m.kept + std::max(m.scratch, velocity_bytes(batch, rows)));
   }
 
   // cond (batch, Lc, context) and y (batch, vec_in_dim) backend float32; ids host (batch, L·, n_axes).
@@ -422,13 +427,13 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     return {c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
   }
 
-  // One batch item's block scratch (padded for the double blocks' paired products), and its
-  // input x as a GEMM operand (empty when A is float).
+  // The block scratch of `batch` items (each padded for the double blocks' paired products),
+  // and the input x as a GEMM operand (empty when A is float).
   template <class Alloc>
-  std::pair<Scratch, Tensor<A, B>> plan_velocity(Alloc& a, const nn::JointRows& rows) const {
-    auto s = trunk_.plan_scratch(a, rows);
+  std::pair<Scratch, Tensor<A, B>> plan_velocity(Alloc& a, std::int64_t batch, const nn::JointRows& rows) const {
+    auto s = trunk_.plan_scratch(a, rows, batch);
     Tensor<A, B> x_in;
-    if (kConvertInputs) x_in = a.template take<A>({rows.target, cfg_.in_channels});
+    if (kConvertInputs) x_in = a.template take<A>({batch, rows.target, cfg_.in_channels});
     return {s, x_in};
   }
 
@@ -455,18 +460,21 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     return ids;
   }
 
-  // The target rows of z = input(x) of one batch item (the trunk reads the condition rows from
-  // cond_in's output). x is float32 (converted into x_in when the GEMMs take another type) or
-  // already of the GEMM type.
+  // The target rows of z = input(x) of every batch item (the trunk reads the condition rows
+  // from cond_in's output). x (batch, Lx, in) is float32 (converted into x_in when the GEMMs
+  // take another type) or already of the GEMM type.
   template <class X>
   void embed_target(Context& ctx, Scratch& s, const nn::JointRows& rows, const Tensor<X, B>& x, Tensor<A, B>& x_in) const {
-    auto target = s.z.slice(rows.cond, rows.total());
+    const A* in = nullptr;
     if constexpr (std::is_same_v<X, A>) {
       (void)x_in;
-      input_(ctx, x, target);
+      in = x.data();
     } else {
-      input_(ctx, as_activation(ctx, x, x_in), target);
+      in = as_activation(ctx, x, x_in).data();
     }
+    const std::int64_t C = cfg_.in_channels, D = cfg_.hidden_size;
+    input_.items(ctx, in, C, rows.target * C, rows.target, s.z.data() + rows.cond * D, D, s.items.rows * D,
+                 s.items.count);
   }
 
   // velocity() for an input x of type X: float32 (converted per batch item when the GEMMs take
@@ -480,17 +488,29 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     check_shape(out, {c.batch, c.rows.target, cfg_.out_channels}, "DiT velocity output");
     EPONA_CHECK(time >= 0 && time < m.times, "DiT: timestep index ", time, " outside the ", m.times, " prepared");
     if (front && front->issued != time) issue_front(ctx, c, m, time, *front, true);
-    for (std::int64_t b = 0; b < c.batch; ++b) {
-      ArenaScope<B> scope(arena);
-      auto [s, x_in] = plan_velocity(arena, c.rows);
-      const nn::RopeTable<B> rope = item_rope(c, b);
-      embed_target(ctx, s, c.rows, x[b], x_in);
+    // The items in one pass through the blocks (up to kMaxFoldedItems a pass): the batch folded
+    // into the products' rows.
+    ArenaScope<B> scope(arena);
+    const std::int64_t per_pass = folded_items(c.batch), total = c.rows.total();
+    auto [scratch, x_in] = plan_velocity(arena, per_pass, c.rows);
+    for (std::int64_t first = 0; first < c.batch; first += per_pass) {
+      const std::int64_t n = std::min(per_pass, c.batch - first);
+      Scratch s = scratch;
+      s.items = {n, scratch.items.rows, m.times * m.width, total};
+      auto x_pass = x.slice(first, first + n);
+      auto x_in_pass = x_in.empty() ? x_in : x_in.slice(0, n);
+      embed_target(ctx, s, c.rows, x_pass, x_in_pass);
       // The first block reads the condition rows from cond_in's output (step-invariant) and
       // writes their update into s.z: no per-step copy.
-      nn::TrunkInputs<B, A> in{c.cond[b].data(), {}};
-      if (front) in.cond_qkv = Tensor<A, B>::view(front->table(b), s.qkv.shape(), front->qkv.storage());
-      auto o = out[b];
-      trunk_(ctx, s, c.rows, rope, m.row(b, time), o, in);
+      nn::TrunkInputs<B, A> in{c.cond[first].data(), {}};
+      if (front) {
+        const auto table = front->qkv.slice(first, first + n);
+        in.cond_qkv = Tensor<A, B>::view(table.data(), {n * s.items.rows, 3 * cfg_.hidden_size}, table.storage());
+      }
+      const nn::RopeTable<B> rope{c.rope.cos.slice(first * total, (first + n) * total),
+                                  c.rope.sin.slice(first * total, (first + n) * total)};
+      auto o = out.slice(first, first + n);
+      trunk_(ctx, s, c.rows, rope, m.row(first, time), o, in);
     }
     if (front && time + 1 < m.times) issue_front(ctx, c, m, time + 1, *front, false);
   }

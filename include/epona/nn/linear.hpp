@@ -127,6 +127,18 @@ struct Linear : Bindable<Linear<B, T>> {
     group(ctx, {this, &second}, x, ldx, x_stride, rows, y, ldy, y_stride, epilogue);
   }
 
+  // This layer on `count` items of `rows` rows each: item i reads x + i·x_stride and writes
+  // y + i·y_stride (elements; rows ldx / ldy apart inside an item). One batched product with a
+  // shared weight where the backend groups products (a batch folded into a DiT's per-stream
+  // rows, which lie between the other stream's), else one product per item.
+  void items(Context& ctx, const A* x, std::int64_t ldx, std::int64_t x_stride, std::int64_t rows, A* y,
+             std::int64_t ldy, std::int64_t y_stride, std::int64_t count, Epilogue epilogue = Epilogue::None) const {
+    EPONA_CHECK(count >= 1, "Linear::items: ", count, " items");
+    if (count == 1) return strided(ctx, x, ldx, rows, y, ldy, epilogue);
+    group(ctx, std::vector<const Linear*>(static_cast<std::size_t>(count), this), x, ldx, x_stride, rows, y, ldy,
+          y_stride, epilogue);
+  }
+
   double flops(std::int64_t tokens) const { return 2.0 * double(tokens) * double(in) * double(out); }
 };
 

@@ -32,6 +32,11 @@ struct AdaLn {
     return {row + first * dim, row + (first + 1) * dim, gated ? row + (first + 2) * dim : nullptr};
   }
   static AdaLn norm_at(const A* row, std::int64_t dim, std::int64_t first = 0) { return at(row, dim, first, false); }
+  // The same vectors `elems` elements further on (a batch item's own row of the table).
+  AdaLn offset(std::int64_t elems) const {
+    const auto move = [elems](const A* p) { return p ? p + elems : p; };
+    return {move(shift), move(scale), move(gate)};
+  }
 };
 
 template <class B, class T>

@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <type_traits>
 
+#include "epona/core/kernel_options.hpp"
 #include "epona/cuda/runtime/context.hpp"
 #include "epona/cuda/runtime/device.cuh"
 #include "epona/cuda/pointwise/elementwise.cuh"
@@ -72,6 +73,7 @@ struct RowNormArgs {
   std::int64_t rows, n;
   float eps;
   bool reverse = false;  // the warp-per-row kernel walks the rows last to first
+  NormItems items{};     // rows of several items (items.count > 1): `rows` is their total
 };
 
 // What norm_row does to a pack of its float32 results (channels c0..c0+7) before storing it:
@@ -91,11 +93,18 @@ template <int P, bool Modulate, bool Residual, class TX, class TY, class TG, cla
 __device__ __forceinline__ void norm_row(const RowNormArgs<TX, TY, TG, TO, TP>& a, std::int64_t row, int first,
                                          int step, Sum sum, Finish finish = {}, std::int64_t out_row = -1) {
   const int packs = static_cast<int>(a.n / kPack);
-  const std::int64_t base = row * a.n, out_base = (out_row < 0 ? row : out_row) * a.n;
+  std::int64_t x_row = row, at_row = row, mod = 0;  // the item's input row, its output row, its vectors
+  if (a.items.count > 1) {
+    const std::int64_t item = row / a.items.rows, r = row % a.items.rows;
+    x_row = item * a.items.x_stride + r;
+    at_row = item * a.items.stride + r;
+    mod = item * a.items.mod_stride;
+  }
+  const std::int64_t x_base = x_row * a.n, base = at_row * a.n, out_base = (out_row < 0 ? at_row : out_row) * a.n;
   float v[P][kPack];
 #pragma unroll
   for (int k = 0; k < P; ++k)
-    if (first + k * step < packs) load8(a.x + base + (first + k * step) * kPack, v[k]);
+    if (first + k * step < packs) load8(a.x + x_base + (first + k * step) * kPack, v[k]);
   if constexpr (Residual) {
 #pragma unroll
     for (int k = 0; k < P; ++k) {
@@ -103,7 +112,7 @@ __device__ __forceinline__ void norm_row(const RowNormArgs<TX, TY, TG, TO, TP>& 
       if (p >= packs) continue;
       float ys[kPack], gs[kPack];
       load8(a.y + base + p * kPack, ys);
-      if (a.gate) load8(a.gate + p * kPack, gs);
+      if (a.gate) load8(a.gate + mod + p * kPack, gs);
 #pragma unroll
       for (int i = 0; i < kPack; ++i)
         v[k][i] = round_to<TX>(v[k][i] + (a.gate ? round_to<promote_t<TG, TY>>(gs[i] * ys[i]) : ys[i]));
@@ -129,8 +138,8 @@ __device__ __forceinline__ void norm_row(const RowNormArgs<TX, TY, TG, TO, TP>& 
     const int p = first + k * step;
     if (p >= packs) continue;
     float m[kPack], b[kPack];
-    if (a.mul) load8(a.mul + p * kPack, m);
-    if (a.add) load8(a.add + p * kPack, b);
+    if (a.mul) load8(a.mul + mod + p * kPack, m);
+    if (a.add) load8(a.add + mod + p * kPack, b);
 #pragma unroll
     for (int i = 0; i < kPack; ++i) {
       float o = (v[k][i] - mean) * rstd;
@@ -321,6 +330,45 @@ template <class TX, class TY, class TG, class TO, class TP>
 void add_gated_layer_norm_modulate(Context& ctx, TX* x, const TY* y, const TG* gate, TO* out, std::int64_t rows,
                                    std::int64_t n, const TP* shift, const TP* scale, float eps) {
   add_gated_layer_norm_modulate(ctx, static_cast<const TX*>(x), x, y, gate, out, rows, n, shift, scale, eps);
+}
+
+// layer_norm_modulate over the same rows of several items (NormItems: x and y are item 0's first
+// row, shift and scale its vectors) in one launch where the register-resident kernels apply,
+// else item by item.
+template <class TX, class TY, class TP>
+void layer_norm_modulate_items(Context& ctx, const TX* x, TY* y, std::int64_t n, const TP* shift, const TP* scale,
+                               float eps, const NormItems& items) {
+  EPONA_CHECK(shift != nullptr && scale != nullptr, "layer_norm_modulate_items: null shift or scale");
+  EPONA_CHECK(items.count >= 1 && items.rows >= 0 && n > 0 && items.count * items.rows <= 0x7fffffff,
+              "layer_norm_modulate_items: bad extent (", items.count, " items of ", items.rows, " rows, width ", n, ")");
+  detail::RowNormArgs<TX, TX, TX, TY, TP> args{x, nullptr, nullptr, nullptr, y, scale, shift, items.count * items.rows, n, eps};
+  args.items = items;
+  if (items.count > 1 && args.rows > 0 && detail::try_row_norm_packed<true, false>(ctx, args)) return;
+  for (std::int64_t b = 0; b < items.count; ++b)
+    layer_norm_modulate(ctx, x + b * items.x_stride * n, y + b * items.stride * n, items.rows, n,
+                        shift + b * items.mod_stride, scale + b * items.mod_stride, eps);
+}
+
+// add_gated_layer_norm_modulate (x read from x, the update written to x_out) over the same rows
+// of several items, likewise in one launch where it can.
+template <class TX, class TY, class TG, class TO, class TP>
+void add_gated_layer_norm_modulate_items(Context& ctx, const TX* x, TX* x_out, const TY* y, const TG* gate, TO* out,
+                                         std::int64_t n, const TP* shift, const TP* scale, float eps,
+                                         const NormItems& items) {
+  EPONA_CHECK(gate != nullptr && shift != nullptr && scale != nullptr && x != nullptr && x_out != nullptr &&
+                  y != nullptr && out != nullptr,
+              "add_gated_layer_norm_modulate_items: a null pointer");
+  EPONA_CHECK(items.count >= 1 && items.rows >= 0 && n > 0 && items.count * items.rows <= 0x7fffffff,
+              "add_gated_layer_norm_modulate_items: bad extent (", items.count, " items of ", items.rows, " rows, width ",
+              n, ")");
+  detail::RowNormArgs<TX, TY, TG, TO, TP> args{x, x_out, y, gate, out, scale, shift, items.count * items.rows, n, eps};
+  args.items = items;
+  if (items.count > 1 && args.rows > 0 && detail::try_row_norm_packed<true, true>(ctx, args)) return;
+  for (std::int64_t b = 0; b < items.count; ++b) {
+    const std::int64_t at = b * items.stride * n, m = b * items.mod_stride;
+    add_gated_layer_norm_modulate(ctx, x + b * items.x_stride * n, x_out + at, y + at, gate + m, out + at, items.rows,
+                                  n, shift + m, scale + m, eps);
+  }
 }
 
 // In place, per token and head: x_h = x_h * rsqrt(mean(x_h^2) + eps) * scale, where token r's

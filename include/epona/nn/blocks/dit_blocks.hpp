@@ -56,41 +56,55 @@ inline bool streams_pairable(const JointRows& r) {
 // runs cond rows from row cond): scratch padding whose contents never reach a result.
 inline std::int64_t paired_padding(const JointRows& r) { return streams_pairable(r) ? r.cond - r.target : 0; }
 
-// Activation buffers of one DiT evaluation of one batch item (`rows` = condition + target
-// tokens), shared by all blocks; A is the activation type. The buffers that GEMMs read or write
-// have `pad` more rows (paired_padding), which only paired products touch.
+// How the items of a batched evaluation lie in a DitScratch: item b's rows start at row b·rows of
+// every buffer (its joint rows plus padding), its modulation row at `mods + b·mod_stride`
+// (elements; 0: one row for all) and its RoPE table at row b·rope_stride (0: one table for all).
+// The blocks fold the items into the rows of their products and batch the attention over them;
+// only the row-wise passes, whose vectors are an item's own, run item by item.
+struct DitItems {
+  std::int64_t count = 1, rows = 0, mod_stride = 0, rope_stride = 0;
+};
+
+// Activation buffers of one DiT evaluation of `items` batch items (`rows` = condition + target
+// tokens each), shared by all blocks; A is the activation type. Every buffer holds each item's
+// rows plus `pad` rows (paired_padding), which only paired products and products over whole
+// items touch: their contents never reach a result.
 template <class B, class A = float>
 struct DitScratch {
-  Tensor<A, B> z;         // (rows, D) residual stream: condition rows, then target rows
-  Tensor<A, B> modulated; // (rows + pad, D) (1 + scale)·LN(z) + shift
-  Tensor<A, B> qkv;       // (rows + pad, 3D) [q | k | v], heads contiguous inside each
-  Tensor<A, B> attn;      // (rows + pad, D) attention output (double blocks)
-  Tensor<A, B> mlp;       // (rows + pad, Dm) MLP hidden
-  Tensor<A, B> cat;       // (rows, D + Dm) single blocks: [attention | GELU(mlp)]
-  Tensor<A, B> sub;       // (rows + pad, D) a sublayer's output before its gate
+  Tensor<A, B> z;         // (items·(rows + pad), D) residual stream: condition rows, then target rows
+  Tensor<A, B> modulated; // (items·(rows + pad), D) (1 + scale)·LN(z) + shift
+  Tensor<A, B> qkv;       // (items·(rows + pad), 3D) [q | k | v], heads contiguous inside each
+  Tensor<A, B> attn;      // (items·(rows + pad), D) attention output (double blocks)
+  Tensor<A, B> mlp;       // (items·(rows + pad), Dm) MLP hidden
+  Tensor<A, B> cat;       // (items·(rows + pad), D + Dm) single blocks: [attention | GELU(mlp)]
+  Tensor<A, B> sub;       // (items·(rows + pad), D) a sublayer's output before its gate
+  DitItems items;         // how the items lie (the caller sets the modulation and RoPE strides)
 
   template <class Alloc>
-  static DitScratch plan(Alloc& a, std::int64_t rows, const DitWidths& w, std::int64_t pad = 0) {
-    const std::int64_t D = w.hidden, Dm = w.mlp_hidden, padded = rows + pad;
+  static DitScratch plan(Alloc& a, std::int64_t rows, const DitWidths& w, std::int64_t pad = 0,
+                         std::int64_t count = 1) {
+    EPONA_CHECK(count >= 1 && rows >= 0 && pad >= 0, "DiT scratch: ", count, " items of ", rows, " + ", pad, " rows");
+    const std::int64_t D = w.hidden, Dm = w.mlp_hidden, padded = count * (rows + pad);
     DitScratch s;
-    s.z = a.template take<A>({rows, D});
+    s.z = a.template take<A>({padded, D});
     s.modulated = a.template take<A>({padded, D});
     s.qkv = a.template take<A>({padded, 3 * D});
     s.attn = a.template take<A>({padded, D});
     s.mlp = a.template take<A>({padded, Dm});
-    s.cat = a.template take<A>({rows, D + Dm});
+    s.cat = a.template take<A>({padded, D + Dm});
     s.sub = a.template take<A>({padded, D});
+    s.items = {count, rows + pad, 0, 0};
     return s;
   }
   // Sized for the joint rows, padded where the double blocks pair their streams' products.
   template <class Alloc>
-  static DitScratch plan(Alloc& a, const JointRows& rows, const DitWidths& w) {
-    return plan(a, rows.total(), w, paired_padding(rows));
+  static DitScratch plan(Alloc& a, const JointRows& rows, const DitWidths& w, std::int64_t count = 1) {
+    return plan(a, rows.total(), w, paired_padding(rows), count);
   }
 
-  // Rows every buffer a double block's GEMM reads or writes holds.
+  // Rows of one item that every buffer a double block's GEMM reads or writes holds.
   std::int64_t gemm_rows() const {
-    return std::min({modulated.size(0), qkv.size(0), attn.size(0), mlp.size(0), sub.size(0)});
+    return std::min({modulated.size(0), qkv.size(0), attn.size(0), mlp.size(0), sub.size(0)}) / items.count;
   }
 };
 
@@ -129,6 +143,53 @@ void add_gated_norm_from(Context& ctx, const A* x, A* x_out, const A* y, const A
   } else {
     if (x != x_out) copy(ctx, x, x_out, rows * n);
     add_gated_layer_norm_modulate(ctx, x_out, y, gate, out, rows, n, shift, scale, eps);
+  }
+}
+
+// modulate_rows over rows [first, first + rows) of every item (their vectors each item's own;
+// src, when given, holds the items' rows contiguously): one launch where the backend has
+// ItemRowNorms, else item by item.
+template <class Context, class B, class A>
+void modulate_items(Context& ctx, const Tensor<A, B>& x, Tensor<A, B>& y, std::int64_t first, std::int64_t rows,
+                    const AdaLn<A>& m, float eps, const DitItems& items, const A* src = nullptr) {
+  const std::int64_t D = x.size(-1);
+  if constexpr (ItemRowNorms<Context, A>) {
+    if (items.count > 1) {
+      const NormItems ni{items.count, rows, items.rows, src ? rows : items.rows, items.mod_stride};
+      layer_norm_modulate_items(ctx, src ? src : x.data() + first * D, y.data() + first * D, D, m.shift, m.scale, eps,
+                                ni);
+      return;
+    }
+  }
+  for (std::int64_t b = 0; b < items.count; ++b)
+    modulate_rows(ctx, x, y, b * items.rows + first, rows, m.offset(b * items.mod_stride), eps,
+                  src ? src + b * rows * D : src);
+}
+
+// x_out = x + gate ⊙ y, then out = the `next` modulated norm of x_out (none: the add alone), over
+// `rows` rows of width n of every item: x_out, y and out point at item 0's rows (items.rows
+// apart), x at its residual input (x_stride rows apart; x == x_out: in place), gate and next at
+// its vectors. One launch where the backend has ItemRowNorms, else item by item.
+template <class Context, class A>
+void add_gated_norm_items(Context& ctx, const A* x, A* x_out, const A* y, const A* gate, A* out, std::int64_t rows,
+                          std::int64_t n, const AdaLn<A>& next, float eps, const DitItems& items, std::int64_t x_stride) {
+  if constexpr (ItemRowNorms<Context, A>) {
+    if (items.count > 1 && next) {
+      const NormItems ni{items.count, rows, items.rows, x_stride, items.mod_stride};
+      add_gated_layer_norm_modulate_items(ctx, x, x_out, y, gate, out, n, next.shift, next.scale, eps, ni);
+      return;
+    }
+  }
+  for (std::int64_t b = 0; b < items.count; ++b) {
+    const std::int64_t at = b * items.rows * n, mod = b * items.mod_stride;
+    const A* xb = x + b * x_stride * n;
+    if (next) {
+      const AdaLn<A> nb = next.offset(mod);
+      add_gated_norm_from(ctx, xb, x_out + at, y + at, gate + mod, out + at, rows, n, nb.shift, nb.scale, eps);
+    } else {
+      if (xb != x_out + at) copy(ctx, xb, x_out + at, rows * n);
+      add_gated_then_norm(ctx, x_out + at, y + at, gate + mod, out + at, rows, n, next, eps);
+    }
   }
 }
 
@@ -175,6 +236,46 @@ void joint_attention(BackendContext<B>& ctx, const A* qkv, std::int64_t rows, st
   p.q_token_stride = in_stride;
   packed_attention(ctx, qkv + q_first * in_stride, qkv + D, qkv + 2 * D, out, p);
 }
+// joint_attention over every item of a batched scratch: one launch, the items as sequences
+// `items.rows` rows apart in qkv and out.
+template <class B, class A>
+void items_attention(BackendContext<B>& ctx, const A* qkv, std::int64_t rows, std::int64_t q_first,
+                     std::int64_t q_rows, const DitWidths& w, A* out, std::int64_t out_stride, std::int64_t in_stride,
+                     const DitItems& items) {
+  if (items.count == 1) return joint_attention<B>(ctx, qkv, rows, q_first, q_rows, w, out, out_stride, in_stride);
+  const std::int64_t D = w.hidden;
+  PackedAttention p{items.count, rows, w.heads, w.head_dim(), items.rows * in_stride, in_stride,
+                    items.rows * out_stride, out_stride, false};
+  p.q_len = q_rows;
+  p.q_seq_stride = items.rows * in_stride;
+  p.q_token_stride = in_stride;
+  packed_attention(ctx, qkv + q_first * in_stride, qkv + D, qkv + 2 * D, out, p);
+}
+
+// Item b's RoPE table (`rows` rows of it).
+template <class B>
+RopeTable<B> item_rope(const RopeTable<B>& rope, const DitItems& items, std::int64_t b, std::int64_t rows) {
+  if (items.count == 1) return rope;
+  const std::int64_t first = b * items.rope_stride;
+  return {rope.cos.slice(first, first + rows), rope.sin.slice(first, first + rows)};
+}
+
+// y rows [y_first, y_first + rows) of each item = layer(x rows [x_first, ...) of the item); x and
+// y hold their items `items.rows` rows apart. With `whole` (the rows between one item's range and
+// the next item's are scratch the product may overwrite) and little between them, one product
+// over the whole span; else one batched product over the items.
+template <class Layer, class Context, class A>
+void items_linear(const Layer& layer, Context& ctx, const A* x, std::int64_t ldx, std::int64_t x_first,
+                  std::int64_t rows, A* y, std::int64_t ldy, std::int64_t y_first, const DitItems& items, bool whole,
+                  typename Layer::Epilogue epilogue = Layer::Epilogue::None) {
+  const std::int64_t R = items.rows, gap = R - rows;
+  if (items.count == 1 || (whole && x_first == y_first && 8 * gap <= rows)) {
+    const std::int64_t span = (items.count - 1) * R + rows;
+    return layer.strided(ctx, x + x_first * ldx, ldx, span, y + y_first * ldy, ldy, epilogue);
+  }
+  layer.items(ctx, x + x_first * ldx, ldx, R * ldx, rows, y + y_first * ldy, ldy, R * ldy, items.count, epilogue);
+}
+
 inline double joint_attention_flops(const DitWidths& w, std::int64_t q_rows, std::int64_t rows) {
   return attention_flops(1, w.heads, q_rows, rows, w.head_dim());
 }
@@ -245,16 +346,19 @@ class StreamPair {
     Context* ctx = nullptr;
   };
 
-  StreamPair(Context& main, SideQueue<B>& queue, bool paired, Part cond, Part img)
-      : main_(main), queue_(queue), paired_(paired), cond_(cond), img_(img) {
+  // Item 0's rows and vectors (`items` says where the others' lie).
+  StreamPair(Context& main, SideQueue<B>& queue, bool paired, Part cond, Part img, const DitItems& items)
+      : main_(main), queue_(queue), paired_(paired), cond_(cond), img_(img), items_(items) {
     cond_.ctx = paired ? &main : &queue.side(main);
     img_.ctx = &main;
   }
 
-  // Whether the block may pair: rows close enough and the scratch padded for it.
+  // Whether the block may pair: one item, rows close enough and the scratch padded for it (a
+  // batch's items are folded into each stream's product instead).
   template <class Scratch>
   static bool pairs(Context& ctx, const Scratch& s, const JointRows& rows) {
-    return Linear<B, W>::pair_available(ctx) && streams_pairable(rows) && s.gemm_rows() >= 2 * rows.cond;
+    return s.items.count == 1 && Linear<B, W>::pair_available(ctx) && streams_pairable(rows) &&
+           s.gemm_rows() >= 2 * rows.cond;
   }
 
   // A stretch where the streams touch disjoint rows (per-stream products: on two queues).
@@ -283,8 +387,8 @@ class StreamPair {
       return;
     }
     for (const Part* p : {&cond_, &img_})
-      layer(*p->layers).strided(*p->ctx, x.data() + p->first * ldx, ldx, p->rows, y.data() + p->first * ldy, ldy,
-                                epilogue);
+      items_linear(layer(*p->layers), *p->ctx, x.data(), ldx, p->first, p->rows, y.data(), ldy, p->first, items_,
+                   false, epilogue);
   }
 
  private:
@@ -292,6 +396,7 @@ class StreamPair {
   SideQueue<B>& queue_;
   bool paired_;
   Part cond_, img_;
+  DitItems items_;
 };
 }  // namespace detail
 
@@ -335,7 +440,7 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
   // qkv table `qkv` (3D wide) = qkv(modulated) with their QK RMSNorm + RoPE.
   void condition_front(Context& ctx, const A* src, Tensor<A, B>& modulated, A* qkv, const JointRows& rows,
                        const RopeTable<B>& rope, const A* mods) const {
-    stream_front(ctx, cond, 0, rows.cond, modulated, src, modulated, qkv, cond_mods(mods).attn, rope, false);
+    stream_front(ctx, cond, 0, rows.cond, modulated, src, modulated, qkv, cond_mods(mods).attn, rope, false, {});
   }
 
   // The streams' vectors in this block's table row [img 6D | cond 6D]: (attention, MLP) each.
@@ -371,37 +476,42 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
     const bool paired = Pair::pairs(ctx, s, rows);
     EPONA_CHECK(!(paired && entry.cond_qkv), "DoubleStreamBlock: a condition front run ahead needs unpaired streams");
     const StreamMods mc = cond_mods(mods), mi = img_mods(mods);
+    const DitItems& items = s.items;
     Pair pair(ctx, queue, paired, Part{&cond, 0, rows.cond, mc.attn, mc.mlp, next.cond, cond_src},
-              Part{&img, rows.cond, rows.target, mi.attn, mi.mlp, next.img, nullptr});
+              Part{&img, rows.cond, rows.target, mi.attn, mi.mlp, next.img, nullptr}, items);
     const auto at = [](auto& t, const Part& p) { return t.data() + p.first * t.size(-1); };  // p's first row of t
     if (entry.cond_qkv) {
       // Only the target rows' front here; the join waits for the condition's on the side queue.
       stream_front(ctx, img, rows.cond, rows.target, s.z, nullptr, s.modulated, s.qkv.data(), mi.attn, rope,
-                   entry.normed);
+                   entry.normed, items);
       queue.join(ctx);
     } else {
       pair.fork();
       if (!entry.normed)
         pair.each([&](Context& c, const Part& p) {
-          detail::modulate_rows(c, s.z, s.modulated, p.first, p.rows, p.attn, eps, p.src);
+          detail::modulate_items(c, s.z, s.modulated, p.first, p.rows, p.attn, eps, items, p.src);
         });
       pair.linear(Stream::qkv_of, s.modulated, s.qkv);
       pair.join();
-      detail::qk_norm_rope_rows<B>(ctx, s.qkv.data(), widths, rope,
-                                   std::array{detail::QkRows<B>(0, 0, rows.cond, cond.norm),
-                                              detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)});
+      for (std::int64_t b = 0; b < items.count; ++b)
+        detail::qk_norm_rope_rows<B>(ctx, s.qkv.data() + b * items.rows * 3 * D, widths,
+                                     detail::item_rope(rope, items, b, rows.total()),
+                                     std::array{detail::QkRows<B>(0, 0, rows.cond, cond.norm),
+                                                detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)});
     }
-    detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D);
+    detail::items_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D,
+                               items);
     pair.fork();
     pair.linear(Stream::proj_of, s.attn, s.sub);
     pair.each([&](Context& c, const Part& p) {
-      detail::add_gated_norm_from(c, p.src ? p.src : at(s.z, p), at(s.z, p), at(s.sub, p), p.attn.gate,
-                                  at(s.modulated, p), p.rows, D, p.mlp.shift, p.mlp.scale, eps);
+      detail::add_gated_norm_items(c, p.src ? p.src : at(s.z, p), at(s.z, p), at(s.sub, p), p.attn.gate,
+                                   at(s.modulated, p), p.rows, D, p.mlp, eps, items, p.src ? p.rows : items.rows);
     });
     pair.linear(Stream::fc1_of, s.modulated, s.mlp, img.mlp.fc1_epilogue());
     pair.linear(Stream::fc2_of, s.mlp, s.sub);
     pair.each([&](Context& c, const Part& p) {
-      detail::add_gated_then_norm(c, at(s.z, p), at(s.sub, p), p.mlp.gate, at(s.modulated, p), p.rows, D, p.next, eps);
+      detail::add_gated_norm_items(c, at(s.z, p), at(s.z, p), at(s.sub, p), p.mlp.gate, at(s.modulated, p), p.rows, D,
+                                   p.next, eps, items, items.rows);
     });
     pair.join();
   }
@@ -412,17 +522,18 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
   }
 
  private:
-  // One stream's first sublayer up to the attention over its rows [first, first + count):
-  // the modulated norm of z's rows (or of src's) into `modulated` unless `normed`, the qkv
-  // product into those rows of `qkv`, their QK RMSNorm + RoPE.
+  // One stream's first sublayer up to the attention over its rows [first, first + count) of
+  // every item: the modulated norm of z's rows (or of src's) into `modulated` unless `normed`,
+  // the qkv product into those rows of `qkv`, their QK RMSNorm + RoPE.
   void stream_front(Context& ctx, const DoubleStream<B, W>& st, std::int64_t first, std::int64_t count,
                     const Tensor<A, B>& z, const A* src, Tensor<A, B>& modulated, A* qkv, const AdaLn<A>& attn,
-                    const RopeTable<B>& rope, bool normed) const {
-    const std::int64_t D = widths.hidden;
-    if (!normed) detail::modulate_rows(ctx, z, modulated, first, count, attn, widths.ln_eps, src);
-    st.qkv.strided(ctx, modulated.data() + first * D, D, count, qkv + first * 3 * D, 3 * D);
-    detail::qk_norm_rope_rows<B>(ctx, qkv, widths, rope,
-                                 std::array{detail::QkRows<B>(first, first, first + count, st.norm)});
+                    const RopeTable<B>& rope, bool normed, const DitItems& items) const {
+    const std::int64_t D = widths.hidden, n = first + count;
+    if (!normed) detail::modulate_items(ctx, z, modulated, first, count, attn, widths.ln_eps, items, src);
+    detail::items_linear(st.qkv, ctx, modulated.data(), D, first, count, qkv, 3 * D, first, items, false);
+    for (std::int64_t b = 0; b < items.count; ++b)
+      detail::qk_norm_rope_rows<B>(ctx, qkv + b * items.rows * 3 * D, widths, detail::item_rope(rope, items, b, n),
+                                   std::array{detail::QkRows<B>(first, first, n, st.norm)});
   }
 };
 
@@ -473,27 +584,36 @@ struct SingleStreamBlock : Bindable<SingleStreamBlock<B, W>> {
                   const RopeTable<B>& rope, const A* mods, std::int64_t first_out = 0, bool normed = false,
                   const AdaLn<A>& next = {}) const {
     const std::int64_t D = widths.hidden, Dm = widths.mlp_hidden, n = rows.total(), m = n - first_out;
+    const DitItems& items = s.items;
+    const std::int64_t R = items.rows;
     const AdaLn<A> mv = AdaLn<A>::at(mods, D);
-    if (!normed) detail::modulate_rows(ctx, s.z, s.modulated, 0, n, mv, widths.ln_eps);
+    if (!normed) detail::modulate_items(ctx, s.z, s.modulated, 0, n, mv, widths.ln_eps, items);
     A* qkv = s.qkv.data();
-    const A* a_out = s.modulated.data() + first_out * D;
-    // cat rows 0..m = [attention | GELU(mlp)] of the updated rows: the MLP GEMM writes its
-    // columns directly, the attention the others. Queries and then the MLP (rows from
+    // Each item's cat rows 0..m = [attention | GELU(mlp)] of its updated rows: the MLP GEMM
+    // writes its columns directly, the attention the others. Queries and then the MLP (rows from
     // first_out) run on the side queue, keys and values (all rows) on the main one; the main
     // queue waits for the queries only, so the QK-norm + RoPE (one pass for both) and the
     // attention overlap the MLP GEMM (disjoint columns of cat); linear2 waits for both.
     Context& side = queue.side(ctx);
+    const auto product = [&](Context& c, const Linear<B, W>& l, const Tensor<A, B>& x, std::int64_t x_first,
+                             std::int64_t rows_in, A* y, std::int64_t ldy, std::int64_t y_first,
+                             typename Linear<B, W>::Epilogue epi = Linear<B, W>::Epilogue::None) {
+      detail::items_linear(l, c, x.data(), x.size(-1), x_first, rows_in, y, ldy, y_first, items, true, epi);
+    };
     queue.fork(ctx);
-    q_part.strided(side, a_out, D, m, qkv + first_out * 3 * D, 3 * D);
-    kv_part.strided(ctx, s.modulated.data(), D, n, qkv + D, 3 * D);
+    product(side, q_part, s.modulated, first_out, m, qkv, 3 * D, first_out);
+    product(ctx, kv_part, s.modulated, 0, n, qkv + D, 3 * D, 0);
     queue.join(ctx);
-    mlp_part.strided(side, a_out, D, m, s.cat.data() + D, D + Dm, BackendEpilogue<B>::GeluTanh);
-    detail::qk_norm_rope_rows<B>(ctx, qkv, widths, rope, std::array{detail::QkRows<B>(0, first_out, n, norm)});
-    detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D);
+    product(side, mlp_part, s.modulated, first_out, m, s.cat.data() + D, D + Dm, 0, BackendEpilogue<B>::GeluTanh);
+    for (std::int64_t b = 0; b < items.count; ++b)
+      detail::qk_norm_rope_rows<B>(ctx, qkv + b * R * 3 * D, widths, detail::item_rope(rope, items, b, n),
+                                   std::array{detail::QkRows<B>(0, first_out, n, norm)});
+    detail::items_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D, items);
     queue.join(ctx);
-    linear2.strided(ctx, s.cat.data(), D + Dm, m, s.sub.data(), D);
-    detail::add_gated_then_norm(ctx, s.z.data() + first_out * D, s.sub.data(), mv.gate,
-                                s.modulated.data() + first_out * D, m, D, next, widths.ln_eps);
+    product(ctx, linear2, s.cat, 0, m, s.sub.data(), D, 0);
+    A* updated = s.z.data() + first_out * D;
+    detail::add_gated_norm_items(ctx, updated, updated, s.sub.data(), mv.gate, s.modulated.data() + first_out * D, m, D,
+                                 next, widths.ln_eps, items, R);
   }
 
   Flops flops(const JointRows& rows, std::int64_t first_out = 0) const {
@@ -532,9 +652,14 @@ struct LastLayer : Bindable<LastLayer<B, W>> {
   // `normed`: the previous block's last residual add wrote the target rows' modulated norm.
   void operator()(Context& ctx, DitScratch<B, A>& s, const JointRows& rows, const A* mods, Tensor<A, B>& out,
                   bool normed = false) const {
+    const DitItems& items = s.items;
     if (!normed)
-      detail::modulate_rows(ctx, s.z, s.modulated, rows.cond, rows.target, first_norm(mods), widths.ln_eps);
-    linear(ctx, s.modulated.slice(rows.cond, rows.total()), out);
+      detail::modulate_items(ctx, s.z, s.modulated, rows.cond, rows.target, first_norm(mods), widths.ln_eps, items);
+    EPONA_CHECK(out.numel() == items.count * rows.target * linear.out, "DiT final layer: output of ",
+                shape_str(out.shape()), " for ", items.count, " items of ", rows.target, " x ", linear.out);
+    const std::int64_t D = widths.hidden, C = linear.out;
+    linear.items(ctx, s.modulated.data() + rows.cond * D, D, items.rows * D, rows.target, out.data(), C,
+                 rows.target * C, items.count);
   }
 
   Flops flops(const JointRows& rows) const { return {adaLN_modulation.flops() + linear.flops(rows.target), 0}; }

@@ -90,18 +90,22 @@ class DitTrunk : public Bindable<DitTrunk<B, W>> {
     fill(final_);
   }
 
-  // The block scratch of one evaluation over `rows` (z and the buffers the blocks share).
+  // The block scratch of one evaluation of `items` batch items over `rows` each (z and the
+  // buffers the blocks share); the caller sets the items' modulation and RoPE strides.
   template <class Alloc>
-  Scratch plan_scratch(Alloc& a, const JointRows& rows) const {
-    return Scratch::plan(a, rows, widths_);
+  Scratch plan_scratch(Alloc& a, const JointRows& rows, std::int64_t items = 1) const {
+    return Scratch::plan(a, rows, widths_, items);
   }
 
-  // out (target, out_channels) = the trunk over z, with the vectors of one table row `mods`.
-  // s.z's target rows hold the embedded target tokens, its condition rows the embedded condition
-  // unless `in.cond` points at them. s is clobbered.
+  // out (items, target, out_channels) = the trunk over z, with the vectors of table row `mods`
+  // (item 0's; s.items says where the others' lie). Each item's target rows of s.z hold its
+  // embedded target tokens, its condition rows the embedded condition unless `in.cond` points at
+  // them ((items, cond, D), contiguous). s is clobbered.
   void operator()(Context& ctx, Scratch& s, const JointRows& rows, const RopeTable<B>& rope, const A* mods,
                   Tensor<A, B>& out, const TrunkInputs<B, A>& in = {}) const {
-    if (doubles_.empty() && in.cond) copy(ctx, in.cond, s.z.data(), rows.cond * widths_.hidden);
+    const std::int64_t D = widths_.hidden;
+    for (std::int64_t b = 0; doubles_.empty() && in.cond && b < s.items.count; ++b)
+      copy(ctx, in.cond + b * rows.cond * D, s.z.data() + b * s.items.rows * D, rows.cond * D);
     for (std::size_t j = 0; j < doubles_.size(); ++j) {
       const A* next = mods + doubles_[j].modulation_width();
       const bool ahead = j == 0 && !in.cond_qkv.empty();
