@@ -162,9 +162,14 @@ int run(const Options& o) {
     if (Bt == 1) vis1 = rows.back().per_item;
   }
   const History one = window(cfg, 1);
-  for (std::int64_t K = 1; K <= o.max_hypotheses; K *= 2)
+  for (std::int64_t K = 1; K <= o.max_hypotheses; K *= 2) {
+    const int before = wm.traj_dit().sampler_graph().captures();
     rows.push_back(emit("hyp_k" + std::to_string(K), time(ctx, [&] { (void)wm.plan_hypotheses(one, K, opt); }), 1,
                         plan1));
+    // One recording per K (the warm-up's), replayed by the timed calls.
+    std::printf("# hyp_k%lld: %d TrajDiT graph recording(s), the last %.1f ms (host)\n", static_cast<long long>(K),
+                wm.traj_dit().sampler_graph().captures() - before, wm.traj_dit().sampler_graph().last_capture_ms());
+  }
   std::printf("\n%-15s %12s %14s %16s %10s\n", "row", "ms / call", "ms / item", "item vs batch 1", "roofline");
   for (const Row& r : rows)
     std::printf("%-15s %12.2f %14.2f %16.3f %9.1f%%\n", r.name.c_str(), r.ms, r.per_item, r.ratio, 100 * r.roofline);

@@ -462,9 +462,10 @@ void dit_network(bool vis) {
     CHECK(exact.high_water() == gpu_dit.forward_bytes(kBatch, rows));
   }
   expect_close(name + " DiT forward, batch 2" + tag, download(v), v_cpu, bound<W>(name + ".velocity"));
+  auto state = upload<float>(x);  // one state for every run: the recorded loop's key holds its address
   const auto sample_gpu = [&] {
     poison_arena(arena);
-    auto state = upload<float>(x);
+    BackendTraits<Cuda>::upload_into(gpu(), x, state);
     ArenaScope<Cuda> scope(arena);
     const auto gc = gpu_dit.prepare(gpu(), arena, dcond, ids.cond, target_ids, dy);
     gpu_dit.sample(gpu(), arena, gc, grid, state);

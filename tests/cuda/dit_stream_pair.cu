@@ -302,7 +302,7 @@ struct PairBlockCase {
       const auto bytes = cuda::to_host(ctx, canary);
       CHECK(std::count(bytes.data(), bytes.data() + bytes.numel(), 0xFF) == bytes.numel());
     }
-    return {back(ctx, s.z), back(ctx, s.modulated.slice(0, n))};
+    return {back(ctx, s.z.slice(0, n)), back(ctx, s.modulated.slice(0, n))};
   }
 
  private:

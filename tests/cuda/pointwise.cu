@@ -324,13 +324,48 @@ void check_residual_norm(cuda::Context& ctx, std::int64_t rows, std::int64_t n, 
   check_error(measure(download(ctx, dout), ref), b, what);
 }
 
+// qk_norm_rope over several items (QkItems: item b's rows `stride` apart, its RoPE rows
+// `rope_stride` apart) in one launch against one launch per item: bit-identical (the row path and
+// the head-per-warp path give the same bits), rows between the items untouched. Two segments
+// (a double block's streams) or one with pruned queries (the last single block).
+template <class T>
+void check_qk_items(cuda::Context& ctx, std::int64_t count, std::int64_t heads, bool pruned, std::uint32_t seed) {
+  const std::int64_t head_dim = 128, cond = 9, target = 7, rows = cond + target, stride = rows + 3;
+  const std::int64_t width = heads * head_dim, row = 3 * width, pairs = head_dim / 2;
+  const HostF x = random_tensor({count * stride, row}, seed, -2.f, 2.f);
+  const HostF cos = random_tensor({count * rows, pairs}, seed + 1), sin = random_tensor({count * rows, pairs}, seed + 2);
+  const auto dcos = upload<float>(ctx, cos), dsin = upload<float>(ctx, sin);
+  const auto qs = upload<float>(ctx, random_tensor({head_dim}, seed + 3, 0.5f, 1.5f));
+  const auto ks = upload<float>(ctx, random_tensor({head_dim}, seed + 4, 0.5f, 1.5f));
+  const std::array<QkSegment, 2> two{QkSegment{0, 0, cond, qs.data(), ks.data()},
+                                     QkSegment{cond, cond, rows, ks.data(), qs.data()}};
+  const std::array<QkSegment, 1> one{QkSegment{0, cond, rows, qs.data(), ks.data()}};
+  const auto run = [&](T* at, const float* c, const float* s, const QkItems& items) {
+    if (pruned) cuda::qk_norm_rope(ctx, at, row, width, heads, head_dim, 1e-6f, c, s, one, items);
+    else cuda::qk_norm_rope(ctx, at, row, width, heads, head_dim, 1e-6f, c, s, two, items);
+  };
+  auto together = upload<T>(ctx, x), apart = upload<T>(ctx, x);
+  run(together.data(), dcos.data(), dsin.data(), QkItems{count, stride, rows});
+  for (std::int64_t b = 0; b < count; ++b)
+    run(apart.data() + b * stride * row, dcos.data() + b * rows * pairs, dsin.data() + b * rows * pairs, {});
+  const HostF t = download(ctx, together), a = download(ctx, apart);
+  CAPTURE(std::string(type_name<T>()) + " " + std::to_string(count) + " items, " + std::to_string(heads) + " heads" +
+          (pruned ? ", pruned queries" : ", two segments"));
+  CHECK(count_bit_differences(t, a) == 0);
+  CHECK(count_bit_differences(t, x) > 0);  // it did work
+}
+
 // The item forms (a DiT's folded batch: the same rows of several items, each with its own
-// vectors) against the one-item kernels called item by item on the same buffers: bit-identical.
-// `rows` rows per item, `stride` rows between items' outputs, inputs read from a separate
-// contiguous buffer (x_stride = rows) or in place (x_stride = stride).
+// vectors) against the one-item kernels called item by item on the same buffers. Bit-identical
+// where both take the same kernel; where the items' rows together reach the warp-per-row kernel
+// and one item's do not (`same_kernel` false), the sums run in another order: float32 within
+// 1e-6 of the largest value, bf16 within one flipped rounding (one ulp, 2^-7 of the largest
+// value's binade). `rows` rows per item, `stride` rows
+// between items' outputs, inputs read from a separate contiguous buffer (x_stride = rows) or in
+// place (x_stride = stride); the rows between items must stay as they were.
 template <class T>
 void check_norm_items(cuda::Context& ctx, std::int64_t count, std::int64_t rows, std::int64_t stride, std::int64_t n,
-                      bool separate, std::uint32_t seed) {
+                      bool separate, std::uint32_t seed, bool same_kernel = true) {
   const std::int64_t mod_stride = 5 * n, x_stride = separate ? rows : stride;
   const NormItems items{count, rows, stride, x_stride, mod_stride};
   HostF x = random_tensor({count * stride, n}, seed, -2.f, 3.f), src = random_tensor({count * rows, n}, seed + 1);
@@ -367,8 +402,14 @@ void check_norm_items(cuda::Context& ctx, std::int64_t count, std::int64_t rows,
     const auto [x2, o2] = run(false, residual);
     CAPTURE(what);
     CAPTURE(residual);
-    CHECK(count_bit_differences(o1, o2) == 0);
-    CHECK(count_bit_differences(x1, x2) == 0);  // the residual (and the gap rows) alike
+    if (same_kernel) {
+      CHECK(count_bit_differences(o1, o2) == 0);
+      CHECK(count_bit_differences(x1, x2) == 0);  // the residual (and the gap rows) alike
+    } else {
+      const double limit = std::is_same_v<T, float> ? 1e-6 : 2 * kBf16Roundoff;
+      CHECK(measure(o1, o2).max_abs <= limit * max_abs(o2));
+      CHECK(count_bit_differences(x1, x2) == 0);  // the residual update is element-wise: exact
+    }
   }
 }
 
@@ -652,7 +693,16 @@ TEST_CASE_TEMPLATE("cuda item norms: several items' rows with their own vectors 
   cuda::Context ctx;
   for (const bool separate : {false, true}) {
     check_norm_items<T>(ctx, 3, 5, 7, 256, separate, 11);      // a block per row, gaps between items
-    check_norm_items<T>(ctx, 4, 515, 518, 1024, separate, 12);  // the warp kernel (rows >= 8 per SM)
+    check_norm_items<T>(ctx, 4, 515, 518, 1024, separate, 12, false);  // the items reach the warp kernel
     check_norm_items<T>(ctx, 2, 4, 6, 100, separate, 13);       // unpackable width: item by item
+  }
+}
+
+TEST_CASE_TEMPLATE("cuda qk_norm_rope over several items in one launch, as one launch per item", T, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  for (const bool pruned : {false, true}) {
+    check_qk_items<T>(ctx, 3, 2, pruned, 21);    // few heads: head per warp
+    check_qk_items<T>(ctx, 40, 16, pruned, 22);  // many: the row path in bf16
   }
 }

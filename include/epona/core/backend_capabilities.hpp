@@ -52,11 +52,13 @@ concept AddGatedNormFromInput = requires(Context& ctx, const A* x, A* x_out, con
 };
 
 // QK RMSNorm + RoPE of several row ranges (Segment: QkNormRopeSegment's members) of a packed
-// [q | k | v] buffer in one launch: a double block's two streams, a single block's q and k.
+// [q | k | v] buffer in one launch: a double block's two streams, a single block's q and k; the
+// same ranges of every item of a folded batch (QkItems) in that launch too.
 template <class Context, class A, class Segment = QkNormRopeSegment, std::size_t S = 2>
 concept JointQkNormRope = requires(Context& ctx, A* qkv, std::int64_t n, float eps, const float* table,
-                                   const std::array<Segment, S>& parts) {
+                                   const std::array<Segment, S>& parts, const QkItems& items) {
   qk_norm_rope(ctx, qkv, n, n, n, n, eps, table, table, parts);
+  qk_norm_rope(ctx, qkv, n, n, n, n, eps, table, table, parts, items);
 };
 
 // rows (float32) += x · wᵀ inside the product (the residual branch not rounded to A), and

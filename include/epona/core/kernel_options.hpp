@@ -32,6 +32,13 @@ struct NormItems {
   std::int64_t count = 1, rows = 0, stride = 0, x_stride = 0, mod_stride = 0;
 };
 
+// Several batch items of one packed [q | k | v] layout for one QK-norm + RoPE launch: item b's
+// rows start `stride` rows after item b - 1's, and its RoPE table rows `rope_stride` rows after
+// (0: one table for all); the segments name item 0's rows.
+struct QkItems {
+  std::int64_t count = 1, stride = 0, rope_stride = 0;
+};
+
 // The MST's input tokens of `frames` frames, (frames, actions + image_rows, width) float32:
 // frame f's row slot < actions is action entry f of that slot plus time_emb[f]; its row
 // actions + l is LN(image[f·image_rows + l]) · weight + bias + time_emb[f]. Action slot s,

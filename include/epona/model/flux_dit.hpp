@@ -88,7 +88,8 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     nn::JointRows rows;
     Tensor<A, B> cond;      // (batch, Lc, D) = cond_in(cond)
     Tensor<A, B> vec_y;     // (batch, D) = vector_in(y), empty without vector_in
-    nn::RopeTable<B> rope;  // (batch·(Lc+Lx), head_dim/2)
+    nn::RopeTable<B> rope;  // (batch·(Lc+Lx), head_dim/2): each item's rows, or only item 0's when shared
+    bool shared_rope = false;  // every item has the same ids (the world model's): one table serves all
   };
 
   // Every block's modulation vectors for `times` timesteps of each batch item: row b·times + i
@@ -193,9 +194,11 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
       cond_in_(ctx, as_activation(ctx, cond, s.cond), c.cond);
       if (vector_in_) (*vector_in_)(ctx, as_activation(ctx, y, s.y), s.vec_hidden, c.vec_y);
     }
-    const auto& host = rope_table(joint_ids(cond_ids, target_ids));
-    BackendTraits<B>::upload_into(ctx, host.cos, c.rope.cos);
-    BackendTraits<B>::upload_into(ctx, host.sin, c.rope.sin);
+    c.shared_rope = same_items(cond_ids) && same_items(target_ids);
+    const auto& host = rope_table(joint_ids(cond_ids, target_ids, c.shared_rope ? 1 : batch));
+    auto cos = c.rope.cos.slice(0, host.rows()), sin = c.rope.sin.slice(0, host.rows());
+    BackendTraits<B>::upload_into(ctx, host.cos, cos);
+    BackendTraits<B>::upload_into(ctx, host.sin, sin);
     return c;
   }
 
@@ -327,7 +330,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   // queue behind that read already.
   struct ConditionFront {
     Tensor<A, B> qkv;       // (batch, rows + pad, 3D)
-    Tensor<A, B> modulated; // (cond rows, D)
+    Tensor<A, B> modulated; // (items of a pass·(rows + pad), D): the condition rows' norm, as a pass lays them out
     std::int64_t issued = -1;  // the last step whose front is enqueued
     A* table(std::int64_t b) const { return qkv.data() + b * qkv.size(1) * qkv.size(2); }
   };
@@ -408,7 +411,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     if (!pipelines_condition(rows)) return f;
     const std::int64_t D = cfg_.hidden_size, table_rows = rows.total() + nn::paired_padding(rows);
     f.qkv = a.template take<A>({batch, table_rows, 3 * D});
-    f.modulated = a.template take<A>({rows.cond, D});
+    f.modulated = a.template take<A>({folded_items(batch) * table_rows, D});
     return f;
   }
   // Enqueues step `time`'s condition front for every batch item on the side queue (after a
@@ -417,14 +420,35 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
                    bool fork) const {
     if (fork) trunk_.queue().fork(ctx);
     Context& side = trunk_.queue().side(ctx);
-    for (std::int64_t b = 0; b < c.batch; ++b)
-      trunk_.condition_front(side, c.cond[b].data(), f.modulated, f.table(b), c.rows,
-                                        item_rope(c, b), m.row(b, time));
+    each_pass(c.batch, [&](std::int64_t first, std::int64_t n) {
+      trunk_.condition_front(side, c.cond[first].data(), f.modulated, f.table(first), c.rows, pass_rope(c, first, n),
+                             m.row(first, time), pass_items(c, m, n));
+    });
     f.issued = time;
   }
-  nn::RopeTable<B> item_rope(const Conditioning& c, std::int64_t b) const {
-    const std::int64_t n = c.rows.total();
-    return {c.rope.cos.slice(b * n, (b + 1) * n), c.rope.sin.slice(b * n, (b + 1) * n)};
+
+  // The passes a batch runs in through the blocks (kMaxFoldedItems items at most each): f(first, n)
+  // for items [first, first + n).
+  template <class F>
+  static void each_pass(std::int64_t batch, F&& f) {
+    const std::int64_t per_pass = folded_items(batch);
+    for (std::int64_t first = 0; first < batch; first += per_pass) f(first, std::min(per_pass, batch - first));
+  }
+  // How a pass of n items lies in the blocks' scratch, and the pass's RoPE tables.
+  nn::DitItems pass_items(const Conditioning& c, const Modulations& m, std::int64_t n) const {
+    return {n, c.rows.total() + nn::paired_padding(c.rows), m.times * m.width, c.shared_rope ? 0 : c.rows.total()};
+  }
+  nn::RopeTable<B> pass_rope(const Conditioning& c, std::int64_t first, std::int64_t n) const {
+    const std::int64_t rows = c.rows.total(), from = c.shared_rope ? 0 : first * rows;
+    const std::int64_t to = c.shared_rope ? rows : (first + n) * rows;
+    return {c.rope.cos.slice(from, to), c.rope.sin.slice(from, to)};
+  }
+  // Whether every item of a (batch, ...) tensor equals item 0.
+  static bool same_items(const Tensor<float, Cpu>& t) {
+    const std::int64_t per_item = t.numel() / t.size(0);
+    for (std::int64_t b = 1; b < t.size(0); ++b)
+      if (std::memcmp(t[b].data(), t.data(), sizeof(float) * per_item) != 0) return false;
+    return true;
   }
 
   // The block scratch of `batch` items (each padded for the double blocks' paired products),
@@ -450,8 +474,10 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     return cache.table;
   }
 
-  static Tensor<float, Cpu> joint_ids(const Tensor<float, Cpu>& cond_ids, const Tensor<float, Cpu>& target_ids) {
-    const std::int64_t batch = cond_ids.size(0), lc = cond_ids.size(1), lx = target_ids.size(1), k = cond_ids.size(2);
+  // The joint ids of the first `batch` items, item after item.
+  static Tensor<float, Cpu> joint_ids(const Tensor<float, Cpu>& cond_ids, const Tensor<float, Cpu>& target_ids,
+                                      std::int64_t batch) {
+    const std::int64_t lc = cond_ids.size(1), lx = target_ids.size(1), k = cond_ids.size(2);
     Tensor<float, Cpu> ids({batch * (lc + lx), k});
     for (std::int64_t b = 0; b < batch; ++b) {
       std::memcpy(ids[b * (lc + lx)].data(), cond_ids[b].data(), sizeof(float) * lc * k);
@@ -491,12 +517,10 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     // The items in one pass through the blocks (up to kMaxFoldedItems a pass): the batch folded
     // into the products' rows.
     ArenaScope<B> scope(arena);
-    const std::int64_t per_pass = folded_items(c.batch), total = c.rows.total();
-    auto [scratch, x_in] = plan_velocity(arena, per_pass, c.rows);
-    for (std::int64_t first = 0; first < c.batch; first += per_pass) {
-      const std::int64_t n = std::min(per_pass, c.batch - first);
+    auto [scratch, x_in] = plan_velocity(arena, folded_items(c.batch), c.rows);
+    each_pass(c.batch, [&](std::int64_t first, std::int64_t n) {
       Scratch s = scratch;
-      s.items = {n, scratch.items.rows, m.times * m.width, total};
+      s.items = pass_items(c, m, n);
       auto x_pass = x.slice(first, first + n);
       auto x_in_pass = x_in.empty() ? x_in : x_in.slice(0, n);
       embed_target(ctx, s, c.rows, x_pass, x_in_pass);
@@ -507,11 +531,9 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
         const auto table = front->qkv.slice(first, first + n);
         in.cond_qkv = Tensor<A, B>::view(table.data(), {n * s.items.rows, 3 * cfg_.hidden_size}, table.storage());
       }
-      const nn::RopeTable<B> rope{c.rope.cos.slice(first * total, (first + n) * total),
-                                  c.rope.sin.slice(first * total, (first + n) * total)};
       auto o = out.slice(first, first + n);
-      trunk_(ctx, s, c.rows, rope, m.row(first, time), o, in);
-    }
+      trunk_(ctx, s, c.rows, pass_rope(c, first, n), m.row(first, time), o, in);
+    });
     if (front && time + 1 < m.times) issue_front(ctx, c, m, time + 1, *front, false);
   }
 

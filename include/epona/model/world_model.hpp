@@ -418,17 +418,12 @@ class WorldModel {
     return details;
   }
 
-  // `one` (1, ...) repeated K times along the batch, in the arena; through the host, as the
-  // conditioning is small (T·C + 3C floats).
+  // `one` (1, ...) repeated K times along the batch, in the arena (device copies).
   Tensor<float, B> repeat_batch(const Tensor<float, B>& one, std::int64_t K) {
-    Tensor<float, Cpu> host(one.shape());
-    BackendTraits<B>::download_into(*ctx_, one, host);
     Shape shape = one.shape();
     shape[0] = K;
-    Tensor<float, Cpu> repeated(shape);
-    for (std::int64_t k = 0; k < K; ++k) std::copy_n(host.data(), host.numel(), repeated.data() + k * host.numel());
     auto out = arena_.template take<float>(shape);
-    BackendTraits<B>::upload_into(*ctx_, repeated, out);
+    for (std::int64_t k = 0; k < K; ++k) copy(*ctx_, one.data(), out.data() + k * one.numel(), one.numel());
     return out;
   }
 

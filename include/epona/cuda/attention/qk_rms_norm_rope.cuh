@@ -15,6 +15,7 @@
 #include <type_traits>
 
 #include "epona/core/env.hpp"
+#include "epona/core/kernel_options.hpp"
 #include "epona/cuda/runtime/context.hpp"
 #include "epona/cuda/runtime/device.cuh"
 
@@ -121,19 +122,33 @@ struct QkRopeParts {
   const float* sin;
   std::int64_t first[kQkParts], start[kQkParts + 1];
   const float* scale[kQkParts];
+  QkItems items{};  // the parts repeat for each item (start[parts] heads an item)
+
+  __host__ __device__ std::int64_t heads_total() const { return items.count * start[parts]; }
+  // Head index u of all items as (item 0's head index, the item's qkv and RoPE table).
+  __host__ __device__ std::int64_t locate(std::int64_t u, T*& rows, const float*& cos_rows, const float*& sin_rows) const {
+    const std::int64_t item = u / start[parts], pairs = head_dim / 2;
+    rows = qkv + item * items.stride * row_stride;
+    cos_rows = cos + item * items.rope_stride * pairs;
+    sin_rows = sin + item * items.rope_stride * pairs;
+    return u - item * start[parts];
+  }
 };
 
 template <bool Vec, class T>
 __global__ void qk_norm_rope_kernel(QkRopeParts<T> a) {
   wait_for_producer();  // may start before its producer ends (launch_after)
-  const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
-  if (item >= a.start[a.parts]) return;
+  const std::int64_t unit = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;
+  if (unit >= a.heads_total()) return;
+  T* qkv;
+  const float *cos, *sin;
+  const std::int64_t item = a.locate(unit, qkv, cos, sin);
   int p = 0;
   while (item >= a.start[p + 1]) ++p;
   const std::int64_t local = item - a.start[p], r = a.first[p] + local / a.heads;
   const int pairs = a.head_dim / 2;
-  T* head = a.qkv + r * a.row_stride + (p & 1) * a.k_offset + (local % a.heads) * a.head_dim;
-  norm_rope_any<Vec>(head, threadIdx.x & 31, a.head_dim, a.scale[p], a.eps, a.cos + r * pairs, a.sin + r * pairs);
+  T* head = qkv + r * a.row_stride + (p & 1) * a.k_offset + (local % a.heads) * a.head_dim;
+  norm_rope_any<Vec>(head, threadIdx.x & 31, a.head_dim, a.scale[p], a.eps, cos + r * pairs, sin + r * pairs);
 }
 
 // The row path of qk_norm_rope (head_dim 128, 16-byte aligned rows, tables and scales): a warp
@@ -190,21 +205,23 @@ __global__ void qk_norm_rope_rows_kernel(QkRopeParts<T> a) {
   constexpr int E = L::kElems, group_heads = Accesses * L::kHeads;
   const int groups = (a.heads + group_heads - 1) / group_heads;
   const std::int64_t item = blockIdx.x * std::int64_t{blockDim.x / 32} + threadIdx.x / 32;  // (part, row, group)
-  const std::int64_t head0 = item / groups * a.heads;
-  if (head0 >= a.start[a.parts]) return;
+  if (item / groups * a.heads >= a.heads_total()) return;
+  T* qkv;
+  const float *cos, *sin;
+  const std::int64_t head0 = a.locate(item / groups * a.heads, qkv, cos, sin);
   int p = 0;
   while (head0 >= a.start[p + 1]) ++p;
   const std::int64_t r = a.first[p] + (head0 - a.start[p]) / a.heads;
   const int lane = threadIdx.x & 31, c0 = (lane % L::kPerHead) * E;
   const int h0 = static_cast<int>(item % groups) * group_heads + lane / L::kPerHead;  // this lane's first head
   float cr[E / 2], sr[E / 2], scale[E];
-  const float* cos_row = a.cos + r * (kVecHeadDim / 2) + c0 / 2;
-  const float* sin_row = a.sin + r * (kVecHeadDim / 2) + c0 / 2;
+  const float* cos_row = cos + r * (kVecHeadDim / 2) + c0 / 2;
+  const float* sin_row = sin + r * (kVecHeadDim / 2) + c0 / 2;
 #pragma unroll
   for (int i = 0; i < E / 2; ++i) cr[i] = cos_row[i], sr[i] = sin_row[i];
 #pragma unroll
   for (int i = 0; i < E; ++i) scale[i] = a.scale[p][c0 + i];
-  T* row = a.qkv + r * a.row_stride + (p & 1) * a.k_offset + c0;
+  T* row = qkv + r * a.row_stride + (p & 1) * a.k_offset + c0;
   float v[Accesses][E] = {};
 #pragma unroll
   for (int u = 0; u < Accesses; ++u)
@@ -230,7 +247,7 @@ inline bool& qk_rows_forced() {
 template <class T>
 bool row_path(Context& ctx, const QkRopeParts<T>& a) {
   const auto elems16 = [](std::int64_t n) { return n * static_cast<std::int64_t>(sizeof(T)) % 16 == 0; };
-  const bool pays = std::is_same_v<T, bf16> && a.start[a.parts] >= std::int64_t{128} * ctx.info().multiprocessors;
+  const bool pays = std::is_same_v<T, bf16> && a.heads_total() >= std::int64_t{128} * ctx.info().multiprocessors;
   bool ok = (pays || qk_rows_forced()) && a.head_dim == kVecHeadDim && aligned16(a.qkv) && elems16(a.row_stride) &&
             elems16(a.k_offset) && aligned16(a.cos) && aligned16(a.sin);
   for (int p = 0; p < a.parts; ++p) ok = ok && aligned16(a.scale[p]);
@@ -246,7 +263,7 @@ inline int& qk_rows_accesses() {
 template <class T, int Accesses>
 void launch_qk_rows(Context& ctx, const QkRopeParts<T>& a) {
   constexpr int threads = 128, group_heads = Accesses * RowLanes<T>::kHeads;
-  const std::int64_t warps = a.start[a.parts] / a.heads * ((a.heads + group_heads - 1) / group_heads);
+  const std::int64_t warps = a.heads_total() / a.heads * ((a.heads + group_heads - 1) / group_heads);
   const std::int64_t blocks = (warps + threads / 32 - 1) / (threads / 32);
   EPONA_CHECK(blocks <= 0x7fffffff, "qk_norm_rope: ", warps, " head groups exceed one launch");
   launch_after(qk_norm_rope_rows_kernel<T, Accesses>, static_cast<unsigned>(blocks), threads, 0, ctx, a);
@@ -300,19 +317,21 @@ void rms_norm_rope_heads(Context& ctx, T* x, std::int64_t rows, std::int64_t row
 // with members first, q_first, end, q_scale, k_scale) norms the keys of rows [first, end) with
 // k_scale and the queries of rows [q_first, end) with q_scale (q_first >= first: a pruned
 // block's queries); cos/sin rows are indexed by r. Each head gives exactly what
-// rms_norm_rope_heads gives it.
+// rms_norm_rope_heads gives it. With `items`, the segments repeat for each item (QkItems).
 template <class T, class Segment, std::size_t S>
 void qk_norm_rope(Context& ctx, T* qkv, std::int64_t row_stride, std::int64_t k_offset, std::int64_t heads,
                   std::int64_t head_dim, float eps, const float* cos, const float* sin,
-                  const std::array<Segment, S>& segments) {
+                  const std::array<Segment, S>& segments, const QkItems& items = {}) {
   static_assert(is_device_float<T>, "qk_norm_rope takes float or bf16");
   static_assert(2 * S <= detail::kQkParts, "qk_norm_rope: at most 4 segments");
   detail::check_norm_rope_extent(0, row_stride, heads, head_dim, "qk_norm_rope");
   EPONA_CHECK(k_offset >= heads * head_dim && k_offset + heads * head_dim <= row_stride, "qk_norm_rope: key offset ",
               k_offset, " does not fit ", heads, " heads of ", head_dim, " in rows of ", row_stride);
   EPONA_CHECK(qkv != nullptr && cos != nullptr && sin != nullptr, "qk_norm_rope: null buffer or table");
+  EPONA_CHECK(items.count >= 1 && items.stride >= 0 && items.rope_stride >= 0, "qk_norm_rope: ", items.count,
+              " items ", items.stride, " rows apart");
   detail::QkRopeParts<T> a{qkv, row_stride, k_offset, static_cast<int>(heads), static_cast<int>(head_dim), 0, eps,
-                           cos, sin, {}, {}, {}};
+                           cos, sin, {}, {}, {}, items};
   a.start[0] = 0;
   for (const auto& s : segments) {
     EPONA_CHECK(0 <= s.first && s.first <= s.q_first && s.q_first <= s.end, "qk_norm_rope: segment rows [", s.first,
@@ -326,13 +345,13 @@ void qk_norm_rope(Context& ctx, T* qkv, std::int64_t row_stride, std::int64_t k_
       a.start[a.parts + 1] = a.start[a.parts] + (s.end - from[kind]) * heads;
     }
   }
-  if (a.start[a.parts] == 0) return;
+  if (a.heads_total() == 0) return;
   if (ctx.policy().qk_norm_rope_rows && detail::row_path(ctx, a)) {  // EPONA_CUDA_QK_ROWS=0: head per warp
     detail::launch_qk_rows(ctx, a);
   } else {
     const auto kernel = detail::vector_heads(qkv, row_stride, head_dim, k_offset) ? detail::qk_norm_rope_kernel<true, T>
                                                                                 : detail::qk_norm_rope_kernel<false, T>;
-    detail::launch_after(kernel, detail::norm_rope_blocks(a.start[a.parts], "qk_norm_rope"), detail::kNormRopeThreads, 0,
+    detail::launch_after(kernel, detail::norm_rope_blocks(a.heads_total(), "qk_norm_rope"), detail::kNormRopeThreads, 0,
                          ctx, a);
   }
 }

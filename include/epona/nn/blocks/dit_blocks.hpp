@@ -225,6 +225,35 @@ void qk_norm_rope_rows(BackendContext<B>& ctx, A* qkv, const DitWidths& w, const
     }
   }
 }
+// Item b's RoPE table (`rows` rows of it).
+template <class B>
+RopeTable<B> item_rope(const RopeTable<B>& rope, const DitItems& items, std::int64_t b, std::int64_t rows) {
+  if (items.count == 1) return rope;
+  const std::int64_t first = b * items.rope_stride;
+  return {rope.cos.slice(first, first + rows), rope.sin.slice(first, first + rows)};
+}
+
+// qk_norm_rope_rows over the same ranges of every item (each item's rows and RoPE table where
+// `items` puts them; `rope` is item 0's table onwards): one launch where the backend has the
+// joint kernel, else item by item.
+template <class B, class A, std::size_t S>
+void qk_norm_rope_items(BackendContext<B>& ctx, A* qkv, const DitWidths& w, const RopeTable<B>& rope,
+                        const std::array<QkRows<B>, S>& parts, const DitItems& items) {
+  std::int64_t end = 0;
+  for (const auto& p : parts) end = std::max(end, p.end);
+  if constexpr (JointQkNormRope<BackendContext<B>, A, QkRows<B>, S>) {
+    if (items.count > 1) {
+      const std::int64_t D = w.hidden, last = (items.count - 1) * items.rope_stride + end;
+      EPONA_CHECK(last <= rope.rows() && 2 * rope.pairs() == w.head_dim() && parts[0].norm->eps == parts[S - 1].norm->eps,
+                  "QK-norm RoPE: rows up to ", last, " of a table of ", rope.rows(), " x ", rope.pairs(), " pairs");
+      qk_norm_rope(ctx, qkv, 3 * D, D, w.heads, w.head_dim(), parts[0].norm->eps, rope.cos.data(), rope.sin.data(),
+                   parts, QkItems{items.count, items.rows, items.rope_stride});
+      return;
+    }
+  }
+  for (std::int64_t b = 0; b < items.count; ++b)
+    qk_norm_rope_rows<B>(ctx, qkv + b * items.rows * 3 * w.hidden, w, item_rope(rope, items, b, end), parts);
+}
 // Unmasked attention of queries at rows [q_first, q_first + q_rows) of the packed [q | k | v]
 // buffer (rows in_stride apart) over all `rows` keys; output rows out_stride apart.
 template <class B, class A>
@@ -250,14 +279,6 @@ void items_attention(BackendContext<B>& ctx, const A* qkv, std::int64_t rows, st
   p.q_seq_stride = items.rows * in_stride;
   p.q_token_stride = in_stride;
   packed_attention(ctx, qkv + q_first * in_stride, qkv + D, qkv + 2 * D, out, p);
-}
-
-// Item b's RoPE table (`rows` rows of it).
-template <class B>
-RopeTable<B> item_rope(const RopeTable<B>& rope, const DitItems& items, std::int64_t b, std::int64_t rows) {
-  if (items.count == 1) return rope;
-  const std::int64_t first = b * items.rope_stride;
-  return {rope.cos.slice(first, first + rows), rope.sin.slice(first, first + rows)};
 }
 
 // y rows [y_first, y_first + rows) of each item = layer(x rows [x_first, ...) of the item); x and
@@ -438,9 +459,11 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
   // ahead (the sampler's pipelined front, DoubleBlockEntry::cond_qkv): modulated = the
   // condition rows' modulated norm of src (their residual input), then rows [0, cond) of the
   // qkv table `qkv` (3D wide) = qkv(modulated) with their QK RMSNorm + RoPE.
+  // With `items`: every item's (src: (items, cond, D); modulated and qkv laid out as the items
+  // of a DitScratch), as the block itself runs them.
   void condition_front(Context& ctx, const A* src, Tensor<A, B>& modulated, A* qkv, const JointRows& rows,
-                       const RopeTable<B>& rope, const A* mods) const {
-    stream_front(ctx, cond, 0, rows.cond, modulated, src, modulated, qkv, cond_mods(mods).attn, rope, false, {});
+                       const RopeTable<B>& rope, const A* mods, const DitItems& items = {}) const {
+    stream_front(ctx, cond, 0, rows.cond, modulated, src, modulated, qkv, cond_mods(mods).attn, rope, false, items);
   }
 
   // The streams' vectors in this block's table row [img 6D | cond 6D]: (attention, MLP) each.
@@ -493,11 +516,10 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
         });
       pair.linear(Stream::qkv_of, s.modulated, s.qkv);
       pair.join();
-      for (std::int64_t b = 0; b < items.count; ++b)
-        detail::qk_norm_rope_rows<B>(ctx, s.qkv.data() + b * items.rows * 3 * D, widths,
-                                     detail::item_rope(rope, items, b, rows.total()),
-                                     std::array{detail::QkRows<B>(0, 0, rows.cond, cond.norm),
-                                                detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)});
+      detail::qk_norm_rope_items<B>(ctx, s.qkv.data(), widths, rope,
+                                    std::array{detail::QkRows<B>(0, 0, rows.cond, cond.norm),
+                                               detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)},
+                                    items);
     }
     detail::items_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D,
                                items);
@@ -531,9 +553,8 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
     const std::int64_t D = widths.hidden, n = first + count;
     if (!normed) detail::modulate_items(ctx, z, modulated, first, count, attn, widths.ln_eps, items, src);
     detail::items_linear(st.qkv, ctx, modulated.data(), D, first, count, qkv, 3 * D, first, items, false);
-    for (std::int64_t b = 0; b < items.count; ++b)
-      detail::qk_norm_rope_rows<B>(ctx, qkv + b * items.rows * 3 * D, widths, detail::item_rope(rope, items, b, n),
-                                   std::array{detail::QkRows<B>(first, first, n, st.norm)});
+    detail::qk_norm_rope_items<B>(ctx, qkv, widths, rope, std::array{detail::QkRows<B>(first, first, n, st.norm)},
+                                  items);
   }
 };
 
@@ -605,9 +626,7 @@ struct SingleStreamBlock : Bindable<SingleStreamBlock<B, W>> {
     product(ctx, kv_part, s.modulated, 0, n, qkv + D, 3 * D, 0);
     queue.join(ctx);
     product(side, mlp_part, s.modulated, first_out, m, s.cat.data() + D, D + Dm, 0, BackendEpilogue<B>::GeluTanh);
-    for (std::int64_t b = 0; b < items.count; ++b)
-      detail::qk_norm_rope_rows<B>(ctx, qkv + b * R * 3 * D, widths, detail::item_rope(rope, items, b, n),
-                                   std::array{detail::QkRows<B>(0, first_out, n, norm)});
+    detail::qk_norm_rope_items<B>(ctx, qkv, widths, rope, std::array{detail::QkRows<B>(0, first_out, n, norm)}, items);
     detail::items_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D, items);
     queue.join(ctx);
     product(ctx, linear2, s.cat, 0, m, s.sub.data(), D, 0);

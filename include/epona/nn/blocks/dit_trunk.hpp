@@ -127,8 +127,8 @@ class DitTrunk : public Bindable<DitTrunk<B, W>> {
   // The first double block's condition stream up to its attention, for a caller that runs it
   // ahead on the side queue (TrunkInputs::cond_qkv); see DoubleStreamBlock::condition_front.
   void condition_front(Context& ctx, const A* src, Tensor<A, B>& modulated, A* qkv, const JointRows& rows,
-                       const RopeTable<B>& rope, const A* mods) const {
-    doubles_.front().condition_front(ctx, src, modulated, qkv, rows, rope, mods);
+                       const RopeTable<B>& rope, const A* mods, const DitItems& items = {}) const {
+    doubles_.front().condition_front(ctx, src, modulated, qkv, rows, rope, mods, items);
   }
   // The blocks' second queue (a second CUDA stream; the CPU runs in order).
   SideQueue<B>& queue() const { return side_; }
