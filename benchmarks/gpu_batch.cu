@@ -12,7 +12,8 @@
 // for the samples, the roofline fraction: the official FLOPs (every row, as compute-budget.md
 // counts them) / time / the bf16 GEMM ceiling measured in the same run. The DiTs fold a batch
 // into the rows of their products (docs/world-model.md); the MST and the DC-AE run item by item.
-// Usage: bench_gpu_batch [--repeats N] [--max-batch B] [--max-hypotheses K]
+// Usage: bench_gpu_batch [--repeats N] [--min-batch B] [--max-batch B] [--max-hypotheses K]
+//                        [--only plan,step,traj100,vis100,hyp] (step includes decode)
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>
@@ -36,7 +37,9 @@ namespace {
 
 struct Options {
   int repeats = 3;
-  std::int64_t max_batch = 16, max_hypotheses = 64;
+  std::int64_t max_batch = 16, max_hypotheses = 64, min_batch = 1;
+  std::string only;  // comma-separated row kinds (plan, step, decode, traj100, vis100, hyp); empty: all
+  bool want(const std::string& kind) const { return only.empty() || ("," + only + ",").find("," + kind + ",") != std::string::npos; }
 };
 
 Options parse(int argc, char** argv) {
@@ -53,7 +56,12 @@ Options parse(int argc, char** argv) {
     if (a == "--repeats") o.repeats = int(value());
     else if (a == "--max-batch") o.max_batch = value();
     else if (a == "--max-hypotheses") o.max_hypotheses = value();
-    else fail("unknown option '", a, "' (--repeats N, --max-batch B, --max-hypotheses K)");
+    else if (a == "--min-batch") o.min_batch = value();
+    else if (a == "--only") {
+      EPONA_CHECK(i + 1 < argc, a, " needs a value");
+      o.only = argv[++i];
+    }
+    else fail("unknown option '", a, "' (--repeats N, --min-batch B, --max-batch B, --max-hypotheses K, --only KINDS)");
   }
   return o;
 }
@@ -137,32 +145,40 @@ int run(const Options& o) {
   std::printf("# bf16 GEMM ceiling (8192^3): %.1f TFLOP/s\n", ceiling);
   const double vis_flops = dit_sample_flops(cfg, wm.vis_dit(), true), traj_flops = dit_sample_flops(cfg, wm.traj_dit(), false);
   double plan1 = 0, step1 = 0, decode1 = 0, vis1 = 0, traj1 = 0, step_decode1 = 0;
-  for (std::int64_t Bt = 1; Bt <= o.max_batch; Bt *= 2) {
+  for (std::int64_t Bt = o.min_batch; Bt <= o.max_batch; Bt *= 2) {
     const History h = window(cfg, Bt);
     const std::string b = "_b" + std::to_string(Bt);
-    rows.push_back(emit("plan" + b, time(ctx, [&] { (void)wm.plan(h, opt); }), Bt, plan1));
-    if (Bt == 1) plan1 = rows.back().per_item;
-    rows.push_back(emit("step" + b, time(ctx, [&] { (void)wm.predict_next(h, std::nullopt, opt); }), Bt, step1));
-    if (Bt == 1) step1 = rows.back().per_item;
-    TorchGenerator gen(3);
-    const auto z = BackendTraits<Cuda>::upload(gen.randn({Bt, dcfg.latent_channels, cfg.latent_h(), cfg.latent_w()}));
-    rows.push_back(emit("decode" + b, time(dctx, [&] { (void)dcae.decode(dctx, z, false); }), Bt, decode1));
-    if (Bt == 1) decode1 = rows.back().per_item;
-    // An AR step with its decode, per scene: the two rows' medians added (measured apart).
-    const double step_decode = rows[rows.size() - 2].per_item + rows.back().per_item;
-    if (Bt == 1) step_decode1 = step_decode;
-    std::printf("{\"name\": \"step_decode%s\", \"per_item_ms\": %.3f, \"per_item_vs_one\": %.3f}\n", b.c_str(),
-                step_decode, step_decode / step_decode1);
-    rows.push_back({"step_decode" + b, step_decode * double(Bt), step_decode, step_decode / step_decode1, 0});
-    rows.push_back(emit("traj100" + b, dit_sample_times(wm, wm.traj_dit(), false, Bt, time), Bt, traj1,
-                        traj_flops * double(Bt), ceiling));
-    if (Bt == 1) traj1 = rows.back().per_item;
-    rows.push_back(emit("vis100" + b, dit_sample_times(wm, wm.vis_dit(), true, Bt, time), Bt, vis1,
-                        vis_flops * double(Bt), ceiling));
-    if (Bt == 1) vis1 = rows.back().per_item;
+    if (o.want("plan")) {
+      rows.push_back(emit("plan" + b, time(ctx, [&] { (void)wm.plan(h, opt); }), Bt, plan1));
+      if (Bt == 1) plan1 = rows.back().per_item;
+    }
+    if (o.want("step") && o.want("decode")) {
+      const Row step = emit("step" + b, time(ctx, [&] { (void)wm.predict_next(h, std::nullopt, opt); }), Bt, step1);
+      TorchGenerator gen(3);
+      const auto z = BackendTraits<Cuda>::upload(gen.randn({Bt, dcfg.latent_channels, cfg.latent_h(), cfg.latent_w()}));
+      const Row decode = emit("decode" + b, time(dctx, [&] { (void)dcae.decode(dctx, z, false); }), Bt, decode1);
+      if (Bt == 1) step1 = step.per_item, decode1 = decode.per_item;
+      // An AR step with its decode, per scene: the two rows' medians added (measured apart).
+      const double step_decode = step.per_item + decode.per_item;
+      if (Bt == 1) step_decode1 = step_decode;
+      const double ratio = step_decode1 > 0 ? step_decode / step_decode1 : 1.0;
+      std::printf("{\"name\": \"step_decode%s\", \"per_item_ms\": %.3f, \"per_item_vs_one\": %.3f}\n", b.c_str(),
+                  step_decode, ratio);
+      rows.insert(rows.end(), {step, decode, Row{"step_decode" + b, step_decode * double(Bt), step_decode, ratio, 0}});
+    }
+    if (o.want("traj100")) {
+      rows.push_back(emit("traj100" + b, dit_sample_times(wm, wm.traj_dit(), false, Bt, time), Bt, traj1,
+                          traj_flops * double(Bt), ceiling));
+      if (Bt == 1) traj1 = rows.back().per_item;
+    }
+    if (o.want("vis100")) {
+      rows.push_back(emit("vis100" + b, dit_sample_times(wm, wm.vis_dit(), true, Bt, time), Bt, vis1,
+                          vis_flops * double(Bt), ceiling));
+      if (Bt == 1) vis1 = rows.back().per_item;
+    }
   }
   const History one = window(cfg, 1);
-  for (std::int64_t K = 1; K <= o.max_hypotheses; K *= 2) {
+  for (std::int64_t K = 1; o.want("hyp") && K <= o.max_hypotheses; K *= 2) {
     const int before = wm.traj_dit().sampler_graph().captures();
     rows.push_back(emit("hyp_k" + std::to_string(K), time(ctx, [&] { (void)wm.plan_hypotheses(one, K, opt); }), 1,
                         plan1));

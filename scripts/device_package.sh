@@ -9,7 +9,7 @@ build=$1 out=$2
 shift 2
 mkdir -p "$out/lib"
 for name in "$@"; do
-  path=$(find "$build" -type f -name "$name" -perm -u+x | head -1)
+  path=$(find "$build" -type f -name "$name" -perm -u+x -print -quit)
   [[ -n $path ]] || { echo "device_package: $name not built in $build" >&2; exit 1; }
   cp "$path" "$out/"
 done
