@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <numeric>
 #include <optional>
 #include <string>
 #include <vector>
@@ -408,8 +409,11 @@ inline std::vector<ClipScores> evaluate_batch(const std::vector<const eval::Eval
     for (std::size_t m = 0; m < filmed.size(); ++m)
       score_video(scores[filmed[m]], *clips[filmed[m]], inputs[filmed[m]].history, generated[m], e);
   }
-  if (e.opt.control) score_control(scores, clips, windows_of(members(clips, [](const eval::EvalClip&) { return true; })),
-                                   seeds, e);
+  if (e.opt.control) {
+    std::vector<std::size_t> every(clips.size());
+    std::iota(every.begin(), every.end(), std::size_t{0});
+    score_control(scores, clips, windows_of(every), seeds, e);
+  }
   return scores;
 }
 
