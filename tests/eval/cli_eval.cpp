@@ -372,7 +372,7 @@ fs::path make_five_clips(const TempDir& t) {
 TEST_CASE("eval --batch 4 scores every clip as --batch 1 does: plans, video, control") {
   TempDir t;
   const fs::path set = make_five_clips(t), one = t.path / "one.json", four = t.path / "four.json";
-  const std::vector<std::string> extra{"--control", "--control-frames", "1", "--seed", "3"};
+  const std::vector<std::string> extra{"--control", "--control-frames", "1", "--seed", "3", "--threads", "1"};
   auto args = eval_args(set, one);
   args.insert(args.end(), extra.begin(), extra.end());
   REQUIRE(cli(args).rc == 0);
