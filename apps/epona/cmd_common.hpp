@@ -52,7 +52,8 @@ inline void add_sampling_options(ArgParser& p) {
 inline constexpr std::int64_t kMaxBatch = 64;
 inline void add_batch_option(ArgParser& p, const std::string& clips = "clips") {
   p.option("batch", "N", "run up to N " + clips + " together, one world-model call over the batch per step (1.." +
-           std::to_string(kMaxBatch) + "); each clip keeps its own seed, so the results are those of --batch 1", "1");
+           std::to_string(kMaxBatch) + "); each clip keeps its own seed, so the results are those of --batch 1 "
+           "up to float rounding", "1");
 }
 inline std::int64_t batch_option(const ParsedArgs& a) { return a.integer("batch", 1, 1, kMaxBatch); }
 // ", in batches of N clips" for the notes; empty for 1.
