@@ -46,6 +46,20 @@ inline void add_sampling_options(ArgParser& p) {
       .option("video-steps", "N", "the video's (VisDiT) steps, overriding --steps", "--steps")
       .option("seed", "N", "noise seed (torch.manual_seed-compatible draws)", "0");
 }
+// --batch N: up to N clips' work as one batched world-model call (eval, generate --clips). Each
+// clip keeps its own seed (per-item noise), so the results are those of --batch 1 up to the
+// rounding of the batched matrix products.
+inline constexpr std::int64_t kMaxBatch = 64;
+inline void add_batch_option(ArgParser& p, const std::string& clips = "clips") {
+  p.option("batch", "N", "run up to N " + clips + " together, one world-model call over the batch per step (1.." +
+           std::to_string(kMaxBatch) + "); each clip keeps its own seed, so the results are those of --batch 1 "
+           "up to float rounding", "1");
+}
+inline std::int64_t batch_option(const ParsedArgs& a) { return a.integer("batch", 1, 1, kMaxBatch); }
+// ", in batches of N clips" for the notes; empty for 1.
+inline std::string batch_note(std::int64_t batch) {
+  return batch > 1 ? ", in batches of up to " + std::to_string(batch) + " clips" : "";
+}
 // Multi-hypothesis planning (WorldModel::plan_hypotheses, model/plan_choice.hpp). Without the flags
 // the model's recommended rule applies (configs.json "planner"; 1 plan when it has none).
 inline void add_hypothesis_options(ArgParser& p) {

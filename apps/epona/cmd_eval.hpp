@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <numeric>
 #include <optional>
 #include <string>
 #include <vector>
@@ -61,6 +62,7 @@ inline ArgParser eval_parser() {
               "(to compare samplers with each other, scripts/solver_sweep.sh)", "none");
   add_sampling_options(p);
   add_hypothesis_options(p);
+  add_batch_option(p);
   add_compute_options(p);
   p.flag("quiet", "no progress bars or notes on stderr", 'q');
   p.epilog("examples:\n"
@@ -83,6 +85,7 @@ struct EvalOptions {
   SampleOptions sample;
   DitSamplers samplers;                       // what sample resolves to, per DiT
   HypothesisOptions planning;  // hypotheses per scene and the rule that picks one
+  std::int64_t batch = 1;      // clips run together (--batch)
   std::optional<std::filesystem::path> save_frames;
 };
 
@@ -104,6 +107,7 @@ inline EvalOptions eval_options(const ParsedArgs& a, const io::ModelConfigs& con
   o.sample = sample_options(a, wc);
   o.samplers = samplers_of(o.sample);
   o.planning = hypothesis_options(a, configs.planner);
+  o.batch = batch_option(a);
   if (const auto dir = a.get("save-frames")) o.save_frames = *dir;
   std::error_code ec;
   const auto parent = std::filesystem::absolute(o.json, ec).parent_path();
@@ -238,33 +242,54 @@ inline PlanScores best_of(const Tensor<float>& plans, const std::vector<eval::Po
   return best;
 }
 
-inline void score_planning(ClipScores& s, const eval::EvalClip& c, const History& window, std::uint64_t seed,
-                           const EvalContext& e) {
+// Scores the model's plans of one clip (K, W, 3) and the baselines.
+inline void score_plans(ClipScores& s, const eval::EvalClip& c, const Tensor<float>& plans, const EvalContext& e) {
   const auto truth = eval::cumulative_poses(*c.future_motions, eval::kPlanWaypoints);
-  SampleOptions o = e.opt.sample;
-  o.seed = seed;
-  const std::int64_t K = e.opt.planning.hypotheses;
-  const Tensor<float> plans = e.engine.plans(window, K, o);  // (K, W, 3)
   const model::PlanFan fan = model::choose_plan(plans, e.opt.planning.choose);
   s.plan = fan.chosen;
   s.model = score_plan(eval::poses_of(fan.chosen), truth, c);
-  if (K > 1) s.best_of_k = best_of(plans, truth), s.spread_m = fan.spread_m;
+  if (plans.size(0) > 1) s.best_of_k = best_of(plans, truth), s.spread_m = fan.spread_m;
   const eval::Pose2 last = eval::motion_at(c.poses, c.poses.size() - 1);
   s.constant_velocity = score_plan(eval::constant_velocity(last, eval::kPlanWaypoints), truth, c);
   s.constant_turn = score_plan(eval::constant_turn(last, eval::kPlanWaypoints), truth, c);
   s.ground_truth = score_plan(truth, truth, c);
 }
 
-// The window rolled out under `actions` (one per frame), each latent decoded alone (frame mode).
-inline std::vector<io::Image> roll_out_under(const History& window, io::PoseSequence actions, std::uint64_t seed,
-                                             const EvalContext& e) {
+// The plans (K, W, 3) of each window (batch 1), window b with seeds[b]. One plan each: one
+// planner call over the batch, each window's noise its own (per-item seeds). K hypotheses: one
+// plan_hypotheses call per window, hypothesis k with seeds[b] + k*0x9E3779B9, as alone.
+inline std::vector<Tensor<float>> plans_of(const std::vector<const History*>& windows,
+                                           const std::vector<std::uint64_t>& seeds, const EvalContext& e) {
+  const std::int64_t K = e.opt.planning.hypotheses;
+  std::vector<Tensor<float>> out;
+  SampleOptions o = e.opt.sample;
+  if (K > 1) {
+    for (std::size_t b = 0; b < windows.size(); ++b) {
+      o.seed = seeds[b];
+      out.push_back(e.engine.plan_hypotheses(*windows[b], K, o));
+    }
+    return out;
+  }
+  o.item_seeds = seeds;
+  const Tensor<float> plans = e.engine.plan(stack_windows(windows), o);  // (Bt, W, 3)
+  for (std::int64_t b = 0; b < plans.size(0); ++b) out.push_back(plans.slice(b, b + 1).clone());
+  return out;
+}
+
+// Each window (batch 1) rolled out under its actions (one per frame, as many for every window),
+// window b with seeds[b], all in one batched rollout; each latent decoded alone (frame mode).
+inline std::vector<std::vector<io::Image>> roll_out_under(const std::vector<const History*>& windows,
+                                                          std::vector<io::PoseSequence> actions,
+                                                          const std::vector<std::uint64_t>& seeds, const EvalContext& e) {
   RolloutPlan plan;
-  plan.frames = static_cast<std::int64_t>(actions.size()), plan.samplers = e.opt.samplers, plan.seed = seed;
-  plan.clip_len = 1;
-  plan.actions = std::move(actions);
-  FrameCollector out;
-  roll_out(e.engine, e.ctx, window, e.wc, plan, out, e.silent);
-  return std::move(out.frames);
+  plan.frames = static_cast<std::int64_t>(actions.front().size()), plan.samplers = e.opt.samplers, plan.clip_len = 1;
+  std::vector<FrameCollector> out(windows.size());
+  std::vector<RolloutItem> items;
+  for (std::size_t b = 0; b < windows.size(); ++b) items.push_back({*windows[b], seeds[b], std::move(actions[b]), &out[b]});
+  roll_out_batch(e.engine, e.ctx, std::move(items), e.wc, plan, e.silent);
+  std::vector<std::vector<io::Image>> frames;
+  for (auto& collected : out) frames.push_back(std::move(collected.frames));
+  return frames;
 }
 
 // frame_0000.png ... of a clip's generated frames, in `dir` (created).
@@ -279,10 +304,11 @@ inline void save_frames(const std::filesystem::path& dir, const std::vector<io::
   }
 }
 
-inline void score_video(ClipScores& s, const eval::EvalClip& c, const History& window,
-                        const std::vector<io::Image>& history, std::uint64_t seed, const EvalContext& e) {
+// The video scores of a clip's generated frames (one per horizon) against its true future frames,
+// beside repeating the last history frame and the DC-AE's reconstruction.
+inline void score_video(ClipScores& s, const eval::EvalClip& c, const std::vector<io::Image>& history,
+                        const std::vector<io::Image>& generated, const EvalContext& e) {
   const auto N = static_cast<std::size_t>(e.opt.horizon);
-  const std::vector<io::Image> generated = roll_out_under(window, c.future_motions->slice(0, N), seed, e);
   const std::vector<io::Image> truth = read_frames(c.future_frames, 0, N, e);
   if (e.opt.save_frames) save_frames(*e.opt.save_frames / c.name, generated);
   const io::Image& last = eval::repeat_last_frame(history);
@@ -308,27 +334,87 @@ inline io::PoseSequence steady_turn(double forward, double yaw_deg, std::int64_t
   return p;
 }
 
-// The same window and noise rolled out turning left (+yaw) and turning right (-yaw); the last
-// frames compared below the horizon (the lower half: road, markings, kerbs).
-inline void score_control(ClipScores& s, const eval::EvalClip& c, const History& window, std::uint64_t seed,
+// The forward motion of a clip's turns: its last history motion's, at least kControlMinForward.
+inline double control_forward(const eval::EvalClip& c) { return std::max(double(c.poses.x.back()), kControlMinForward); }
+
+// Each window and its noise rolled out turning left (+yaw) and turning right (-yaw), the left
+// turns of the batch in one rollout and the right turns in another; the last frames compared below
+// the horizon (the lower half: road, markings, kerbs).
+inline void score_control(std::vector<ClipScores>& scores, const std::vector<const eval::EvalClip*>& clips,
+                          const std::vector<const History*>& windows, const std::vector<std::uint64_t>& seeds,
                           const EvalContext& e) {
-  const double forward = std::max(double(c.poses.x.back()), kControlMinForward);
   const double yaw = double(e.opt.control_yaw);
-  const io::Image left = roll_out_under(window, steady_turn(forward, yaw, e.opt.control_frames), seed, e).back();
-  const io::Image right = roll_out_under(window, steady_turn(forward, -yaw, e.opt.control_frames), seed, e).back();
-  s.control = ControlScore{forward, eval::horizontal_shift(left, right)};
+  const auto turns = [&](double sign) {
+    std::vector<io::PoseSequence> actions;
+    for (const auto* c : clips) actions.push_back(steady_turn(control_forward(*c), sign * yaw, e.opt.control_frames));
+    return roll_out_under(windows, std::move(actions), seeds, e);
+  };
+  const auto left = turns(+1.0), right = turns(-1.0);
+  for (std::size_t k = 0; k < clips.size(); ++k)
+    scores[k].control = ControlScore{control_forward(*clips[k]), eval::horizontal_shift(left[k].back(), right[k].back())};
 }
 
-inline ClipScores evaluate_clip(const eval::EvalClip& c, std::uint64_t seed, const EvalContext& e) {
-  ClipScores s{c.name, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}, {}};
+// A clip's window and the history frames it encodes, read once for all its scores.
+struct ClipInput {
+  std::vector<io::Image> history;
+  History window;
+};
+
+inline ClipInput read_input(const eval::EvalClip& c, const EvalContext& e) {
   const auto F = static_cast<std::size_t>(e.wc.condition_frames);
-  const std::vector<io::Image> history = read_frames(c.frames, c.frames.size() - F, F, e);
+  ClipInput in{read_frames(c.frames, c.frames.size() - F, F, e), {}};
   const io::PoseSequence poses = c.poses.slice(c.poses.size() - F, F);
-  const History window = model::make_window(e.ctx, encode_frames(e.engine, history, e.silent), poses);
-  if (e.opt.plan && c.future_motions) score_planning(s, c, window, seed, e);
-  if (e.opt.video && !c.future_frames.empty()) score_video(s, c, window, history, seed, e);
-  if (e.opt.control) score_control(s, c, window, seed, e);
-  return s;
+  in.window = model::make_window(e.ctx, encode_frames(e.engine, in.history, e.silent), poses);
+  return in;
+}
+
+// The clips of a batch that `wanted` selects, as positions in the batch.
+template <class Wanted>
+std::vector<std::size_t> members(const std::vector<const eval::EvalClip*>& clips, Wanted&& wanted) {
+  std::vector<std::size_t> out;
+  for (std::size_t k = 0; k < clips.size(); ++k)
+    if (wanted(*clips[k])) out.push_back(k);
+  return out;
+}
+
+// Scores a batch of clips, clip k with seeds[k] (for its plan, its rollout and both control
+// rollouts). Work of the same shape over the clips runs as one batched call: the plans (one
+// each), the video rollouts, the left turns and the right turns. Each clip's noise is its own
+// (per-item seeds), so its scores are those of a batch of one up to rounding.
+inline std::vector<ClipScores> evaluate_batch(const std::vector<const eval::EvalClip*>& clips,
+                                              const std::vector<std::uint64_t>& seeds, const EvalContext& e) {
+  std::vector<ClipScores> scores(clips.size());
+  std::vector<ClipInput> inputs;
+  for (std::size_t k = 0; k < clips.size(); ++k) scores[k].name = clips[k]->name, inputs.push_back(read_input(*clips[k], e));
+  const auto windows_of = [&](const std::vector<std::size_t>& ks) {
+    std::vector<const History*> w;
+    for (const std::size_t k : ks) w.push_back(&inputs[k].window);
+    return w;
+  };
+  const auto seeds_of = [&](const std::vector<std::size_t>& ks) {
+    std::vector<std::uint64_t> out;
+    for (const std::size_t k : ks) out.push_back(seeds[k]);
+    return out;
+  };
+  const auto planned = members(clips, [&](const eval::EvalClip& c) { return e.opt.plan && c.future_motions.has_value(); });
+  if (!planned.empty()) {
+    const auto plans = plans_of(windows_of(planned), seeds_of(planned), e);
+    for (std::size_t m = 0; m < planned.size(); ++m) score_plans(scores[planned[m]], *clips[planned[m]], plans[m], e);
+  }
+  const auto filmed = members(clips, [&](const eval::EvalClip& c) { return e.opt.video && !c.future_frames.empty(); });
+  if (!filmed.empty()) {
+    std::vector<io::PoseSequence> actions;
+    for (const std::size_t k : filmed) actions.push_back(clips[k]->future_motions->slice(0, std::size_t(e.opt.horizon)));
+    const auto generated = roll_out_under(windows_of(filmed), std::move(actions), seeds_of(filmed), e);
+    for (std::size_t m = 0; m < filmed.size(); ++m)
+      score_video(scores[filmed[m]], *clips[filmed[m]], inputs[filmed[m]].history, generated[m], e);
+  }
+  if (e.opt.control) {
+    std::vector<std::size_t> every(clips.size());
+    std::iota(every.begin(), every.end(), std::size_t{0});
+    score_control(scores, clips, windows_of(every), seeds, e);
+  }
+  return scores;
 }
 
 // ---- over the clips -------------------------------------------------------------------------
@@ -452,6 +538,7 @@ inline nlohmann::ordered_json settings_json(const ParsedArgs& a, const ModelFile
           {"seed_rule", "clip i (0-based, in clip order) uses seed + i, for its plan, its rollout and both control rollouts; "
                         "with hypotheses, hypothesis k of clip i uses seed + i + k*0x9E3779B9 (the generator keeps the low 32 bits)"},
           {"hypotheses", o.planning.hypotheses},
+          {"batch", o.batch},
           {"choose", model::plan_choice_name(o.planning.choose)},
           {"planning_rule_from", o.planning.from_model ? "the model's configs.json (planner)" : "the command line or the default"},
           {"horizon", o.horizon},
@@ -609,7 +696,8 @@ inline std::vector<eval::EvalClip> read_clip_set(const EvalOptions& o, const Wor
   return clips;
 }
 
-// This process's share of the clips scored (every clip when alone), as one message.
+// This process's share of the clips scored (every clip when alone), up to --batch clips of the
+// share at a time, as one message.
 inline std::string score_share(const std::vector<eval::EvalClip>& clips, const EvalOptions& opt, const ModelFiles& files,
                                const ComputeOptions& compute, const Job& job) {
   const Console& con = job.con;
@@ -621,9 +709,16 @@ inline std::string score_share(const std::vector<eval::EvalClip>& clips, const E
   const EvalContext e{*engine, ctx, files.configs.world, opt, size_policy(opt.fit), silent};
   const auto share = dist::share_size(clips.size(), job.group->rank(), job.group->size());
   Progress bar(con, "eval    ", static_cast<std::int64_t>(share), "clip");
-  return share_message(*job.group, clips.size(), [&](std::size_t i, dist::MessageWriter& m) {
-    put_scores(m, evaluate_clip(clips[i], opt.sample.seed + i, e));
-    bar.advance();
+  return share_message_in_batches(*job.group, clips.size(), static_cast<std::size_t>(opt.batch),
+                                  [&](const std::vector<std::size_t>& indices, const ItemWriter& item) {
+    std::vector<const eval::EvalClip*> batch;
+    std::vector<std::uint64_t> seeds;  // clip i: seed + i, whatever batch it runs in
+    for (const std::size_t i : indices) batch.push_back(&clips[i]), seeds.push_back(opt.sample.seed + i);
+    const std::vector<ClipScores> scores = evaluate_batch(batch, seeds, e);
+    for (std::size_t k = 0; k < indices.size(); ++k) {
+      put_scores(item(indices[k]), scores[k]);
+      bar.advance();
+    }
   });
 }
 
@@ -641,7 +736,8 @@ inline int run_eval(const ParsedArgs& a, const Console& console) {
            describe(opt.samplers, opt.plan, opt.video || opt.control), ", seed ", opt.sample.seed, " + clip index",
            opt.video ? ", video horizons 1.." + std::to_string(opt.horizon) : std::string(", no video"),
            opt.control ? ", control at +-" + std::to_string(opt.control_yaw) + " deg" : std::string(),
-           opt.plan && opt.planning.hypotheses > 1 ? ", " + describe(opt.planning) : std::string(), job.split_note());
+           opt.plan && opt.planning.hypotheses > 1 ? ", " + describe(opt.planning) : std::string(), batch_note(opt.batch),
+           job.split_note());
 
   const std::vector<std::string> by_rank =
       run_on_every_rank(*job.group, [&] { return score_share(clips, opt, files, compute, job); });

@@ -6,6 +6,7 @@
 
 #include <cstdio>
 #include <filesystem>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -54,6 +55,7 @@ inline ArgParser generate_parser() {
       .flag("latents", "also write latents.npy, (N, C, h, w), for `epona decode`");
   add_video_options(p, "the input frames followed by the generated ones");
   add_sampling_options(p);
+  add_batch_option(p, "clips of --clips");
   add_compute_options(p);
   add_output_options(p, "out/generate");
   p.epilog("examples:\n"
@@ -162,42 +164,72 @@ struct GeneratedClip {
   std::string video_line;
 };
 
+// One clip's outputs while it rolls out, in `dir` (marked INCOMPLETE until finish): the frames as
+// they are decoded (and the video, when asked), then the contact sheet, trajectory, poses and
+// latents. Several may roll out in one batch (roll_out_batch).
+class ClipGeneration {
+ public:
+  ClipGeneration(Engine& engine, cpu::Context& ctx, const Clip& clip, const RolloutPlan& plan,
+                 const std::filesystem::path& dir, const WorldModelConfig& wc,
+                 const std::optional<VideoRequest>& video_to, const Console& con)
+      : clip_(clip), plan_(plan), dir_(dir), incomplete_(dir, "epona generate") {
+    if (!plan.keep_latents) remove_stale_output(dir / "latents.npy");
+    remove_stale_frames(dir / "frames", plan.frames);
+    window_ = model::make_window(ctx, encode_frames(engine, clip.frames, con), clip.poses);
+    const auto slots = std::max<std::int64_t>(kSheetTiles - static_cast<std::int64_t>(clip.frames.size()), 5);
+    if (video_to) {
+      video_.emplace(*video_to, wc.image_h, wc.image_w);
+      for (const auto& f : clip.frames) video_->put(f);
+    }
+    sink_.emplace(dir / "frames", sheet_picks(plan.frames, slots), video_ ? &*video_ : nullptr);
+  }
+  ClipGeneration(const ClipGeneration&) = delete;
+  ClipGeneration& operator=(const ClipGeneration&) = delete;
+
+  // This clip as a scene of a rollout (its window, the plan's seed and actions, its frame sink).
+  RolloutItem item() { return {window_, plan_.seed, plan_.actions, &*sink_}; }
+
+  // Writes what the rollout logged and marks the folder complete.
+  GeneratedClip finish(cpu::Context& ctx, const RolloutLog& log, const WorldModelConfig& wc, double seconds) {
+    GeneratedClip g;
+    g.seconds = seconds;
+    std::vector<SheetTile> tiles;
+    const auto inputs = static_cast<std::int64_t>(clip_.frames.size());
+    for (std::int64_t i = 0; i < inputs; ++i) tiles.push_back({clip_.frames[static_cast<std::size_t>(i)], true, i - inputs});
+    tiles.insert(tiles.end(), sink_->kept().begin(), sink_->kept().end());
+    g.sheet = contact_sheet(tiles);
+    io::write_png((dir_ / "contact_sheet.png").string(), g.sheet);
+    io::write_trajectory(dir_ / "trajectory.json", log.steps);
+    io::write_trajectory(dir_ / "trajectory.csv", log.steps);
+    write_pose_csv(dir_ / "poses.csv", log.motions);
+    if (plan_.keep_latents)
+      io::write_npy(dir_ / "latents.npy", tokens_to_latent(ctx, log.latents, wc.latent_h(), wc.latent_w()));
+    g.video_line = video_ ? video_->finish() : std::string();
+    incomplete_.done();
+    g.inputs = clip_.frames.size(), g.shown = sink_->kept().size();
+    return g;
+  }
+
+ private:
+  const Clip& clip_;
+  RolloutPlan plan_;
+  std::filesystem::path dir_;
+  IncompleteMarker incomplete_;
+  History window_;
+  std::optional<VideoOut> video_;
+  std::optional<FrameSink> sink_;  // after video_: writes into it
+};
+
 // Rolls `clip` out under `plan` and writes every output into `dir` (marked INCOMPLETE until the
 // end): frames, contact sheet, trajectory, poses, and latents and video when asked.
-inline GeneratedClip generate_into(Engine& engine, cpu::Context& ctx, const Clip& clip, RolloutPlan plan,
+inline GeneratedClip generate_into(Engine& engine, cpu::Context& ctx, const Clip& clip, const RolloutPlan& plan,
                                    const std::filesystem::path& dir, const WorldModelConfig& wc,
                                    const std::optional<VideoRequest>& video_to, const Console& con) {
-  IncompleteMarker incomplete(dir, "epona generate");
-  if (!plan.keep_latents) remove_stale_output(dir / "latents.npy");
-  remove_stale_frames(dir / "frames", plan.frames);
-  const History window = model::make_window(ctx, encode_frames(engine, clip.frames, con), clip.poses);
-  const auto slots = std::max<std::int64_t>(kSheetTiles - static_cast<std::int64_t>(clip.frames.size()), 5);
-  std::optional<VideoOut> video;
-  if (video_to) {
-    video.emplace(*video_to, wc.image_h, wc.image_w);
-    for (const auto& f : clip.frames) video->put(f);
-  }
-  FrameSink sink(dir / "frames", sheet_picks(plan.frames, slots), video ? &*video : nullptr);
+  ClipGeneration generation(engine, ctx, clip, plan, dir, wc, video_to, con);
   const auto t0 = std::chrono::steady_clock::now();
-  const RolloutLog log = roll_out(engine, ctx, window, wc, plan, sink, con);
-  GeneratedClip g;
-  g.seconds = seconds_since(t0);
-
-  std::vector<SheetTile> tiles;
-  const auto inputs = static_cast<std::int64_t>(clip.frames.size());
-  for (std::int64_t i = 0; i < inputs; ++i) tiles.push_back({clip.frames[static_cast<std::size_t>(i)], true, i - inputs});
-  tiles.insert(tiles.end(), sink.kept().begin(), sink.kept().end());
-  g.sheet = contact_sheet(tiles);
-  io::write_png((dir / "contact_sheet.png").string(), g.sheet);
-  io::write_trajectory(dir / "trajectory.json", log.steps);
-  io::write_trajectory(dir / "trajectory.csv", log.steps);
-  write_pose_csv(dir / "poses.csv", log.motions);
-  if (plan.keep_latents)
-    io::write_npy(dir / "latents.npy", tokens_to_latent(ctx, log.latents, wc.latent_h(), wc.latent_w()));
-  g.video_line = video ? video->finish() : std::string();
-  incomplete.done();
-  g.inputs = clip.frames.size(), g.shown = sink.kept().size();
-  return g;
+  std::vector<RolloutItem> one{generation.item()};
+  const RolloutLog log = std::move(roll_out_batch(engine, ctx, std::move(one), wc, plan, con).front());
+  return generation.finish(ctx, log, wc, seconds_since(t0));
 }
 
 // The rollout settings of the command line (seed, samplers, actions, frames, decoding).
@@ -237,10 +269,11 @@ inline std::vector<eval::EvalClip> generation_clips(const ParsedArgs& a, const W
   return clips;
 }
 
-// This process's share of the clips rolled out, clip i with seed + i, into out/<clip name>/; one
-// summary line per clip.
+// This process's share of the clips rolled out, clip i with seed + i, into out/<clip name>/, up to
+// `batch` clips of the share rolled out together (one world-model call per frame; each clip's noise
+// is what it draws alone); one summary line per clip.
 inline std::string generate_share(const ParsedArgs& a, const std::vector<eval::EvalClip>& clips, const RolloutPlan& base,
-                                  const ModelFiles& files, const ComputeOptions& compute,
+                                  std::int64_t batch, const ModelFiles& files, const ComputeOptions& compute,
                                   const std::filesystem::path& out, const Job& job) {
   const Console& con = job.con;
   const WorldModelConfig& wc = files.configs.world;
@@ -255,16 +288,33 @@ inline std::string generate_share(const ParsedArgs& a, const std::vector<eval::E
   const std::int64_t max_pixels = max_pixels_option(a);
   const auto share = dist::share_size(clips.size(), job.group->rank(), job.group->size());
   Progress bar(con, "generate", static_cast<std::int64_t>(share), "clip");
-  return share_message(*job.group, clips.size(), [&](std::size_t i, dist::MessageWriter& m) {
-    const eval::EvalClip& c = clips[i];  // listed, read and checked by generation_clips
-    const Clip clip = window_clip(c.frames, c.poses, wc.condition_frames, wc.image_h, wc.image_w, policy, max_pixels);
-    plan.seed = base.seed + i;
-    const std::filesystem::path dir = out / c.name;
-    prepare_output_dir(dir, "--out " + dir.string());
-    const GeneratedClip g = generate_into(*engine, ctx, clip, plan, dir, wc, std::nullopt, silent);
-    m.put(dir.string() + ": " + counted(plan.frames, "frame") + " in " + duration_text(g.seconds) + ", seed " +
-          std::to_string(plan.seed));
-    bar.advance();
+  return share_message_in_batches(*job.group, clips.size(), static_cast<std::size_t>(batch),
+                                  [&](const std::vector<std::size_t>& indices, const ItemWriter& item) {
+    std::vector<Clip> inputs;  // read before any ClipGeneration holds a reference into them
+    for (const std::size_t i : indices)  // listed, read and checked by generation_clips
+      inputs.push_back(window_clip(clips[i].frames, clips[i].poses, wc.condition_frames, wc.image_h, wc.image_w, policy,
+                                   max_pixels));
+    std::vector<std::unique_ptr<ClipGeneration>> generations;
+    std::vector<RolloutItem> items;
+    for (std::size_t k = 0; k < indices.size(); ++k) {
+      const std::filesystem::path dir = out / clips[indices[k]].name;
+      prepare_output_dir(dir, "--out " + dir.string());
+      RolloutPlan own = plan;
+      own.seed = base.seed + indices[k];
+      generations.push_back(std::make_unique<ClipGeneration>(*engine, ctx, inputs[k], own, dir, wc, std::nullopt, silent));
+      items.push_back(generations.back()->item());
+    }
+    const auto t0 = std::chrono::steady_clock::now();
+    const std::vector<RolloutLog> logs = roll_out_batch(*engine, ctx, std::move(items), wc, plan, silent);
+    const double seconds = seconds_since(t0);
+    for (std::size_t k = 0; k < indices.size(); ++k) {
+      const GeneratedClip g = generations[k]->finish(ctx, logs[k], wc, seconds);
+      const std::filesystem::path dir = out / clips[indices[k]].name;
+      const std::string together = indices.size() > 1 ? " (a batch of " + std::to_string(indices.size()) + " clips)" : "";
+      item(indices[k]).put(dir.string() + ": " + counted(plan.frames, "frame") + " in " + duration_text(g.seconds) +
+                           together + ", seed " + std::to_string(base.seed + indices[k]));
+      bar.advance();
+    }
   });
 }
 
@@ -277,12 +327,13 @@ inline int run_generate_clips(const ParsedArgs& a, const Console& console) {
   const ModelFiles files = resolve_models(a, true, true);
   const WorldModelConfig& wc = files.configs.world;
   const RolloutPlan plan = rollout_plan(a, wc);
+  const std::int64_t batch = batch_option(a);
   const std::vector<eval::EvalClip> clips = generation_clips(a, wc);
   const auto out = output_dir(a, "out/generate");
   note_rollout(con, a, plan, " for each of " + counted(std::int64_t(clips.size()), "clip") + " (clip i: seed + i)" +
-                                 job.split_note());
+                                 batch_note(batch) + job.split_note());
   const std::vector<std::string> by_rank =
-      run_on_every_rank(*job.group, [&] { return generate_share(a, clips, plan, files, compute, out, job); });
+      run_on_every_rank(*job.group, [&] { return generate_share(a, clips, plan, batch, files, compute, out, job); });
   if (!job.group->is_root()) return 0;  // rank 0 reports, and fails for every rank
   const auto get_line = [](dist::MessageReader& m) { return m.get_string(); };
   for (const auto& line : items_in_order<std::string>(by_rank, clips.size(), get_line)) con.out << "wrote " << line << "\n";
@@ -296,6 +347,7 @@ inline int run_generate_clips(const ParsedArgs& a, const Console& console) {
 inline int run_generate(const ParsedArgs& a, const Console& con) {
   if (a.has("clips")) return run_generate_clips(a, con);
   check_launch(dist::launch_from_environment(), "generate of one clip");
+  if (a.has("batch")) usage_fail("--batch is for --clips (it rolls several clips out together); one clip has nothing to batch");
   const ComputeOptions compute = compute_options(a);
   const ModelFiles files = resolve_models(a, true, true);
   const WorldModelConfig& wc = files.configs.world;

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <algorithm>
+#include <cstddef>
 #include <cstdint>
 #include <cstdlib>
 #include <exception>
@@ -147,17 +148,28 @@ inline Job join_job(const Console& console, const ComputeOptions& compute) {
   return j;
 }
 
-// This rank's share of `count` items, each written by `put(i, message)` after its index, as one
-// message for run_on_every_rank.
-template <class Put>
-std::string share_message(const dist::ProcessGroup& g, std::size_t count, Put&& put) {
+// Starts item i of a share message (writes its index) and returns the writer for its contents.
+using ItemWriter = std::function<dist::MessageWriter&(std::size_t)>;
+
+// This rank's share of `count` items as one message for run_on_every_rank, worked in batches of up
+// to `batch` consecutive items of the share: `work(indices, item)` calls item(i) for each index of
+// the batch, in order, and writes that item's contents after it.
+template <class Work>
+std::string share_message_in_batches(const dist::ProcessGroup& g, std::size_t count, std::size_t batch, Work&& work) {
+  EPONA_CHECK(batch >= 1, "internal: a batch of no items");
+  std::vector<std::size_t> mine;
+  dist::for_each_share(count, g.rank(), g.size(), [&](std::size_t i) { mine.push_back(i); });
   dist::MessageWriter m;
-  m.put(static_cast<std::uint64_t>(dist::share_size(count, g.rank(), g.size())));
-  dist::for_each_share(count, g.rank(), g.size(), [&](std::size_t i) { put(i, m.put(static_cast<std::uint64_t>(i))); });
+  m.put(static_cast<std::uint64_t>(mine.size()));
+  const ItemWriter item = [&m](std::size_t i) -> dist::MessageWriter& { return m.put(static_cast<std::uint64_t>(i)); };
+  for (std::size_t first = 0; first < mine.size(); first += batch) {
+    const auto last = mine.begin() + static_cast<std::ptrdiff_t>(std::min(first + batch, mine.size()));
+    work(std::vector<std::size_t>(mine.begin() + static_cast<std::ptrdiff_t>(first), last), item);
+  }
   return m.bytes();
 }
 
-// Every rank's share_message read back into item order by `get(message)`; each item exactly once.
+// Every rank's share_message_in_batches read back into item order by `get(message)`; each item exactly once.
 template <class T, class Get>
 std::vector<T> items_in_order(const std::vector<std::string>& by_rank, std::size_t count, Get&& get) {
   std::vector<std::optional<T>> slots(count);

@@ -594,6 +594,58 @@ TEST_CASE("generate --clips: each clip as generate of it alone, seed + clip inde
   check_error(run({"--clips", t / "absent"}), "no such folder");
 }
 
+// Issue #39: generate --clips --batch 2 rolls two clips out per world-model call; each clip keeps
+// seed + i, so it writes what --batch 1 writes, up to the rounding of the batched matrix products.
+TEST_CASE("generate --clips --batch 2: the trajectories and frames of --batch 1") {
+  TempDir t;
+  const auto& w = golden_configs().world;
+  const fs::path clip = make_clip(t, w.condition_frames, w.condition_frames);
+  const std::vector<std::string> names{"a", "b", "c"};  // 3 clips: a batch of 2 and a batch of 1
+  for (const auto& name : names) {
+    fs::create_directories(t.path / "set" / name);
+    fs::copy(clip, t.path / "set" / name / "frames");
+    fs::rename(t.path / "set" / name / "frames" / "poses.csv", t.path / "set" / name / "poses.csv");
+  }
+  const auto run = [&](const std::string& batch, const std::string& out) {
+    std::vector<std::string> a{"generate", "-n", "2", "--steps", "2", "-q", "--seed", "9", "--clips", t / "set",
+                               "--batch", batch, "--out", t / out};
+    for (const auto& m : golden_model_args()) a.push_back(m);
+    return cli(a);
+  };
+  const Result one = run("1", "one"), two = run("2", "two");
+  INFO(two.err);
+  REQUIRE(one.rc == 0);
+  REQUIRE(two.rc == 0);
+  CHECK(has(two.out, "(a batch of 2 clips)"));
+  double worst_traj = 0;
+  int worst_pixel = 0;
+  for (const auto& name : names) {
+    const Tensor<float> a = io::read_trajectory(t.path / "one" / name / "trajectory.json");
+    const Tensor<float> b = io::read_trajectory(t.path / "two" / name / "trajectory.json");
+    REQUIRE(a.shape() == b.shape());
+    float scale = 0;
+    for (std::int64_t i = 0; i < a.numel(); ++i) scale = std::max(scale, std::abs(a.data()[i]));
+    for (std::int64_t i = 0; i < a.numel(); ++i)
+      worst_traj = std::max(worst_traj, double(std::abs(a.data()[i] - b.data()[i])) / double(scale));
+    for (const char* frame : {"frame_0000.png", "frame_0001.png"}) {
+      const io::Image x = io::read_image((t.path / "one" / name / "frames" / frame).string());
+      const io::Image y = io::read_image((t.path / "two" / name / "frames" / frame).string());
+      REQUIRE(x.rgb.size() == y.rgb.size());
+      for (std::size_t i = 0; i < x.rgb.size(); ++i) worst_pixel = std::max(worst_pixel, std::abs(int(x.rgb[i]) - int(y.rgb[i])));
+    }
+  }
+  MESSAGE("generate --batch 2 vs --batch 1: worst trajectory difference ", worst_traj, " of the largest value, worst pixel ",
+          worst_pixel, " level(s)");
+  CHECK(worst_traj <= 1e-5);
+  CHECK(worst_pixel <= 1);  // rounding: at most one 8-bit level
+  CHECK(read_bytes(t.path / "one/a/trajectory.json") != read_bytes(t.path / "one/b/trajectory.json"));  // seeds differ
+  check_error(run("0", "zero"), "--batch must be in [1, 64], got 0");
+  std::vector<std::string> single{"generate", "-n", "1", "--frames", clip.string(), "--poses", (clip / "poses.csv").string(),
+                                  "--batch", "2", "--out", t / "single"};
+  for (const auto& m : golden_model_args()) single.push_back(m);
+  check_error(cli(single), "--batch is for --clips");
+}
+
 // Issue #40: a launcher's variables as mpirun sets them. This test program is built without MPI
 // (EPONA_APP_MPI is the epona program's), so eval refuses with how to get MPI; commands that do
 // not split their work refuse first, in any build (tests/apps/mpi_eval.cpp runs the real mpirun).

@@ -5,6 +5,8 @@
 // the Release build's program (label mpi; .ci/run): the sanitized build compiles its programs at -O0.
 #include <doctest/doctest.h>
 
+#include <algorithm>
+#include <cmath>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -65,6 +67,24 @@ std::string eval_args(const fs::path& clips, const fs::path& report) {
   return "eval --clips '" + clips.string() + "' --json '" + report.string() +
          "' --steps 2 --horizon 2 --control --hypotheses 2 --threads 1 -q";
 }
+
+// The worst relative difference of two reports' numbers; the non-numbers must be equal.
+double worst_difference(const json& a, const json& b) {
+  if (a.is_number() && b.is_number()) {
+    const double x = a.get<double>(), y = b.get<double>(), scale = std::max(std::abs(x), std::abs(y));
+    return scale > 0 ? std::abs(x - y) / scale : 0.0;
+  }
+  if (a.type() != b.type() || a.size() != b.size()) return INFINITY;
+  double worst = 0;
+  if (a.is_object()) {
+    for (const auto& [key, value] : a.items()) worst = std::max(worst, b.contains(key) ? worst_difference(value, b[key]) : INFINITY);
+  } else if (a.is_array()) {
+    for (std::size_t i = 0; i < a.size(); ++i) worst = std::max(worst, worst_difference(a[i], b[i]));
+  } else if (a != b) {
+    return INFINITY;
+  }
+  return worst;
+}
 #endif
 
 }  // namespace
@@ -87,6 +107,24 @@ TEST_CASE("mpirun -np 2 epona eval gives the report of one process") {
   CHECK(b["control"]["scenes"] == 3);
   a["settings"].erase("processes"), b["settings"].erase("processes");
   CHECK_MESSAGE(a == b, "one process:\n", a.dump(1), "\ntwo processes:\n", b.dump(1));
+}
+
+// Issue #39: each rank batches its own clips (rank 0 runs clips 0 and 2 as one batch): the scores
+// of one process with --batch 1, up to the rounding of the batched matrix products.
+TEST_CASE("mpirun -np 2 epona eval --batch 2: each rank batches its own clips") {
+  epona::test::TempDir t("epona_mpi");
+  const fs::path clips = make_clips(t);
+  const fs::path one = t.path / "one.json", two = t.path / "two.json";
+  REQUIRE_MESSAGE(run(program(eval_args(clips, one)), t.path / "one.log") == 0, read_text(t.path / "one.log"));
+  REQUIRE_MESSAGE(run(mpirun(2, eval_args(clips, two) + " --batch 2"), t.path / "two.log") == 0,
+                  read_text(t.path / "two.log"));
+  json a = read_json(one), b = read_json(two);
+  CHECK(b["settings"]["batch"] == 2);
+  CHECK(b["settings"]["processes"] == 2);
+  for (json* r : {&a, &b}) (*r)["settings"].erase("processes"), (*r)["settings"].erase("batch");
+  const double worst = worst_difference(a, b);
+  MESSAGE("mpirun -np 2 --batch 2 vs one process --batch 1: worst relative difference ", worst);
+  CHECK(worst <= 1e-4);
 }
 
 TEST_CASE("mpirun -np 2 epona generate --clips writes the files of one process") {

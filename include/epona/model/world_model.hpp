@@ -49,12 +49,22 @@ struct NextAction {
 
 // Where the sampler's starting noise comes from: a torch-compatible generator (draw order
 // of step_eval: trajectory noise (Bt, traj_len, 3), then latent noise (Bt, L, C) per step), or
-// tensors supplied per step ((S, Bt, traj_len, 3) and (S, Bt, L, C); draw s takes [s]).
+// one generator per batch item (item b draws what seeded(seeds[b]) draws for a batch of 1, so
+// an item's noise does not depend on the batch it runs in), or tensors supplied per step
+// ((S, Bt, traj_len, 3) and (S, Bt, L, C); draw s takes [s]).
 class NoiseSource {
  public:
+  // The official semantics: the whole batch from one generator (golden parity depends on it).
   static NoiseSource seeded(std::uint64_t seed) {
     NoiseSource n;
     n.generator_.emplace(seed);
+    return n;
+  }
+  static NoiseSource seeded_per_item(const std::vector<std::uint64_t>& seeds) {
+    EPONA_CHECK(!seeds.empty(), "per-item noise needs at least one seed");
+    NoiseSource n;
+    n.item_generators_.reserve(seeds.size());
+    for (const std::uint64_t seed : seeds) n.item_generators_.emplace_back(seed);
     return n;
   }
   static NoiseSource supplied(Tensor<float, Cpu> trajectory, Tensor<float, Cpu> latent) {
@@ -70,6 +80,11 @@ class NoiseSource {
   void require(std::int64_t traj_count, const Shape& traj_shape, std::int64_t latent_count,
                const Shape& latent_shape) const {
     if (generator_) return;
+    if (!item_generators_.empty()) {
+      if (traj_count > 0) require_item_batch(traj_shape, "trajectory");
+      if (latent_count > 0) require_item_batch(latent_shape, "latent");
+      return;
+    }
     require_one(traj_, traj_drawn_, traj_count, traj_shape, "trajectory");
     require_one(latent_, latent_drawn_, latent_count, latent_shape, "latent");
   }
@@ -78,8 +93,27 @@ class NoiseSource {
   Tensor<float, Cpu> draw(const Tensor<float, Cpu>& supplied, std::int64_t& drawn, const Shape& shape,
                           const char* what) {
     if (generator_) return generator_->randn(shape);
+    if (!item_generators_.empty()) return draw_per_item(shape, what);
     require_one(supplied, drawn, 1, shape, what);
     return supplied[drawn++].clone();
+  }
+  // Item b's rows from item b's generator, drawn as a batch of 1.
+  Tensor<float, Cpu> draw_per_item(const Shape& shape, const char* what) {
+    require_item_batch(shape, what);
+    Shape item_shape = shape;
+    item_shape[0] = 1;
+    Tensor<float, Cpu> out(shape);
+    const std::int64_t row = out.numel() / shape[0];
+    for (std::size_t b = 0; b < item_generators_.size(); ++b) {
+      const auto item = item_generators_[b].randn(item_shape);
+      std::copy_n(item.data(), row, out.data() + static_cast<std::int64_t>(b) * row);
+    }
+    return out;
+  }
+  void require_item_batch(const Shape& shape, const char* what) const {
+    const auto seeds = static_cast<std::int64_t>(item_generators_.size());
+    EPONA_CHECK(!shape.empty() && shape[0] == seeds, what, " noise of shape ", shape_str(shape), " is for a batch of ",
+                shape.empty() ? 0 : shape[0], " but ", seeds, " per-item seed(s) were given (one per batch item)");
   }
   static void require_one(const Tensor<float, Cpu>& supplied, std::int64_t drawn, std::int64_t count,
                           const Shape& shape, const char* what) {
@@ -96,6 +130,7 @@ class NoiseSource {
   }
 
   std::optional<TorchGenerator> generator_;
+  std::vector<TorchGenerator> item_generators_;  // one per batch item, in batch order
   Tensor<float, Cpu> traj_, latent_;
   std::int64_t traj_drawn_ = 0, latent_drawn_ = 0;
 };
@@ -114,6 +149,7 @@ struct SampleOptions {
   flow::SolverKind solver = flow::SolverKind::euler;    // each DiT's solver (the official: Euler)
   std::optional<flow::SolverKind> plan_solver, video_solver;  // one DiT's, overriding `solver`
   std::uint64_t seed = 0;             // noise from TorchGenerator(seed) ...
+  std::vector<std::uint64_t> item_seeds;  // ... or item b's from TorchGenerator(item_seeds[b]) (one per item) ...
   std::optional<NoiseSource> noise;   // ... unless a source is given
 };
 
@@ -227,6 +263,8 @@ class WorldModel {
     EPONA_CHECK(K >= 1 && K <= constants::max_hypotheses, "the number of plan hypotheses must be in [1, ",
                 constants::max_hypotheses, "], got ", K);
     EPONA_CHECK(!opt.noise, "plan_hypotheses draws each hypothesis' noise from the seed; it takes no supplied noise");
+    EPONA_CHECK(opt.item_seeds.empty(), "plan_hypotheses draws each hypothesis' noise from the one seed; it takes no "
+                "per-item seeds");
     const DitSamplers samplers = samplers_of(opt);
     const std::int64_t Bt = validate(h, nullptr, samplers);
     EPONA_CHECK(Bt == 1, "plan_hypotheses plans one scene; the window holds ", Bt);
@@ -294,7 +332,11 @@ class WorldModel {
   // Each DiT's solver and steps (samplers_for with the config's num_sampling_steps).
   DitSamplers samplers_of(const SampleOptions& opt) const { return samplers_for(opt, cfg_.num_sampling_steps); }
   static NoiseSource noise_for(const SampleOptions& opt) {
-    return opt.noise ? *opt.noise : NoiseSource::seeded(opt.seed);
+    EPONA_CHECK(!(opt.noise && !opt.item_seeds.empty()), "sample options give both supplied noise and per-item seeds; "
+                "give one");
+    if (opt.noise) return *opt.noise;
+    if (!opt.item_seeds.empty()) return NoiseSource::seeded_per_item(opt.item_seeds);
+    return NoiseSource::seeded(opt.seed);
   }
   Shape traj_noise_shape(std::int64_t Bt) const { return {Bt, cfg_.traj_len, constants::traj_token_size}; }
   Shape latent_noise_shape(std::int64_t Bt) const { return {Bt, cfg_.img_tokens(), cfg_.token_dim()}; }
