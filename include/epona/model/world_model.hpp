@@ -471,13 +471,9 @@ class WorldModel {
 
   // Hypothesis k's trajectory noise in row k: the first draw of a plan with hypothesis_seed(seed, k).
   Tensor<float, Cpu> hypothesis_noise(std::int64_t K, std::uint64_t seed) const {
-    Tensor<float, Cpu> noise(traj_noise_shape(K));
-    const std::int64_t row = noise.numel() / K;
-    for (std::int64_t k = 0; k < K; ++k) {
-      const auto draw = NoiseSource::seeded(hypothesis_seed(seed, k)).trajectory(traj_noise_shape(1));
-      std::copy_n(draw.data(), row, noise.data() + k * row);
-    }
-    return noise;
+    std::vector<std::uint64_t> seeds(static_cast<std::size_t>(K));
+    for (std::int64_t k = 0; k < K; ++k) seeds[static_cast<std::size_t>(k)] = hypothesis_seed(seed, k);
+    return NoiseSource::seeded_per_item(seeds).trajectory(traj_noise_shape(K));
   }
 
   // Arena bytes of plan_hypotheses: one scene's window and conditioning, its K copies and

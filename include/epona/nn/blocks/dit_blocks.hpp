@@ -255,28 +255,17 @@ void qk_norm_rope_items(BackendContext<B>& ctx, A* qkv, const DitWidths& w, cons
     qk_norm_rope_rows<B>(ctx, qkv + b * items.rows * 3 * w.hidden, w, item_rope(rope, items, b, end), parts);
 }
 // Unmasked attention of queries at rows [q_first, q_first + q_rows) of the packed [q | k | v]
-// buffer (rows in_stride apart) over all `rows` keys; output rows out_stride apart.
+// buffer (rows in_stride apart) over all `rows` keys; output rows out_stride apart. Every item of
+// a batched scratch in one launch: the items are sequences `items.rows` rows apart in qkv and out.
 template <class B, class A>
 void joint_attention(BackendContext<B>& ctx, const A* qkv, std::int64_t rows, std::int64_t q_first,
-                     std::int64_t q_rows, const DitWidths& w, A* out, std::int64_t out_stride, std::int64_t in_stride) {
-  const std::int64_t D = w.hidden;
-  PackedAttention p{1, rows, w.heads, w.head_dim(), 0, in_stride, 0, out_stride, false};
-  p.q_len = q_rows;
-  p.q_token_stride = in_stride;
-  packed_attention(ctx, qkv + q_first * in_stride, qkv + D, qkv + 2 * D, out, p);
-}
-// joint_attention over every item of a batched scratch: one launch, the items as sequences
-// `items.rows` rows apart in qkv and out.
-template <class B, class A>
-void items_attention(BackendContext<B>& ctx, const A* qkv, std::int64_t rows, std::int64_t q_first,
                      std::int64_t q_rows, const DitWidths& w, A* out, std::int64_t out_stride, std::int64_t in_stride,
-                     const DitItems& items) {
-  if (items.count == 1) return joint_attention<B>(ctx, qkv, rows, q_first, q_rows, w, out, out_stride, in_stride);
-  const std::int64_t D = w.hidden;
-  PackedAttention p{items.count, rows, w.heads, w.head_dim(), items.rows * in_stride, in_stride,
-                    items.rows * out_stride, out_stride, false};
+                     const DitItems& items = {}) {
+  const std::int64_t D = w.hidden, apart = items.count > 1 ? items.rows : 0;
+  PackedAttention p{items.count, rows, w.heads, w.head_dim(), apart * in_stride, in_stride, apart * out_stride,
+                    out_stride, false};
   p.q_len = q_rows;
-  p.q_seq_stride = items.rows * in_stride;
+  p.q_seq_stride = apart * in_stride;
   p.q_token_stride = in_stride;
   packed_attention(ctx, qkv + q_first * in_stride, qkv + D, qkv + 2 * D, out, p);
 }
@@ -521,7 +510,7 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
                                                detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)},
                                     items);
     }
-    detail::items_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D,
+    detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D,
                                items);
     pair.fork();
     pair.linear(Stream::proj_of, s.attn, s.sub);
@@ -627,7 +616,7 @@ struct SingleStreamBlock : Bindable<SingleStreamBlock<B, W>> {
     queue.join(ctx);
     product(side, mlp_part, s.modulated, first_out, m, s.cat.data() + D, D + Dm, 0, BackendEpilogue<B>::GeluTanh);
     detail::qk_norm_rope_items<B>(ctx, qkv, widths, rope, std::array{detail::QkRows<B>(0, first_out, n, norm)}, items);
-    detail::items_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D, items);
+    detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D, items);
     queue.join(ctx);
     product(ctx, linear2, s.cat, 0, m, s.sub.data(), D, 0);
     A* updated = s.z.data() + first_out * D;
