@@ -387,7 +387,7 @@ void mst_blocks() {
   for (const bool observed : {true, false}) {
     std::map<std::string, Tensor<float, Cpu>> cpu_stages;
     Tensor<float, Cpu> stt({kBatch, c.tokens_per_frame(), c.n_embd}), emb({kBatch, c.pose_emb_dim()});
-    Arena<Cpu> ca(cpu_mst.evaluate_workspace_bytes());
+    Arena<Cpu> ca(cpu_mst.evaluate_workspace_bytes(kBatch));
     model::MstObserver<Cpu> cpu_obs = [&](std::int64_t b, const std::string& stage, const Tensor<float, Cpu>& x) {
       cpu_stages[stage + std::to_string(b)] = x.clone();
     };
@@ -397,7 +397,7 @@ void mst_blocks() {
     auto demb = Tensor<float, Cuda>({kBatch, c.pose_emb_dim()});
     cuda::fill_bytes(gpu(), dstt, 0xFF);
     cuda::fill_bytes(gpu(), demb, 0xFF);
-    Arena<Cuda> ga(gpu_mst.evaluate_workspace_bytes());
+    Arena<Cuda> ga(gpu_mst.evaluate_workspace_bytes(kBatch));
     poison_arena(ga);
     int seen = 0;
     model::MstObserver<Cuda> gpu_obs = [&](std::int64_t b, const std::string& stage, const Tensor<float, Cuda>& x) {
@@ -407,7 +407,7 @@ void mst_blocks() {
       ++seen;
     };
     gpu_mst.evaluate(gpu(), ga, upload<float>(latents), pose_idx, yaw_idx, dstt, demb, observed ? gpu_obs : nullptr);
-    CHECK(ga.high_water() <= gpu_mst.evaluate_workspace_bytes());
+    CHECK(ga.high_water() <= gpu_mst.evaluate_workspace_bytes(kBatch));
     if (observed) CHECK(seen == kBatch * (1 + c.mst_depth()));
     const std::string how = observed ? ", observed" : ", pruned";
     expect_close("MST stt_features" + how + tag, download(dstt), stt, bound<W>("mst.stt_features"));
@@ -582,14 +582,76 @@ void dit_batch_invariance(bool vis) {
     differ += test::count_bit_differences(mine, alone);
   }
   const double limit = std::is_same_v<W, float> ? 1e-6 : bound<W>(name + ".sample.out", 1e-4);
-  MESSAGE(name, " DiT ", steps, "-step sample, batch ", items, " in one pass vs each item alone (",
-          std::is_same_v<W, float> ? "float32" : "bf16", "): worst rel ", worst, " (limit ", limit, "), ", differ, " of ",
-          batched.numel(), " values differ in some bit");
+  // A std::string: doctest prints a char* as a pointer.
+  const std::string type = std::is_same_v<W, float> ? "float32" : "bf16";
+  MESSAGE(name, " DiT ", steps, "-step sample, batch ", items, " in one pass vs each item alone (", type, "): worst rel ",
+          worst, " (limit ", limit, "), ", differ, " of ", batched.numel(), " values differ in some bit");
   CHECK(worst <= limit);
   CHECK(test::rel_max(one(batched, 0), one(batched, 1)) > 1e-2);  // the items' results do differ
 }
 
+// Batch invariance of the MST on the GPU: 10 windows, folded as a pass of kMaxFoldedItems and
+// one of 2, give each item what it gives alone (stt_features and pose_emb), and get_pose_emb
+// of the batch gives each item's alone. float32 within 1e-6 relative, bf16 within the MST's bound.
+template <class W>
+void mst_batch_invariance() {
+  const auto& c = config();
+  const auto cfg = model::MstConfig::from(c);
+  model::SpatialTemporalTransformer<Cuda, W> mst(cfg);
+  bind(mst, "module.model.");
+  const std::int64_t items = model::SpatialTemporalTransformer<Cuda, W>::kMaxFoldedItems + 2, F = c.condition_frames;
+  const auto latents = test::random_tensor({items, F, c.img_tokens(), c.token_dim()}, 61, -2.f, 2.f);
+  const auto tok = model::PoseTokenizer::from(c);
+  const auto pose_idx = tok.poses_to_indices(scaled(test::random_tensor({items, F + 1, 2}, 62), 3.f));
+  const auto yaw_idx = tok.yaws_to_indices(scaled(test::random_tensor({items, F + 1, 1}, 63), 4.f));
+  const auto run = [&](const Tensor<float, Cpu>& lat, const Tensor<float, Cpu>& pose, const Tensor<float, Cpu>& yaw) {
+    const std::int64_t n = lat.size(0);
+    auto stt = Tensor<float, Cuda>({n, c.tokens_per_frame(), c.n_embd});
+    auto emb = Tensor<float, Cuda>({n, c.pose_emb_dim()}), one_emb = Tensor<float, Cuda>({n, c.pose_emb_dim()});
+    for (auto* t : {&stt, &emb, &one_emb}) cuda::fill_bytes(gpu(), *t, 0xFF);
+    Arena<Cuda> arena(std::max(mst.evaluate_workspace_bytes(n), mst.pose_emb_workspace_bytes(n)));
+    poison_arena(arena);
+    mst.evaluate(gpu(), arena, upload<float>(lat), pose, yaw, stt, emb);
+    CHECK(arena.high_water() <= mst.evaluate_workspace_bytes(n));
+    arena.reset();
+    Tensor<float, Cpu> last_pose({n, 1, 2}), last_yaw({n, 1, 1});
+    for (std::int64_t b = 0; b < n; ++b) {
+      last_pose.at(b, 0, 0) = pose.at(b, F, 0), last_pose.at(b, 0, 1) = pose.at(b, F, 1);
+      last_yaw.at(b, 0, 0) = yaw.at(b, F, 0);
+    }
+    mst.get_pose_emb(gpu(), arena, last_pose, last_yaw, one_emb);
+    return std::array<Tensor<float, Cpu>, 3>{download(stt), download(emb), download(one_emb)};
+  };
+  const auto one = [](const Tensor<float, Cpu>& t, std::int64_t b) {
+    Shape s = t.shape();
+    s[0] = 1;
+    return t.slice(b, b + 1).clone().reshape(s);
+  };
+  const auto batched = run(latents, pose_idx, yaw_idx);
+  double worst[3] = {0, 0, 0};
+  for (std::int64_t b = 0; b < items; ++b) {
+    const auto alone = run(one(latents, b), one(pose_idx, b), one(yaw_idx, b));
+    for (int k = 0; k < 3; ++k) worst[k] = std::max(worst[k], test::rel_max(one(batched[k], b), alone[k]));
+  }
+  const bool f32 = std::is_same_v<W, float>;
+  const double limits[3] = {f32 ? 1e-6 : bound<W>("mst.stt_features"), f32 ? 1e-6 : bound<W>("mst.pose_emb"),
+                            f32 ? 1e-6 : bound<W>("mst.pose_emb")};
+  const char* names[3] = {"stt_features", "pose_emb", "get_pose_emb"};
+  for (int k = 0; k < 3; ++k) {
+    MESSAGE("MST batch of ", items, " (", std::string(f32 ? "float32" : "bf16"), ") vs each item alone, ",
+            std::string(names[k]), ": worst rel ", worst[k], " (limit ", limits[k], ")");
+    CHECK(worst[k] <= limits[k]);
+  }
+  CHECK(test::rel_max(one(batched[0], 0), one(batched[0], 1)) > 1e-2);  // the items' results do differ
+}
+
 }  // namespace
+
+TEST_CASE("MST batches folded into one pass on the GPU: each item as evaluated alone") {
+  EPONA_REQUIRE_GPU();
+  mst_batch_invariance<float>();
+  mst_batch_invariance<bf16>();
+}
 
 TEST_CASE("MST on the GPU vs the CPU, block by block (batch 2): float32 and bf16") {
   EPONA_REQUIRE_GPU();

@@ -119,10 +119,10 @@ std::pair<Tensor<float, Cpu>, Tensor<float, Cpu>> run_mst(const model::MstObserv
   const std::int64_t B = latents.size(0);
   auto stt = poisoned<float>(ctx, {B, c.tokens_per_frame(), c.n_embd});
   auto emb = poisoned<float>(ctx, {B, 3 * c.n_embd});
-  Arena<Cuda> arena(wm.mst().evaluate_workspace_bytes());
+  Arena<Cuda> arena(wm.mst().evaluate_workspace_bytes(B));
   poison_arena(ctx, arena);
   wm.mst().evaluate(ctx, arena, latents, g.tensor("mst.pose_idx"), g.tensor("mst.yaw_idx"), stt, emb, observe);
-  CHECK(arena.high_water() <= wm.mst().evaluate_workspace_bytes());
+  CHECK(arena.high_water() <= wm.mst().evaluate_workspace_bytes(B));
   return {host(ctx, stt), host(ctx, emb)};
 }
 

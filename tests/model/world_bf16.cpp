@@ -44,7 +44,7 @@ TEST_CASE("bf16 weights: MST, one DiT velocity each, and both samplers") {
   const std::int64_t B = latents.size(0);
   Tensor<float, Cpu> stt({B, w.tokens_per_frame(), w.n_embd}), pose_emb({B, w.pose_emb_dim()});
   {
-    Arena<Cpu> arena(wm.mst().evaluate_workspace_bytes());
+    Arena<Cpu> arena(wm.mst().evaluate_workspace_bytes(B));
     wm.mst().evaluate(ctx, arena, latents, g.tensor("mst.pose_idx"), g.tensor("mst.yaw_idx"), stt, pose_emb);
   }
   expect_bf16("mst.stt_features", stt);

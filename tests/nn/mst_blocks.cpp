@@ -3,6 +3,7 @@
 // outputs, get_pose_emb) at head dim 128 (the real one; the golden set has 64) against a
 // float64 implementation written from world-model.md §3.9 and §5. Tolerance rel <= 1e-4;
 // arena use must equal the planned bytes.
+#include <array>
 #include <doctest/doctest.h>
 
 #include <string>
@@ -120,16 +121,21 @@ struct RefMst {
   }
 };
 
+// Binds every parameter of `mst` to w's random values (w keeps them for a reference).
+void bind_random(model::SpatialTemporalTransformer<Cpu, float>& mst, RandomWeights& w) {
+  w.add_all(mst.parameters());
+  io::BindReport report(w.map());
+  mst.bind(w.map(), "", report);
+  report.finish(true);
+}
+
 }  // namespace
 
 TEST_CASE("MST evaluate and get_pose_emb at head dim 128 vs float64") {
   const auto c = small_config();
   RandomWeights w(303);
   model::SpatialTemporalTransformer<Cpu, float> mst(c);
-  w.add_all(mst.parameters());
-  io::BindReport report(w.map());
-  mst.bind(w.map(), "", report);
-  report.finish(true);
+  bind_random(mst, w);
 
   const i64 B = 2, F = c.condition_frames, T = c.tokens_per_frame(), C = c.n_embd;
   const auto latents = world_ref::random_tensor({B, F, c.img_tokens(), c.token_dim}, 5, -2.f, 2.f);
@@ -137,9 +143,9 @@ TEST_CASE("MST evaluate and get_pose_emb at head dim 128 vs float64") {
   const auto yaw_idx = world_ref::random_tensor({B, F + 1, 1}, 7, 200.f, 300.f);
   HostTensor stt({B, T, C}), pose_emb({B, 3 * C});
   cpu::Context ctx(2);
-  Arena<Cpu> arena(mst.evaluate_workspace_bytes());
+  Arena<Cpu> arena(mst.evaluate_workspace_bytes(B));
   mst.evaluate(ctx, arena, latents, pose_idx, yaw_idx, stt, pose_emb);
-  CHECK(arena.high_water() == mst.evaluate_workspace_bytes());
+  CHECK(arena.high_water() == mst.evaluate_workspace_bytes(B));
 
   // With an observer every frame of every block is computed; the last frame must not differ
   // from the pruned run beyond accumulation order.
@@ -166,11 +172,68 @@ TEST_CASE("MST evaluate and get_pose_emb at head dim 128 vs float64") {
     one_pose.at(b, 0, 1) = pose_idx.at(b, F, 1);
     one_yaw.at(b, 0, 0) = yaw_idx.at(b, F, 0);
   }
-  Arena<Cpu> small(mst.pose_emb_workspace_bytes());
+  Arena<Cpu> small(mst.pose_emb_workspace_bytes(B));
   mst.get_pose_emb(ctx, small, one_pose, one_yaw, emb);
   const double rel = world_ref::rel_max(emb, world_ref::to_vec(pose_emb));
   MESSAGE("get_pose_emb vs evaluate's pose_emb: rel ", rel);
   CHECK(rel <= 1e-5);
+}
+
+TEST_CASE("MST folds a batch into its rows: each item as evaluated alone") {
+  // kMaxFoldedItems + 2 windows: a folded pass of 8 and one of 2, frame-major. Each item's
+  // stt_features and pose_emb must be what it gives alone, as must get_pose_emb of the batch.
+  const auto c = small_config();
+  RandomWeights w(404);
+  model::SpatialTemporalTransformer<Cpu, float> mst(c);
+  bind_random(mst, w);
+  const i64 B = model::SpatialTemporalTransformer<Cpu, float>::kMaxFoldedItems + 2, F = c.condition_frames;
+  const i64 T = c.tokens_per_frame(), C = c.n_embd;
+  const auto latents = world_ref::random_tensor({B, F, c.img_tokens(), c.token_dim}, 15, -2.f, 2.f);
+  const auto pose_idx = world_ref::random_tensor({B, F + 1, 2}, 16, 0.f, 128.f);
+  const auto yaw_idx = world_ref::random_tensor({B, F + 1, 1}, 17, 200.f, 300.f);
+  cpu::Context ctx(2);
+  const auto run = [&](const HostTensor& lat, const HostTensor& pose, const HostTensor& yaw) {
+    const i64 n = lat.size(0);
+    HostTensor stt({n, T, C}), emb({n, 3 * C}), one_emb({n, 3 * C}), last_pose({n, 1, 2}), last_yaw({n, 1, 1});
+    Arena<Cpu> arena(std::max(mst.evaluate_workspace_bytes(n), mst.pose_emb_workspace_bytes(n)));
+    mst.evaluate(ctx, arena, lat, pose, yaw, stt, emb);
+    CHECK(arena.high_water() == mst.evaluate_workspace_bytes(n));
+    for (i64 b = 0; b < n; ++b) {
+      last_pose.at(b, 0, 0) = pose.at(b, F, 0), last_pose.at(b, 0, 1) = pose.at(b, F, 1);
+      last_yaw.at(b, 0, 0) = yaw.at(b, F, 0);
+    }
+    arena.reset();
+    mst.get_pose_emb(ctx, arena, last_pose, last_yaw, one_emb);
+    return std::array<HostTensor, 3>{stt, emb, one_emb};
+  };
+  const auto one = [](const HostTensor& t, i64 b) {
+    Shape s = t.shape();
+    s[0] = 1;
+    return t.slice(b, b + 1).clone().reshape(s);
+  };
+  const auto batched = run(latents, pose_idx, yaw_idx);
+  double worst[3] = {0, 0, 0};
+  for (i64 b = 0; b < B; ++b) {
+    const auto alone = run(one(latents, b), one(pose_idx, b), one(yaw_idx, b));
+    for (int k = 0; k < 3; ++k)
+      worst[k] = std::max(worst[k], world_ref::rel_max(one(batched[k], b), world_ref::to_vec(alone[k])));
+  }
+  MESSAGE("MST batch of ", B, " vs each item alone: stt_features rel ", worst[0], ", pose_emb ", worst[1],
+          ", get_pose_emb ", worst[2]);
+  for (const double rel : worst) CHECK(rel <= 1e-6);
+  CHECK(world_ref::rel_max(one(batched[0], 0), world_ref::to_vec(one(batched[0], 1))) > 1e-2);
+
+  // Passes of 3 (3, 3, 3, 1): the arena follows the limit, and the items are the same.
+  mst.set_fold_limit(3);
+  CHECK(mst.evaluate_workspace_bytes(B) < mst.evaluate_workspace_bytes(1) * 4);
+  const auto by_three = run(latents, pose_idx, yaw_idx);
+  const double rel3 = world_ref::rel_max(by_three[0], world_ref::to_vec(batched[0]));
+  MESSAGE("MST batch of ", B, " in passes of 3 vs passes of 8: stt_features rel ", rel3);
+  CHECK(rel3 <= 1e-6);
+  CHECK_THROWS_WITH_AS(mst.set_fold_limit(0), doctest::Contains("windows per pass"), Error);
+  CHECK_THROWS_WITH_AS(mst.set_fold_limit(model::SpatialTemporalTransformer<Cpu, float>::kMaxFoldedItems + 1),
+                       doctest::Contains("windows per pass"), Error);
+  CHECK(mst.fold_limit() == 3);
 }
 
 TEST_CASE("MST input shapes are checked") {

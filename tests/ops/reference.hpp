@@ -191,20 +191,23 @@ inline Vec attention(const Vec& x, i64 n, i64 stride, i64 q_off, i64 k_off, i64 
 }
 
 // ---- the world model's fused token ops ----
-// The MST's input tokens (core/kernel_options.hpp, FrameTokens): out (frames, actions +
-// image_rows, width); frame f's slot s < actions is actions[s·entries + f] + time_emb[f], its
-// row actions + l is LN(image[f·image_rows + l])·weight + bias + time_emb[f].
+// The MST's input tokens (core/kernel_options.hpp, FrameTokens): out (frames·items, actions +
+// image_rows, width); item b's frame f is out frame f·items + b: its slot s < actions is
+// actions[s·entries + b·entries/items + f] + time_emb[f], its row actions + l is
+// LN(image[(b·frames + f)·image_rows + l])·weight + bias + time_emb[f].
 inline Vec frame_tokens(const Vec& image, const Vec& actions, const Vec& time_emb, const Vec& weight, const Vec& bias,
-                        i64 frames, i64 image_rows, i64 n_actions, i64 entries, i64 width, double eps) {
-  const Vec ln = layer_norm(image, frames * image_rows, width, eps, &weight, &bias);
+                        i64 frames, i64 image_rows, i64 n_actions, i64 entries, i64 width, double eps, i64 items = 1) {
+  const Vec ln = layer_norm(image, items * frames * image_rows, width, eps, &weight, &bias);
   const i64 tokens = n_actions + image_rows;
-  Vec out(static_cast<std::size_t>(frames * tokens * width));
-  for (i64 f = 0; f < frames; ++f)
-    for (i64 t = 0; t < tokens; ++t)
-      for (i64 c = 0; c < width; ++c)
-        out[(f * tokens + t) * width + c] =
-            time_emb[f * width + c] + (t < n_actions ? actions[(t * entries + f) * width + c]
-                                                     : ln[(f * image_rows + t - n_actions) * width + c]);
+  Vec out(static_cast<std::size_t>(items * frames * tokens * width));
+  for (i64 b = 0; b < items; ++b)
+    for (i64 f = 0; f < frames; ++f)
+      for (i64 t = 0; t < tokens; ++t)
+        for (i64 c = 0; c < width; ++c)
+          out[((f * items + b) * tokens + t) * width + c] =
+              time_emb[f * width + c] +
+              (t < n_actions ? actions[(t * entries + b * (entries / items) + f) * width + c]
+                             : ln[((b * frames + f) * image_rows + t - n_actions) * width + c]);
   return out;
 }
 

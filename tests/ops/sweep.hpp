@@ -72,7 +72,7 @@ struct ConvShape { i64 N, C, H, W, O, k, groups; bool bias; ConvAct act; };
 struct Map2d { i64 N, C, HW; };
 struct ShuffleCase { i64 N, C, H, W, r, channels_out; };
 struct QkShape { i64 rows_q, rows_k, heads, head_dim; };
-struct FrameShape { i64 frames, image_rows, actions, entries, width; };
+struct FrameShape { i64 frames, image_rows, actions, entries, width, items; };  // entries: all items'
 struct MlaShape { i64 N, heads, d, HW; };
 
 inline const std::vector<i64> kLengths{1, 7, 16, 33, 257, 1000};  // elementwise ops
@@ -90,7 +90,9 @@ inline const std::vector<QkShape> kQkNorms{{5, 7, 2, 64}, {3, 3, 4, 32}, {16, 16
                                            {1100, 1060, 2, 64}};
 inline const std::vector<AttnShape> kQkNormAttention{{2, 4, 16, 16, 128, epona::Mask::None, false},
                                                      {1, 8, 9, 9, 128, epona::Mask::None, false}};
-inline const std::vector<FrameShape> kFrames{{2, 5, 3, 2, 64}, {3, 4, 2, 4, 128}, {1, 7, 0, 0, 256}, {2, 3, 1, 2, 40}};
+inline const std::vector<FrameShape> kFrames{{2, 5, 3, 2, 64, 1},  {3, 4, 2, 4, 128, 1}, {1, 7, 0, 0, 256, 1},
+                                            {2, 3, 1, 2, 40, 1},  {2, 5, 3, 6, 64, 2},  {3, 4, 2, 12, 128, 3},
+                                            {1, 7, 0, 0, 256, 4}};
 inline const std::vector<ConvShape> kConvs{
     {1, 3, 5, 7, 4, 1, 1, true, ConvAct::None},  {2, 4, 6, 5, 6, 3, 1, false, ConvAct::Relu},
     {1, 8, 9, 9, 8, 3, 8, true, ConvAct::Silu},  {1, 6, 4, 7, 9, 3, 3, true, ConvAct::None},
@@ -591,21 +593,23 @@ void sweep(Context<B>& ctx) {
   // time embedding, into float32 tokens; the op may decline (returns false).
   run_op<B, W>(ctx, "try_assemble_frame_tokens", kPointwise, 36, [&](Case<B>& c, OpLog& log) {
     if constexpr (epona::FusedFrameTokens<Ctx, A>) {
-      for (const auto [frames, image_rows, actions, entries, width] : kFrames) {
-        const epona::FrameTokens ft{frames, image_rows, actions, entries, width, eps};
+      for (const auto [frames, image_rows, actions, entries, width, items] : kFrames) {
+        const epona::FrameTokens ft{frames, image_rows, actions, entries, width, eps, items};
         Vec img, act, te, w, b;
-        auto dimg = c.template in<A>(frames * image_rows * width, img, -2.f, 3.f);
+        auto dimg = c.template in<A>(items * frames * image_rows * width, img, -2.f, 3.f);
         auto dact = c.template in<float>(std::max<i64>(1, actions * entries * width), act);
         auto dte = c.template in<float>(frames * width, te);
         auto dw = c.template in<float>(width, w, 0.5f, 1.5f);
         auto db = c.template in<float>(width, b);
-        auto dout = c.template out<float>(frames * ft.tokens() * width);
+        auto dout = c.template out<float>(items * frames * ft.tokens() * width);
         if (!try_assemble_frame_tokens(ctx, dimg.data(), dact.data(), dte.data(), dw.data(), db.data(), dout.data(), ft)) {
           ++log.declined;
           continue;
         }
-        log.record(shape("frames", frames, "image_rows", image_rows, "actions", actions, "entries", entries, "width", width),
-                   c.error(dout, ops_ref::frame_tokens(img, act, te, w, b, frames, image_rows, actions, entries, width, eps)));
+        log.record(shape("frames", frames, "image_rows", image_rows, "actions", actions, "entries", entries, "width", width,
+                         "items", items),
+                   c.error(dout, ops_ref::frame_tokens(img, act, te, w, b, frames, image_rows, actions, entries, width, eps,
+                                                        items)));
       }
     }
   });

@@ -43,10 +43,15 @@ struct QkItems {
 // frame f's row slot < actions is action entry f of that slot plus time_emb[f]; its row
 // actions + l is LN(image[f·image_rows + l]) · weight + bias + time_emb[f]. Action slot s,
 // entry e lives at actions + (s·action_entries + e)·width.
+// `items` windows fold frame-major (the MST's batch): item b's frame f is output frame
+// f·items + b, read from image rows (b·frames + f)·image_rows on and action entry
+// b·(action_entries / items) + f; items 1 is the layout above.
 struct FrameTokens {
   std::int64_t frames = 0, image_rows = 0, actions = 0, action_entries = 0, width = 0;
   float eps = 1e-5f;
+  std::int64_t items = 1;
   std::int64_t tokens() const { return actions + image_rows; }
+  std::int64_t item_entries() const { return action_entries / items; }
 };
 
 }  // namespace epona

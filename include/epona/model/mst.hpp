@@ -148,16 +148,30 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
       blocks_[i].visit_params(prefix + "causal_time_space_blocks." + std::to_string(i) + ".", v);
   }
 
-  // Arena bytes evaluate() needs besides its outputs (scratch of one batch item).
-  std::size_t evaluate_workspace_bytes() const {
+  // Windows folded into one pass of evaluate(): each adds its F·T rows to every product and
+  // row pass (about 0.2 GB of bf16 scratch at the shipped size). A window's 5150 rows already
+  // fill the GPU's products; folding removes the per-item launches and small tails.
+  static constexpr std::int64_t kMaxFoldedItems = 8;
+  // Windows per pass, 1 to kMaxFoldedItems (default): fewer bound the scratch; 1 runs the
+  // windows one by one. A run-time switch (size the arena after it), so a const model takes it.
+  void set_fold_limit(std::int64_t windows) const {
+    EPONA_CHECK(windows >= 1 && windows <= kMaxFoldedItems, "MST: windows per pass must be in [1, ", kMaxFoldedItems,
+                "], got ", windows);
+    fold_limit_ = windows;
+  }
+  std::int64_t fold_limit() const { return fold_limit_; }
+  std::int64_t pass_items(std::int64_t batch) const { return std::clamp<std::int64_t>(batch, 1, fold_limit_); }
+
+  // Arena bytes evaluate() of a batch needs besides its outputs (the scratch of one pass).
+  std::size_t evaluate_workspace_bytes(std::int64_t batch = 1) const {
     ArenaCounter<B> counter;
-    plan_evaluate(counter);
+    plan_evaluate(counter, pass_items(batch));
     return counter.bytes();
   }
-  std::size_t pose_emb_workspace_bytes() const {
+  std::size_t pose_emb_workspace_bytes(std::int64_t batch = 1) const {
     ArenaCounter<B> counter;
-    counter.template take<float>({3, 1, cfg_.n_embd});
-    plan_actions(counter, 1);
+    counter.template take<float>({3, batch, cfg_.n_embd});
+    plan_actions(counter, batch);
     return counter.bytes();
   }
 
@@ -165,6 +179,10 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
   //   latents (Bt, F, L, token_dim) backend; pose_idx (Bt, F+1, 2), yaw_idx (Bt, F+1, 1) host
   //   -> stt_features (Bt, T, C): the last frame's tokens after the last block;
   //      pose_emb (Bt, 3C): [pose_x, pose_y, yaw] projections of action entry F.
+  // Up to kMaxFoldedItems windows run as one pass, frame-major: the residual stream is
+  // (F, n·T, C), so a time sequence (item b, token t) and a space sequence (frame f of item b)
+  // are each one stride apart, as for one window. With an observer the items run one by one
+  // (it sees each item's (F, T, C)).
   void evaluate(Context& ctx, Arena<B>& arena, const Tensor<float, B>& latents, const Tensor<float, Cpu>& pose_idx,
                 const Tensor<float, Cpu>& yaw_idx, Tensor<float, B>& stt_features, Tensor<float, B>& pose_emb,
                 const MstObserver<B>& observe = {}) const {
@@ -176,31 +194,37 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
     check_shape(yaw_idx, {batch, F + 1, 1}, "MST yaw indices");
     check_shape(stt_features, {batch, T, C}, "MST stt_features output");
     check_shape(pose_emb, {batch, 3 * C}, "MST pose_emb output");
-    for (std::int64_t b = 0; b < batch; ++b) {
+    const std::int64_t per_pass = observe ? 1 : pass_items(batch);
+    for (std::int64_t first = 0; first < batch; first += per_pass) {
+      const std::int64_t n = std::min(per_pass, batch - first);
       ArenaScope<B> scope(arena);
-      auto s = plan_evaluate(arena);
-      upload_fourier(ctx, s.pose, pose_idx[b], yaw_idx[b]);  // on the main queue, before the fork: the side reads it
+      auto s = plan_evaluate(arena, n);
+      // On the main queue, before the fork: the side reads it.
+      upload_fourier(ctx, s.pose, pose_idx.slice(first, first + n).reshape({n * (F + 1), 2}),
+                     yaw_idx.slice(first, first + n).reshape({n * (F + 1), 1}));
       // The pose projectors' twelve small kernels run on the side queue, beside the image projector's.
       side_.fork(ctx);
       project_actions(side_.side(ctx), s.pose, s.actions);
-      project_images(ctx, latents[b], s);
+      project_images(ctx, latents.slice(first, first + n), s);
       side_.join(ctx);
-      assemble_tokens(ctx, s);
-      if (observe) observe(b, "tokens_in", s.x);
+      assemble_tokens(ctx, s, n);
+      if (observe) observe(first, "tokens_in", s.x);
       for (std::size_t i = 0; i < blocks_.size(); ++i) {
         // Only the last frame of the last block is consumed; an observer sees every frame.
         const bool prune = i + 1 == blocks_.size() && !observe;
         // Every layer's last residual add writes the next layer's ln1 (none after the last).
         const nn::QkNormTransformerLayer<B, W>* next = i + 1 < blocks_.size() ? &blocks_[i + 1].causal_time_block : nullptr;
-        if (prune) run_last_block(ctx, blocks_[i], s, i > 0);
-        else run_block(ctx, blocks_[i], s, i > 0, next);
-        if (observe) observe(b, "block" + std::to_string(i) + "_out", s.x);
+        if (prune) run_last_block(ctx, blocks_[i], s, i > 0, n);
+        else run_block(ctx, blocks_[i], s, i > 0, next, n);
+        if (observe) observe(first, "block" + std::to_string(i) + "_out", s.x);
       }
+      // The last frame's rows of the n items are their stt_features, in item order.
       auto last = s.x[F - 1];
-      auto out = stt_features[b];
-      copy(ctx, last.data(), out.data(), T * C);
-      auto emb = pose_emb[b];
-      write_pose_emb(ctx, s.actions, F, emb);
+      copy(ctx, last.data(), stt_features[first].data(), n * T * C);
+      for (std::int64_t b = 0; b < n; ++b) {
+        auto emb = pose_emb[first + b];
+        write_pose_emb(ctx, s.actions, b * (F + 1) + F, emb);
+      }
     }
   }
 
@@ -211,14 +235,15 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
     check_shape(pose_idx, {batch, 1, 2}, "get_pose_emb pose indices");
     check_shape(yaw_idx, {batch, 1, 1}, "get_pose_emb yaw indices");
     check_shape(pose_emb, {batch, 3 * cfg_.n_embd}, "get_pose_emb output");
+    if (batch == 0) return;
+    ArenaScope<B> scope(arena);
+    auto actions = arena.template take<float>({3, batch, cfg_.n_embd});
+    auto scratch = plan_actions(arena, batch);
+    upload_fourier(ctx, scratch, pose_idx.reshape({batch, 2}), yaw_idx.reshape({batch, 1}));
+    project_actions(ctx, scratch, actions);
     for (std::int64_t b = 0; b < batch; ++b) {
-      ArenaScope<B> scope(arena);
-      auto actions = arena.template take<float>({3, 1, cfg_.n_embd});
-      auto scratch = plan_actions(arena, 1);
-      upload_fourier(ctx, scratch, pose_idx[b], yaw_idx[b]);
-      project_actions(ctx, scratch, actions);
       auto emb = pose_emb[b];
-      write_pose_emb(ctx, actions, 0, emb);
+      write_pose_emb(ctx, actions, b, emb);
     }
   }
 
@@ -251,25 +276,27 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
     Tensor<A, B> hidden;     // (n, P)
     Tensor<A, B> projected;  // (n, C) before the projector's LayerNorm
   };
+  // One pass over n windows (items); item b's rows are b-th in each frame's n·T.
   struct EvaluateScratch {
-    Tensor<float, B> actions;       // (3, F+1, C): projector outputs, slots yaw, pose_x, pose_y
-    ActionScratch pose;             // the pose projectors' inputs and scratch over F+1 entries
-    Tensor<A, B> latents;           // (F·L, token_dim) the latents as GEMM input (empty when A is float)
-    Tensor<A, B> img_hidden;        // (F·L, C/2)
-    Tensor<float, B> x;             // (F, T, C) residual stream
-    typename nn::QkNormTransformerLayer<B, W>::Scratch layer;  // (F·T) tokens
+    Tensor<float, B> actions;       // (3, n·(F+1), C): projector outputs, slots yaw, pose_x, pose_y
+    ActionScratch pose;             // the pose projectors' inputs and scratch over n·(F+1) entries
+    Tensor<A, B> latents;           // (n·F·L, token_dim) the latents as GEMM input (empty when A is float)
+    Tensor<A, B> img_hidden;        // (n·F·L, C/2)
+    Tensor<float, B> x;             // (F, n·T, C) residual stream, frame-major
+    typename nn::QkNormTransformerLayer<B, W>::Scratch layer;  // (F·n·T) tokens
   };
 
   template <class Alloc>
-  EvaluateScratch plan_evaluate(Alloc& a) const {
+  EvaluateScratch plan_evaluate(Alloc& a, std::int64_t n) const {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
+    const std::int64_t images = n * F * cfg_.img_tokens();
     EvaluateScratch s;
-    s.actions = a.template take<float>({3, F + 1, C});
-    s.pose = plan_actions(a, F + 1);
-    if (kConvertInputs) s.latents = a.template take<A>({F * cfg_.img_tokens(), cfg_.token_dim});
-    s.img_hidden = a.template take<A>({F * cfg_.img_tokens(), cfg_.img_hidden()});
-    s.x = a.template take<float>({F, T, C});
-    s.layer = nn::QkNormTransformerLayer<B, W>::plan(a, F * T, cfg_.n_embd, cfg_.mlp_hidden());
+    s.actions = a.template take<float>({3, n * (F + 1), C});
+    s.pose = plan_actions(a, n * (F + 1));
+    if (kConvertInputs) s.latents = a.template take<A>({images, cfg_.token_dim});
+    s.img_hidden = a.template take<A>({images, cfg_.img_hidden()});
+    s.x = a.template take<float>({F, n * T, C});
+    s.layer = nn::QkNormTransformerLayer<B, W>::plan(a, F * n * T, cfg_.n_embd, cfg_.mlp_hidden());
     return s;
   }
   template <class Alloc>
@@ -309,69 +336,75 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
     for (int i = 0; i < 3; ++i) copy(ctx, actions[order[i]][entry].data(), emb.data() + i * C, C);
   }
 
-  // The image projector's two GEMMs, once over all F·L tokens, into s.layer.u (free until the
-  // first block); its LayerNorm is part of assemble_tokens.
+  // The image projector's two GEMMs, once over all n·F·L tokens of latents (n, F, L, token_dim),
+  // into s.layer.u in item order (free until the first block); its LayerNorm is part of
+  // assemble_tokens.
   void project_images(Context& ctx, const Tensor<float, B>& latents, EvaluateScratch& s) const {
-    const std::int64_t L = cfg_.img_tokens(), F = cfg_.condition_frames;
-    auto flat = latents.reshape({F * L, cfg_.token_dim});
+    const std::int64_t rows = latents.size(0) * cfg_.condition_frames * cfg_.img_tokens();
+    auto flat = latents.reshape({rows, cfg_.token_dim});
     if constexpr (kConvertInputs) {
       convert(ctx, flat.data(), s.latents.data(), flat.numel());
       img_projector_.mlp.fc1(ctx, s.latents, s.img_hidden, BackendEpilogue<B>::GeluErf);
     } else {
       img_projector_.mlp.fc1(ctx, flat, s.img_hidden, BackendEpilogue<B>::GeluErf);
     }
-    auto projected = s.layer.u.slice(0, F * L);
+    auto projected = s.layer.u.slice(0, rows);
     img_projector_.mlp.fc2(ctx, s.img_hidden, projected);
   }
 
-  // X[f] = [yaw_f, pose_x_f, pose_y_f, LN(projected image rows of f)] + time_emb[f], one pass
-  // where the backend has it.
-  void assemble_tokens(Context& ctx, EvaluateScratch& s) const {
+  // Item b's frame f (rows b·T.. of X[f]) = [yaw, pose_x, pose_y of its entry f, LN(its
+  // projected image rows of f)] + time_emb[f], one pass where the backend has it.
+  void assemble_tokens(Context& ctx, EvaluateScratch& s, std::int64_t n) const {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
     const std::int64_t L = cfg_.img_tokens();
-    const auto projected = s.layer.u.slice(0, F * L);
+    const auto projected = s.layer.u.slice(0, n * F * L);
     const auto& ln = img_projector_.norm;
-    const FrameTokens tokens{F, L, constants::action_tokens, s.actions.size(1), C, ln.eps};
+    const FrameTokens tokens{F, L, constants::action_tokens, s.actions.size(1), C, ln.eps, n};
     if constexpr (FusedFrameTokens<Context, A>) {
       if (try_assemble_frame_tokens(ctx, projected.data(), s.actions.data(), time_emb_.data(), ln.weight.data(),
                                     ln.bias.data(), s.x.data(), tokens))
         return;
     }
-    for (std::int64_t f = 0; f < F; ++f) {
-      auto frame = s.x[f];                  // (T, C)
-      auto image_rows = frame.slice(3, T);  // (L, C)
-      img_projector_.norm(ctx, projected.slice(f * L, (f + 1) * L), image_rows);
-      for (std::int64_t slot = 0; slot < 3; ++slot) copy(ctx, s.actions[slot][f].data(), frame[slot].data(), C);
-      add_row_broadcast(ctx, frame.data(), time_emb_[f].data(), T, C);
-    }
+    for (std::int64_t b = 0; b < n; ++b)
+      for (std::int64_t f = 0; f < F; ++f) {
+        auto frame = s.x[f].slice(b * T, (b + 1) * T);  // (T, C)
+        auto image_rows = frame.slice(3, T);            // (L, C)
+        const std::int64_t image = (b * F + f) * L, entry = b * (F + 1) + f;
+        img_projector_.norm(ctx, projected.slice(image, image + L), image_rows);
+        for (std::int64_t slot = 0; slot < 3; ++slot) copy(ctx, s.actions[slot][entry].data(), frame[slot].data(), C);
+        add_row_broadcast(ctx, frame.data(), time_emb_[f].data(), T, C);
+      }
   }
 
   // `normed`: s.layer.u holds the time layer's ln1(x) already; `next`: the layer after the block.
+  // n items, frame-major (F, n·T, C).
   void run_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s, bool normed,
-                 const nn::QkNormTransformerLayer<B, W>* next) const {
+                 const nn::QkNormTransformerLayer<B, W>* next, std::int64_t n) const {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
-    const std::int64_t H = cfg_.n_head, d = cfg_.head_dim();
-    auto x = s.x.reshape({F * T, C});
-    // (a) time: each of the T token positions is a causal sequence over the F frames; no RoPE.
-    const nn::PackedAttention time{T, F, H, d, C, T * C, C, T * C, true};
-    block.causal_time_block(ctx, x, s.layer, 0, F * T, nullptr, time, normed, &block.space_block);
-    // (b) space: each frame is one unmasked sequence of T tokens; RoPE on the image tokens only.
-    run_space(ctx, block.space_block, x, s.layer, F, next);
+    const std::int64_t H = cfg_.n_head, d = cfg_.head_dim(), R = n * T;
+    auto x = s.x.reshape({F * R, C});
+    // (a) time: each of the n·T token positions is a causal sequence over the F frames; no RoPE.
+    const nn::PackedAttention time{R, F, H, d, C, R * C, C, R * C, true};
+    block.causal_time_block(ctx, x, s.layer, 0, F * R, nullptr, time, normed, &block.space_block);
+    // (b) space: each frame of each item is one unmasked sequence of T tokens; RoPE on the image
+    // tokens only.
+    run_space(ctx, block.space_block, x, s.layer, F * n, next);
   }
 
   // The last block for the last frame only: its time attention still reads keys and values
   // of every frame (the last frame attends to all of them, so no mask is needed).
-  void run_last_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s, bool normed) const {
+  void run_last_block(Context& ctx, const CausalTimeSpaceBlock<B, W>& block, EvaluateScratch& s, bool normed,
+                      std::int64_t n) const {
     const std::int64_t F = cfg_.condition_frames, T = cfg_.tokens_per_frame(), C = cfg_.n_embd;
-    const std::int64_t H = cfg_.n_head, d = cfg_.head_dim();
-    auto x = s.x.reshape({F * T, C});
-    nn::PackedAttention time{T, F, H, d, C, T * C, C, 0, false};
+    const std::int64_t H = cfg_.n_head, d = cfg_.head_dim(), R = n * T;
+    auto x = s.x.reshape({F * R, C});
+    nn::PackedAttention time{R, F, H, d, C, R * C, C, 0, false};
     time.q_len = 1;
     time.q_seq_stride = C;
-    // The time layer updates the last frame's rows: the space layer's whole input.
-    block.causal_time_block(ctx, x, s.layer, (F - 1) * T, T, nullptr, time, normed, &block.space_block);
+    // The time layer updates the last frame's rows (of every item): the space layer's whole input.
+    block.causal_time_block(ctx, x, s.layer, (F - 1) * R, R, nullptr, time, normed, &block.space_block);
     auto last = s.x[F - 1];
-    run_space(ctx, block.space_block, last, s.layer, 1, nullptr);
+    run_space(ctx, block.space_block, last, s.layer, n, nullptr);
   }
 
   // Space attention over `frames` consecutive frames of x (frames·T, C).
@@ -385,13 +418,15 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
     layer(ctx, x, s, 0, frames * T, &rope_, space, true, next);
   }
 
-  // compute_axial_cis for the image tokens of every frame of the window, identity rows
-  // (cos 1, sin 0) for the action tokens: (F·T, head_dim/2).
+  // compute_axial_cis for the image tokens of every frame of a pass (kMaxFoldedItems windows;
+  // every frame's table is the same), identity rows (cos 1, sin 0) for the action tokens:
+  // (kMaxFoldedItems·F·T, head_dim/2).
   static nn::RopeTable<Cpu> window_rope_table(const MstConfig& c) {
     const auto image = nn::axial_rope_table(c.head_dim(), c.latent_h, c.latent_w, c.rope_theta);
-    const std::int64_t T = c.tokens_per_frame(), pairs = image.pairs(), rows = c.condition_frames * T;
+    const std::int64_t T = c.tokens_per_frame(), pairs = image.pairs(), frames = kMaxFoldedItems * c.condition_frames;
+    const std::int64_t rows = frames * T;
     nn::RopeTable<Cpu> t{Tensor<float, Cpu>::full({rows, pairs}, 1.0f), Tensor<float, Cpu>::zeros({rows, pairs})};
-    for (std::int64_t f = 0; f < c.condition_frames; ++f) {
+    for (std::int64_t f = 0; f < frames; ++f) {
       const std::int64_t first = (f * T + constants::action_tokens) * pairs;
       std::copy_n(image.cos.data(), image.cos.numel(), t.cos.data() + first);
       std::copy_n(image.sin.data(), image.sin.numel(), t.sin.data() + first);
@@ -403,8 +438,9 @@ class SpatialTemporalTransformer : public nn::Bindable<SpatialTemporalTransforme
   Tensor<float, B> time_emb_;  // (rows, C)
   Projector<B, W> img_projector_, pose_x_projector_, pose_y_projector_, yaw_projector_;
   std::vector<CausalTimeSpaceBlock<B, W>> blocks_;
-  nn::RopeTable<B> rope_;  // (F·T, head_dim/2): every frame's rows, the action tokens unrotated
+  nn::RopeTable<B> rope_;  // (kMaxFoldedItems·F·T, head_dim/2): every frame's rows, the action tokens unrotated
   mutable typename BackendTraits<B>::SideQueue side_;  // the pose projectors' queue (a second GPU stream)
+  mutable std::int64_t fold_limit_ = kMaxFoldedItems;
 };
 
 }  // namespace epona::model

@@ -403,7 +403,7 @@ class WorldModel {
     persistent.template take<float>(latent_noise_shape(Bt));
     const nn::JointRows traj_rows{cfg_.tokens_per_frame(), cfg_.traj_len}, img_rows{cfg_.tokens_per_frame(), cfg_.img_tokens()};
     const std::size_t stages[] = {
-        mst_.evaluate_workspace_bytes(), mst_.pose_emb_workspace_bytes(),
+        mst_.evaluate_workspace_bytes(Bt), mst_.pose_emb_workspace_bytes(Bt),
         traj_.conditioning_bytes(Bt, traj_rows) + traj_.sample_bytes(Bt, traj_rows, s.plan.steps, s.plan.kind),
         vis_.conditioning_bytes(Bt, img_rows) + vis_.sample_bytes(Bt, img_rows, s.video.steps, s.video.kind)};
     std::size_t largest = 0;

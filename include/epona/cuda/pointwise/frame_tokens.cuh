@@ -36,24 +36,27 @@ struct FrameTokenArgs {
   FrameTokens t;
 };
 
-// A warp per row: the first F·L rows are image rows (LN, in the pass order), the F·A after them
-// action rows (copy + add).
+// A warp per row: the first items·F·L rows are image rows (LN, in the pass order), the
+// items·F·A after them action rows (copy + add); item b's frame f is output frame f·items + b.
 template <class TI, int P>
 __global__ void __launch_bounds__(32 * kNormWarps) frame_tokens_kernel(FrameTokenArgs<TI> a) {
   wait_for_producer();  // may start before its producer ends (launch_after)
   const std::int64_t image_rows = a.norm.rows, item = blockIdx.x * std::int64_t{kNormWarps} + threadIdx.x / 32;
-  if (item >= image_rows + a.t.frames * a.t.actions) return;
+  const std::int64_t F = a.t.frames, items = a.t.items;
+  if (item >= image_rows + items * F * a.t.actions) return;
   const int lane = threadIdx.x & 31;
   const std::int64_t C = a.t.width, T = a.t.actions + a.t.image_rows;
   if (item < image_rows) {
-    const std::int64_t row = pass_index(item, image_rows, a.norm.reverse), f = row / a.t.image_rows;
+    const std::int64_t row = pass_index(item, image_rows, a.norm.reverse), bf = row / a.t.image_rows;
+    const std::int64_t f = bf % F, frame = f * items + bf / F;
     norm_row<P, false, false>(a.norm, row, lane, 32, [](float v) { return warp_sum(v); },
-                              AddRowPack{a.time_emb + f * C}, f * T + a.t.actions + row % a.t.image_rows);
+                              AddRowPack{a.time_emb + f * C}, frame * T + a.t.actions + row % a.t.image_rows);
     return;
   }
-  const std::int64_t f = (item - image_rows) / a.t.actions, slot = (item - image_rows) % a.t.actions;
-  const float* src = a.actions + (slot * a.t.action_entries + f) * C;
-  float* dst = a.norm.out + (f * T + slot) * C;
+  const std::int64_t bf = (item - image_rows) / a.t.actions, slot = (item - image_rows) % a.t.actions;
+  const std::int64_t b = bf / F, f = bf % F;
+  const float* src = a.actions + (slot * a.t.action_entries + b * (a.t.action_entries / items) + f) * C;
+  float* dst = a.norm.out + ((f * items + b) * T + slot) * C;
   for (std::int64_t c = lane * kPack; c < C; c += 32 * kPack) {
     float v[kPack];
     load8(src + c, v);
@@ -65,20 +68,21 @@ __global__ void __launch_bounds__(32 * kNormWarps) frame_tokens_kernel(FrameToke
 }  // namespace detail
 
 // The MST's tokens (FrameTokens) from the image projector's pre-norm rows `image`
-// (frames·image_rows, width), the action embeddings, time_emb (frames, width) and the LN's
-// weight and bias (either may be null), into out (frames, tokens, width). One launch when the
+// (items·frames·image_rows, width), the action embeddings, time_emb (frames, width) and the
+// LN's weight and bias (either may be null), into out (frames·items, tokens, width). One launch when the
 // width is a multiple of 8 of at most kWarpRowMax and every pointer is 16-byte aligned;
 // otherwise it returns false and writes nothing (the caller composes the separate passes).
 template <class TI>
 bool try_assemble_frame_tokens(Context& ctx, const TI* image, const float* actions, const float* time_emb,
                                const float* weight, const float* bias, float* out, const FrameTokens& t) {
   static_assert(is_device_float<TI>, "frame tokens take float or bf16 image rows");
-  EPONA_CHECK(t.frames >= 0 && t.image_rows >= 0 && t.actions >= 0 && t.width > 0,
+  EPONA_CHECK(t.frames >= 0 && t.image_rows >= 0 && t.actions >= 0 && t.width > 0 && t.items >= 1,
               "assemble_frame_tokens: bad extent (frames ", t.frames, ", image rows ", t.image_rows, ", actions ",
-              t.actions, ", width ", t.width, ")");
-  EPONA_CHECK(t.actions == 0 || t.action_entries >= t.frames, "assemble_frame_tokens: ", t.action_entries,
-              " action entries for ", t.frames, " frames");
-  const std::int64_t rows = t.frames * t.image_rows, items = rows + t.frames * t.actions;
+              t.actions, ", width ", t.width, ", items ", t.items, ")");
+  EPONA_CHECK(t.actions == 0 || (t.action_entries % t.items == 0 && t.item_entries() >= t.frames),
+              "assemble_frame_tokens: ", t.action_entries, " action entries for ", t.items, " item(s) of ", t.frames,
+              " frames");
+  const std::int64_t rows = t.items * t.frames * t.image_rows, items = rows + t.items * t.frames * t.actions;
   EPONA_CHECK(items <= 0x7fffffffLL * detail::kNormWarps, "assemble_frame_tokens: ", items, " rows exceed one launch");
   if (items == 0) return true;
   EPONA_CHECK(out != nullptr && time_emb != nullptr && (rows == 0 || image != nullptr) &&
