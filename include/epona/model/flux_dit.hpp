@@ -96,8 +96,9 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   // of the table is [double 0: img 6D, cond 6D | ... | single 0: 3D | ... | final layer 2D].
   struct Modulations {
     std::int64_t times = 0, width = 0;
-    Tensor<A, B> table;  // (batch·times, width)
-    const A* row(std::int64_t b, std::int64_t i) const { return table.data() + (b * times + i) * width; }
+    bool shared = false;  // one row per time for every item (a sample without vector_in)
+    Tensor<A, B> table;   // (batch·times, width), or (times, width) when shared
+    const A* row(std::int64_t b, std::int64_t i) const { return table.data() + ((shared ? 0 : b) * times + i) * width; }
   };
 
   // How sample() runs the steps (it changes no result bit, and benchmarks compare both). It
@@ -164,7 +165,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     if (kConvertInputs) v.template take<A>({batch, rows.target, cfg_.in_channels});
     plan_front(v, batch, rows);
     for (int j = 0; j < flow::solver_scratch_states(solver); ++j) v.template take<float>({batch, rows.target, cfg_.in_channels});
-    const auto m = modulation_sizes(batch, flow::solver_evaluations(solver, steps));
+    const auto m = modulation_sizes(shares_modulations() ? 1 : batch, flow::solver_evaluations(solver, steps));
     return m.kept + std::max(m.scratch, v.bytes() + velocity_bytes(batch, rows));
   }
   // Everything forward() takes.
@@ -207,20 +208,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   Modulations modulations(Context& ctx, Arena<B>& arena, const Conditioning& c, const Tensor<float, Cpu>& t) const {
     EPONA_CHECK(t.dim() == 2 && t.size(0) == c.batch && t.size(1) >= 1, "DiT timesteps must be (", c.batch,
                 ", times), got ", shape_str(t.shape()));
-    const std::int64_t times = t.size(1), n = t.numel(), D = cfg_.hidden_size;
-    Modulations m = plan_modulations(arena, c.batch, times);
-    ArenaScope<B> scope(arena);
-    auto s = plan_modulation_scratch(arena, c.batch, times);
-    Tensor<float, Cpu> temb({n, cfg_.time_dim});
-    nn::timestep_embedding(t.data(), n, cfg_.time_dim, cfg_.time_max_period, cfg_.time_factor, temb.data());
-    upload_as(ctx, temb, s.temb);
-    time_in_(ctx, s.temb, s.hidden, s.vec);
-    if (vector_in_)
-      for (std::int64_t b = 0; b < c.batch; ++b)
-        add_row_broadcast(ctx, s.vec.data() + b * times * D, c.vec_y[b].data(), times, D);
-    silu_to(ctx, s.vec.data(), s.silu.data(), n * D);
-    trunk_.modulations(ctx, s.silu.data(), n, m.table.data(), m.width);
-    return m;
+    return modulations_of(ctx, arena, c, t);
   }
 
   // v = DiT(x, t_i) for every batch item, with the modulations of timestep `time` of m.
@@ -285,9 +273,9 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     const auto& times = solver.evaluation_times();
     const auto evaluations = static_cast<std::int64_t>(times.size());
     ArenaScope<B> scope(arena);
-    Tensor<float, Cpu> t({c.batch, evaluations});
-    for (std::int64_t b = 0; b < c.batch; ++b) std::copy_n(times.data(), evaluations, t[b].data());
-    const Modulations m = modulations(ctx, arena, c, t);
+    Tensor<float, Cpu> t({shares_modulations() ? 1 : c.batch, evaluations});
+    for (std::int64_t b = 0; b < t.size(0); ++b) std::copy_n(times.data(), evaluations, t[b].data());
+    const Modulations m = modulations_of(ctx, arena, c, t);
     auto v = arena.template take<A>({c.batch, c.rows.target, cfg_.out_channels});
     Tensor<A, B> x_cast;  // the state rounded to the GEMM type, updated by each step
     if constexpr (kConvertInputs) x_cast = arena.template take<A>(x.shape());
@@ -380,6 +368,34 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     return {kept.bytes(), scratch.bytes()};
   }
 
+  // A sample's items share their modulations when the DiT has no vector_in: vec_i is then the
+  // time's alone (the TrajDiT), so the table is one row per evaluation whatever the batch (the
+  // batch-1 table, bit for bit; 100 rows instead of K·100 for K plan hypotheses).
+  bool shares_modulations() const { return !vector_in_; }
+
+  // The modulation table for timesteps t (rows, times) (host): per item (rows = c.batch), or
+  // shared by every item (rows = 1; only where shares_modulations()). vec = time_in(temb(t))
+  // (+ vector_in(y)), then every block's Linear(SiLU(vec)), each a GEMM over all rows·times.
+  Modulations modulations_of(Context& ctx, Arena<B>& arena, const Conditioning& c, const Tensor<float, Cpu>& t) const {
+    const bool shared = t.size(0) == 1 && c.batch > 1;
+    EPONA_CHECK(!shared || shares_modulations(), "DiT: items cannot share modulations with vector_in");
+    const std::int64_t rows = t.size(0), times = t.size(1), n = t.numel(), D = cfg_.hidden_size;
+    Modulations m = plan_modulations(arena, rows, times);
+    m.shared = shared;
+    ArenaScope<B> scope(arena);
+    auto s = plan_modulation_scratch(arena, rows, times);
+    Tensor<float, Cpu> temb({n, cfg_.time_dim});
+    nn::timestep_embedding(t.data(), n, cfg_.time_dim, cfg_.time_max_period, cfg_.time_factor, temb.data());
+    upload_as(ctx, temb, s.temb);
+    time_in_(ctx, s.temb, s.hidden, s.vec);
+    if (vector_in_)
+      for (std::int64_t b = 0; b < rows; ++b)
+        add_row_broadcast(ctx, s.vec.data() + b * times * D, c.vec_y[b].data(), times, D);
+    silu_to(ctx, s.vec.data(), s.silu.data(), n * D);
+    trunk_.modulations(ctx, s.silu.data(), n, m.table.data(), m.width);
+    return m;
+  }
+
   template <class Alloc>
   Modulations plan_modulations(Alloc& a, std::int64_t batch, std::int64_t times) const {
     Modulations m;
@@ -436,7 +452,8 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   }
   // How a pass of n items lies in the blocks' scratch, and the pass's RoPE tables.
   nn::DitItems pass_items(const Conditioning& c, const Modulations& m, std::int64_t n) const {
-    return {n, c.rows.total() + nn::paired_padding(c.rows), m.times * m.width, c.shared_rope ? 0 : c.rows.total()};
+    return {n, c.rows.total() + nn::paired_padding(c.rows), m.shared ? 0 : m.times * m.width,
+            c.shared_rope ? 0 : c.rows.total()};
   }
   nn::RopeTable<B> pass_rope(const Conditioning& c, std::int64_t first, std::int64_t n) const {
     const std::int64_t rows = c.rows.total(), from = c.shared_rope ? 0 : first * rows;
