@@ -1,6 +1,8 @@
 // bench_gpu_batch — issue #39's table on one GPU at the real configuration (512x1024 frames, the
 // shipped widths and depths, 100 sampling steps, bf16 weights, random weights): what Bt scenes
 // at once cost, and what a fan of K plan hypotheses of one scene costs.
+//   mst_bB      the MST over Bt windows (folded in passes of up to 8), and mst1_bB the same
+//               with one window per pass (as before the fold), alternating in the same run
 //   plan_bB     WorldModel::plan of a window of Bt scenes (MST + TrajDiT-100)
 //   step_bB     predict_next of Bt scenes (MST + TrajDiT-100 + VisDiT-100, self-predicted action)
 //   decode_bB   the DC-AE decode of Bt frames (its own context)
@@ -11,14 +13,19 @@
 // host to host), the same per scene (or per hypothesis), the ratio to batch 1 per scene and,
 // for the samples, the roofline fraction: the official FLOPs (every row, as compute-budget.md
 // counts them) / time / the bf16 GEMM ceiling measured in the same run. The DiTs fold a batch
-// into the rows of their products (docs/world-model.md); the MST and the DC-AE run item by item.
+// into the rows of their products, the MST its windows (docs/world-model.md); the DC-AE runs
+// item by item.
 // Usage: bench_gpu_batch [--repeats N] [--min-batch B] [--max-batch B] [--max-hypotheses K]
-//                        [--only plan,step,traj100,vis100,hyp] (step includes decode)
+//                        [--only mst,plan,step,traj100,vis100,hyp] (step includes decode) [--profile]
+// --profile: instead of the rows, one 1-step sample of each wanted DiT (traj100, vis100) at each
+// batch, inside cudaProfilerStart/Stop after a warm-up (for ncu --profile-from-start off).
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>
 #include <string>
 #include <vector>
+
+#include <cuda_profiler_api.h>
 
 #include "epona/core/arena.hpp"
 #include "epona/core/rng.hpp"
@@ -38,7 +45,8 @@ namespace {
 struct Options {
   int repeats = 3;
   std::int64_t max_batch = 16, max_hypotheses = 64, min_batch = 1;
-  std::string only;  // comma-separated row kinds (plan, step, decode, traj100, vis100, hyp); empty: all
+  bool profile = false;
+  std::string only;  // comma-separated row kinds (mst, plan, step, decode, traj100, vis100, hyp); empty: all
   bool want(const std::string& kind) const { return only.empty() || ("," + only + ",").find("," + kind + ",") != std::string::npos; }
 };
 
@@ -57,11 +65,12 @@ Options parse(int argc, char** argv) {
     else if (a == "--max-batch") o.max_batch = value();
     else if (a == "--max-hypotheses") o.max_hypotheses = value();
     else if (a == "--min-batch") o.min_batch = value();
+    else if (a == "--profile") o.profile = true;
     else if (a == "--only") {
       EPONA_CHECK(i + 1 < argc, a, " needs a value");
       o.only = argv[++i];
     }
-    else fail("unknown option '", a, "' (--repeats N, --min-batch B, --max-batch B, --max-hypotheses K, --only KINDS)");
+    else fail("unknown option '", a, "' (--repeats N, --min-batch B, --max-batch B, --max-hypotheses K, --only KINDS, --profile)");
   }
   return o;
 }
@@ -87,17 +96,16 @@ Row emit(const std::string& name, const std::vector<double>& runs, std::int64_t 
   return r;
 }
 
-// One DiT's 100-step sample of Bt items with random conditioning (the window's shapes): the
+// One DiT's `steps`-step sample of Bt items with random conditioning (the window's shapes): the
 // call's milliseconds per repeat, after one warm-up that records its graph.
 template <class Time>
 std::vector<double> dit_sample_times(WorldModel<Cuda, bf16>& wm, const model::FluxDiT<Cuda, bf16>& dit, bool vis,
-                                     std::int64_t Bt, const Time& time) {
+                                     std::int64_t Bt, std::int64_t steps, const Time& time) {
   const auto& cfg = wm.config();
   auto& ctx = wm.context();
   const auto ids = model::prepare_ids(Bt, cfg.latent_h(), cfg.latent_w(), cfg.tokens_per_frame(), cfg.traj_len);
   const auto& target_ids = vis ? ids.img : ids.traj;
   const nn::JointRows rows{cfg.tokens_per_frame(), target_ids.size(1)};
-  const std::int64_t steps = cfg.num_sampling_steps;
   TorchGenerator gen(5);
   const auto cond = BackendTraits<Cuda>::upload(gen.randn({Bt, rows.cond, cfg.context_in_dim()}));
   const auto y = BackendTraits<Cuda>::upload(gen.randn({Bt, cfg.pose_emb_dim()}));
@@ -113,6 +121,30 @@ std::vector<double> dit_sample_times(WorldModel<Cuda, bf16>& wm, const model::Fl
 double dit_sample_flops(const WorldModelConfig& cfg, const model::FluxDiT<Cuda, bf16>& dit, bool vis) {
   const nn::JointRows rows{cfg.tokens_per_frame(), vis ? cfg.img_tokens() : cfg.traj_len};
   return dit.forward_flops(rows, false).total() * double(cfg.num_sampling_steps);
+}
+
+// The MST over the window h: the call's milliseconds per repeat (stt_features and pose_emb on
+// the device, the action entries of the window with its last repeated, as a self-predicted step).
+template <class Time>
+std::vector<double> mst_times(WorldModel<Cuda, bf16>& wm, const History& h, const Time& time) {
+  const auto& cfg = wm.config();
+  const std::int64_t Bt = h.latents.size(0), F = cfg.condition_frames;
+  Tensor<float, Cpu> pose({Bt, F + 1, 2}), yaw({Bt, F + 1, 1});
+  for (std::int64_t b = 0; b < Bt; ++b)
+    for (std::int64_t f = 0; f <= F; ++f) {
+      const std::int64_t src = std::min(f, F - 1);
+      pose.at(b, f, 0) = h.rel_pose.at(b, src, 0), pose.at(b, f, 1) = h.rel_pose.at(b, src, 1);
+      yaw.at(b, f, 0) = h.rel_yaw.at(b, src, 0);
+    }
+  const auto tok = model::PoseTokenizer::from(cfg);
+  const auto pose_idx = tok.poses_to_indices(pose), yaw_idx = tok.yaws_to_indices(yaw);
+  const auto latents = BackendTraits<Cuda>::upload(h.latents);
+  Tensor<float, Cuda> stt({Bt, cfg.tokens_per_frame(), cfg.n_embd}), emb({Bt, cfg.pose_emb_dim()});
+  Arena<Cuda> arena(wm.mst().evaluate_workspace_bytes(Bt));
+  return time(wm.context(), [&] {
+    arena.reset();
+    wm.mst().evaluate(wm.context(), arena, latents, pose_idx, yaw_idx, stt, emb);
+  });
 }
 
 // A window of Bt scenes driving forward: random latents, about 2 m per frame.
@@ -141,13 +173,41 @@ int run(const Options& o) {
   const auto time = [&](cuda::Context& c, const std::function<void()>& fn) {
     return bench::event_times_ms(c, o.repeats, 1, fn);  // the warm-up call records the graphs
   };
+  if (o.profile) {
+    // The warm-up call records the graph; the second call replays it alone inside the profiler range.
+    const auto profiled = [&](cuda::Context& c, const std::function<void()>& fn) {
+      fn();
+      c.synchronize();
+      EPONA_CUDA_CHECK(cudaProfilerStart());
+      fn();
+      c.synchronize();
+      EPONA_CUDA_CHECK(cudaProfilerStop());
+      return std::vector<double>{};
+    };
+    for (std::int64_t Bt = o.min_batch; Bt <= o.max_batch; Bt *= 2) {
+      if (o.want("traj100")) dit_sample_times(wm, wm.traj_dit(), false, Bt, 1, profiled);
+      if (o.want("vis100")) dit_sample_times(wm, wm.vis_dit(), true, Bt, 1, profiled);
+      std::printf("# profiled batch %lld\n", static_cast<long long>(Bt));
+    }
+    return 0;
+  }
   const double ceiling = bench::gemm_ceiling_tflops(ctx);
   std::printf("# bf16 GEMM ceiling (8192^3): %.1f TFLOP/s\n", ceiling);
   const double vis_flops = dit_sample_flops(cfg, wm.vis_dit(), true), traj_flops = dit_sample_flops(cfg, wm.traj_dit(), false);
-  double plan1 = 0, step1 = 0, decode1 = 0, vis1 = 0, traj1 = 0, step_decode1 = 0;
+  const double mst_flops = wm.mst().evaluate_flops(false).total();
+  double mst1 = 0, plan1 = 0, step1 = 0, decode1 = 0, vis1 = 0, traj1 = 0, step_decode1 = 0;
   for (std::int64_t Bt = o.min_batch; Bt <= o.max_batch; Bt *= 2) {
     const History h = window(cfg, Bt);
     const std::string b = "_b" + std::to_string(Bt);
+    if (o.want("mst")) {
+      rows.push_back(emit("mst" + b, mst_times(wm, h, time), Bt, mst1, mst_flops * double(Bt), ceiling));
+      if (Bt == 1) mst1 = rows.back().per_item;
+      if (Bt > 1) {
+        wm.mst().set_fold_limit(1);
+        rows.push_back(emit("mst1" + b, mst_times(wm, h, time), Bt, mst1, mst_flops * double(Bt), ceiling));
+        wm.mst().set_fold_limit(model::SpatialTemporalTransformer<Cuda, bf16>::kMaxFoldedItems);
+      }
+    }
     if (o.want("plan")) {
       rows.push_back(emit("plan" + b, time(ctx, [&] { (void)wm.plan(h, opt); }), Bt, plan1));
       if (Bt == 1) plan1 = rows.back().per_item;
@@ -167,12 +227,12 @@ int run(const Options& o) {
       rows.insert(rows.end(), {step, decode, Row{"step_decode" + b, step_decode * double(Bt), step_decode, ratio, 0}});
     }
     if (o.want("traj100")) {
-      rows.push_back(emit("traj100" + b, dit_sample_times(wm, wm.traj_dit(), false, Bt, time), Bt, traj1,
+      rows.push_back(emit("traj100" + b, dit_sample_times(wm, wm.traj_dit(), false, Bt, cfg.num_sampling_steps, time), Bt, traj1,
                           traj_flops * double(Bt), ceiling));
       if (Bt == 1) traj1 = rows.back().per_item;
     }
     if (o.want("vis100")) {
-      rows.push_back(emit("vis100" + b, dit_sample_times(wm, wm.vis_dit(), true, Bt, time), Bt, vis1,
+      rows.push_back(emit("vis100" + b, dit_sample_times(wm, wm.vis_dit(), true, Bt, cfg.num_sampling_steps, time), Bt, vis1,
                           vis_flops * double(Bt), ceiling));
       if (Bt == 1) vis1 = rows.back().per_item;
     }
@@ -183,8 +243,11 @@ int run(const Options& o) {
     rows.push_back(emit("hyp_k" + std::to_string(K), time(ctx, [&] { (void)wm.plan_hypotheses(one, K, opt); }), 1,
                         plan1));
     // One recording per K (the warm-up's), replayed by the timed calls.
-    std::printf("# hyp_k%lld: %d TrajDiT graph recording(s), the last %.1f ms (host)\n", static_cast<long long>(K),
-                wm.traj_dit().sampler_graph().captures() - before, wm.traj_dit().sampler_graph().last_capture_ms());
+    const nn::JointRows traj_rows{cfg.tokens_per_frame(), cfg.traj_len};
+    std::printf("# hyp_k%lld: %d TrajDiT graph recording(s), the last %.1f ms (host); TrajDiT sample %.1f MiB\n",
+                static_cast<long long>(K), wm.traj_dit().sampler_graph().captures() - before,
+                wm.traj_dit().sampler_graph().last_capture_ms(),
+                double(wm.traj_dit().sample_bytes(K, traj_rows, cfg.num_sampling_steps)) / double(1 << 20));
   }
   std::printf("\n%-15s %12s %14s %16s %10s\n", "row", "ms / call", "ms / item", "item vs batch 1", "roofline");
   for (const Row& r : rows)
