@@ -115,7 +115,11 @@ def table(rows, video):
 
 
 def plot(rows, path, video):
-    import matplotlib
+    try:
+        import matplotlib
+    except ImportError:
+        print(f"solver_sweep: no matplotlib (Debian: python3-matplotlib), so {path} is not drawn", file=sys.stderr)
+        return
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     panels = [("l2_3s", "planning L2 at 3 s (m)"), ("plan_to_ref", "plan: distance to 100 Euler (m)"),

@@ -158,21 +158,27 @@ def test_threads_share_a_model(model, clip, latents):
 
 
 def test_the_gil_is_released_while_the_model_computes(model, clip, latents):
-    # A rollout in a thread; this thread keeps running meanwhile. Holding the GIL through the call
-    # would stop it for the whole rollout; released, it waits at most a few switch intervals
-    # (5 ms each), so the rollout is made many of them long: 100 steps, not 10 (at 10 it took
-    # 7 ms and the check failed by chance about one run in three).
-    t0 = time.perf_counter()
-    model.rollout(latents, clip[1], frames=4, steps=100)
-    alone = time.perf_counter() - t0
-    worker = threading.Thread(target=lambda: model.rollout(latents, clip[1], frames=4, steps=100))
-    longest, last = 0.0, time.perf_counter()
+    # A rollout in a thread while this thread waits for it to begin. Holding the GIL through the
+    # call, the rollout would end before this thread ran again; released, this thread runs again
+    # while it computes, about a switch interval (5 ms) after it began. One moment is compared,
+    # not the longest pause over the whole rollout: only this thread kept off the CPU for half
+    # the rollout right at its start could fail it by chance.
+    began, span = threading.Event(), {}
+
+    def work():
+        span["start"] = time.perf_counter()
+        began.set()
+        model.rollout(latents, clip[1], frames=4, steps=100)
+        span["end"] = time.perf_counter()
+
+    worker = threading.Thread(target=work)
     worker.start()
-    while worker.is_alive():
-        now = time.perf_counter()
-        longest, last = max(longest, now - last), now
+    began.wait()
+    resumed = time.perf_counter()
     worker.join()
-    assert longest < alone / 2, f"this thread stopped for {longest:.3f} s of a {alone:.3f} s rollout"
+    took = span["end"] - span["start"]
+    assert resumed - span["start"] < took / 2, (
+        f"this thread ran again {resumed - span['start']:.3f} s into a {took:.3f} s rollout")
 
 
 def test_errors_carry_the_library_message(model, clip, latents):
