@@ -121,6 +121,14 @@ struct RefMst {
   }
 };
 
+// Entry e of every item's (B, entries, k) indices, as the (B, 1, k) that get_pose_emb takes.
+HostTensor entry_of(const HostTensor& idx, i64 e) {
+  HostTensor out({idx.size(0), 1, idx.size(2)});
+  for (i64 b = 0; b < idx.size(0); ++b)
+    for (i64 j = 0; j < idx.size(2); ++j) out.at(b, 0, j) = idx.at(b, e, j);
+  return out;
+}
+
 // Binds every parameter of `mst` to w's random values (w keeps them for a reference).
 void bind_random(model::SpatialTemporalTransformer<Cpu, float>& mst, RandomWeights& w) {
   w.add_all(mst.parameters());
@@ -166,14 +174,9 @@ TEST_CASE("MST evaluate and get_pose_emb at head dim 128 vs float64") {
   }
 
   // get_pose_emb of entry F alone equals evaluate's pose_emb (up to GEMM accumulation order).
-  HostTensor one_pose({B, 1, 2}), one_yaw({B, 1, 1}), emb({B, 3 * C});
-  for (i64 b = 0; b < B; ++b) {
-    one_pose.at(b, 0, 0) = pose_idx.at(b, F, 0);
-    one_pose.at(b, 0, 1) = pose_idx.at(b, F, 1);
-    one_yaw.at(b, 0, 0) = yaw_idx.at(b, F, 0);
-  }
+  HostTensor emb({B, 3 * C});
   Arena<Cpu> small(mst.pose_emb_workspace_bytes(B));
-  mst.get_pose_emb(ctx, small, one_pose, one_yaw, emb);
+  mst.get_pose_emb(ctx, small, entry_of(pose_idx, F), entry_of(yaw_idx, F), emb);
   const double rel = world_ref::rel_max(emb, world_ref::to_vec(pose_emb));
   MESSAGE("get_pose_emb vs evaluate's pose_emb: rel ", rel);
   CHECK(rel <= 1e-5);
@@ -194,16 +197,12 @@ TEST_CASE("MST folds a batch into its rows: each item as evaluated alone") {
   cpu::Context ctx(2);
   const auto run = [&](const HostTensor& lat, const HostTensor& pose, const HostTensor& yaw) {
     const i64 n = lat.size(0);
-    HostTensor stt({n, T, C}), emb({n, 3 * C}), one_emb({n, 3 * C}), last_pose({n, 1, 2}), last_yaw({n, 1, 1});
+    HostTensor stt({n, T, C}), emb({n, 3 * C}), one_emb({n, 3 * C});
     Arena<Cpu> arena(std::max(mst.evaluate_workspace_bytes(n), mst.pose_emb_workspace_bytes(n)));
     mst.evaluate(ctx, arena, lat, pose, yaw, stt, emb);
     CHECK(arena.high_water() == mst.evaluate_workspace_bytes(n));
-    for (i64 b = 0; b < n; ++b) {
-      last_pose.at(b, 0, 0) = pose.at(b, F, 0), last_pose.at(b, 0, 1) = pose.at(b, F, 1);
-      last_yaw.at(b, 0, 0) = yaw.at(b, F, 0);
-    }
     arena.reset();
-    mst.get_pose_emb(ctx, arena, last_pose, last_yaw, one_emb);
+    mst.get_pose_emb(ctx, arena, entry_of(pose, F), entry_of(yaw, F), one_emb);
     return std::array<HostTensor, 3>{stt, emb, one_emb};
   };
   const auto one = [](const HostTensor& t, i64 b) {
