@@ -1,7 +1,7 @@
 // apps/epona/activity.hpp — what the program is doing now, for the one error line it prints when
 // something fails without a message of its own (std::bad_alloc, a filesystem exception): a
 // command names each stage ("decoding latents.npy: 4 frame(s) of 512x1024") with a scoped
-// Activity, and cli.hpp prints "epona: error: <stage>: out of memory".
+// Activity, and cli.cpp prints "epona: error: <stage>: out of memory".
 #pragma once
 
 #include <exception>
@@ -17,7 +17,7 @@ inline std::string& current_activity() {
 
 // Appends a stage to the activity for its scope ("encode" -> "encode: reading a.png") and
 // restores the enclosing one after, unless an exception leaves the scope: then the stage stays
-// for the handler in cli.hpp, which runs after the unwinding.
+// for the handler in cli.cpp, which runs after the unwinding.
 class Activity {
  public:
   explicit Activity(const std::string& what) : saved_(current_activity()), exceptions_(std::uncaught_exceptions()) {

@@ -18,12 +18,18 @@
 #include <unistd.h>
 
 #include "../../apps/epona/cli.hpp"
+#include "../../apps/epona/console.hpp"
+#include "../../apps/epona/drawing.hpp"
+#include "../../apps/epona/frames.hpp"
 #include "../temp_dir.hpp"
 #include "cli_testing.hpp"
 #include "epona/domain/trajectory_io.hpp"
+#include "epona/domain/config_json.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
+#include "epona/model/dcae.hpp"
+#include "epona/model/latent_layout.hpp"
 #include "epona/model/rollout.hpp"
 
 namespace fs = std::filesystem;

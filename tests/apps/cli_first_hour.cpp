@@ -11,6 +11,8 @@
 #include <vector>
 
 #include "../../apps/epona/cli.hpp"
+#include "../../apps/epona/cmd_common.hpp"
+#include "../../apps/epona/console.hpp"
 #include "../temp_dir.hpp"
 #include "cli_testing.hpp"
 #include "epona/io/image.hpp"

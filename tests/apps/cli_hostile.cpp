@@ -20,6 +20,7 @@
 #include "../io/zip_builder.hpp"
 #include "cli_testing.hpp"
 #include "epona/io/npy.hpp"
+#include "epona/io/image.hpp"
 #include "epona/io/safetensors.hpp"
 
 namespace fs = std::filesystem;

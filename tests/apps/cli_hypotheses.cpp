@@ -14,6 +14,7 @@
 #include <nlohmann/json.hpp>
 
 #include "../temp_dir.hpp"
+#include "../../apps/epona/bundled_model.hpp"
 #include "cli_testing.hpp"
 #include "epona/domain/trajectory_io.hpp"
 

@@ -14,6 +14,8 @@
 #include "../video_reading.hpp"
 #include "cli_testing.hpp"
 #include "epona/io/image.hpp"
+#include "epona/domain/config_json.hpp"
+#include "epona/io/image_folder.hpp"
 #include "epona/io/npy.hpp"
 
 namespace fs = std::filesystem;
@@ -63,7 +65,7 @@ TEST_CASE("generate --video: the input frames then the generated ones, H.264 at 
   // The inputs come first, within H.264's loss of smooth pictures; the generated frames follow in
   // order (the golden model's random weights make them noise, which 4:2:0 cannot keep: each is only
   // checked to be nearer its own PNG than the other one).
-  const auto inputs = app::list_images(std::string(EPONA_TEST_DATA_DIR) + "/demo", "test");
+  const auto inputs = io::image_files(std::string(EPONA_TEST_DATA_DIR) + "/demo", "test");
   for (std::size_t i = 0; i < inputs.size(); ++i) {
     INFO("input frame " << i);
     CHECK(mean_error(v.frames[i], io::read_image(inputs[i].string())) < 8.0);

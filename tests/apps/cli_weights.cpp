@@ -18,6 +18,7 @@
 #include "../temp_dir.hpp"
 #include "cli_testing.hpp"
 #include "epona/io/image.hpp"
+#include "epona/io/load_weights.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
 

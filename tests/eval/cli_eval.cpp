@@ -22,6 +22,7 @@
 #include "../apps/cli_testing.hpp"
 #include "../temp_dir.hpp"
 #include "epona/io/image.hpp"
+#include "epona/eval/image_metrics.hpp"
 
 namespace fs = std::filesystem;
 using namespace epona;
