@@ -128,22 +128,14 @@ double dit_sample_flops(const WorldModelConfig& cfg, const model::FluxDiT<Cuda, 
 template <class Time>
 std::vector<double> mst_times(WorldModel<Cuda, bf16>& wm, const History& h, const Time& time) {
   const auto& cfg = wm.config();
-  const std::int64_t Bt = h.latents.size(0), F = cfg.condition_frames;
-  Tensor<float, Cpu> pose({Bt, F + 1, 2}), yaw({Bt, F + 1, 1});
-  for (std::int64_t b = 0; b < Bt; ++b)
-    for (std::int64_t f = 0; f <= F; ++f) {
-      const std::int64_t src = std::min(f, F - 1);
-      pose.at(b, f, 0) = h.rel_pose.at(b, src, 0), pose.at(b, f, 1) = h.rel_pose.at(b, src, 1);
-      yaw.at(b, f, 0) = h.rel_yaw.at(b, src, 0);
-    }
-  const auto tok = model::PoseTokenizer::from(cfg);
-  const auto pose_idx = tok.poses_to_indices(pose), yaw_idx = tok.yaws_to_indices(yaw);
+  const std::int64_t Bt = h.latents.size(0);
+  const auto indices = wm.window_indices(h, nullptr);  // (pose, yaw)
   const auto latents = BackendTraits<Cuda>::upload(h.latents);
   Tensor<float, Cuda> stt({Bt, cfg.tokens_per_frame(), cfg.n_embd}), emb({Bt, cfg.pose_emb_dim()});
   Arena<Cuda> arena(wm.mst().evaluate_workspace_bytes(Bt));
   return time(wm.context(), [&] {
     arena.reset();
-    wm.mst().evaluate(wm.context(), arena, latents, pose_idx, yaw_idx, stt, emb);
+    wm.mst().evaluate(wm.context(), arena, latents, indices.first, indices.second, stt, emb);
   });
 }
 
@@ -203,9 +195,10 @@ int run(const Options& o) {
       rows.push_back(emit("mst" + b, mst_times(wm, h, time), Bt, mst1, mst_flops * double(Bt), ceiling));
       if (Bt == 1) mst1 = rows.back().per_item;
       if (Bt > 1) {
+        const std::int64_t fold_limit = wm.mst().fold_limit();
         wm.mst().set_fold_limit(1);
         rows.push_back(emit("mst1" + b, mst_times(wm, h, time), Bt, mst1, mst_flops * double(Bt), ceiling));
-        wm.mst().set_fold_limit(model::SpatialTemporalTransformer<Cuda, bf16>::kMaxFoldedItems);
+        wm.mst().set_fold_limit(fold_limit);
       }
     }
     if (o.want("plan")) {

@@ -536,6 +536,13 @@ void dit_solvers(bool vis) {
   }
 }
 
+// Item b of a batch, as a batch of one.
+Tensor<float, Cpu> one(const Tensor<float, Cpu>& t, std::int64_t b) {
+  Shape s = t.shape();
+  s[0] = 1;
+  return t.slice(b, b + 1).clone().reshape(s);
+}
+
 // Batch invariance on the GPU: a batch of 4 scenes (each its own condition, action, noise)
 // sampled in one pass through the blocks gives each item what it gives sampled alone, 10 steps.
 // float32 within 1e-6 relative; bf16 within the sample's bound (the batched products may take
@@ -567,11 +574,6 @@ void dit_batch_invariance(bool vis) {
   const auto cond = test::random_tensor({items, c.tokens_per_frame(), c.n_embd}, 51, -2.f, 2.f);
   const auto y = test::random_tensor({items, c.pose_emb_dim()}, 52, -2.f, 2.f);
   const auto x = test::random_tensor({items, Lx, dc.in_channels}, 53, -2.f, 2.f);
-  const auto one = [](const Tensor<float, Cpu>& t, std::int64_t b) {
-    Shape s = t.shape();
-    s[0] = 1;
-    return t.slice(b, b + 1).clone().reshape(s);
-  };
   const auto batched = sample(cond, y, x);
   double worst = 0;
   std::int64_t differ = 0;
@@ -621,11 +623,6 @@ void mst_batch_invariance() {
     }
     mst.get_pose_emb(gpu(), arena, last_pose, last_yaw, one_emb);
     return std::array<Tensor<float, Cpu>, 3>{download(stt), download(emb), download(one_emb)};
-  };
-  const auto one = [](const Tensor<float, Cpu>& t, std::int64_t b) {
-    Shape s = t.shape();
-    s[0] = 1;
-    return t.slice(b, b + 1).clone().reshape(s);
   };
   const auto batched = run(latents, pose_idx, yaw_idx);
   double worst[3] = {0, 0, 0};

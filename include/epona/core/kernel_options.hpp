@@ -5,6 +5,8 @@
 
 #include <cstdint>
 
+#include "epona/core/dtype.hpp"  // EPONA_HOST_DEVICE
+
 namespace epona {
 
 // What a GEMM applies to x · Wᵀ + b before storing it.
@@ -50,8 +52,9 @@ struct FrameTokens {
   std::int64_t frames = 0, image_rows = 0, actions = 0, action_entries = 0, width = 0;
   float eps = 1e-5f;
   std::int64_t items = 1;
-  std::int64_t tokens() const { return actions + image_rows; }
-  std::int64_t item_entries() const { return action_entries / items; }
+  EPONA_HOST_DEVICE std::int64_t tokens() const { return actions + image_rows; }
+  // Each item's action entries (the kernel reads them too).
+  EPONA_HOST_DEVICE std::int64_t item_entries() const { return action_entries / items; }
 };
 
 }  // namespace epona

@@ -165,7 +165,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     if (kConvertInputs) v.template take<A>({batch, rows.target, cfg_.in_channels});
     plan_front(v, batch, rows);
     for (int j = 0; j < flow::solver_scratch_states(solver); ++j) v.template take<float>({batch, rows.target, cfg_.in_channels});
-    const auto m = modulation_sizes(shares_modulations() ? 1 : batch, flow::solver_evaluations(solver, steps));
+    const auto m = modulation_sizes(modulation_rows(batch), flow::solver_evaluations(solver, steps));
     return m.kept + std::max(m.scratch, v.bytes() + velocity_bytes(batch, rows));
   }
   // Everything forward() takes.
@@ -273,7 +273,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     const auto& times = solver.evaluation_times();
     const auto evaluations = static_cast<std::int64_t>(times.size());
     ArenaScope<B> scope(arena);
-    Tensor<float, Cpu> t({shares_modulations() ? 1 : c.batch, evaluations});
+    Tensor<float, Cpu> t({modulation_rows(c.batch), evaluations});
     for (std::int64_t b = 0; b < t.size(0); ++b) std::copy_n(times.data(), evaluations, t[b].data());
     const Modulations m = modulations_of(ctx, arena, c, t);
     auto v = arena.template take<A>({c.batch, c.rows.target, cfg_.out_channels});
@@ -372,6 +372,8 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
   // time's alone (the TrajDiT), so the table is one row per evaluation whatever the batch (the
   // batch-1 table, bit for bit; 100 rows instead of K·100 for K plan hypotheses).
   bool shares_modulations() const { return !vector_in_; }
+  // The modulation table's rows for a sample of `batch` items: 1 where they share it.
+  std::int64_t modulation_rows(std::int64_t batch) const { return shares_modulations() ? 1 : batch; }
 
   // The modulation table for timesteps t (rows, times) (host): per item (rows = c.batch), or
   // shared by every item (rows = 1; only where shares_modulations()). vec = time_in(temb(t))

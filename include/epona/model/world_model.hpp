@@ -369,6 +369,24 @@ class WorldModel {
     return Bt;
   }
 
+  // The MST's action-entry indices of a window (pose (Bt, F+1), yaw (Bt, F+1)): the window's F,
+  // then the given action or (self-predicted, where entry F only feeds a pose_emb that gets
+  // replaced) a repeat of the last entry. Public for callers that run the MST themselves.
+  std::pair<Tensor<float, Cpu>, Tensor<float, Cpu>> window_indices(const History& h, const NextAction* action) const {
+    const std::int64_t Bt = h.rel_pose.size(0), F = cfg_.condition_frames;
+    Tensor<float, Cpu> pose({Bt, F + 1, 2}), yaw({Bt, F + 1, 1});
+    for (std::int64_t b = 0; b < Bt; ++b) {
+      std::copy_n(h.rel_pose[b].data(), 2 * F, pose[b].data());
+      std::copy_n(h.rel_yaw[b].data(), F, yaw[b].data());
+      const float* next_pose = action ? action->rel_pose[b].data() : h.rel_pose[b][F - 1].data();
+      const float* next_yaw = action ? action->rel_yaw[b].data() : h.rel_yaw[b][F - 1].data();
+      std::copy_n(next_pose, 2, pose[b][F].data());
+      yaw.at(b, F, 0) = *next_yaw;
+    }
+    const auto tok = PoseTokenizer::from(cfg_);
+    return {tok.poses_to_indices(pose), tok.yaws_to_indices(yaw)};
+  }
+
  private:
   explicit WorldModel(const WorldModelConfig& c)
       : cfg_(c), mst_(MstConfig::from(c)), vis_(FluxDitConfig::vis(c)), traj_(FluxDitConfig::traj(c)) {}
@@ -414,23 +432,6 @@ class WorldModel {
   void reserve_arena(std::int64_t Bt, const DitSamplers& s) {
     arena_.reset();
     arena_.reserve(step_bytes(Bt, s));
-  }
-
-  // Indices of the F+1 action entries: the window's F, then the given action or (self-predicted,
-  // where entry F only feeds a pose_emb that gets replaced) a repeat of the last entry.
-  std::pair<Tensor<float, Cpu>, Tensor<float, Cpu>> window_indices(const History& h, const NextAction* action) const {
-    const std::int64_t Bt = h.rel_pose.size(0), F = cfg_.condition_frames;
-    Tensor<float, Cpu> pose({Bt, F + 1, 2}), yaw({Bt, F + 1, 1});
-    for (std::int64_t b = 0; b < Bt; ++b) {
-      std::copy_n(h.rel_pose[b].data(), 2 * F, pose[b].data());
-      std::copy_n(h.rel_yaw[b].data(), F, yaw[b].data());
-      const float* next_pose = action ? action->rel_pose[b].data() : h.rel_pose[b][F - 1].data();
-      const float* next_yaw = action ? action->rel_yaw[b].data() : h.rel_yaw[b][F - 1].data();
-      std::copy_n(next_pose, 2, pose[b][F].data());
-      yaw.at(b, F, 0) = *next_yaw;
-    }
-    const auto tok = PoseTokenizer::from(cfg_);
-    return {tok.poses_to_indices(pose), tok.yaws_to_indices(yaw)};
   }
 
   // Self-predicted action: tokenize waypoint 0 and replace pose_emb by get_pose_emb of it.

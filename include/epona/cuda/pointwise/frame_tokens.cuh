@@ -45,7 +45,7 @@ __global__ void __launch_bounds__(32 * kNormWarps) frame_tokens_kernel(FrameToke
   const std::int64_t F = a.t.frames, items = a.t.items;
   if (item >= image_rows + items * F * a.t.actions) return;
   const int lane = threadIdx.x & 31;
-  const std::int64_t C = a.t.width, T = a.t.actions + a.t.image_rows;
+  const std::int64_t C = a.t.width, T = a.t.tokens();
   if (item < image_rows) {
     const std::int64_t row = pass_index(item, image_rows, a.norm.reverse), bf = row / a.t.image_rows;
     const std::int64_t f = bf % F, frame = f * items + bf / F;
@@ -55,7 +55,7 @@ __global__ void __launch_bounds__(32 * kNormWarps) frame_tokens_kernel(FrameToke
   }
   const std::int64_t bf = (item - image_rows) / a.t.actions, slot = (item - image_rows) % a.t.actions;
   const std::int64_t b = bf / F, f = bf % F;
-  const float* src = a.actions + (slot * a.t.action_entries + b * (a.t.action_entries / items) + f) * C;
+  const float* src = a.actions + (slot * a.t.action_entries + b * a.t.item_entries() + f) * C;
   float* dst = a.norm.out + ((f * items + b) * T + slot) * C;
   for (std::int64_t c = lane * kPack; c < C; c += 32 * kPack) {
     float v[kPack];
