@@ -45,14 +45,17 @@ struct VideoRequest {
 
 // --video and --fps, checked before the work starts; none without --video. `hint` ends the
 // message for a name that is not .mp4 (decode's old --video flag is now --decode clip).
-inline std::optional<VideoRequest> video_request(const ParsedArgs& a, const std::string& hint = "") {
+// `with_ffmpeg`: whether this build can write video (a test gives false to see the refusal in a
+// build that has FFmpeg).
+inline std::optional<VideoRequest> video_request(const ParsedArgs& a, const std::string& hint = "",
+                                                 bool with_ffmpeg = kBuiltWithFfmpeg) {
   const auto fps = a.maybe_integer("fps", 1, kMaxFps);
   if (!a.has("video")) {
     if (fps) usage_fail("--fps sets the frame rate of --video FILE.mp4; give --video too");
     return std::nullopt;
   }
   const std::filesystem::path path = *a.get("video");
-  if (!kBuiltWithFfmpeg)
+  if (!with_ffmpeg)
     fail("--video: this epona was built without FFmpeg (libavcodec); install libavcodec-dev libavformat-dev "
          "libavutil-dev libswscale-dev (scripts/setup.sh) and rebuild");
   if (io::lower_text(path.extension().string()) != ".mp4")
