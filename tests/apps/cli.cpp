@@ -649,9 +649,6 @@ TEST_CASE("generate --clips --batch 2: the trajectories and frames of --batch 1"
   check_error(cli(single), "--batch is for --clips");
 }
 
-// Issue #40: a launcher's variables as mpirun sets them. This test program is built without MPI
-// (EPONA_APP_MPI is the epona program's), so eval refuses with how to get MPI; commands that do
-// not split their work refuse first, in any build (tests/apps/mpi_eval.cpp runs the real mpirun).
 // An epona built without FFmpeg (where libavcodec is missing) refuses --video before any work and
 // says how to get it. The test programs share one build of the commands, with FFmpeg where the
 // machine has it, so the refusal is asked for directly.
@@ -668,6 +665,9 @@ TEST_CASE("--video without FFmpeg: refused with what to install") {
   CHECK_FALSE(app::video_request(parser.parse({}), "", false).has_value());  // no --video: nothing to refuse
 }
 
+// Issue #40: a launcher's variables as mpirun sets them. This test program is built without MPI
+// (EPONA_APP_MPI is the epona program's), so eval refuses with how to get MPI; commands that do
+// not split their work refuse first, in any build (tests/apps/mpi_eval.cpp runs the real mpirun).
 TEST_CASE("several processes: refused without MPI, and by commands that do not split their work") {
   test::TempDir t("epona_cli_mpi");
   ::setenv("OMPI_COMM_WORLD_SIZE", "2", 1);
