@@ -22,6 +22,7 @@
 #include "epona/core/env.hpp"
 #include "epona/core/error.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/core/tensor_parallel.hpp"
 #include "epona/flow/solvers.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/model/config.hpp"
@@ -45,6 +46,9 @@ struct FluxDitConfig {
   std::int64_t time_dim = constants::timestep_embed_dim;
   double time_max_period = constants::timestep_max_period;
   float time_factor = static_cast<float>(constants::timestep_time_factor);
+  // One shard of a tensor-parallel group (docs/parallel.md): the trunk's heads and MLP columns
+  // split over `shard.size`; bind it to shard_weights() of the whole model's map.
+  TensorShard shard;
 
   static FluxDitConfig vis(const WorldModelConfig& c) {
     FluxDitConfig d;
@@ -71,7 +75,11 @@ struct FluxDitConfig {
     d.input_name = "traj_in";
     return d;
   }
-  nn::DitWidths widths() const { return {hidden_size, num_heads, mlp_ratio * hidden_size}; }
+  nn::DitWidths widths() const {
+    nn::DitWidths w{hidden_size, num_heads, mlp_ratio * hidden_size};
+    w.shards = shard.size;
+    return w;
+  }
 };
 
 template <class B, class W>
@@ -127,10 +135,22 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     for (auto a : c.axes_dim) axes += a;
     const std::int64_t head_dim = trunk_.widths().head_dim();
     EPONA_CHECK(axes == head_dim, "DiT: axes_dim sums to ", axes, ", the head dim is ", head_dim);
+    c.shard.check("DiT");
     if (c.vec_in_dim > 0) vector_in_.emplace(c.vec_in_dim, c.hidden_size);
   }
 
   const FluxDitConfig& config() const { return cfg_; }
+
+  // Tensor parallelism (config().shard): this shard's weights cut from the whole model's map
+  // (names under `prefix`), and the group's sum of its partial outputs, which must outlive the
+  // model's use. Everything else runs as in a whole model, on every shard alike.
+  io::TensorMap shard_weights(const io::TensorMap& full, const std::string& prefix) const {
+    return nn::shard_weights(full, trunk_.shard_splits(prefix), cfg_.shard);
+  }
+  void set_shard_sum(const ShardSum<Context, A>* sum) {
+    trunk_.set_shard_sum(sum);
+    reset_sampler_graph();
+  }
 
   template <class V>
   void visit_params(const std::string& prefix, V& v) {
@@ -428,7 +448,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
     ConditionFront f;
     if (!pipelines_condition(rows)) return f;
     const std::int64_t D = cfg_.hidden_size, table_rows = rows.total() + nn::paired_padding(rows);
-    f.qkv = a.template take<A>({batch, table_rows, 3 * D});
+    f.qkv = a.template take<A>({batch, table_rows, 3 * trunk_.widths().attention_width()});
     f.modulated = a.template take<A>({folded_items(batch) * table_rows, D});
     return f;
   }
@@ -548,7 +568,7 @@ class FluxDiT : public nn::Bindable<FluxDiT<B, W>> {
       nn::TrunkInputs<B, A> in{c.cond[first].data(), {}};
       if (front) {
         const auto table = front->qkv.slice(first, first + n);
-        in.cond_qkv = Tensor<A, B>::view(table.data(), {n * s.items.rows, 3 * cfg_.hidden_size}, table.storage());
+        in.cond_qkv = Tensor<A, B>::view(table.data(), {n * s.items.rows, 3 * trunk_.widths().attention_width()}, table.storage());
       }
       auto o = out.slice(first, first + n);
       trunk_(ctx, s, c.rows, pass_rope(c, first, n), m.row(first, time), o, in);

@@ -21,6 +21,7 @@
 #include "epona/core/error.hpp"
 #include "epona/core/rng.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/core/tensor_parallel.hpp"
 #include "epona/flow/schedule.hpp"
 #include "epona/flow/solvers.hpp"
 #include "epona/io/load_weights.hpp"
@@ -189,22 +190,39 @@ class WorldModel {
  public:
   using Context = BackendContext<B>;
   using StepObserver = std::function<void(const StepDetails<B>&)>;
+  using VisShardSum = ShardSum<Context, Activation<B, W>>;
+
+  // A world model whose VisDiT is one shard of a tensor-parallel group (docs/parallel.md): its
+  // heads and MLP columns split `vis.size` ways, its partial outputs summed through `sum`
+  // (which must outlive the model). The MST and the TrajDiT stay whole on every shard. Each
+  // shard runs the same calls with the same inputs and seeds (a thread of its own, its GPU the
+  // thread's current device) and gets the same results.
+  struct VisShard {
+    TensorShard vis;
+    const VisShardSum* sum = nullptr;
+  };
 
   // Binds the three networks from one weight map (all keys under "module." must be used;
-  // other keys, e.g. a merged DC-AE, are ignored). Every problem is reported at once.
-  static WorldModel load(const io::TensorMap& weights, const WorldModelConfig& config = {}) {
+  // other keys, e.g. a merged DC-AE, are ignored). Every problem is reported at once. With
+  // `shard`, the VisDiT binds its shard's cut of the map.
+  static WorldModel load(const io::TensorMap& weights, const WorldModelConfig& config = {}, const VisShard& shard = {}) {
     config.validate();
     config.check_size(parameter_list(config).count());
-    WorldModel m(config);
-    io::BindReport report(weights);
+    EPONA_CHECK(!shard.vis.sharded() || shard.sum, "WorldModel: a VisDiT shard (", shard.vis.rank, " of ",
+                shard.vis.size, ") needs its group's sum");
+    WorldModel m(config, shard.vis);
+    const io::TensorMap cut = shard.vis.sharded() ? m.vis_.shard_weights(weights, "module.dit.") : io::TensorMap();
+    const io::TensorMap& map = shard.vis.sharded() ? cut : weights;
+    io::BindReport report(map);
     bool any_traj = false;  // named first: the list of its missing keys may get truncated
-    for (const auto& name : weights.names()) any_traj = any_traj || name.rfind("module.traj_dit.", 0) == 0;
+    for (const auto& name : map.names()) any_traj = any_traj || name.rfind("module.traj_dit.", 0) == 0;
     if (!any_traj)
       report.problem("no TrajDiT weights (no key starts with 'module.traj_dit.'; the official loader would "
                      "silently keep random ones)");
     nn::ParamBinder binder(report);
     m.visit_params(binder);
     report.finish(true, [](const std::string& k) { return k.rfind("module.", 0) != 0; });
+    if (shard.vis.sharded()) m.vis_.set_shard_sum(shard.sum);
     return m;
   }
 
@@ -388,8 +406,13 @@ class WorldModel {
   }
 
  private:
-  explicit WorldModel(const WorldModelConfig& c)
-      : cfg_(c), mst_(MstConfig::from(c)), vis_(FluxDitConfig::vis(c)), traj_(FluxDitConfig::traj(c)) {}
+  WorldModel(const WorldModelConfig& c, const TensorShard& vis_shard)
+      : cfg_(c), mst_(MstConfig::from(c)), vis_(vis_config(c, vis_shard)), traj_(FluxDitConfig::traj(c)) {}
+  static FluxDitConfig vis_config(const WorldModelConfig& c, const TensorShard& shard) {
+    FluxDitConfig v = FluxDitConfig::vis(c);
+    v.shard = shard;
+    return v;
+  }
 
   // A RoPE split of the head dim width/heads that validate() accepts, where one exists.
   static void fit_rope_axes(std::array<std::int64_t, 3>& axes, std::int64_t width, std::int64_t heads) {

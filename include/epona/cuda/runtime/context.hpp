@@ -92,7 +92,10 @@ class Context {
  public:
   static constexpr std::size_t default_workspace_bytes = std::size_t{32} << 20;  // cuBLASLt's advice for Hopper
 
-  explicit Context(int device = 0, std::size_t workspace_bytes = default_workspace_bytes) {
+  // device < 0: the calling thread's current device (0 unless the thread chose another, as a
+  // tensor-parallel group's threads do: core/tensor_parallel.hpp).
+  explicit Context(int device = -1, std::size_t workspace_bytes = default_workspace_bytes) {
+    if (device < 0) EPONA_CUDA_CHECK(cudaGetDevice(&device));
     EPONA_CHECK(has_gpu(), "cuda::Context: no CUDA device is available");
     int count = 0;
     EPONA_CUDA_CHECK(cudaGetDeviceCount(&count));

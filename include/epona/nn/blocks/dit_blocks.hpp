@@ -18,6 +18,7 @@
 
 #include "epona/core/arena.hpp"
 #include "epona/core/tensor.hpp"
+#include "epona/core/tensor_parallel.hpp"
 #include "epona/io/tensor_map.hpp"
 #include "epona/nn/attention.hpp"
 #include "epona/nn/flops.hpp"
@@ -32,11 +33,18 @@
 namespace epona::nn {
 
 // Widths of a DiT's blocks; the norms' eps are the FLUX layers' (LayerNorm and QK RMSNorm 1e-6).
+// With `shards` > 1 the blocks are one shard of a tensor-parallel group (core/tensor_parallel.hpp):
+// heads and mlp_hidden stay the whole model's, the shard holds heads/shards heads (its attention
+// width) and mlp_hidden/shards MLP columns, and the residual width `hidden` is whole.
 struct DitWidths {
   std::int64_t hidden = 0, heads = 0, mlp_hidden = 0;
   float ln_eps = 1e-6f;
   float rms_eps = 1e-6f;
+  std::int64_t shards = 1;
   std::int64_t head_dim() const { return hidden / heads; }
+  std::int64_t shard_heads() const { return heads / shards; }
+  std::int64_t attention_width() const { return shard_heads() * head_dim(); }  // q, k, v and the attention output
+  std::int64_t shard_mlp() const { return mlp_hidden / shards; }
 };
 
 // Token ranges of the joint sequence.
@@ -73,10 +81,10 @@ template <class B, class A = float>
 struct DitScratch {
   Tensor<A, B> z;         // (items·(rows + pad), D) residual stream: condition rows, then target rows
   Tensor<A, B> modulated; // (items·(rows + pad), D) (1 + scale)·LN(z) + shift
-  Tensor<A, B> qkv;       // (items·(rows + pad), 3D) [q | k | v], heads contiguous inside each
-  Tensor<A, B> attn;      // (items·(rows + pad), D) attention output (double blocks)
-  Tensor<A, B> mlp;       // (items·(rows + pad), Dm) MLP hidden
-  Tensor<A, B> cat;       // (items·(rows + pad), D + Dm) single blocks: [attention | GELU(mlp)]
+  Tensor<A, B> qkv;       // (items·(rows + pad), 3I) [q | k | v], heads contiguous inside each (I: attention width)
+  Tensor<A, B> attn;      // (items·(rows + pad), I) attention output (double blocks)
+  Tensor<A, B> mlp;       // (items·(rows + pad), Dm) MLP hidden (a shard's columns)
+  Tensor<A, B> cat;       // (items·(rows + pad), I + Dm) single blocks: [attention | GELU(mlp)]
   Tensor<A, B> sub;       // (items·(rows + pad), D) a sublayer's output before its gate
   DitItems items;         // how the items lie (the caller sets the modulation and RoPE strides)
 
@@ -84,14 +92,14 @@ struct DitScratch {
   static DitScratch plan(Alloc& a, std::int64_t rows, const DitWidths& w, std::int64_t pad = 0,
                          std::int64_t count = 1) {
     EPONA_CHECK(count >= 1 && rows >= 0 && pad >= 0, "DiT scratch: ", count, " items of ", rows, " + ", pad, " rows");
-    const std::int64_t D = w.hidden, Dm = w.mlp_hidden, padded = count * (rows + pad);
+    const std::int64_t D = w.hidden, I = w.attention_width(), Dm = w.shard_mlp(), padded = count * (rows + pad);
     DitScratch s;
     s.z = a.template take<A>({padded, D});
     s.modulated = a.template take<A>({padded, D});
-    s.qkv = a.template take<A>({padded, 3 * D});
-    s.attn = a.template take<A>({padded, D});
+    s.qkv = a.template take<A>({padded, 3 * I});
+    s.attn = a.template take<A>({padded, I});
     s.mlp = a.template take<A>({padded, Dm});
-    s.cat = a.template take<A>({padded, D + Dm});
+    s.cat = a.template take<A>({padded, I + Dm});
     s.sub = a.template take<A>({padded, D});
     s.items = {count, rows + pad, 0, 0};
     return s;
@@ -211,17 +219,17 @@ struct QkRows {
 template <class B, class A, std::size_t S>
 void qk_norm_rope_rows(BackendContext<B>& ctx, A* qkv, const DitWidths& w, const RopeTable<B>& rope,
                        const std::array<QkRows<B>, S>& parts) {
-  const std::int64_t D = w.hidden, hd = w.head_dim();
+  const std::int64_t I = w.attention_width(), hd = w.head_dim(), heads = w.shard_heads();
   if constexpr (JointQkNormRope<BackendContext<B>, A, QkRows<B>, S>) {
     for (const auto& p : parts)
       EPONA_CHECK(p.end <= rope.rows() && 2 * rope.pairs() == hd && p.norm->eps == parts[0].norm->eps,
                   "QK-norm RoPE: rows up to ", p.end, " of a table of ", rope.rows(), " x ", rope.pairs(),
                   " pairs, head dim ", hd);
-    qk_norm_rope(ctx, qkv, 3 * D, D, w.heads, hd, parts[0].norm->eps, rope.cos.data(), rope.sin.data(), parts);
+    qk_norm_rope(ctx, qkv, 3 * I, I, heads, hd, parts[0].norm->eps, rope.cos.data(), rope.sin.data(), parts);
   } else {
     for (const auto& p : parts) {
-      p.norm->queries_rope(ctx, qkv + p.q_first * 3 * D, p.end - p.q_first, 3 * D, w.heads, rope, p.q_first);
-      p.norm->keys_rope(ctx, qkv + p.first * 3 * D + D, p.end - p.first, 3 * D, w.heads, rope, p.first);
+      p.norm->queries_rope(ctx, qkv + p.q_first * 3 * I, p.end - p.q_first, 3 * I, heads, rope, p.q_first);
+      p.norm->keys_rope(ctx, qkv + p.first * 3 * I + I, p.end - p.first, 3 * I, heads, rope, p.first);
     }
   }
 }
@@ -243,16 +251,16 @@ void qk_norm_rope_items(BackendContext<B>& ctx, A* qkv, const DitWidths& w, cons
   for (const auto& p : parts) end = std::max(end, p.end);
   if constexpr (JointQkNormRope<BackendContext<B>, A, QkRows<B>, S>) {
     if (items.count > 1) {
-      const std::int64_t D = w.hidden, last = (items.count - 1) * items.rope_stride + end;
+      const std::int64_t I = w.attention_width(), last = (items.count - 1) * items.rope_stride + end;
       EPONA_CHECK(last <= rope.rows() && 2 * rope.pairs() == w.head_dim() && parts[0].norm->eps == parts[S - 1].norm->eps,
                   "QK-norm RoPE: rows up to ", last, " of a table of ", rope.rows(), " x ", rope.pairs(), " pairs");
-      qk_norm_rope(ctx, qkv, 3 * D, D, w.heads, w.head_dim(), parts[0].norm->eps, rope.cos.data(), rope.sin.data(),
+      qk_norm_rope(ctx, qkv, 3 * I, I, w.shard_heads(), w.head_dim(), parts[0].norm->eps, rope.cos.data(), rope.sin.data(),
                    parts, QkItems{items.count, items.rows, items.rope_stride});
       return;
     }
   }
   for (std::int64_t b = 0; b < items.count; ++b)
-    qk_norm_rope_rows<B>(ctx, qkv + b * items.rows * 3 * w.hidden, w, item_rope(rope, items, b, end), parts);
+    qk_norm_rope_rows<B>(ctx, qkv + b * items.rows * 3 * w.attention_width(), w, item_rope(rope, items, b, end), parts);
 }
 // Unmasked attention of queries at rows [q_first, q_first + q_rows) of the packed [q | k | v]
 // buffer (rows in_stride apart) over all `rows` keys; output rows out_stride apart. Every item of
@@ -261,13 +269,13 @@ template <class B, class A>
 void joint_attention(BackendContext<B>& ctx, const A* qkv, std::int64_t rows, std::int64_t q_first,
                      std::int64_t q_rows, const DitWidths& w, A* out, std::int64_t out_stride, std::int64_t in_stride,
                      const DitItems& items = {}) {
-  const std::int64_t D = w.hidden, apart = items.count > 1 ? items.rows : 0;
-  PackedAttention p{items.count, rows, w.heads, w.head_dim(), apart * in_stride, in_stride, apart * out_stride,
+  const std::int64_t I = w.attention_width(), apart = items.count > 1 ? items.rows : 0;
+  PackedAttention p{items.count, rows, w.shard_heads(), w.head_dim(), apart * in_stride, in_stride, apart * out_stride,
                     out_stride, false};
   p.q_len = q_rows;
   p.q_seq_stride = apart * in_stride;
   p.q_token_stride = in_stride;
-  packed_attention(ctx, qkv + q_first * in_stride, qkv + D, qkv + 2 * D, out, p);
+  packed_attention(ctx, qkv + q_first * in_stride, qkv + I, qkv + 2 * I, out, p);
 }
 
 // y rows [y_first, y_first + rows) of each item = layer(x rows [x_first, ...) of the item); x and
@@ -286,8 +294,18 @@ void items_linear(const Layer& layer, Context& ctx, const A* x, std::int64_t ldx
   layer.items(ctx, x + x_first * ldx, ldx, R * ldx, rows, y + y_first * ldy, ldy, R * ldy, items.count, epilogue);
 }
 
+// Adds up a shard's partial outputs (`count` elements at `data`) over its tensor-parallel group:
+// nothing where the block is whole.
+template <class Context, class A>
+void sum_over_shards(Context& ctx, const ShardSum<Context, A>* sum, const DitWidths& w, A* data, std::int64_t count) {
+  if (w.shards == 1) return;
+  EPONA_CHECK(sum && sum->size() == w.shards, "DiT block: a shard of a group of ", w.shards,
+              " needs the group's sum (DitTrunk::set_shard_sum)");
+  sum->sum(ctx, data, count);
+}
+
 inline double joint_attention_flops(const DitWidths& w, std::int64_t q_rows, std::int64_t rows) {
-  return attention_flops(1, w.heads, q_rows, rows, w.head_dim());
+  return attention_flops(1, w.shard_heads(), q_rows, rows, w.head_dim());
 }
 }  // namespace detail
 
@@ -304,8 +322,8 @@ struct DoubleStream {
 
   DoubleStream() = default;
   explicit DoubleStream(const DitWidths& w)
-      : mod(w.hidden, 6), qkv(w.hidden, 3 * w.hidden, true), proj(w.hidden, w.hidden, true),
-        norm(w.head_dim(), w.rms_eps), mlp(w.hidden, w.mlp_hidden, w.hidden, true, Gelu::Tanh) {}
+      : mod(w.hidden, 6), qkv(w.hidden, 3 * w.attention_width(), true), proj(w.attention_width(), w.hidden, true),
+        norm(w.head_dim(), w.rms_eps), mlp(w.hidden, w.shard_mlp(), w.hidden, true, Gelu::Tanh) {}
 
   // p names the stream ("double_blocks.0.img"): "<p>_mod.lin.", "<p>_attn.norm."; its Linear
   // layers ("<p>_attn.qkv.", "<p>_attn.proj.", "<p>_mlp.") are visited with the other
@@ -425,6 +443,7 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
   using A = Activation<B, W>;
   DitWidths widths;
   DoubleStream<B, W> img, cond;  // "img" is the target stream (latents or trajectory)
+  const ShardSum<Context, A>* shard_sum = nullptr;  // the group's sum when widths.shards > 1
 
   DoubleStreamBlock() = default;
   explicit DoubleStreamBlock(const DitWidths& w) : widths(w), img(w), cond(w) {}
@@ -483,7 +502,7 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
     using Pair = detail::StreamPair<B, W>;
     using Part = typename Pair::Part;
     using Stream = DoubleStream<B, W>;
-    const std::int64_t D = widths.hidden;
+    const std::int64_t D = widths.hidden, I = widths.attention_width();
     const float eps = widths.ln_eps;
     const bool paired = Pair::pairs(ctx, s, rows);
     EPONA_CHECK(!(paired && entry.cond_qkv), "DoubleStreamBlock: a condition front run ahead needs unpaired streams");
@@ -510,16 +529,18 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
                                                detail::QkRows<B>(rows.cond, rows.cond, rows.total(), img.norm)},
                                     items);
     }
-    detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), D, 3 * D,
+    detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), I, 3 * I,
                                items);
     pair.fork();
     pair.linear(Stream::proj_of, s.attn, s.sub);
+    sum_partial(ctx, pair, s);
     pair.each([&](Context& c, const Part& p) {
       detail::add_gated_norm_items(c, p.src ? p.src : at(s.z, p), at(s.z, p), at(s.sub, p), p.attn.gate,
                                    at(s.modulated, p), p.rows, D, p.mlp, eps, items, p.src ? p.rows : items.rows);
     });
     pair.linear(Stream::fc1_of, s.modulated, s.mlp, img.mlp.fc1_epilogue());
     pair.linear(Stream::fc2_of, s.mlp, s.sub);
+    sum_partial(ctx, pair, s);
     pair.each([&](Context& c, const Part& p) {
       detail::add_gated_norm_items(c, at(s.z, p), at(s.z, p), at(s.sub, p), p.mlp.gate, at(s.modulated, p), p.rows, D,
                                    p.next, eps, items, items.rows);
@@ -533,6 +554,16 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
   }
 
  private:
+  // A shard's projections into the residual width (s.sub, both streams' rows of every item) summed
+  // over its group, between the products and the residual adds of both streams.
+  template <class Pair>
+  void sum_partial(Context& ctx, Pair& pair, DitScratch<B, A>& s) const {
+    if (widths.shards == 1) return;
+    pair.join();
+    detail::sum_over_shards(ctx, shard_sum, widths, s.sub.data(), s.items.count * s.items.rows * widths.hidden);
+    pair.fork();
+  }
+
   // One stream's first sublayer up to the attention over its rows [first, first + count) of
   // every item: the modulated norm of z's rows (or of src's) into `modulated` unless `normed`,
   // the qkv product into those rows of `qkv`, their QK RMSNorm + RoPE.
@@ -541,7 +572,8 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
                     const RopeTable<B>& rope, bool normed, const DitItems& items) const {
     const std::int64_t D = widths.hidden, n = first + count;
     if (!normed) detail::modulate_items(ctx, z, modulated, first, count, attn, widths.ln_eps, items, src);
-    detail::items_linear(st.qkv, ctx, modulated.data(), D, first, count, qkv, 3 * D, first, items, false);
+    detail::items_linear(st.qkv, ctx, modulated.data(), D, first, count, qkv, 3 * widths.attention_width(), first,
+                         items, false);
     detail::qk_norm_rope_items<B>(ctx, qkv, widths, rope, std::array{detail::QkRows<B>(first, first, n, st.norm)},
                                   items);
   }
@@ -552,15 +584,17 @@ struct SingleStreamBlock : Bindable<SingleStreamBlock<B, W>> {
   using Context = BackendContext<B>;
   using A = Activation<B, W>;
   DitWidths widths;
-  Linear<B, W> linear1, linear2;  // (3D + Dm, D), (D, D + Dm)
+  Linear<B, W> linear1, linear2;  // (3I + Dm, D), (D, I + Dm); I = D and Dm the MLP width unless sharded
   QkNorm<B> norm;
   Modulation<B, W> modulation;
   Linear<B, W> q_part, kv_part, mlp_part;  // row views of linear1: [q | k v | mlp], set by bind
+  const ShardSum<Context, A>* shard_sum = nullptr;  // the group's sum when widths.shards > 1
 
   SingleStreamBlock() = default;
   explicit SingleStreamBlock(const DitWidths& w)
-      : widths(w), linear1(w.hidden, 3 * w.hidden + w.mlp_hidden, true),
-        linear2(w.hidden + w.mlp_hidden, w.hidden, true), norm(w.head_dim(), w.rms_eps), modulation(w.hidden, 3) {}
+      : widths(w), linear1(w.hidden, 3 * w.attention_width() + w.shard_mlp(), true),
+        linear2(w.attention_width() + w.shard_mlp(), w.hidden, true), norm(w.head_dim(), w.rms_eps),
+        modulation(w.hidden, 3) {}
 
   template <class V>
   void visit_params(const std::string& p, V& v) {
@@ -569,10 +603,10 @@ struct SingleStreamBlock : Bindable<SingleStreamBlock<B, W>> {
     norm.visit_params(p + "norm.", v);
     modulation.visit_params(p + "modulation.lin.", v);
     if (!linear1.weight.empty() && !linear1.bias.empty()) {
-      const std::int64_t D = widths.hidden;
-      q_part = linear1.rows(0, D);
-      kv_part = linear1.rows(D, 3 * D);
-      mlp_part = linear1.rows(3 * D, 3 * D + widths.mlp_hidden);
+      const std::int64_t I = widths.attention_width();
+      q_part = linear1.rows(0, I);
+      kv_part = linear1.rows(I, 3 * I);
+      mlp_part = linear1.rows(3 * I, 3 * I + widths.shard_mlp());
     }
   }
 
@@ -593,7 +627,8 @@ struct SingleStreamBlock : Bindable<SingleStreamBlock<B, W>> {
   void operator()(Context& ctx, SideQueue<B>& queue, DitScratch<B, A>& s, const JointRows& rows,
                   const RopeTable<B>& rope, const A* mods, std::int64_t first_out = 0, bool normed = false,
                   const AdaLn<A>& next = {}) const {
-    const std::int64_t D = widths.hidden, Dm = widths.mlp_hidden, n = rows.total(), m = n - first_out;
+    const std::int64_t D = widths.hidden, I = widths.attention_width(), Dm = widths.shard_mlp(), n = rows.total(),
+                       m = n - first_out;
     const DitItems& items = s.items;
     const std::int64_t R = items.rows;
     const AdaLn<A> mv = AdaLn<A>::at(mods, D);
@@ -611,14 +646,15 @@ struct SingleStreamBlock : Bindable<SingleStreamBlock<B, W>> {
       detail::items_linear(l, c, x.data(), x.size(-1), x_first, rows_in, y, ldy, y_first, items, true, epi);
     };
     queue.fork(ctx);
-    product(side, q_part, s.modulated, first_out, m, qkv, 3 * D, first_out);
-    product(ctx, kv_part, s.modulated, 0, n, qkv + D, 3 * D, 0);
+    product(side, q_part, s.modulated, first_out, m, qkv, 3 * I, first_out);
+    product(ctx, kv_part, s.modulated, 0, n, qkv + I, 3 * I, 0);
     queue.join(ctx);
-    product(side, mlp_part, s.modulated, first_out, m, s.cat.data() + D, D + Dm, 0, BackendEpilogue<B>::GeluTanh);
+    product(side, mlp_part, s.modulated, first_out, m, s.cat.data() + I, I + Dm, 0, BackendEpilogue<B>::GeluTanh);
     detail::qk_norm_rope_items<B>(ctx, qkv, widths, rope, std::array{detail::QkRows<B>(0, first_out, n, norm)}, items);
-    detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), D + Dm, 3 * D, items);
+    detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), I + Dm, 3 * I, items);
     queue.join(ctx);
     product(ctx, linear2, s.cat, 0, m, s.sub.data(), D, 0);
+    detail::sum_over_shards(ctx, shard_sum, widths, s.sub.data(), ((items.count - 1) * R + m) * D);
     A* updated = s.z.data() + first_out * D;
     detail::add_gated_norm_items(ctx, updated, updated, s.sub.data(), mv.gate, s.modulated.data() + first_out * D, m, D,
                                  next, widths.ln_eps, items, R);

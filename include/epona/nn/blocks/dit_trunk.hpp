@@ -14,7 +14,9 @@
 
 #include "epona/core/tensor.hpp"
 #include "epona/nn/backend_context.hpp"
+#include "epona/core/tensor_parallel.hpp"
 #include "epona/nn/blocks/dit_blocks.hpp"
+#include "epona/nn/linear_shards.hpp"
 #include "epona/nn/flops.hpp"
 #include "epona/nn/modulation.hpp"
 #include "epona/nn/parameter.hpp"
@@ -48,6 +50,9 @@ class DitTrunk : public Bindable<DitTrunk<B, W>> {
     EPONA_CHECK(widths.heads > 0 && widths.hidden % widths.heads == 0 && double_blocks >= 0 && single_blocks >= 0,
                 "DiT trunk: heads ", widths.heads, " must be positive and divide hidden ", widths.hidden, ", blocks ",
                 double_blocks, " + ", single_blocks, " must not be negative");
+    EPONA_CHECK(widths.shards >= 1 && widths.heads % widths.shards == 0 && widths.mlp_hidden % widths.shards == 0,
+                "DiT trunk: ", widths.shards, " shards must divide the ", widths.heads, " heads and the MLP width ",
+                widths.mlp_hidden);
     for (std::int64_t i = 0; i < double_blocks; ++i) doubles_.emplace_back(widths);
     for (std::int64_t i = 0; i < single_blocks; ++i) singles_.emplace_back(widths);
   }
@@ -68,6 +73,38 @@ class DitTrunk : public Bindable<DitTrunk<B, W>> {
   const LastLayer<B, W>& final_layer() const { return final_; }
   std::int64_t out_channels() const { return final_.linear.out; }
   bool has_double_blocks() const { return !doubles_.empty(); }
+
+  // The tensor-parallel group's sum of this shard's partial outputs (widths().shards > 1); it must
+  // outlive the trunk's use. Copies of the trunk keep the pointer.
+  void set_shard_sum(const ShardSum<Context, A>* sum) {
+    EPONA_CHECK(!sum || sum->size() == widths_.shards, "DiT trunk: a group of ", sum ? sum->size() : 0,
+                " shards for a trunk sharded ", widths_.shards, " ways");
+    for (auto& b : doubles_) b.shard_sum = sum;
+    for (auto& b : singles_) b.shard_sum = sum;
+  }
+
+  // How the whole model's weights (under `prefix`) split into this trunk's shard: each block's
+  // products out of the residual width (qkv, MLP in) take their heads' and columns' rows; those
+  // into it (attention out, MLP out) the same columns, with the bias on shard 0 alone (it is
+  // added once, after the sum). Everything else (modulations, norms, the final layer) is whole.
+  std::vector<LinearSplit> shard_splits(const std::string& prefix) const {
+    const std::int64_t D = widths_.hidden, Dm = widths_.mlp_hidden;
+    std::vector<LinearSplit> s;
+    for (std::size_t i = 0; i < doubles_.size(); ++i)
+      for (const char* stream : {"img", "cond"}) {
+        const std::string p = prefix + "double_blocks." + std::to_string(i) + "." + stream;
+        s.push_back({p + "_attn.qkv.", LinearSplit::outputs, {D, D, D}});
+        s.push_back({p + "_attn.proj.", LinearSplit::inputs, {D}});
+        s.push_back({p + "_mlp.0.", LinearSplit::outputs, {Dm}});
+        s.push_back({p + "_mlp.2.", LinearSplit::inputs, {Dm}});
+      }
+    for (std::size_t j = 0; j < singles_.size(); ++j) {
+      const std::string p = prefix + "single_blocks." + std::to_string(j) + ".";
+      s.push_back({p + "linear1.", LinearSplit::outputs, {D, D, D, Dm}});
+      s.push_back({p + "linear2.", LinearSplit::inputs, {D, Dm}});
+    }
+    return s;
+  }
 
   // Width of one modulation table row: [double 0: img 6D, cond 6D | ... | single 0: 3D | ... |
   // final layer 2D].
