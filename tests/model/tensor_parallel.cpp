@@ -2,9 +2,9 @@
 // over 2 and 4 shards, each shard a thread with its own context and its weights cut from the
 // whole model's map (cpu/thread_shard_sum.hpp), gives the whole DiT's velocity and samples, and
 // every shard gives the same bits. Both test DiTs (tests/model/dit_cases.hpp), one item and a
-// batch of two. Then the world model with its VisDiT split (WorldModel::VisShard) on the golden
-// weights: predict_next as the whole model's. The cuts themselves are checked
-// against hand-made weights, and every misuse is refused with a message.
+// batch of two (the world model with its VisDiT split: the golden rollout, model/world_parity.cpp).
+// The cuts themselves are checked against hand-made weights, and every misuse is refused with a
+// message.
 // Bound: float32 within 1e-6 relative (a shard sums its part of each product's terms, and the
 // group adds the parts: another order of the same additions); the worst difference is printed.
 #include <doctest/doctest.h>
@@ -19,7 +19,6 @@
 #include "dit_cases.hpp"
 #include "epona/cpu/thread_shard_sum.hpp"
 #include "epona/nn/linear_shards.hpp"
-#include "golden_world_model.hpp"
 
 using namespace epona;
 using namespace epona::test::dit;
@@ -115,40 +114,6 @@ TEST_CASE("a DiT split over 2 and 4 shards gives the whole DiT's velocity and sa
       }
     }
   }
-}
-
-TEST_CASE("a world model with its VisDiT split over 2 shards predicts the whole model's next frame") {
-  const auto& golden = epona::test::world_golden();
-  const History h = epona::test::golden_history();
-  SampleOptions opt;
-  opt.seed = 17;
-  opt.steps = 4;
-  auto& whole = epona::test::golden_world_model();
-  const StepResult step = whole.predict_next(h, std::nullopt, opt);
-  const std::int64_t shards = 2;  // the golden VisDiT has 2 heads
-  REQUIRE(golden.world().n_head_dit % shards == 0);
-  cpu::ThreadShardGroup group(shards);
-  std::vector<StepResult> parts(shards);
-  group.run([&](std::int64_t r) {
-    const auto sum = group.shard(r);
-    auto model = WorldModel<Cpu, float>::load(golden.weights, golden.world(), {{r, shards}, &sum});
-    model.context().set_threads(1);
-    parts[r] = model.predict_next(h, std::nullopt, opt);
-  });
-  for (std::int64_t r = 0; r < shards; ++r) {
-    CHECK(same_bits(parts[r].trajectory, step.trajectory));  // the TrajDiT is whole on every shard
-    CHECK(same_bits(parts[r].latent, parts[0].latent));
-  }
-  const double worst = rel_max(parts[0].latent, step.latent);
-  MESSAGE("world model, VisDiT over 2 shards: latent worst rel against the whole model ", worst);
-  CHECK(worst <= 1e-6);
-  float largest = 0;  // the compared latents are a frame, not zeros
-  for (std::int64_t i = 0; i < step.latent.numel(); ++i) largest = std::max(largest, std::abs(step.latent.data()[i]));
-  CHECK(largest > 0.1f);
-
-  using World = WorldModel<Cpu, float>;
-  const auto without_sum = [&] { return World::load(golden.weights, golden.world(), {{0, 2}, nullptr}); };
-  CHECK_THROWS_WITH_AS(without_sum(), doctest::Contains("needs its group's sum"), Error);
 }
 
 TEST_CASE("a shard's weights are its heads' rows and columns, the summed layers' bias on shard 0") {

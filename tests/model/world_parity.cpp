@@ -1,12 +1,16 @@
 // Parity of the CPU world model with the official Epona code: every world-model case of the
 // golden set (emb.*, temb.*, tok.*, mst.*, ids.*, sched.*, traj.*, vis.*, rollout.*), each
 // stage fed with the stored golden inputs, sizes from configs.json. Tolerances per the golden
-// README: rel <= 1e-4 (float32), 1e-3 (rollout.*), 1e-6 (ids, schedules, token indices).
+// README: rel <= 1e-4 (float32), 1e-3 (rollout.*), 1e-6 (ids, schedules, token indices). The
+// rollout also with the VisDiT split over two shards (tensor parallelism), to the same values.
 #include <doctest/doctest.h>
 
+#include <optional>
 #include <string>
+#include <vector>
 
 #include "epona/core/arena.hpp"
+#include "epona/cpu/thread_shard_sum.hpp"
 #include "epona/flow/schedule.hpp"
 #include "epona/model/flux_dit.hpp"
 #include "epona/model/mst.hpp"
@@ -187,10 +191,16 @@ TEST_CASE("TrajDiT and VisDiT: one velocity and a full sample (traj.*, vis.*)") 
 }
 
 
-TEST_CASE("autoregressive rollout with self-predicted actions (rollout.*)") {
+namespace {
+
+// The golden rollout (rollout.*) of `wm`: every step's intermediate values and results, stacked.
+struct GoldenRollout {
+  Stack stt, pose_idx, yaw_idx, pose_emb, traj, latents, rel_pose, rel_yaw;
+  RolloutResult result;
+};
+GoldenRollout golden_rollout(WorldModel<Cpu, float>& wm) {
   const auto& g = world_golden();
   const auto& w = g.world();
-  auto wm = WorldModel<Cpu, float>::load(g.weights, w);
   const std::int64_t F = w.condition_frames;
   const History start{g.tensor("mst.latents"), first_entries(g.tensor("mst.rel_pose"), F),
                       first_entries(g.tensor("mst.rel_yaw"), F)};
@@ -200,28 +210,62 @@ TEST_CASE("autoregressive rollout with self-predicted actions (rollout.*)") {
   opt.frames = S;
   opt.sample.noise = NoiseSource::supplied(noise_traj, noise_img);
   const std::int64_t C = w.n_embd;
-  Stack stt(S, {B, w.tokens_per_frame(), C}), pose_idx(S, {B, 1, 2}), yaw_idx(S, {B, 1, 1}),
-      pose_emb(S, {B, w.pose_emb_dim()}), traj(S, {B, w.traj_len, 3}),
-      latents(S, {B, w.latent_h(), w.latent_w(), w.token_dim()}), rel_pose(S, {B, F + 1, 2}), rel_yaw(S, {B, F + 1, 1});
-  const auto result = rollout(wm, start, opt, [&](const RolloutFrame<Cpu>& f) {
-    stt.put(f.index, f.details.stt_features);
-    pose_idx.put(f.index, f.details.pred_pose_idx);
-    yaw_idx.put(f.index, f.details.pred_yaw_idx);
-    pose_emb.put(f.index, f.details.pose_emb);
-    traj.put(f.index, f.result.trajectory);
-    latents.put(f.index, f.result.latent);
-    rel_pose.put(f.index, f.rel_pose_window);
-    rel_yaw.put(f.index, f.rel_yaw_window);
+  GoldenRollout r{Stack(S, {B, w.tokens_per_frame(), C}), Stack(S, {B, 1, 2}), Stack(S, {B, 1, 1}),
+                  Stack(S, {B, w.pose_emb_dim()}), Stack(S, {B, w.traj_len, 3}),
+                  Stack(S, {B, w.latent_h(), w.latent_w(), w.token_dim()}), Stack(S, {B, F + 1, 2}),
+                  Stack(S, {B, F + 1, 1}), {}};
+  r.result = rollout(wm, start, opt, [&](const RolloutFrame<Cpu>& f) {
+    r.stt.put(f.index, f.details.stt_features);
+    r.pose_idx.put(f.index, f.details.pred_pose_idx);
+    r.yaw_idx.put(f.index, f.details.pred_yaw_idx);
+    r.pose_emb.put(f.index, f.details.pose_emb);
+    r.traj.put(f.index, f.result.trajectory);
+    r.latents.put(f.index, f.result.latent);
+    r.rel_pose.put(f.index, f.rel_pose_window);
+    r.rel_yaw.put(f.index, f.rel_yaw_window);
   });
-  expect_golden("rollout.stt_features", stt.t);
-  expect_golden("rollout.pred_pose_idx", pose_idx.t);
-  expect_golden("rollout.pred_yaw_idx", yaw_idx.t);
-  expect_golden("rollout.pose_emb", pose_emb.t);
-  expect_golden("rollout.predict_traj", traj.t);
-  expect_golden("rollout.predict_latents", latents.t);
-  expect_golden("rollout.rel_pose_after", rel_pose.t);
-  expect_golden("rollout.rel_yaw_after", rel_yaw.t);
+  return r;
+}
+void expect_golden_rollout(const GoldenRollout& r) {
+  expect_golden("rollout.stt_features", r.stt.t);
+  expect_golden("rollout.pred_pose_idx", r.pose_idx.t);
+  expect_golden("rollout.pred_yaw_idx", r.yaw_idx.t);
+  expect_golden("rollout.pose_emb", r.pose_emb.t);
+  expect_golden("rollout.predict_traj", r.traj.t);
+  expect_golden("rollout.predict_latents", r.latents.t);
+  expect_golden("rollout.rel_pose_after", r.rel_pose.t);
+  expect_golden("rollout.rel_yaw_after", r.rel_yaw.t);
   // The returned stacks hold the same per-step results.
-  CHECK(test::rel_max(result.trajectories, traj.t.reshape(result.trajectories.shape())) == 0);
-  CHECK(test::rel_max(result.latents, latents.t.reshape(result.latents.shape())) == 0);
+  CHECK(test::rel_max(r.result.trajectories, r.traj.t.reshape(r.result.trajectories.shape())) == 0);
+  CHECK(test::rel_max(r.result.latents, r.latents.t.reshape(r.result.latents.shape())) == 0);
+}
+
+}  // namespace
+
+TEST_CASE("autoregressive rollout with self-predicted actions (rollout.*)") {
+  auto wm = WorldModel<Cpu, float>::load(world_golden().weights, world_golden().world());
+  expect_golden_rollout(golden_rollout(wm));
+}
+
+// Tensor parallelism (docs/parallel.md): the VisDiT's heads split over two shards, each a thread
+// with its own model (cpu::ThreadShardGroup); the official rollout's values within the same
+// tolerances, and both shards the same bits.
+TEST_CASE("the rollout with the VisDiT split over 2 shards (rollout.*)") {
+  const auto& g = world_golden();
+  const std::int64_t shards = 2;
+  REQUIRE(g.world().n_head_dit % shards == 0);
+  cpu::ThreadShardGroup group(shards);
+  std::vector<std::optional<GoldenRollout>> parts(shards);
+  group.run([&](std::int64_t r) {
+    const auto sum = group.shard(r);
+    auto wm = WorldModel<Cpu, float>::load(g.weights, g.world(), {{r, shards}, &sum});
+    wm.context().set_threads(1);
+    parts[r] = golden_rollout(wm);
+  });
+  expect_golden_rollout(*parts[0]);
+  CHECK(test::rel_max(parts[1]->result.latents, parts[0]->result.latents) == 0);
+  CHECK(test::rel_max(parts[1]->result.trajectories, parts[0]->result.trajectories) == 0);
+  using World = WorldModel<Cpu, float>;
+  const auto without_sum = [&] { return World::load(g.weights, g.world(), {{0, 2}, nullptr}); };
+  CHECK_THROWS_WITH_AS(without_sum(), doctest::Contains("needs its group's sum"), Error);
 }
