@@ -6,8 +6,14 @@
 #include <cstdlib>
 #include <memory>
 
+#include <numeric>
+#include <vector>
+
 #include "epona/cuda/backend.cuh"
 #include "epona/cuda/dcae_ops.cuh"
+#if defined(EPONA_APP_NCCL)
+#include "epona/cuda/runtime/nccl_shard_sum.hpp"
+#endif
 
 #include "engine.hpp"
 
@@ -19,11 +25,38 @@ namespace cuda_engine_detail {
 // --reproducible: no timed cuBLASLt candidates (which one wins can differ between runs) unless
 // EPONA_CUDA_GEMM_TUNE asks for them.
 template <class W>
-std::unique_ptr<Engine> build(const ComputeOptions& c) {
-  auto engine = std::make_unique<ModelEngine<Cuda, W>>(c);
-  engine->after_destruction(cuda::release_cudnn);
+void configure(ModelEngine<Cuda, W>& engine, const ComputeOptions& c, bool releases_cudnn) {
+  if (releases_cudnn) engine.after_destruction(cuda::release_cudnn);
   if (c.reproducible && !std::getenv("EPONA_CUDA_GEMM_TUNE"))
-    engine->configure_contexts([](cuda::Context& ctx) { ctx.policy().gemm_tuning = cuda::GemmTuning::Off; });
+    engine.configure_contexts([](cuda::Context& ctx) { ctx.policy().gemm_tuning = cuda::GemmTuning::Off; });
+}
+
+// --tensor-parallel N: the VisDiT over GPUs 0..N-1 through NCCL (shard 0, on GPU 0, also holds the
+// DC-AE and releases cuDNN).
+template <class W>
+std::unique_ptr<Engine> build_sharded(const ComputeOptions& c) {
+#if defined(EPONA_APP_NCCL)
+  int gpus = 0;
+  EPONA_CUDA_CHECK(cudaGetDeviceCount(&gpus));
+  EPONA_CHECK(c.shards <= gpus, "--tensor-parallel ", c.shards, " needs ", c.shards, " GPUs (one per shard); ", gpus,
+              " visible");
+  std::vector<int> devices(static_cast<std::size_t>(c.shards));
+  std::iota(devices.begin(), devices.end(), 0);
+  using Group = cuda::NcclShardGroup<W>;
+  auto engine = std::make_unique<ShardedEngine<Cuda, W, Group>>(c, std::make_unique<Group>(devices));
+  engine->each_shard([&](std::int64_t r, ModelEngine<Cuda, W>& e) { configure(e, c, r == 0); });
+  return engine;
+#else
+  fail("--tensor-parallel ", c.shards, " with --backend cuda needs NCCL, which this build of the program lacks "
+       "(CMake finds it beside the CUDA toolkit; docs/parallel.md)");
+#endif
+}
+
+template <class W>
+std::unique_ptr<Engine> build(const ComputeOptions& c) {
+  if (c.shards > 1) return build_sharded<W>(c);
+  auto engine = std::make_unique<ModelEngine<Cuda, W>>(c);
+  configure(*engine, c, true);
   return engine;
 }
 }  // namespace cuda_engine_detail

@@ -36,6 +36,9 @@ struct ComputeOptions {
   // product), so that every run and every process of a job computes alike: timing picks the
   // fastest candidate, which can differ between processes. EPONA_CUDA_GEMM_TUNE overrides it.
   bool reproducible = true;
+  // --tensor-parallel: the VisDiT split over this many shards (GPUs with --backend cuda, threads
+  // on the CPU; docs/parallel.md). Every shard runs the rest of the model whole.
+  int shards = 1;
 };
 
 // --threads beyond a few per hardware thread only slows the work (4096 on 2 cores ran 50x slower).
@@ -50,10 +53,16 @@ inline std::int64_t max_pixels_option(const ParsedArgs& a, std::int64_t fallback
   return a.integer("max-pixels", fallback, 1024, std::int64_t{1} << 34);
 }
 
+// --tensor-parallel's bound: the GPUs of one host.
+inline constexpr std::int64_t kMaxShards = 8;
+
 inline void add_compute_options(ArgParser& p) {
   p.option("backend", "NAME", "cpu or cuda", "cpu")
       .option("dtype", "TYPE", "weight precision: float32 (exact) or bfloat16 (half the memory)", "float32")
-      .option("threads", "N", "CPU threads; 0 or all: every hardware thread", "all");
+      .option("threads", "N", "CPU threads; 0 or all: every hardware thread", "all")
+      .option("tensor-parallel", "N",
+              "split the VisDiT's heads over N shards: N GPUs with --backend cuda (NCCL), N threads on the CPU",
+              "1");
 }
 
 // Refuses a backend this program cannot run, naming why. The epona program gets its CUDA engine
@@ -76,6 +85,7 @@ inline ComputeOptions compute_options(const ParsedArgs& a) {
   const std::string dtype = a.choice("dtype", {"float32", "fp32", "bfloat16", "bf16"}, "float32");
   c.bf16_weights = dtype == "bfloat16" || dtype == "bf16";
   if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 0, max_threads()));
+  c.shards = static_cast<int>(a.integer("tensor-parallel", 1, 1, kMaxShards));
   check_backend(c.backend);
   return c;
 }
@@ -84,8 +94,11 @@ inline int hardware_threads() { return std::max(1, static_cast<int>(std::thread:
 
 // "epona: cpu, float32, 2 threads": what a run computes with, so a log says it without guessing.
 inline void announce_compute(const Console& con, const ComputeOptions& c) {
+  const std::string split = c.shards > 1 ? ", the VisDiT split over " + std::to_string(c.shards) +
+                                               (c.backend == "cuda" ? " GPUs" : " threads' shards")
+                                         : "";
   con.note("epona: ", c.backend, ", ", c.bf16_weights ? "bfloat16" : "float32", ", ",
-           counted(c.threads > 0 ? c.threads : hardware_threads(), "thread"));
+           counted(c.threads > 0 ? c.threads : hardware_threads(), "thread"), split);
 }
 
 // ---- which files ------------------------------------------------------------------------
@@ -197,12 +210,17 @@ inline std::string weight_problem_examples(const std::string& what, std::size_t 
 }
 
 template <class B, class W>
-WorldModel<B, W> load_world(const ModelFiles& f, const ComputeOptions& c, const Console& con) {
+WorldModel<B, W> load_world(const ModelFiles& f, const ComputeOptions& c, const Console& con,
+                            const typename WorldModel<B, W>::VisShard& shard = {}) {
   const auto t0 = std::chrono::steady_clock::now();
   con.note("loading the world model from ", f.world, f.demo ? demo_description() : "");
+  const model::FluxDitConfig vis = model::FluxDitConfig::vis(f.configs.world);
+  EPONA_CHECK(vis.num_heads % shard.vis.size == 0 && vis.mlp_ratio * vis.hidden_size % shard.vis.size == 0,
+              "--tensor-parallel ", shard.vis.size, ": the VisDiT's ", vis.num_heads, " heads and ",
+              vis.mlp_ratio * vis.hidden_size, " MLP columns do not split evenly over ", shard.vis.size, " shards");
   const io::TensorMap weights = io::load_weights(f.world);
   try {
-    auto wm = WorldModel<B, W>::load(weights, f.configs.world);
+    auto wm = WorldModel<B, W>::load(weights, f.configs.world, shard);
     if constexpr (std::is_same_v<B, Cpu>)
       if (c.threads > 0) wm.context().set_threads(c.threads);
     con.note("  ", grouped(std::int64_t(model::world_parameter_counts(f.configs.world).total)), " parameters in ",

@@ -142,6 +142,9 @@ struct Job {
 inline Job join_job(const Console& console, const ComputeOptions& compute) {
   const dist::Launch launch = dist::launch_from_environment();
   auto group = join_job(launch);
+  EPONA_CHECK(group->size() == 1 || compute.shards == 1, "--tensor-parallel ", compute.shards, " under ",
+              launch.launcher, "'s ", group->size(), " processes: each process would take ", compute.shards,
+              " GPUs of its host; split the clips over processes or one model over GPUs, not both");
   const bool root = group->is_root();
   Job j{launch, std::move(group), root ? console : Console{console.out, console.err, true, false}};
   if (compute.backend == "cuda") assign_gpu(j.launch, j.con);

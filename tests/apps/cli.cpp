@@ -472,6 +472,66 @@ TEST_CASE("generate 2 frames: files and sizes, equal to rollout(), deterministic
   check_error(cli(too_many), "holds 2 action(s); --num-frames asks for 3");
 }
 
+// --tensor-parallel N (docs/parallel.md): the VisDiT split over threads on the CPU. The TrajDiT is
+// whole on every shard, so the plans are the same bytes; the latents within float32 rounding of the
+// whole model's (a shard adds its part of each product, the group adds the parts), the frames within
+// one 8-bit level.
+TEST_CASE("--tensor-parallel 2: plan and generate as the whole model; splits that do not divide are refused") {
+  TempDir t;
+  const auto& cfg = golden_configs();
+  const fs::path clip = make_clip(t, cfg.world.condition_frames + 1, cfg.world.condition_frames + 1);
+  std::vector<std::string> args = {"generate", "-n", "2", "--steps", "2", "--seed", "3", "--latents", "--frames",
+                                   clip.string(), "--poses", (clip / "poses.csv").string()};
+  for (const auto& a : golden_model_args()) args.push_back(a);
+  const auto run = [&](const std::string& out, std::vector<std::string> extra) {
+    auto a = args;
+    a.insert(a.end(), {"--out", out});
+    a.insert(a.end(), extra.begin(), extra.end());
+    return cli(a);
+  };
+  const Result whole = run(t / "whole", {}), split = run(t / "split", {"--tensor-parallel", "2"});
+  INFO(split.err);
+  REQUIRE(whole.rc == 0);
+  REQUIRE(split.rc == 0);
+  // Step 0's plan comes before any split work: the same numbers. Step 1's plan sees frame 0.
+  const Tensor<float> plans = io::read_trajectory(t / "whole/trajectory.csv");
+  const Tensor<float> split_plans = io::read_trajectory(t / "split/trajectory.csv");
+  check_same(plans.slice(0, 1), split_plans.slice(0, 1));
+  const auto worst_rel = [](const Tensor<float>& x, const Tensor<float>& y) {
+    REQUIRE(x.shape() == y.shape());
+    double worst = 0, scale = 0;
+    for (std::int64_t i = 0; i < x.numel(); ++i) {
+      worst = std::max(worst, std::abs(double(x.data()[i]) - y.data()[i]));
+      scale = std::max(scale, std::abs(double(x.data()[i])));
+    }
+    return worst / scale;
+  };
+  const double latents = worst_rel(io::read_npy<float>(t / "whole/latents.npy").values,
+                                   io::read_npy<float>(t / "split/latents.npy").values);
+  const double step1 = worst_rel(plans, split_plans);
+  MESSAGE("--tensor-parallel 2: latents within ", latents, " (relative to their largest), plans within ", step1);
+  CHECK(latents <= 1e-5);
+  CHECK(step1 <= 1e-4);
+  for (const std::string f : {"frames/frame_0000.png", "frames/frame_0001.png"}) {
+    const io::Image x = io::read_image((t.path / "whole" / f).string()), y = io::read_image((t.path / "split" / f).string());
+    REQUIRE(x.rgb.size() == y.rgb.size());
+    int most = 0;
+    for (std::size_t i = 0; i < x.rgb.size(); ++i) most = std::max(most, std::abs(int(x.rgb[i]) - int(y.rgb[i])));
+    CHECK_MESSAGE(most <= 1, f);
+  }
+
+  const Result plan = cli({"plan", "--out", t / "plan", "--seed", "7"});
+  const Result plan_split = cli({"plan", "--out", t / "plan_split", "--seed", "7", "--tensor-parallel", "2"});
+  REQUIRE(plan.rc == 0);
+  REQUIRE(plan_split.rc == 0);
+  CHECK(read_bytes(t.path / "plan/trajectory.json") == read_bytes(t.path / "plan_split/trajectory.json"));
+
+  check_error(run(t / "three", {"--tensor-parallel", "3"}), "do not split evenly over 3 shards");
+  check_error(run(t / "none", {"--tensor-parallel", "0"}), "--tensor-parallel");
+  check_error(run(t / "many", {"--tensor-parallel", "9"}), "--tensor-parallel");
+  CHECK_FALSE(fs::exists(t / "three/frames/frame_0000.png"));
+}
+
 TEST_CASE("generate on the bundled demo; progress on stderr unless --quiet") {
   TempDir t;
   Result r = cli({"generate", "-n", "2", "--steps", "2", "--out", t / "demo"});
