@@ -177,4 +177,26 @@ inline double max_abs(const HostF& t) {
   return m;
 }
 
+// Tensor parallelism (tests/cuda/dit_shards.cu, world_parity.cu): every shard's result against the
+// whole model's (`whole`, same dtype) and the whole float32 model's (`f32`). float32: within 1e-5
+// relative L2 of the whole. bf16: the distance to float32 at most 1.5x the whole bf16 model's own,
+// plus 4e-3 (a shard rounds its partial outputs to bf16 before the sum: one more rounding per summed
+// layer, each within 2^-8 of its value). Every shard the same bits, and finite.
+template <class W>
+void check_shard_results(const std::vector<HostF>& parts, const HostF& whole, const HostF& f32, const std::string& what) {
+  const double whole_err = measure(whole, f32).rel_l2;
+  for (std::size_t r = 0; r < parts.size(); ++r) {
+    const Diff d = measure(parts[r], whole), to_f32 = measure(parts[r], f32);
+    CHECK(d.nans == 0);
+    CHECK(count_bit_differences(parts[r], parts[0]) == 0);
+    if (r == 0)
+      MESSAGE(what, ": rel L2 to the whole model ", d.rel_l2, ", to the whole float32 model ", to_f32.rel_l2,
+              " (the whole model's: ", whole_err, ")");
+    if constexpr (std::is_same_v<W, float>)
+      CHECK(d.rel_l2 <= 1e-5);
+    else
+      CHECK(to_f32.rel_l2 <= 1.5 * whole_err + 4e-3);
+  }
+}
+
 }  // namespace epona::test

@@ -5,7 +5,10 @@
 // stage within twice the error of the official bf16 recipe (manifest.json), and the rollout's
 // first step likewise, in the manifest's units (later steps diverge in bf16, README: reported,
 // checked finite). The whole arena and every output are poisoned (0xFF: NaN) before each GPU
-// call, so a value the model reads or returns without writing it fails.
+// call, so a value the model reads or returns without writing it fails. Then the world model with
+// its VisDiT split in two (WorldModel::VisShard; the shards sharing the GPU, cuda::StreamShardGroup):
+// predict_next as the whole model's (check_shard_results), the trajectory (the whole TrajDiT on
+// every shard) bit for bit.
 #include <doctest/doctest.h>
 
 #include <algorithm>
@@ -17,6 +20,7 @@
 #include "../model/world_golden.hpp"
 #include "cuda_test_util.cuh"
 #include "epona/cuda/backend.cuh"
+#include "epona/cuda/runtime/stream_shard_sum.cuh"
 #include "epona/flow/schedule.hpp"
 #include "epona/model/rollout.hpp"
 #include "epona/model/world_model.hpp"
@@ -298,4 +302,37 @@ TEST_CASE("GPU bf16: rollout — first step within twice the official bf16 recip
     MESSAGE(std::string(name), " (GPU bf16, all steps): rel vs golden ", test::rel_max(ours, golden), ", vs the GPU float32 run ",
             test::rel_max(ours, reference.at(name)), " (official bf16 recipe ", official_bf16_error(name), ")");
   }
+}
+
+TEST_CASE_TEMPLATE("a world model with its VisDiT split over 2 shards sharing the GPU predicts the whole model's frame",
+                   W, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  const auto& g = world_golden();
+  const std::int64_t F = g.world().condition_frames, shards = 2;
+  REQUIRE(g.world().n_head_dit % shards == 0);
+  const History h{g.tensor("mst.latents").slice(0, 1).clone(), first_entries(g.tensor("mst.rel_pose"), F).slice(0, 1).clone(),
+                  first_entries(g.tensor("mst.rel_yaw"), F).slice(0, 1).clone()};
+  SampleOptions opt;
+  opt.seed = 17;
+  opt.steps = 4;
+  const StepResult whole = gpu_model<W>().predict_next(h, std::nullopt, opt);
+  const StepResult f32 = gpu_model<float>().predict_next(h, std::nullopt, opt);
+  cuda::StreamShardGroup<W> group(shards);
+  std::vector<StepResult> parts(shards);
+  group.run([&](std::int64_t r) {
+    const auto sum = group.shard(r);
+    auto m = WorldModel<Cuda, W>::load(g.weights, g.world(), {{r, shards}, &sum});
+    m.context().policy().graphs = false;
+    m.context().policy().gemm_tuning = cuda::GemmTuning::Off;
+    m.context().policy().poison_new_buffers = true;
+    parts[r] = m.predict_next(h, std::nullopt, opt);
+    m.context().synchronize();
+  });
+  std::vector<test::HostF> latents;
+  for (const auto& p : parts) {
+    CHECK(test::count_bit_differences(p.trajectory, whole.trajectory) == 0);
+    latents.push_back(p.latent);
+  }
+  test::check_shard_results<W>(latents, whole.latent, f32.latent,
+                               std::string("world model, ") + test::type_name<W>() + ", VisDiT over 2 shards");
 }

@@ -1,0 +1,247 @@
+// bench_gpu_shards — issue #40's tensor parallelism of the VisDiT (docs/parallel.md) at the real
+// configuration (512x1024 frames, the shipped widths and depths, bf16, random weights, one item).
+// vis_* rows: the VisDiT's `steps`-step sample (its recorded graph replayed); step_* rows: an AR
+// step, WorldModel::predict_next (MST + TrajDiT + VisDiT, `steps` steps each, self-predicted
+// action; the MST and TrajDiT whole on every shard, the VisDiT split). Each kind as
+//   *_whole          the whole model on GPU 0
+//   *_shardN_alone   one shard of an N-way split (N = 2, 4) on GPU 0, its sums left out: the
+//                    products, attention and row passes one of N GPUs would run, without collectives
+//   *_ncclN          (N GPUs present and the program built with NCCL) the N-way split over GPUs
+//                    0..N-1 through NCCL, one host thread per GPU; every rank starts each repeat
+//                    together and the row is rank 0's time
+// Each row: median milliseconds over the repeats (CUDA events, after a warm-up call that records
+// the graphs), the same per step, and the whole model's time over it. *_ncclN - *_shardN_alone is
+// the time the collectives add (none of it overlaps yet). Prints one JSON line per row.
+//   bench_gpu_shards [--steps S] [--repeats N] [--gpus N] [--only vis|step]
+// Keep NVLink multicast off (NCCL_NVLS_ENABLE=0): the NCCL rows refuse to run with it on.
+#include <algorithm>
+#include <cstdio>
+#include <cstdlib>
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "epona/core/arena.hpp"
+#include "epona/core/rng.hpp"
+#include "epona/core/tensor_parallel.hpp"
+#include "epona/cuda/backend.cuh"
+#include "epona/flow/schedule.hpp"
+#include "epona/model/random_weights.hpp"
+#include "epona/model/world_model.hpp"
+#include "bench_stats.hpp"
+#include "gpu_event_timer.cuh"
+#if defined(EPONA_BENCH_NCCL)
+#include "epona/cuda/runtime/nccl_shard_sum.hpp"
+#endif
+
+using namespace epona;
+
+namespace {
+
+using Dit = model::FluxDiT<Cuda, bf16>;
+
+struct Options {
+  std::int64_t steps = 100;
+  int repeats = 5, gpus = 0;  // gpus 0: every GPU present
+  std::string only;           // vis or step; empty: both
+  bool want(const std::string& kind) const { return only.empty() || only == kind; }
+};
+
+Options parse(int argc, char** argv) {
+  Options o;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    EPONA_CHECK(i + 1 < argc, a, " needs a value (--steps S, --repeats N, --gpus N, --only vis|step)");
+    if (a == "--only") {
+      o.only = argv[++i];
+      EPONA_CHECK(o.only == "vis" || o.only == "step", "--only takes vis or step, got '", o.only, "'");
+      continue;
+    }
+    char* end = nullptr;
+    const long long v = std::strtoll(argv[++i], &end, 10);
+    EPONA_CHECK(end && *end == 0 && v >= 1 && v <= 1000, a, " takes a whole number in [1, 1000], got '", argv[i], "'");
+    if (a == "--steps") o.steps = v;
+    else if (a == "--repeats") o.repeats = int(v);
+    else if (a == "--gpus") o.gpus = int(v);
+    else fail("unknown option '", a, "' (--steps S, --repeats N, --gpus N, --only vis|step)");
+  }
+  return o;
+}
+
+// A shard's sums left out: what its GPU computes, without the collectives.
+class NoSum final : public ShardSum<cuda::Context, bf16> {
+ public:
+  explicit NoSum(std::int64_t size) : size_(size) {}
+  std::int64_t size() const override { return size_; }
+  void sum(cuda::Context&, bf16*, std::int64_t) const override {}
+
+ private:
+  std::int64_t size_;
+};
+
+// One VisDiT shard (rank of size; size 1: the whole VisDiT) with random weights, its conditioning
+// and noise prepared on its own context (on the thread's current device); sample() runs the steps.
+struct VisSample {
+  cuda::Context ctx;
+  Dit dit;
+  Arena<Cuda> arena;
+  Dit::Conditioning conditioning;
+  Tensor<float, Cuda> state;
+  std::vector<float> grid;
+
+  VisSample(const WorldModelConfig& cfg, TensorShard shard, std::int64_t steps)
+      : dit(config(cfg, shard)), arena(bytes(dit, cfg, steps)) {
+    dit.randomize(1);
+    const auto ids = model::prepare_ids(1, cfg.latent_h(), cfg.latent_w(), cfg.tokens_per_frame(), cfg.traj_len);
+    const nn::JointRows rows{cfg.tokens_per_frame(), ids.img.size(1)};
+    TorchGenerator gen(5);
+    const auto cond = BackendTraits<Cuda>::upload(gen.randn({1, rows.cond, cfg.context_in_dim()}));
+    const auto y = BackendTraits<Cuda>::upload(gen.randn({1, cfg.pose_emb_dim()}));
+    state = BackendTraits<Cuda>::upload(gen.randn({1, rows.target, dit.config().in_channels}));
+    conditioning = dit.prepare(ctx, arena, cond, ids.cond, ids.img, y);
+    grid = flow::get_schedule(steps, rows.target);
+  }
+  cuda::Context& context() { return ctx; }
+  void sample(cuda::Context& c) { dit.sample(c, arena, conditioning, grid, state); }
+
+  static model::FluxDitConfig config(const WorldModelConfig& cfg, TensorShard shard) {
+    auto c = model::FluxDitConfig::vis(cfg);
+    c.shard = shard;
+    return c;
+  }
+  static std::size_t bytes(const Dit& dit, const WorldModelConfig& cfg, std::int64_t steps) {
+    const nn::JointRows rows{cfg.tokens_per_frame(), cfg.img_tokens()};
+    return dit.conditioning_bytes(1, rows) + dit.sample_bytes(1, rows, steps);
+  }
+};
+
+// An AR step of a world model whose VisDiT is shard `shard` (size 1: whole), random weights.
+struct WorldStep {
+  WorldModel<Cuda, bf16> wm;
+  History h;
+  SampleOptions opt;
+
+  WorldStep(const io::TensorMap& weights, const WorldModelConfig& cfg, TensorShard shard,
+            const WorldModel<Cuda, bf16>::VisShardSum* sum, std::int64_t steps)
+      : wm(WorldModel<Cuda, bf16>::load(weights, cfg, {shard, sum})), h(window(cfg)) {
+    opt.seed = 7;
+    opt.steps = steps;
+  }
+  cuda::Context& context() { return wm.context(); }
+  void sample(cuda::Context&) { (void)wm.predict_next(h, std::nullopt, opt); }
+  // A scene driving forward: random latents, about 2 m per frame.
+  static History window(const WorldModelConfig& cfg) {
+    TorchGenerator gen(11);
+    const std::int64_t F = cfg.condition_frames;
+    History h{gen.randn({1, F, cfg.img_tokens(), cfg.token_dim()}), gen.randn({1, F, 2}), gen.randn({1, F, 1})};
+    for (std::int64_t f = 0; f < F; ++f) h.rel_pose.at(0, f, 0) = 2.0f + 0.5f * h.rel_pose.at(0, f, 0);
+    return h;
+  }
+};
+
+void emit(const std::string& name, const std::vector<double>& runs, std::int64_t steps, double whole_ms) {
+  const double ms = bench::median(runs);
+  std::printf("{\"name\": \"%s\", \"ms\": %.3f, \"ms_per_step\": %.4f, \"whole_over_this\": %.3f}\n", name.c_str(), ms,
+              ms / double(steps), whole_ms > 0 ? whole_ms / ms : 1.0);
+  std::fflush(stdout);
+}
+
+// The whole VisDiT and one shard of each split, one after another on GPU 0.
+double vis_rows(const Options& o, const WorldModelConfig& cfg) {
+  double whole_ms = 0;
+  for (const std::int64_t shards : {1, 2, 4}) {
+    VisSample s(cfg, {0, shards}, o.steps);
+    const NoSum none(shards);
+    if (shards > 1) s.dit.set_shard_sum(&none);
+    auto& ctx = s.context();
+    const auto runs = bench::event_times_ms(ctx, o.repeats, 1, [&] { s.sample(ctx); });
+    if (shards == 1) whole_ms = bench::median(runs);
+    emit(shards == 1 ? "vis_whole" : "vis_shard" + std::to_string(shards) + "_alone", runs, o.steps, whole_ms);
+  }
+  return whole_ms;
+}
+
+// The same for the AR step: whole, then a world model with one VisDiT shard of each split.
+double step_rows(const Options& o, const WorldModelConfig& cfg, const io::TensorMap& weights) {
+  double whole_ms = 0;
+  for (const std::int64_t shards : {1, 2, 4}) {
+    const NoSum none(shards);
+    WorldStep s(weights, cfg, {0, shards}, shards > 1 ? &none : nullptr, o.steps);
+    auto& ctx = s.wm.context();
+    const auto runs = bench::event_times_ms(ctx, o.repeats, 1, [&] { s.sample(ctx); });
+    if (shards == 1) whole_ms = bench::median(runs);
+    emit(shards == 1 ? "step_whole" : "step_shard" + std::to_string(shards) + "_alone", runs, o.steps, whole_ms);
+  }
+  return whole_ms;
+}
+
+#if defined(EPONA_BENCH_NCCL)
+// The N-way split over GPUs 0..N-1 through NCCL, each rank's work made by make(rank, sum) in its
+// thread (on its GPU): rank 0's times, every rank starting each repeat together.
+template <class Make>
+void nccl_row(const Options& o, const std::string& name, int gpus, double whole_ms, const Make& make) {
+  std::vector<int> devices;
+  for (int d = 0; d < gpus; ++d) devices.push_back(d);
+  cuda::NcclShardGroup<bf16> group(devices);
+  BreakableBarrier together(gpus);
+  std::vector<double> rank0;
+  group.run([&](std::int64_t r) {
+    const auto sum = group.shard(r);
+    auto work = make(r, sum);
+    auto& ctx = work->context();
+    work->sample(ctx);  // records the graphs
+    ctx.synchronize();
+    std::vector<double> runs;
+    for (int i = 0; i < o.repeats; ++i) {
+      together.arrive_and_wait();
+      runs.push_back(bench::event_times_ms(ctx, 1, 0, [&] { work->sample(ctx); }).front());
+    }
+    if (r == 0) rank0 = runs;
+  });
+  emit(name + "_nccl" + std::to_string(gpus), rank0, o.steps, whole_ms);
+}
+#endif
+
+}  // namespace
+
+int main(int argc, char** argv) try {
+  const Options o = parse(argc, argv);
+  WorldModelConfig cfg;  // the shipped configuration
+  int present = 0;
+  EPONA_CUDA_CHECK(cudaGetDeviceCount(&present));
+  const int gpus = o.gpus ? std::min(o.gpus, present) : present;
+  std::printf("# %s; bf16, %lld steps, repeats %d, %d GPU(s)\n", cuda::DeviceInfo::query(0).name.c_str(),
+              static_cast<long long>(o.steps), o.repeats, gpus);
+#if defined(EPONA_BENCH_NCCL)
+  const char* nvls = std::getenv("NCCL_NVLS_ENABLE");
+  EPONA_CHECK(gpus < 2 || (nvls && std::string(nvls) == "0"), "set NCCL_NVLS_ENABLE=0 (docs/parallel.md)");
+#else
+  if (gpus >= 2) std::printf("# built without NCCL: no rows over several GPUs\n");
+#endif
+  if (o.want("vis")) {
+    const double whole_ms = vis_rows(o, cfg);
+#if defined(EPONA_BENCH_NCCL)
+    for (int n = 2; n <= gpus; n *= 2)
+      nccl_row(o, "vis", n, whole_ms, [&](std::int64_t r, const auto& sum) {
+        auto s = std::make_unique<VisSample>(cfg, TensorShard{r, n}, o.steps);
+        s->dit.set_shard_sum(&sum);
+        return s;
+      });
+#endif
+  }
+  if (o.want("step")) {
+    const io::TensorMap weights = model::random_world_weights(cfg, 1);
+    const double whole_ms = step_rows(o, cfg, weights);
+#if defined(EPONA_BENCH_NCCL)
+    for (int n = 2; n <= gpus; n *= 2)
+      nccl_row(o, "step", n, whole_ms, [&](std::int64_t r, const auto& sum) {
+        return std::make_unique<WorldStep>(weights, cfg, TensorShard{r, n}, &sum, o.steps);
+      });
+#endif
+  }
+  return 0;
+} catch (const std::exception& e) {
+  std::fprintf(stderr, "bench_gpu_shards: %s\n", e.what());
+  return 1;
+}
