@@ -131,6 +131,15 @@ History history_of(cpu::Context& ctx, const Dc& dcae, const fs::path& clip, cons
   return {tokens.reshape({1, F, tokens.size(1), tokens.size(2)}), last.pose_tensor(), last.yaw_tensor()};
 }
 
+// generate of 2 frames of `clip` (its frames and poses.csv) on the golden model: 2 steps, seed 3,
+// the latents kept; --out not yet given.
+std::vector<std::string> two_frames_of(const fs::path& clip) {
+  std::vector<std::string> args = {"generate", "-n", "2", "--steps", "2", "--seed", "3", "--latents", "--frames",
+                                   clip.string(), "--poses", (clip / "poses.csv").string()};
+  for (const auto& a : golden_model_args()) args.push_back(a);
+  return args;
+}
+
 void check_same(const Tensor<float>& a, const Tensor<float>& b) {
   REQUIRE(a.shape() == b.shape());
   std::int64_t differ = 0;
@@ -406,9 +415,7 @@ TEST_CASE("generate 2 frames: files and sizes, equal to rollout(), deterministic
   TempDir t;
   const auto& cfg = golden_configs();
   const fs::path clip = make_clip(t, cfg.world.condition_frames + 1, cfg.world.condition_frames + 1);
-  std::vector<std::string> args = {"generate", "-n", "2", "--steps", "2", "--seed", "3", "--latents", "--frames",
-                                   clip.string(), "--poses", (clip / "poses.csv").string()};
-  for (const auto& a : golden_model_args()) args.push_back(a);
+  std::vector<std::string> args = two_frames_of(clip);
   auto run_into = [&](const std::string& out) {
     auto a = args;
     a.insert(a.end(), {"--out", out});
@@ -480,9 +487,7 @@ TEST_CASE("--tensor-parallel 2: plan and generate as the whole model; splits tha
   TempDir t;
   const auto& cfg = golden_configs();
   const fs::path clip = make_clip(t, cfg.world.condition_frames + 1, cfg.world.condition_frames + 1);
-  std::vector<std::string> args = {"generate", "-n", "2", "--steps", "2", "--seed", "3", "--latents", "--frames",
-                                   clip.string(), "--poses", (clip / "poses.csv").string()};
-  for (const auto& a : golden_model_args()) args.push_back(a);
+  std::vector<std::string> args = two_frames_of(clip);
   const auto run = [&](const std::string& out, std::vector<std::string> extra) {
     auto a = args;
     a.insert(a.end(), {"--out", out});
