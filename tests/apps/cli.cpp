@@ -32,9 +32,16 @@
 #include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
 #include "epona/model/rollout.hpp"
+#include "../golden_dir.hpp"
+#include "../files.hpp"
 
 namespace fs = std::filesystem;
 using namespace epona;
+using epona::test::check_cli_error;
+using epona::test::write_file;
+using epona::test::read_file;
+using epona::test::TempDir;
+using epona::test::golden_dir;
 
 namespace {
 
@@ -42,10 +49,6 @@ using test::cli;
 using test::has;
 using Result = test::CliResult;
 
-std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
-}
 const io::ModelConfigs& golden_configs() {
   static const io::ModelConfigs c = io::load_configs(golden_dir() + "/configs.json");
   return c;
@@ -53,19 +56,6 @@ const io::ModelConfigs& golden_configs() {
 std::vector<std::string> golden_model_args() {
   return {"--weights", golden_dir() + "/weights_world.safetensors", "--dcae", golden_dir() + "/weights_dcae.safetensors",
           "--config", golden_dir() + "/configs.json"};
-}
-
-// A fresh folder under the system temp dir, removed at the end of the test.
-struct TempDir : test::TempDir {
-  TempDir() : test::TempDir("epona_cli_test") {}
-};
-
-std::string read_bytes(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-}
-void write_text(const fs::path& p, const std::string& text) {
-  std::ofstream(p, std::ios::binary) << text;
 }
 
 io::Image demo_frame(int i) {
@@ -83,7 +73,7 @@ fs::path make_clip(const TempDir& t, std::int64_t count, std::int64_t pose_rows,
                   io::resize_bicubic(demo_frame(static_cast<int>(i % 3)), w.image_h, w.image_w));
   std::string csv = "x,y,yaw\n";
   for (std::int64_t i = 0; i < pose_rows; ++i) csv += (i == 1 && !bad_row.empty()) ? bad_row + "\n" : "2.0,0.1,0.5\n";
-  write_text(dir / "poses.csv", csv);
+  write_file(dir / "poses.csv", csv);
   return dir;
 }
 
@@ -98,18 +88,6 @@ void check_png(const std::string& path, std::int64_t h, std::int64_t w) {
   CHECK(height == h);
   CHECK(width == w);
   CHECK(channels == 3);
-}
-
-
-void check_error(const Result& r, const std::string& part) {
-  INFO("stderr: " << r.err);
-  CHECK(r.rc == 1);
-  // Notes may come first; the error starts a line and ends the output.
-  const std::size_t at = r.err.find("epona: error: ");
-  REQUIRE(at != std::string::npos);
-  CHECK((at == 0 || r.err[at - 1] == '\n'));
-  CHECK(r.err.back() == '\n');
-  CHECK(has(r.err, part));
 }
 
 // The library called directly on a clip folder: the window the CLI must build.
@@ -150,32 +128,32 @@ void check_same(const Tensor<float>& a, const Tensor<float>& b) {
 }  // namespace
 
 TEST_CASE("usage errors exit 1 with 'epona: error:' and name the problem") {
-  check_error(cli({}), "no command given");
-  check_error(cli({"fly"}), "unknown command 'fly'");
-  check_error(cli({"plan", "--bogus"}), "unknown option '--bogus'");
-  check_error(cli({"plan", "-z"}), "unknown option '-z'");
-  check_error(cli({"plan", "--steps"}), "--steps needs a value");
-  check_error(cli({"plan", "--steps", "0"}), "--steps must be in [1, 100000], got 0");
-  check_error(cli({"plan", "--steps", "ten"}), "--steps needs an integer, got 'ten'");
-  check_error(cli({"plan", "--steps=3x"}), "--steps needs an integer");
-  check_error(cli({"plan", "--seed", "-1"}), "--seed must be at least 0, got -1");
-  check_error(cli({"plan", "--solver", "rk4"}), "--solver: unknown solver 'rk4' (one of euler, heun, midpoint, dpmpp2m)");
-  check_error(cli({"plan", "--sampler", "turbo"}), "--sampler must be one of official, fast; got 'turbo'");
-  check_error(cli({"plan", "--plan-steps", "0"}), "--plan-steps must be in [1, 100000], got 0");
-  check_error(cli({"generate", "--video-steps", "100001"}), "--video-steps must be in [1, 100000], got 100001");
-  check_error(cli({"eval", "--clips", ".", "--json", "r.json", "--solver", "Euler"}), "unknown solver 'Euler'");
-  check_error(cli({"plan", "--seed", "1", "--seed", "2"}), "--seed given more than once");
-  check_error(cli({"plan", "--quiet=yes"}), "--quiet takes no value");
-  check_error(cli({"plan", "extra"}), "unexpected argument 'extra'");
-  check_error(cli({"plan", "--backend", "tpu"}), "--backend must be one of cpu, cuda; got 'tpu'");
-  check_error(cli({"plan", "--dtype", "int8"}), "--dtype must be one of");
-  check_error(cli({"generate", "-n", "0"}), "--num-frames must be at least 1, got 0");
-  check_error(cli({"generate", "--decode", "gif"}), "--decode must be one of clip, frame");
-  check_error(cli({"decode", "z.npy", "--video"}), "--video needs a value (FILE)");
-  check_error(cli({"info"}), "missing checkpoint file(s)");
-  check_error(cli({"decode"}), "missing latents file");
-  check_error(cli({"encode", "x.png", "--size", "100x200"}), "--size must be HxW with positive multiples of 32");
-  check_error(cli({"plan", "--dcae", golden_dir() + "/weights_dcae.safetensors"}), "--weights FILE");
+  check_cli_error(cli({}), "no command given");
+  check_cli_error(cli({"fly"}), "unknown command 'fly'");
+  check_cli_error(cli({"plan", "--bogus"}), "unknown option '--bogus'");
+  check_cli_error(cli({"plan", "-z"}), "unknown option '-z'");
+  check_cli_error(cli({"plan", "--steps"}), "--steps needs a value");
+  check_cli_error(cli({"plan", "--steps", "0"}), "--steps must be in [1, 100000], got 0");
+  check_cli_error(cli({"plan", "--steps", "ten"}), "--steps needs an integer, got 'ten'");
+  check_cli_error(cli({"plan", "--steps=3x"}), "--steps needs an integer");
+  check_cli_error(cli({"plan", "--seed", "-1"}), "--seed must be at least 0, got -1");
+  check_cli_error(cli({"plan", "--solver", "rk4"}), "--solver: unknown solver 'rk4' (one of euler, heun, midpoint, dpmpp2m)");
+  check_cli_error(cli({"plan", "--sampler", "turbo"}), "--sampler must be one of official, fast; got 'turbo'");
+  check_cli_error(cli({"plan", "--plan-steps", "0"}), "--plan-steps must be in [1, 100000], got 0");
+  check_cli_error(cli({"generate", "--video-steps", "100001"}), "--video-steps must be in [1, 100000], got 100001");
+  check_cli_error(cli({"eval", "--clips", ".", "--json", "r.json", "--solver", "Euler"}), "unknown solver 'Euler'");
+  check_cli_error(cli({"plan", "--seed", "1", "--seed", "2"}), "--seed given more than once");
+  check_cli_error(cli({"plan", "--quiet=yes"}), "--quiet takes no value");
+  check_cli_error(cli({"plan", "extra"}), "unexpected argument 'extra'");
+  check_cli_error(cli({"plan", "--backend", "tpu"}), "--backend must be one of cpu, cuda; got 'tpu'");
+  check_cli_error(cli({"plan", "--dtype", "int8"}), "--dtype must be one of");
+  check_cli_error(cli({"generate", "-n", "0"}), "--num-frames must be at least 1, got 0");
+  check_cli_error(cli({"generate", "--decode", "gif"}), "--decode must be one of clip, frame");
+  check_cli_error(cli({"decode", "z.npy", "--video"}), "--video needs a value (FILE)");
+  check_cli_error(cli({"info"}), "missing checkpoint file(s)");
+  check_cli_error(cli({"decode"}), "missing latents file");
+  check_cli_error(cli({"encode", "x.png", "--size", "100x200"}), "--size must be HxW with positive multiples of 32");
+  check_cli_error(cli({"plan", "--dcae", golden_dir() + "/weights_dcae.safetensors"}), "--weights FILE");
 }
 
 TEST_CASE("progress: rate, elapsed and time left; in place on a terminal, a line per tenth otherwise") {
@@ -226,9 +204,9 @@ TEST_CASE("frames are listed in natural name order") {
 TEST_CASE("--backend cuda is refused with a reason, never a crash") {
   const Result r = cli({"plan", "--backend", "cuda"});
 #if defined(EPONA_WITH_CUDA)
-  check_error(r, "this program was built without its CUDA engine");  // the epona binary has it; this test does not
+  check_cli_error(r, "this program was built without its CUDA engine");  // the epona binary has it; this test does not
 #else
-  check_error(r, "this build has no CUDA backend");
+  check_cli_error(r, "this build has no CUDA backend");
 #endif
 }
 
@@ -285,7 +263,7 @@ TEST_CASE("info --write-config gives back the configuration the shapes imply") {
   REQUIRE(r.rc == 0);
   CHECK(has(r.out, "differs from the shipped Epona configuration in:"));
   CHECK(has(r.out, "n_embd: " + std::to_string(golden_configs().world.n_embd) + " (checkpoint) vs 2048 (configuration)"));
-  const auto j = nlohmann::json::parse(read_bytes(t / "detected.json"));
+  const auto j = nlohmann::json::parse(read_file(t / "detected.json"));
   const auto& w = golden_configs().world;
   CHECK(j["world_model_config"]["n_embd"] == w.n_embd);
   CHECK(j["world_model_config"]["n_layer"] == nlohmann::json(w.n_layer));
@@ -323,15 +301,15 @@ TEST_CASE("convert: the official .pkl to safetensors, same names, dtypes, shapes
     CHECK(a.shape == b.shape);
     CHECK(std::equal(a.bytes.begin(), a.bytes.end(), b.bytes.begin(), b.bytes.end()));
   }
-  check_error(cli({"convert", pkl, t / "out.bin"}), "the name must end in .safetensors");
-  check_error(cli({"convert", t / "missing.pkl", t / "x.safetensors"}), "no such file");
-  check_error(cli({"convert", pkl, t / "x.safetensors", "--key", "optimizer"}), "optimizer");
+  check_cli_error(cli({"convert", pkl, t / "out.bin"}), "the name must end in .safetensors");
+  check_cli_error(cli({"convert", t / "missing.pkl", t / "x.safetensors"}), "no such file");
+  check_cli_error(cli({"convert", pkl, t / "x.safetensors", "--key", "optimizer"}), "optimizer");
 }
 
 TEST_CASE("encode and decode equal the DC-AE called directly") {
   TempDir t;
   const auto& cfg = golden_configs();
-  write_text(t.path / "note.txt", "not an image");  // ignored inside folders
+  write_file(t.path / "note.txt", "not an image");  // ignored inside folders
   const std::string frame = std::string(EPONA_TEST_DATA_DIR) + "/demo/frame_01.png";
   const std::vector<std::string> model = {"--dcae", golden_dir() + "/weights_dcae.safetensors", "--config",
                                           golden_dir() + "/configs.json", "-q"};
@@ -367,15 +345,15 @@ TEST_CASE("encode and decode equal the DC-AE called directly") {
   r = cli(with({"encode", frame, "--size", "32x64", "--fit", "resize", "-o", t / "small.npy"}));
   REQUIRE(r.rc == 0);
   CHECK(io::read_npy<float>(t / "small.npy").values.shape() == Shape{1, cfg.dcae.latent_channels, 1, 2});
-  check_error(cli(with({"encode", frame, "--size", "32x64", "-o", t / "x.npy"})), "--fit resize|crop|cover");
-  check_error(cli(with({"encode", t / "missing.png"})), "no such file or folder");
-  check_error(cli(with({"encode", t / "note.txt"})), "not a PNG or JPEG file");
+  check_cli_error(cli(with({"encode", frame, "--size", "32x64", "-o", t / "x.npy"})), "--fit resize|crop|cover");
+  check_cli_error(cli(with({"encode", t / "missing.png"})), "no such file or folder");
+  check_cli_error(cli(with({"encode", t / "note.txt"})), "not a PNG or JPEG file");
   io::write_npy(t / "flat.npy", Tensor<float>::zeros({4, 5}));
-  check_error(cli(with({"decode", t / "flat.npy", "-o", t / "d2"})), "latents must be (N, C, h, w)");
+  check_cli_error(cli(with({"decode", t / "flat.npy", "-o", t / "d2"})), "latents must be (N, C, h, w)");
   Tensor<float> odd = z.clone();
   odd.data()[3] = std::nanf("");
   io::write_npy(t / "nan.npy", odd);
-  check_error(cli(with({"decode", t / "nan.npy", "-o", t / "d3"})), "non-finite latent value at flat index 3");
+  check_cli_error(cli(with({"decode", t / "nan.npy", "-o", t / "d3"})), "non-finite latent value at flat index 3");
 }
 
 TEST_CASE("plan on the bundled demo: outputs exist, sizes, equal to WorldModel::plan") {
@@ -459,7 +437,7 @@ TEST_CASE("generate 2 frames: files and sizes, equal to rollout(), deterministic
   REQUIRE(run_into(t / "g2").rc == 0);
   for (const std::string f : {"frames/frame_0000.png", "frames/frame_0001.png", "contact_sheet.png", "trajectory.csv",
                               "trajectory.json", "poses.csv", "latents.npy"})
-    CHECK_MESSAGE(read_bytes(t.path / "g1" / f) == read_bytes(t.path / "g2" / f), f);
+    CHECK_MESSAGE(read_file(t.path / "g1" / f) == read_file(t.path / "g2" / f), f);
 
   // Replaying the log drives each step with its logged waypoint 0.
   auto replay = args;
@@ -476,7 +454,7 @@ TEST_CASE("generate 2 frames: files and sizes, equal to rollout(), deterministic
   check_png(t / "g3/frames/frame_0001.png", w.image_h, w.image_w);
   auto too_many = replay;
   too_many.insert(too_many.end(), {"-n", "3"});
-  check_error(cli(too_many), "holds 2 action(s); --num-frames asks for 3");
+  check_cli_error(cli(too_many), "holds 2 action(s); --num-frames asks for 3");
 }
 
 // --tensor-parallel N (docs/parallel.md): the VisDiT split over threads on the CPU. The TrajDiT is
@@ -529,11 +507,11 @@ TEST_CASE("--tensor-parallel 2: plan and generate as the whole model; splits tha
   const Result plan_split = cli({"plan", "--out", t / "plan_split", "--seed", "7", "--tensor-parallel", "2"});
   REQUIRE(plan.rc == 0);
   REQUIRE(plan_split.rc == 0);
-  CHECK(read_bytes(t.path / "plan/trajectory.json") == read_bytes(t.path / "plan_split/trajectory.json"));
+  CHECK(read_file(t.path / "plan/trajectory.json") == read_file(t.path / "plan_split/trajectory.json"));
 
-  check_error(run(t / "three", {"--tensor-parallel", "3"}), "do not split evenly over 3 shards");
-  check_error(run(t / "none", {"--tensor-parallel", "0"}), "--tensor-parallel");
-  check_error(run(t / "many", {"--tensor-parallel", "9"}), "--tensor-parallel");
+  check_cli_error(run(t / "three", {"--tensor-parallel", "3"}), "do not split evenly over 3 shards");
+  check_cli_error(run(t / "none", {"--tensor-parallel", "0"}), "--tensor-parallel");
+  check_cli_error(run(t / "many", {"--tensor-parallel", "9"}), "--tensor-parallel");
   CHECK_FALSE(fs::exists(t / "three/frames/frame_0000.png"));
 }
 
@@ -563,42 +541,42 @@ TEST_CASE("bad inputs: clear errors, exit 1") {
     a.insert(a.end(), extra.begin(), extra.end());
     return cli(a);
   };
-  check_error(plan({"--frames", t / "nowhere", "--poses", t / "p.csv"}), "no such folder");
-  check_error(plan({}), "--frames DIR is needed with --weights");
+  check_cli_error(plan({"--frames", t / "nowhere", "--poses", t / "p.csv"}), "no such folder");
+  check_cli_error(plan({}), "--frames DIR is needed with --weights");
   {
     TempDir c;
     const fs::path clip = make_clip(c, w.condition_frames - 1, w.condition_frames - 1);
-    check_error(plan({"--frames", clip.string(), "--poses", (clip / "poses.csv").string()}),
+    check_cli_error(plan({"--frames", clip.string(), "--poses", (clip / "poses.csv").string()}),
                 "the model needs " + std::to_string(w.condition_frames) + " condition frames, the folder holds " +
                     std::to_string(w.condition_frames - 1));
   }
   {
     TempDir c;
     const fs::path clip = make_clip(c, w.condition_frames, w.condition_frames + 1);
-    check_error(plan({"--frames", clip.string(), "--poses", (clip / "poses.csv").string()}), "give one pose per frame");
+    check_cli_error(plan({"--frames", clip.string(), "--poses", (clip / "poses.csv").string()}), "give one pose per frame");
   }
   {
     TempDir c;
     const fs::path clip = make_clip(c, w.condition_frames, w.condition_frames, "2.0,nan,0.0");
-    check_error(plan({"--frames", clip.string(), "--poses", (clip / "poses.csv").string()}), "is not a finite number");
+    check_cli_error(plan({"--frames", clip.string(), "--poses", (clip / "poses.csv").string()}), "is not a finite number");
   }
   {
     TempDir c;
     const fs::path clip = make_clip(c, w.condition_frames, w.condition_frames);
     io::write_png((clip / "f0.png").string(), io::resize_bicubic(demo_frame(0), w.image_h + 32, w.image_w));
     const std::vector<std::string> in = {"--frames", clip.string(), "--poses", (clip / "poses.csv").string()};
-    check_error(plan(in), "--fit resize|crop|cover");
+    check_cli_error(plan(in), "--fit resize|crop|cover");
     auto fitted = in;
     fitted.insert(fitted.end(), {"--fit", "resize"});
     CHECK(plan(fitted).rc == 0);
     fitted.insert(fitted.end(), {"--dtype", "bf16"});
     CHECK(plan(fitted).rc == 0);  // bf16 weights run too
   }
-  check_error(cli({"plan", "--weights", t / "none.pkl", "--dcae", t / "none.pkl"}), "no such file");
+  check_cli_error(cli({"plan", "--weights", t / "none.pkl", "--dcae", t / "none.pkl"}), "no such file");
   {
     TempDir c;
     const fs::path clip = make_clip(c, w.condition_frames, w.condition_frames);
-    check_error(cli({"plan", "--weights", golden_dir() + "/weights_world.safetensors", "--dcae",
+    check_cli_error(cli({"plan", "--weights", golden_dir() + "/weights_world.safetensors", "--dcae",
                      golden_dir() + "/weights_world.safetensors", "--config", golden_dir() + "/configs.json",
                      "--frames", clip.string(), "--poses", (clip / "poses.csv").string()}),
                 "holds no DC-AE weights (no 'encoder.*' keys; it is a world-model checkpoint)");
@@ -607,26 +585,26 @@ TEST_CASE("bad inputs: clear errors, exit 1") {
   // checkpoint's shapes imply. DC-AE: the golden weights with the shipped DcaeConfig{}.
   const Result dcae_mismatch = cli({"encode", std::string(EPONA_TEST_DATA_DIR) + "/demo/frame_00.png", "--dcae",
                                     golden_dir() + "/weights_dcae.safetensors", "-o", t / "z.npy", "-q"});
-  check_error(dcae_mismatch, "the checkpoint's shapes differ from the shipped Epona configuration in");
+  check_cli_error(dcae_mismatch, "the checkpoint's shapes differ from the shipped Epona configuration in");
   CHECK(has(dcae_mismatch.err, "--write-config"));
   {  // World model: the golden configuration with a wider MST.
     TempDir c;
-    auto j = nlohmann::json::parse(read_bytes(golden_dir() + "/configs.json"));
+    auto j = nlohmann::json::parse(read_file(golden_dir() + "/configs.json"));
     j["world_model_config"]["n_embd"] = 2 * w.n_embd;
-    write_text(c.path / "wide.json", j.dump());
+    write_file(c.path / "wide.json", j.dump());
     const fs::path clip = make_clip(c, w.condition_frames, w.condition_frames);
     const Result r = cli({"plan", "--weights", golden_dir() + "/weights_world.safetensors", "--dcae",
                           golden_dir() + "/weights_dcae.safetensors", "--config", c / "wide.json", "--frames",
                           clip.string(), "--poses", (clip / "poses.csv").string(), "-q"});
-    check_error(r, "n_embd: " + std::to_string(w.n_embd) + " (checkpoint) vs " + std::to_string(2 * w.n_embd) +
+    check_cli_error(r, "n_embd: " + std::to_string(w.n_embd) + " (checkpoint) vs " + std::to_string(2 * w.n_embd) +
                        " (configuration)");
     CHECK(has(r.err, "weight problem(s)"));
   }
-  check_error(cli({"info", t / "absent.safetensors"}), "no such file");
-  check_error(cli({"info", std::string(EPONA_TEST_DATA_DIR) + "/pkl/no_state_dict.pkl"}), "pass the key explicitly");
-  check_error(cli({"info", std::string(EPONA_TEST_DATA_DIR) + "/pkl/hostile_os_system.pkl"}), "os.system");
-  write_text(t.path / "junk.safetensors", "not a checkpoint at all");
-  check_error(cli({"info", t / "junk.safetensors"}), "junk.safetensors");
+  check_cli_error(cli({"info", t / "absent.safetensors"}), "no such file");
+  check_cli_error(cli({"info", std::string(EPONA_TEST_DATA_DIR) + "/pkl/no_state_dict.pkl"}), "pass the key explicitly");
+  check_cli_error(cli({"info", std::string(EPONA_TEST_DATA_DIR) + "/pkl/hostile_os_system.pkl"}), "os.system");
+  write_file(t.path / "junk.safetensors", "not a checkpoint at all");
+  check_cli_error(cli({"info", t / "junk.safetensors"}), "junk.safetensors");
 }
 
 // generate --clips: clip i of the set is what generate of that clip alone with seed + i writes.
@@ -653,13 +631,13 @@ TEST_CASE("generate --clips: each clip as generate of it alone, seed + clip inde
     const Result r = run({"--frames", (t.path / "set" / name / "frames").string(), "--poses",
                           (t.path / "set" / name / "poses.csv").string(), "--seed", seed, "--out", alone.string()});
     REQUIRE(r.rc == 0);
-    CHECK(read_bytes((t.path / "many" / name / "trajectory.json").string()) == read_bytes((alone / "trajectory.json").string()));
-    CHECK(read_bytes((t.path / "many" / name / "frames/frame_0000.png").string()) ==
-          read_bytes((alone / "frames/frame_0000.png").string()));
+    CHECK(read_file((t.path / "many" / name / "trajectory.json").string()) == read_file((alone / "trajectory.json").string()));
+    CHECK(read_file((t.path / "many" / name / "frames/frame_0000.png").string()) ==
+          read_file((alone / "frames/frame_0000.png").string()));
   }
-  CHECK(read_bytes((t.path / "many/a/trajectory.json").string()) != read_bytes((t.path / "many/b/trajectory.json").string()));
-  check_error(run({"--clips", t / "set", "--frames", clip.string()}), "--clips and --frames do not go together");
-  check_error(run({"--clips", t / "absent"}), "no such folder");
+  CHECK(read_file((t.path / "many/a/trajectory.json").string()) != read_file((t.path / "many/b/trajectory.json").string()));
+  check_cli_error(run({"--clips", t / "set", "--frames", clip.string()}), "--clips and --frames do not go together");
+  check_cli_error(run({"--clips", t / "absent"}), "no such folder");
 }
 
 // Issue #39: generate --clips --batch 2 rolls two clips out per world-model call; each clip keeps
@@ -706,12 +684,12 @@ TEST_CASE("generate --clips --batch 2: the trajectories and frames of --batch 1"
           worst_pixel, " level(s)");
   CHECK(worst_traj <= 1e-5);
   CHECK(worst_pixel <= 1);  // rounding: at most one 8-bit level
-  CHECK(read_bytes(t.path / "one/a/trajectory.json") != read_bytes(t.path / "one/b/trajectory.json"));  // seeds differ
-  check_error(run("0", "zero"), "--batch must be in [1, 64], got 0");
+  CHECK(read_file(t.path / "one/a/trajectory.json") != read_file(t.path / "one/b/trajectory.json"));  // seeds differ
+  check_cli_error(run("0", "zero"), "--batch must be in [1, 64], got 0");
   std::vector<std::string> single{"generate", "-n", "1", "--frames", clip.string(), "--poses", (clip / "poses.csv").string(),
                                   "--batch", "2", "--out", t / "single"};
   for (const auto& m : golden_model_args()) single.push_back(m);
-  check_error(cli(single), "--batch is for --clips");
+  check_cli_error(cli(single), "--batch is for --clips");
 }
 
 // An epona built without FFmpeg (where libavcodec is missing) refuses --video before any work and
@@ -744,12 +722,12 @@ TEST_CASE("several processes: refused without MPI, and by commands that do not s
   const Result garbled = cli({"eval", "--clips", t / "none", "--json", t / "r.json", "-q"});
   ::unsetenv("OMPI_COMM_WORLD_SIZE");
   ::unsetenv("OMPI_COMM_WORLD_RANK");
-  check_error(plan, "plan runs as one process, but openmpi started 2 (this is rank 1)");
+  check_cli_error(plan, "plan runs as one process, but openmpi started 2 (this is rank 1)");
   CHECK_FALSE(fs::exists(t.path / "plan"));
-  check_error(one_clip, "generate of one clip runs as one process, but openmpi started 2 (this is rank 1)");
+  check_cli_error(one_clip, "generate of one clip runs as one process, but openmpi started 2 (this is rank 1)");
   CHECK_FALSE(fs::exists(t.path / "one"));
-  check_error(eval, "openmpi started 2 processes (this is rank 1), but this epona was built without MPI");
-  check_error(garbled, "OMPI_COMM_WORLD_SIZE is not a process count or index: 'many'");
+  check_cli_error(eval, "openmpi started 2 processes (this is rank 1), but this epona was built without MPI");
+  check_cli_error(garbled, "OMPI_COMM_WORLD_SIZE is not a process count or index: 'many'");
 }
 
 // The one translation unit of this program that compiles stb (after every other include).

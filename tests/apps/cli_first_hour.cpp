@@ -19,6 +19,7 @@
 
 namespace fs = std::filesystem;
 using namespace epona;
+using epona::test::TempDir;
 using test::cli;
 using test::has;
 
@@ -27,10 +28,6 @@ namespace {
 const std::string kModels = EPONA_MODELS_DIR;
 const std::string kBundled = kModels + "/small-synthetic";
 const std::string kFrame = kBundled + "/demo/frames/frame_00.png";
-
-struct TempDir : test::TempDir {
-  TempDir() : test::TempDir("epona_first_hour") {}
-};
 
 // stdout of a shell command (stderr joined), for the scripts.
 std::string shell(const std::string& command) {

@@ -22,18 +22,19 @@
 #include "epona/io/npy.hpp"
 #include "epona/io/image.hpp"
 #include "epona/io/safetensors.hpp"
+#include "../golden_dir.hpp"
+#include "../files.hpp"
 
 namespace fs = std::filesystem;
 using namespace epona;
+using epona::test::check_cli_error;
+using epona::test::write_file;
+using epona::test::golden_dir;
 using test::cli;
 using test::has;
 
 namespace {
 
-std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
-}
 std::vector<std::string> with_model(std::vector<std::string> args) {
   for (const auto& s : {"--weights", "", "--dcae", "", "--config", ""}) args.push_back(s);
   const auto n = args.size();
@@ -41,16 +42,6 @@ std::vector<std::string> with_model(std::vector<std::string> args) {
   args[n - 3] = golden_dir() + "/weights_dcae.safetensors";
   args[n - 1] = golden_dir() + "/configs.json";
   return args;
-}
-void write_text(const fs::path& p, const std::string& text) { std::ofstream(p, std::ios::binary) << text; }
-
-// An error: exit 1, one "epona: error:" line holding `part`, no raw control bytes, short.
-void check_error(const test::CliResult& r, const std::string& part) {
-  CHECK(r.rc == 1);
-  CHECK_MESSAGE(has(r.err, "epona: error: "), r.err);
-  CHECK_MESSAGE(has(r.err, part), r.err);
-  CHECK(r.err.size() < 5000);
-  CHECK(r.err.find('\x1b') == std::string::npos);
 }
 
 // A torch.save-like .pkl whose `views` tensors all view one float storage of `numel` elements.
@@ -91,11 +82,11 @@ std::string shared_storage_pkl(int views, std::int64_t numel) {
 
 TEST_CASE("convert refuses a .pkl whose views would repeat one storage many times over") {
   test::TempDir t;
-  write_text(t.path / "views.pkl", shared_storage_pkl(40, 1 << 18));  // 1 MiB storage, 40 MiB of views
+  write_file(t.path / "views.pkl", shared_storage_pkl(40, 1 << 18));  // 1 MiB storage, 40 MiB of views
   const auto r = cli({"convert", t / "views.pkl", t / "out.safetensors", "-q"});
-  check_error(r, "distinct bytes of storage 40 times over");
+  check_cli_error(r, "distinct bytes of storage 40 times over");
   CHECK_FALSE(fs::exists(t.path / "out.safetensors"));
-  write_text(t.path / "tied.pkl", shared_storage_pkl(2, 1 << 18));  // tied weights: written twice
+  write_file(t.path / "tied.pkl", shared_storage_pkl(2, 1 << 18));  // tied weights: written twice
   CHECK(cli({"convert", t / "tied.pkl", t / "tied.safetensors", "-q"}).rc == 0);
   CHECK(fs::file_size(t.path / "tied.safetensors") > 2u << 20);
 }
@@ -121,21 +112,21 @@ TEST_CASE("info prints tensor names with ESC and NUL escaped") {
 TEST_CASE("errors echo a short, escaped prefix of huge input") {
   test::TempDir t;
   const std::string huge(20 << 20, 'A');
-  check_error(cli({"encode", t / "x.png", "--size", huge, "-q"}), "--size must be HxW");
+  check_cli_error(cli({"encode", t / "x.png", "--size", huge, "-q"}), "--size must be HxW");
   // A 30 MB line of commas as actions: one short error, no 30M-field split.
-  write_text(t.path / "commas.csv", std::string(30 << 20, ',') + "\n");
-  check_error(cli(with_model({"generate", "--trajectory", t / "commas.csv", "-q", "--out", t / "g"})),
+  write_file(t.path / "commas.csv", std::string(30 << 20, ',') + "\n");
+  check_cli_error(cli(with_model({"generate", "--trajectory", t / "commas.csv", "-q", "--out", t / "g"})),
               "expected 3 values (x, y, yaw), got more than 16: ',,,,");
   // Control bytes in an unknown option are escaped in the message.
-  check_error(cli({"info", "--\x1b[2Jevil"}), "\\x1b[2Jevil");
+  check_cli_error(cli({"info", "--\x1b[2Jevil"}), "\\x1b[2Jevil");
 }
 
 TEST_CASE("--threads, --size and --num-frames have upper bounds naming the option") {
   test::TempDir t;
-  check_error(cli({"encode", t / "x.png", "--threads", "100000", "-q"}), "--threads must be in [0, ");
-  check_error(cli({"encode", t / "x.png", "--size", "65536x65536", "-q"}), "longer than the limit of 16384");
-  check_error(cli({"encode", t / "x.png", "--size", "16384x16384", "-q"}), "(--max-pixels raises it)");
-  check_error(cli(with_model({"generate", "--num-frames", "20000", "-q", "--out", t / "g"})),
+  check_cli_error(cli({"encode", t / "x.png", "--threads", "100000", "-q"}), "--threads must be in [0, ");
+  check_cli_error(cli({"encode", t / "x.png", "--size", "65536x65536", "-q"}), "longer than the limit of 16384");
+  check_cli_error(cli({"encode", t / "x.png", "--size", "16384x16384", "-q"}), "(--max-pixels raises it)");
+  check_cli_error(cli(with_model({"generate", "--num-frames", "20000", "-q", "--out", t / "g"})),
               "--num-frames 20000 is more than the limit of 10000 frames (--max-frames raises it)");
 }
 
@@ -143,9 +134,9 @@ TEST_CASE("a trajectory of more actions than the frame limit is refused before a
   test::TempDir t;
   std::string rows = "x,y,yaw\n";
   for (int i = 0; i < 10'001; ++i) rows += "1,0,0\n";
-  write_text(t.path / "actions.csv", rows);
+  write_file(t.path / "actions.csv", rows);
   const auto r = cli(with_model({"generate", "--trajectory", t / "actions.csv", "-q", "--out", t / "g"}));
-  check_error(r, "holds 10001 actions, more than the limit of 10000 frames");
+  check_cli_error(r, "holds 10001 actions, more than the limit of 10000 frames");
   CHECK(has(r.err, "--max-frames"));
   CHECK_FALSE(fs::exists(t.path / "g"));  // refused before the output folder was made
 }
@@ -153,40 +144,40 @@ TEST_CASE("a trajectory of more actions than the frame limit is refused before a
 TEST_CASE("encode refuses to encode beyond --max-pixels at the first image's size, before loading the model") {
   test::TempDir t;
   io::write_png(t / "a.png", io::Image(64, 64));
-  check_error(cli({"encode", t / "a.png", "--max-pixels", "2048", "-o", t / "z.npy", "-q"}),
+  check_cli_error(cli({"encode", t / "a.png", "--max-pixels", "2048", "-o", t / "z.npy", "-q"}),
               "encoding at its size 64x64 (4096 pixels) is more than the limit of 2048 (--max-pixels raises it");
   // The default is 16x the released 512x1024; a 16384-pixel --size side passes, 8.4M pixels do not.
-  check_error(cli({"encode", t / "a.png", "--size", "4096x4096", "-q", "-o", t / "z.npy"}),
+  check_cli_error(cli({"encode", t / "a.png", "--size", "4096x4096", "-q", "-o", t / "z.npy"}),
               "more than the limit of 8388608 (--max-pixels raises it)");
 }
 
 TEST_CASE("decode refuses latents with no frames and grids beyond --max-pixels, before loading the model") {
   test::TempDir t;
   io::write_npy(t / "empty.npy", Tensor<float>({0, 32, 2, 4}));
-  check_error(cli({"decode", t / "empty.npy", "--out", t / "d", "-q"}), "hold no frames to decode");
+  check_cli_error(cli({"decode", t / "empty.npy", "--out", t / "d", "-q"}), "hold no frames to decode");
   io::write_npy(t / "wide.npy", Tensor<float>({1, 1, 1, 2048}));
-  check_error(cli({"decode", t / "wide.npy", "--out", t / "d", "-q", "--max-pixels", "1048576"}),
+  check_cli_error(cli({"decode", t / "wide.npy", "--out", t / "d", "-q", "--max-pixels", "1048576"}),
               "more than the limit of 1048576 pixels (--max-pixels raises it)");
 }
 
 TEST_CASE("output paths: below a regular file, or in a read-only folder, refused before the work") {
   test::TempDir t;
-  write_text(t.path / "file", "x");
+  write_file(t.path / "file", "x");
   io::write_npy(t / "z.npy", Tensor<float>({1, 32, 1, 1}));
-  check_error(cli({"decode", t / "z.npy", "--out", (t.path / "file" / "sub").string(), "-q"}),
+  check_cli_error(cli({"decode", t / "z.npy", "--out", (t.path / "file" / "sub").string(), "-q"}),
               "is a file, not a folder");
-  check_error(cli({"encode", t / "nothing.png", "-o", (t.path / "file" / "z.npy").string(), "-q"}),
+  check_cli_error(cli({"encode", t / "nothing.png", "-o", (t.path / "file" / "z.npy").string(), "-q"}),
               "is a file, not a folder");
-  check_error(cli({"convert", golden_dir() + "/weights_dcae.safetensors", (t.path / "file" / "o.safetensors").string()}),
+  check_cli_error(cli({"convert", golden_dir() + "/weights_dcae.safetensors", (t.path / "file" / "o.safetensors").string()}),
               "is a file, not a folder");
   // /proc takes no new files, even from root: the probe finds it before any work.
-  check_error(cli({"decode", t / "z.npy", "--out", "/proc", "-q"}), "cannot write in the folder /proc");
+  check_cli_error(cli({"decode", t / "z.npy", "--out", "/proc", "-q"}), "cannot write in the folder /proc");
   if (geteuid() != 0) {  // root writes anywhere else
     const fs::path ro = t.path / "ro";
     fs::create_directories(ro);
     ::chmod(ro.c_str(), 0555);
-    check_error(cli({"decode", t / "z.npy", "--out", ro.string(), "-q"}), "cannot write in the folder");
-    check_error(cli({"encode", t / "nothing.png", "-o", (ro / "z.npy").string(), "-q"}), "cannot write in the folder");
+    check_cli_error(cli({"decode", t / "z.npy", "--out", ro.string(), "-q"}), "cannot write in the folder");
+    check_cli_error(cli({"encode", t / "nothing.png", "-o", (ro / "z.npy").string(), "-q"}), "cannot write in the folder");
     ::chmod(ro.c_str(), 0755);
   }
 }

@@ -17,26 +17,15 @@
 #include "../../apps/epona/bundled_model.hpp"
 #include "cli_testing.hpp"
 #include "epona/domain/trajectory_io.hpp"
+#include "../files.hpp"
 
 namespace fs = std::filesystem;
 using namespace epona;
+using epona::test::read_json;
+using epona::test::TempDir;
 using nlohmann::json;
 using test::cli;
 using test::has;
-
-namespace {
-
-struct TempDir : test::TempDir {
-  TempDir() : test::TempDir("epona_hypotheses_cli") {}
-  std::string operator/(const std::string& name) const { return (path / name).string(); }
-};
-
-json read_json(const fs::path& p) {
-  std::ifstream in(p);
-  return json::parse(in);
-}
-
-}  // namespace
 
 TEST_CASE("plan --hypotheses 3: all three in trajectory.json, the medoid written as the plan") {
   TempDir t;

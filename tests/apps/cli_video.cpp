@@ -20,6 +20,7 @@
 
 namespace fs = std::filesystem;
 using namespace epona;
+using epona::test::check_cli_error;
 
 namespace {
 
@@ -29,13 +30,6 @@ using test::has;
 const io::ModelConfigs& demo_configs() {
   static const io::ModelConfigs c = io::load_configs(std::string(EPONA_TEST_DATA_DIR) + "/golden/configs.json");
   return c;
-}
-
-void check_error(const test::CliResult& r, const std::string& part) {
-  INFO("stderr: " << r.err);
-  CHECK(r.rc == 1);
-  CHECK(has(r.err, "epona: error: "));
-  CHECK(has(r.err, part));
 }
 
 // Mean absolute difference of two images of one size, in levels.
@@ -87,20 +81,20 @@ TEST_CASE("generate --video: the input frames then the generated ones, H.264 at 
 
 TEST_CASE("--video and --fps are refused before any work, naming the problem") {
   test::TempDir t("epona_cli_video");
-  check_error(cli({"generate", "--video", t / "x.mp4", "--fps", "0", "--out", t / "g"}), "--fps must be in [1, 120], got 0");
-  check_error(cli({"generate", "--video", t / "x.mp4", "--fps", "121", "--out", t / "g"}),
+  check_cli_error(cli({"generate", "--video", t / "x.mp4", "--fps", "0", "--out", t / "g"}), "--fps must be in [1, 120], got 0");
+  check_cli_error(cli({"generate", "--video", t / "x.mp4", "--fps", "121", "--out", t / "g"}),
               "--fps must be in [1, 120], got 121");
-  check_error(cli({"generate", "--fps", "10", "--out", t / "g"}), "--fps sets the frame rate of --video");
-  check_error(cli({"generate", "--video", t / "x.avi", "--out", t / "g"}),
+  check_cli_error(cli({"generate", "--fps", "10", "--out", t / "g"}), "--fps sets the frame rate of --video");
+  check_cli_error(cli({"generate", "--video", t / "x.avi", "--out", t / "g"}),
               "x.avi: epona writes H.264 in MP4 only; give a file name ending in .mp4");
   fs::create_directories(t.path / "folder.mp4");
-  check_error(cli({"generate", "--video", t / "folder.mp4", "--out", t / "g"}), "is a folder, not a file name");
+  check_cli_error(cli({"generate", "--video", t / "folder.mp4", "--out", t / "g"}), "is a folder, not a file name");
   const fs::path file = t.path / "file";
   io::write_atomically(file, "not a folder");
-  check_error(cli({"generate", "--video", (file / "x.mp4").string(), "--out", t / "g"}), "is a file, not a folder");
+  check_cli_error(cli({"generate", "--video", (file / "x.mp4").string(), "--out", t / "g"}), "is a file, not a folder");
   CHECK_FALSE(fs::exists(t.path / "g"));  // refused before the output folder was made
   io::write_npy(t / "z.npy", Tensor<float>::zeros({1, demo_configs().dcae.latent_channels, 1, 2}));
-  check_error(cli({"decode", t / "z.npy", "-o", t / "d", "--video", t / "z.webm"}), "--decode clip");
+  check_cli_error(cli({"decode", t / "z.npy", "-o", t / "d", "--video", t / "z.webm"}), "--decode clip");
 }
 
 #include "epona/io/stb_implementation.hpp"

@@ -21,30 +21,21 @@
 #include "epona/io/load_weights.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
+#include "../files.hpp"
 
 namespace fs = std::filesystem;
 using namespace epona;
+using epona::test::check_cli_error;
+using epona::test::write_file;
+using epona::test::TempDir;
 using test::cli;
 using test::has;
 
 namespace {
 
-struct TempDir : test::TempDir {
-  TempDir() : test::TempDir("epona_cli_weights") {}
-};
-
 // "hello epona\n": its SHA-256 as `sha256sum` prints it.
 const std::string kHello = "hello epona\n";
 const std::string kHelloSha = "0f3395c6e780e2a1e17ea364718c0c1e9649cce7c1c1e6a1cad53e6b9e1f676a";
-
-void write_text(const std::string& path, const std::string& text) { std::ofstream(path, std::ios::binary) << text; }
-
-void check_error(const test::CliResult& r, const std::string& part) {
-  INFO("stderr: " << r.err);
-  CHECK(r.rc == 1);
-  CHECK(has(r.err, "epona: error: "));
-  CHECK(has(r.err, part));
-}
 
 std::span<const std::byte> bytes_of(const std::vector<float>& v) {
   return {reinterpret_cast<const std::byte*>(v.data()), v.size() * sizeof(float)};
@@ -78,7 +69,7 @@ std::uint16_t bits16(const io::RawTensor& t, std::size_t i) {
 
 TEST_CASE("info --sha256: the digest of a small file, as sha256sum prints it, and its size") {
   TempDir t;
-  write_text(t / "hello.txt", kHello);
+  write_file(t / "hello.txt", kHello);
   const auto r = cli({"info", "--sha256", t / "hello.txt"});
   INFO(r.err);
   REQUIRE(r.rc == 0);
@@ -88,7 +79,7 @@ TEST_CASE("info --sha256: the digest of a small file, as sha256sum prints it, an
 
 TEST_CASE("info --expect-sha256: equal is quiet with a note, different fails naming both digests") {
   TempDir t;
-  write_text(t / "hello.txt", kHello);
+  write_file(t / "hello.txt", kHello);
   auto r = cli({"info", t / "hello.txt", "--expect-sha256", kHelloSha});
   CHECK(r.rc == 0);
   CHECK(has(r.err, "matches"));
@@ -98,21 +89,21 @@ TEST_CASE("info --expect-sha256: equal is quiet with a note, different fails nam
 
   const std::string other(64, 'a');
   r = cli({"info", t / "hello.txt", "--expect-sha256", other});
-  check_error(r, "SHA-256 mismatch");
+  check_cli_error(r, "SHA-256 mismatch");
   CHECK(has(r.err, kHelloSha));
   CHECK(has(r.err, other));
 }
 
 TEST_CASE("info --expect-sha256: a malformed digest is refused before any hashing") {
   TempDir t;
-  write_text(t / "hello.txt", kHello);
+  write_file(t / "hello.txt", kHello);
   // The file does not exist: the digest is refused first, so the error is about the digest.
-  check_error(cli({"info", t / "absent.pkl", "--expect-sha256", "abc"}), "64 hex digits");
-  check_error(cli({"info", t / "hello.txt", "--expect-sha256", kHelloSha.substr(1)}), "64 hex digits");
-  check_error(cli({"info", t / "hello.txt", "--expect-sha256", kHelloSha.substr(1) + "g"}), "64 hex digits");
-  check_error(cli({"info", t / "hello.txt", t / "hello.txt", "--expect-sha256", kHelloSha}), "checks one file");
-  check_error(cli({"info", "--sha256", t / "absent.pkl"}), "no such file");
-  check_error(cli({"info", "--sha256", t / "hello.txt", "--write-config", t / "c.json"}),
+  check_cli_error(cli({"info", t / "absent.pkl", "--expect-sha256", "abc"}), "64 hex digits");
+  check_cli_error(cli({"info", t / "hello.txt", "--expect-sha256", kHelloSha.substr(1)}), "64 hex digits");
+  check_cli_error(cli({"info", t / "hello.txt", "--expect-sha256", kHelloSha.substr(1) + "g"}), "64 hex digits");
+  check_cli_error(cli({"info", t / "hello.txt", t / "hello.txt", "--expect-sha256", kHelloSha}), "checks one file");
+  check_cli_error(cli({"info", "--sha256", t / "absent.pkl"}), "no such file");
+  check_cli_error(cli({"info", "--sha256", t / "hello.txt", "--write-config", t / "c.json"}),
               "--write-config describes the tensors");
 }
 
@@ -177,7 +168,7 @@ TEST_CASE("convert --dtype float16: rounded to nearest even; a finite value beyo
   const SmallCheckpoint big(70000.0f);
   io::save_safetensors(t / "big.safetensors", big.map);
   const auto r = cli({"convert", t / "big.safetensors", t / "big-fp16.safetensors", "--dtype", "float16"});
-  check_error(r, "tensor 'block.bias' holds 70000");
+  check_cli_error(r, "tensor 'block.bias' holds 70000");
   CHECK(has(r.err, "beyond float16's range"));
   CHECK_FALSE(fs::exists(t / "big-fp16.safetensors"));  // written atomically: nothing left behind
   // bfloat16 has float32's range: the same file converts.
@@ -187,7 +178,7 @@ TEST_CASE("convert --dtype float16: rounded to nearest even; a finite value beyo
 TEST_CASE("convert --dtype: an unknown type is refused naming the allowed ones, before reading") {
   TempDir t;
   const auto r = cli({"convert", t / "absent.pkl", t / "out.safetensors", "--dtype", "int8"});
-  check_error(r, "--dtype must be one of bfloat16, bf16, float16, fp16, float32, fp32; got 'int8'");
+  check_cli_error(r, "--dtype must be one of bfloat16, bf16, float16, fp16, float32, fp32; got 'int8'");
 }
 
 TEST_CASE("convert --dtype bfloat16 of the golden DC-AE binds and encodes close to the original") {

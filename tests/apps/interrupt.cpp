@@ -19,9 +19,11 @@
 #include <vector>
 
 #include "../temp_dir.hpp"
+#include "../files.hpp"
 
 namespace fs = std::filesystem;
 using Clock = std::chrono::steady_clock;
+using epona::test::read_file;
 
 namespace {
 
@@ -69,11 +71,6 @@ std::vector<fs::path> temporaries(const fs::path& dir) {
   return out;
 }
 
-std::string read_text(const fs::path& p) {
-  std::ifstream in(p);
-  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-}
-
 // A safetensors file with one F32 tensor of `bytes` bytes, sparse (zeros cost no disk).
 void sparse_safetensors(const fs::path& path, std::uint64_t bytes) {
   std::string header = "{\"w\":{\"dtype\":\"F32\",\"shape\":[" + std::to_string(bytes / 4) +
@@ -103,7 +100,7 @@ TEST_CASE("SIGINT during convert removes the temporary output file") {
   const bool writing = wait_for(pid, [&] { return !temporaries(out.parent_path()).empty(); }, 120);
   if (!writing) {
     const int status = wait_status(pid);
-    FAIL("convert ended (status ", status, ") before its temporary file was seen: ", read_text(t.path / "log"));
+    FAIL("convert ended (status ", status, ") before its temporary file was seen: ", read_file(t.path / "log"));
   }
   ::kill(pid, SIGINT);
   const int status = wait_status(pid);
@@ -112,7 +109,7 @@ TEST_CASE("SIGINT during convert removes the temporary output file") {
   const auto left = temporaries(out.parent_path());
   CHECK_MESSAGE(left.empty(), "left: ", left.empty() ? std::string() : left.front().string());
   CHECK_FALSE(fs::exists(out));
-  CHECK(read_text(t.path / "log").find("interrupted; removed the partial output files") != std::string::npos);
+  CHECK(read_file(t.path / "log").find("interrupted; removed the partial output files") != std::string::npos);
 }
 
 // (A finished run removes the note: tests/apps/cli.cpp, "generate 2 frames", in-process.)
@@ -126,7 +123,7 @@ TEST_CASE("SIGINT during generate leaves the folder marked INCOMPLETE") {
   const int status = wait_status(pid);
   CHECK(WIFSIGNALED(status));
   CHECK(fs::exists(dir / "INCOMPLETE"));
-  CHECK(read_text(dir / "INCOMPLETE").find("incomplete") != std::string::npos);
+  CHECK(read_file(dir / "INCOMPLETE").find("incomplete") != std::string::npos);
   CHECK_FALSE(fs::exists(dir / "trajectory.json"));
   const auto left = temporaries(dir);
   CHECK_MESSAGE(left.empty(), "left: ", left.empty() ? std::string() : left.front().string());
@@ -146,7 +143,7 @@ TEST_CASE("SIGINT during generate --video removes the video's temporary file") {
   };
   if (!wait_for(pid, writing_video, 120)) {
     const int status = wait_status(pid);
-    FAIL("generate ended (status ", status, ") before its video's temporary file was seen: ", read_text(t.path / "log"));
+    FAIL("generate ended (status ", status, ") before its video's temporary file was seen: ", read_file(t.path / "log"));
   }
   ::kill(pid, SIGINT);
   const int status = wait_status(pid);

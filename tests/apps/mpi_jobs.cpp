@@ -15,22 +15,16 @@
 #include <nlohmann/json.hpp>
 
 #include "../temp_dir.hpp"
+#include "../files.hpp"
 
 namespace fs = std::filesystem;
 using nlohmann::json;
+using epona::test::read_file;
+using epona::test::read_json;
 
 namespace {
 
 #if defined(EPONA_CLI_PATH) && defined(EPONA_MPIEXEC)
-std::string read_text(const fs::path& p) {
-  std::ifstream in(p);
-  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-}
-
-json read_json(const fs::path& p) {
-  std::ifstream in(p);
-  return json::parse(in);
-}
 
 // Runs a shell command line with its output into `log`; returns its exit status.
 int run(const std::string& command, const fs::path& log) {
@@ -94,8 +88,8 @@ TEST_CASE("mpirun -np 2 epona eval gives the report of one process") {
   epona::test::TempDir t("epona_mpi");
   const fs::path clips = make_clips(t);
   const fs::path one = t.path / "one.json", two = t.path / "two.json";
-  REQUIRE_MESSAGE(run(program(eval_args(clips, one)), t.path / "one.log") == 0, read_text(t.path / "one.log"));
-  REQUIRE_MESSAGE(run(mpirun(2, eval_args(clips, two)), t.path / "two.log") == 0, read_text(t.path / "two.log"));
+  REQUIRE_MESSAGE(run(program(eval_args(clips, one)), t.path / "one.log") == 0, read_file(t.path / "one.log"));
+  REQUIRE_MESSAGE(run(mpirun(2, eval_args(clips, two)), t.path / "two.log") == 0, read_file(t.path / "two.log"));
   json a = read_json(one), b = read_json(two);
   CHECK(a["settings"]["processes"] == 1);
   CHECK(b["settings"]["processes"] == 2);
@@ -115,9 +109,9 @@ TEST_CASE("mpirun -np 2 epona eval --batch 2: each rank batches its own clips") 
   epona::test::TempDir t("epona_mpi");
   const fs::path clips = make_clips(t);
   const fs::path one = t.path / "one.json", two = t.path / "two.json";
-  REQUIRE_MESSAGE(run(program(eval_args(clips, one)), t.path / "one.log") == 0, read_text(t.path / "one.log"));
+  REQUIRE_MESSAGE(run(program(eval_args(clips, one)), t.path / "one.log") == 0, read_file(t.path / "one.log"));
   REQUIRE_MESSAGE(run(mpirun(2, eval_args(clips, two) + " --batch 2"), t.path / "two.log") == 0,
-                  read_text(t.path / "two.log"));
+                  read_file(t.path / "two.log"));
   json a = read_json(one), b = read_json(two);
   CHECK(b["settings"]["batch"] == 2);
   CHECK(b["settings"]["processes"] == 2);
@@ -133,16 +127,16 @@ TEST_CASE("mpirun -np 2 epona generate --clips writes the files of one process")
   const auto args = [&](const fs::path& out) {
     return "generate --clips '" + clips.string() + "' -n 2 --steps 2 --threads 1 -q --out '" + out.string() + "'";
   };
-  REQUIRE_MESSAGE(run(program(args(t.path / "one")), t.path / "one.log") == 0, read_text(t.path / "one.log"));
-  REQUIRE_MESSAGE(run(mpirun(2, args(t.path / "two")), t.path / "two.log") == 0, read_text(t.path / "two.log"));
+  REQUIRE_MESSAGE(run(program(args(t.path / "one")), t.path / "one.log") == 0, read_file(t.path / "one.log"));
+  REQUIRE_MESSAGE(run(mpirun(2, args(t.path / "two")), t.path / "two.log") == 0, read_file(t.path / "two.log"));
   for (const char* clip : {"clip_0000", "clip_0001", "clip_0002"})
     for (const char* file : {"trajectory.json", "poses.csv", "contact_sheet.png", "frames/frame_0000.png", "frames/frame_0001.png"}) {
       const fs::path a = t.path / "one" / clip / file, b = t.path / "two" / clip / file;
       REQUIRE_MESSAGE(fs::exists(b), b.string());
-      CHECK_MESSAGE(read_text(a) == read_text(b), b.string());
+      CHECK_MESSAGE(read_file(a) == read_file(b), b.string());
       CHECK_FALSE(fs::exists(t.path / "two" / clip / "INCOMPLETE"));
     }
-  const std::string log = read_text(t.path / "two.log");
+  const std::string log = read_file(t.path / "two.log");
   CHECK_MESSAGE(log.find("generated 2 frames for each of 3 clips") != std::string::npos, log);
 }
 
@@ -154,7 +148,7 @@ TEST_CASE("a clip failing on rank 1 fails the job, naming the rank and the file;
   std::ofstream(bad) << "not an image";
   const fs::path report = t.path / "r.json";
   CHECK(run(mpirun(2, eval_args(clips, report)), t.path / "log") != 0);
-  const std::string log = read_text(t.path / "log");
+  const std::string log = read_file(t.path / "log");
   CHECK_MESSAGE(log.find("process 1 of 2: ") != std::string::npos, log);
   CHECK_MESSAGE(log.find("clip_0001/future/frame_00.png: not a PNG or JPEG file") != std::string::npos, log);
   CHECK_FALSE(fs::exists(report));
@@ -163,7 +157,7 @@ TEST_CASE("a clip failing on rank 1 fails the job, naming the rank and the file;
 TEST_CASE("a command that does not split its work refuses several processes") {
   epona::test::TempDir t("epona_mpi");
   CHECK(run(mpirun(2, "plan -q --out '" + (t.path / "plan").string() + "'"), t.path / "log") != 0);
-  const std::string log = read_text(t.path / "log");
+  const std::string log = read_file(t.path / "log");
   CHECK_MESSAGE(log.find("plan runs as one process, but openmpi started 2") != std::string::npos, log);
   CHECK_FALSE(fs::exists(t.path / "plan" / "trajectory.json"));
 }

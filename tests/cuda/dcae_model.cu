@@ -21,16 +21,13 @@
 #include "epona/domain/config_json.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/model/dcae.hpp"
+#include "../golden_dir.hpp"
 
 using namespace epona;
+using epona::test::golden_dir;
 using namespace epona::test;
 
 namespace {
-
-std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
-}
 
 struct Golden {
   io::TensorMap weights = io::load_safetensors(golden_dir() + "/weights_dcae.safetensors");

@@ -23,9 +23,13 @@
 #include "../temp_dir.hpp"
 #include "epona/io/image.hpp"
 #include "epona/eval/image_metrics.hpp"
+#include "../files.hpp"
 
 namespace fs = std::filesystem;
 using namespace epona;
+using epona::test::read_json;
+using epona::test::write_file;
+using epona::test::TempDir;
 using nlohmann::json;
 
 namespace {
@@ -33,12 +37,6 @@ namespace {
 using test::cli;
 using test::has;
 using Result = test::CliResult;
-
-struct TempDir : test::TempDir {
-  TempDir() : test::TempDir("epona_eval_cli") {}
-};
-
-void write_text(const fs::path& p, const std::string& text) { std::ofstream(p) << text; }
 
 io::Image demo_frame(int i) {
   return io::read_image(std::string(EPONA_TEST_DATA_DIR) + "/demo/frame_0" + std::to_string(i) + ".png");
@@ -57,8 +55,8 @@ void make_clip(const fs::path& dir, const std::string& last) {
   fs::create_directories(dir / "future");
   for (int i = 0; i < 3; ++i) io::write_png((dir / "frames" / ("frame_0" + std::to_string(i) + ".png")).string(), demo_frame(i));
   for (int i = 0; i < 2; ++i) io::write_png((dir / "future" / ("frame_0" + std::to_string(i) + ".png")).string(), demo_frame(i + 1));
-  write_text(dir / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n" + last + "\n");
-  write_text(dir / "future_poses.csv", rows("1,0,0", 15));
+  write_file(dir / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n" + last + "\n");
+  write_file(dir / "future_poses.csv", rows("1,0,0", 15));
 }
 
 // Clip 0 goes 2 m a frame, clip 1 1 m left; a vehicle stands 10 m ahead in clip 0's future.
@@ -68,13 +66,8 @@ fs::path make_clip_set(const TempDir& t) {
   make_clip(set / "clip_0001", "0,1,0");
   std::string boxes = R"({"ego": {"length": 4, "width": 2}, "frames": [[], [], [])";
   for (int i = 0; i < 15; ++i) boxes += R"(, [{"x": 10, "y": 0, "yaw": 0, "length": 4, "width": 2}])";
-  write_text(set / "clip_0000" / "boxes.json", boxes + "]}");
+  write_file(set / "clip_0000" / "boxes.json", boxes + "]}");
   return set;
-}
-
-json read_json(const fs::path& p) {
-  std::ifstream in(p);
-  return json::parse(in);
 }
 
 std::vector<std::string> eval_args(const fs::path& clips, const fs::path& report) {
@@ -241,17 +234,17 @@ TEST_CASE("eval: bad inputs fail naming the clip and file, and write no report")
   fails_with({"eval", "--clips", set.string(), "--json", report.string(), "--control", "--control-yaw", "8"},
              "--control-yaw must be in [1, 7]");
 
-  write_text(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n");
+  write_file(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n");
   fails_with(eval_args(set, report), "clip clip_0001");
   fails_with(eval_args(set, report), "poses.csv holds 2 pose(s) for the 3 frame(s)");
-  write_text(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,inf,0\n2,0,0\n");
+  write_file(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,inf,0\n2,0,0\n");
   fails_with(eval_args(set, report), "clip_0001/poses.csv: line 3");
   make_clip(set / "clip_0001", "0,1,0");
   fs::remove(set / "clip_0001" / "frames" / "frame_00.png");
-  write_text(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n");
+  write_file(set / "clip_0001" / "poses.csv", "x,y,yaw\n2,0,0\n2,0,0\n");
   fails_with(eval_args(set, report), "the model's window needs 3");
   make_clip(set / "clip_0001", "0,1,0");
-  write_text(set / "clip_0001" / "future_poses.csv", rows("1,0,0", 14));
+  write_file(set / "clip_0001" / "future_poses.csv", rows("1,0,0", 14));
   fails_with(eval_args(set, report), "future_poses.csv holds 14 motion(s); 15 are needed");
 }
 

@@ -13,7 +13,6 @@
 #include <string>
 #include <vector>
 
-
 #include "epona/eval/baselines.hpp"
 #include "epona/eval/clip_set.hpp"
 #include "epona/eval/ground_truth.hpp"
@@ -21,9 +20,14 @@
 #include "epona/eval/planning_metrics.hpp"
 #include "epona/io/image.hpp"
 #include "../temp_dir.hpp"
+#include "../files.hpp"
+#include "../error_text.hpp"
 
 namespace fs = std::filesystem;
 using namespace epona;
+using epona::test::contains;
+using epona::test::write_file;
+using epona::test::TempDir;
 using namespace epona::eval;
 
 namespace {
@@ -67,15 +71,6 @@ double reference_ssim(const io::Image& a, const io::Image& b) {
   return total / 3;
 }
 
-struct TempDir : epona::test::TempDir {
-  TempDir() : epona::test::TempDir("epona_eval_test") {}
-};
-
-void write_text(const fs::path& p, const std::string& text) {
-  fs::create_directories(p.parent_path());
-  std::ofstream(p) << text;
-}
-
 std::string error_of(const std::function<void()>& fn) {
   try {
     fn();
@@ -84,8 +79,6 @@ std::string error_of(const std::function<void()>& fn) {
   }
   return "";
 }
-
-bool has(const std::string& s, const std::string& part) { return s.find(part) != std::string::npos; }
 
 }  // namespace
 
@@ -100,7 +93,7 @@ TEST_CASE("PSNR: identical images give the documented cap; a constant shift give
   double sse = 0;
   for (std::size_t i = 0; i < a.rgb.size(); ++i) sse += std::pow(double(a.rgb[i]) - double(c.rgb[i]), 2);
   CHECK(psnr(a, c) == doctest::Approx(20 * std::log10(255.0) - 10 * std::log10(sse / double(a.rgb.size()))).epsilon(1e-12));
-  CHECK(has(error_of([&] { psnr(a, random_image(16, 21, 3)); }), "differ in size"));
+  CHECK(contains(error_of([&] { psnr(a, random_image(16, 21, 3)); }), "differ in size"));
 }
 
 TEST_CASE("SSIM: 1 for identical images, the luminance term for constant images, equal to a direct 2-D reference") {
@@ -120,7 +113,7 @@ TEST_CASE("SSIM: 1 for identical images, the luminance term for constant images,
   CHECK(s == doctest::Approx(reference_ssim(a, noisy)).epsilon(1e-10));
   CHECK(s > 0.5);
   CHECK(s < 1.0);
-  CHECK(has(error_of([&] { ssim(random_image(10, 40, 1), random_image(10, 40, 2)); }), "smaller than the 11x11"));
+  CHECK(contains(error_of([&] { ssim(random_image(10, 40, 1), random_image(10, 40, 2)); }), "smaller than the 11x11"));
 }
 
 TEST_CASE("SE(2): composition and cumulative poses") {
@@ -228,10 +221,10 @@ TEST_CASE("clip sets: natural order, optional parts, errors naming the clip and 
     for (int i = 0; i < frames; ++i) io::write_png((t.path / name / "frames" / ("frame_0" + std::to_string(i) + ".png")).string(), img);
     std::string poses = "x,y,yaw\n";
     for (int i = 0; i < frames; ++i) poses += "1,0,0\n";
-    write_text(t.path / name / "poses.csv", poses);
+    write_file(t.path / name / "poses.csv", poses);
   };
-  CHECK(has(error_of([&] { find_clip_folders(t.path / "missing"); }), "no such folder"));
-  CHECK(has(error_of([&] { find_clip_folders(t.path); }), "no clips"));
+  CHECK(contains(error_of([&] { find_clip_folders(t.path / "missing"); }), "no such folder"));
+  CHECK(contains(error_of([&] { find_clip_folders(t.path); }), "no clips"));
   make_clip("clip_10", 3);
   make_clip("clip_2", 3);
   fs::create_directories(t.path / "not_a_clip");
@@ -246,41 +239,41 @@ TEST_CASE("clip sets: natural order, optional parts, errors naming the clip and 
   CHECK_FALSE(c.future_motions.has_value());
   CHECK_FALSE(c.boxes.has_value());
   CHECK_NOTHROW(check_clip(c, {3, 15, 5}));  // no future parts: nothing to check
-  CHECK(has(error_of([&] { check_clip(c, {4, 15, 5}); }), "clip clip_2"));
+  CHECK(contains(error_of([&] { check_clip(c, {4, 15, 5}); }), "clip clip_2"));
 
-  write_text(t.path / "clip_2" / "poses.csv", "x,y,yaw\n1,0,0\n");
+  write_file(t.path / "clip_2" / "poses.csv", "x,y,yaw\n1,0,0\n");
   std::string e = error_of([&] { read_clip(folders[0]); });
-  CHECK(has(e, "clip clip_2"));
-  CHECK(has(e, "poses.csv holds 1 pose(s) for the 3 frame(s)"));
-  write_text(t.path / "clip_2" / "poses.csv", "x,y,yaw\n1,0,0\n1,nan,0\n1,0,0\n");
-  CHECK(has(error_of([&] { read_clip(folders[0]); }), "poses.csv: line 3"));
+  CHECK(contains(e, "clip clip_2"));
+  CHECK(contains(e, "poses.csv holds 1 pose(s) for the 3 frame(s)"));
+  write_file(t.path / "clip_2" / "poses.csv", "x,y,yaw\n1,0,0\n1,nan,0\n1,0,0\n");
+  CHECK(contains(error_of([&] { read_clip(folders[0]); }), "poses.csv: line 3"));
 
   make_clip("clip_2", 3);
-  write_text(t.path / "clip_2" / "future_poses.csv", "x,y,yaw\n1,0,0\n");
+  write_file(t.path / "clip_2" / "future_poses.csv", "x,y,yaw\n1,0,0\n");
   e = error_of([&] { check_clip(read_clip(folders[0]), {3, 15, 0}); });
-  CHECK(has(e, "future_poses.csv holds 1 motion(s); 15 are needed"));
+  CHECK(contains(e, "future_poses.csv holds 1 motion(s); 15 are needed"));
   fs::create_directories(t.path / "clip_2" / "future");
   io::write_png((t.path / "clip_2" / "future" / "frame_00.png").string(), img);
   std::string future = "x,y,yaw\n";
   for (int i = 0; i < 15; ++i) future += "1,0,0\n";
-  write_text(t.path / "clip_2" / "future_poses.csv", future);
-  CHECK(has(error_of([&] { check_clip(read_clip(folders[0]), {3, 15, 2}); }), "--horizon asks for 2"));
+  write_file(t.path / "clip_2" / "future_poses.csv", future);
+  CHECK(contains(error_of([&] { check_clip(read_clip(folders[0]), {3, 15, 2}); }), "--horizon asks for 2"));
   CHECK_NOTHROW(check_clip(read_clip(folders[0]), {3, 15, 1}));
 
-  write_text(t.path / "clip_2" / "boxes.json", R"({"ego": {"length": 4, "width": 2}, "frames": [[], [], [], [{"x": 5, "y": 0, "yaw": 0, "length": 4, "width": 2}]]})");
+  write_file(t.path / "clip_2" / "boxes.json", R"({"ego": {"length": 4, "width": 2}, "frames": [[], [], [], [{"x": 5, "y": 0, "yaw": 0, "length": 4, "width": 2}]]})");
   const EvalClip b = read_clip(folders[0]);
   REQUIRE(b.boxes.has_value());
   CHECK(b.boxes->ego.length == 4);
   REQUIRE(b.future_boxes().size() == 1);
   CHECK(b.future_boxes()[0][0].x == 5);
-  write_text(t.path / "clip_2" / "boxes.json", R"({"ego": {"length": 4, "width": 2}, "frames": [[], []]})");
-  CHECK(has(error_of([&] { read_clip(folders[0]); }), "boxes.json holds 2 frame(s) of boxes"));
-  write_text(t.path / "clip_2" / "boxes.json", R"({"ego": {"length": 4, "width": 2}, "frames": [[], [], [{"x": 1, "y": 0, "yaw": 0, "length": -1, "width": 2}]]})");
+  write_file(t.path / "clip_2" / "boxes.json", R"({"ego": {"length": 4, "width": 2}, "frames": [[], []]})");
+  CHECK(contains(error_of([&] { read_clip(folders[0]); }), "boxes.json holds 2 frame(s) of boxes"));
+  write_file(t.path / "clip_2" / "boxes.json", R"({"ego": {"length": 4, "width": 2}, "frames": [[], [], [{"x": 1, "y": 0, "yaw": 0, "length": -1, "width": 2}]]})");
   e = error_of([&] { read_clip(folders[0]); });
-  CHECK(has(e, "boxes.json: frame 2, box 0"));
-  CHECK(has(e, "\"length\" must be positive"));
-  write_text(t.path / "clip_2" / "boxes.json", "{");
-  CHECK(has(error_of([&] { read_clip(folders[0]); }), "boxes.json: invalid JSON"));
+  CHECK(contains(e, "boxes.json: frame 2, box 0"));
+  CHECK(contains(e, "\"length\" must be positive"));
+  write_file(t.path / "clip_2" / "boxes.json", "{");
+  CHECK(contains(error_of([&] { read_clip(folders[0]); }), "boxes.json: invalid JSON"));
 }
 
 // The one translation unit of this test program that compiles stb (write_png above).

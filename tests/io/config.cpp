@@ -13,22 +13,15 @@
 #include "epona/domain/config_json.hpp"
 #include "epona/model/config.hpp"
 #include "epona/model/parameter_counts.hpp"
+#include "../golden_dir.hpp"
+#include "../files.hpp"
 
 using namespace epona;
+using epona::test::read_json;
+using epona::test::golden_dir;
 using nlohmann::json;
 
 namespace {
-
-std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
-}
-
-json read_json(const std::string& path) {
-  std::ifstream in(path);
-  REQUIRE_MESSAGE(in, "cannot open " << path);
-  return json::parse(in);
-}
 
 const json& golden_configs() {
   static const json j = read_json(golden_dir() + "/configs.json");

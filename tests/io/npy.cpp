@@ -10,17 +10,16 @@
 #include <vector>
 
 #include "epona/io/npy.hpp"
+#include "../bytes.hpp"
 
 using namespace epona;
+using epona::test::floats;
+using epona::test::as_bytes;
 namespace fs = std::filesystem;
 
 namespace {
 
 const fs::path kDir = fs::path(EPONA_TEST_DATA_DIR) / "poses" / "npy";
-
-std::span<const std::byte> as_bytes(const std::string& s) {
-  return {reinterpret_cast<const std::byte*>(s.data()), s.size()};
-}
 
 // A .npy file from parts: version, header text as given (no padding added), raw data bytes.
 std::string make_npy(int major, const std::string& header, const std::string& data = {}) {
@@ -30,12 +29,6 @@ std::string make_npy(int major, const std::string& header, const std::string& da
   const std::size_t len_bytes = major == 1 ? 2 : 4;
   for (std::size_t i = 0; i < len_bytes; ++i) f += static_cast<char>((header.size() >> (8 * i)) & 0xff);
   return f + header + data;
-}
-
-std::string floats(std::initializer_list<float> v) {
-  std::string s(v.size() * 4, '\0');
-  std::memcpy(s.data(), std::data(v), s.size());
-  return s;
 }
 
 template <class T = float>

@@ -12,8 +12,12 @@
 #include <nlohmann/json.hpp>
 
 #include "epona/domain/poses.hpp"
+#include "../temp_dir.hpp"
+#include "../files.hpp"
 
 using namespace epona;
+using epona::test::read_json;
+using epona::test::TempDir;
 namespace fs = std::filesystem;
 using nlohmann::json;
 
@@ -21,24 +25,8 @@ namespace {
 
 const fs::path kData = fs::path(EPONA_TEST_DATA_DIR) / "poses";
 
-json read_json(const fs::path& p) {
-  std::ifstream in(p);
-  REQUIRE(in.good());
-  return json::parse(in);
-}
-
-struct TempDir {
-  fs::path path = fs::temp_directory_path() / ("epona_poses_test_" + std::to_string(std::random_device{}()));
-  TempDir() { fs::create_directories(path); }
-  ~TempDir() { fs::remove_all(path); }
-  fs::path write(const std::string& name, const std::string& text) const {
-    std::ofstream(path / name, std::ios::binary) << text;
-    return path / name;
-  }
-};
-
-io::PoseSequence csv(const std::string& text) { return io::parse_pose_csv(text, "p.csv"); }
-io::PoseSequence js(const std::string& text) { return io::parse_pose_json(text, "p.json"); }
+io::PoseSequence pose_csv(const std::string& text) { return io::parse_pose_csv(text, "p.csv"); }
+io::PoseSequence pose_json(const std::string& text) { return io::parse_pose_json(text, "p.json"); }
 
 void check_sequence(const io::PoseSequence& s, const std::vector<double>& x, const std::vector<double>& y,
                     const std::vector<double>& yaw) {
@@ -68,13 +56,13 @@ void check_against_reference(const io::PoseSequence& s, const json& pose, const 
 }  // namespace
 
 TEST_CASE("CSV: header or not, comments, whitespace, CRLF, BOM, column order") {
-  check_sequence(csv("x,y,yaw\n0,0,0\n1.5,-0.25,2\n"), {0, 1.5}, {0, -0.25}, {0, 2});
-  check_sequence(csv("# my drive\n\n 0.1 , 0.2 , 0.3 # first\n+4e-1,-5E-1,.6\n"), {0.1, 0.4}, {0.2, -0.5}, {0.3, 0.6});
-  check_sequence(csv("0.1 0.2\t0.3\n 1  2  3 \n"), {0.1, 1}, {0.2, 2}, {0.3, 3});
-  check_sequence(csv("\xEF\xBB\xBFX, Y, Yaw\r\n1,2,3\r\n"), {1}, {2}, {3});
-  check_sequence(csv("yaw,x,y\n3,1,2\n"), {1}, {2}, {3});
-  check_sequence(csv("1,2,3"), {1}, {2}, {3});  // no final newline
-  const auto s = csv("1,2,3\n4,5,6\n");
+  check_sequence(pose_csv("x,y,yaw\n0,0,0\n1.5,-0.25,2\n"), {0, 1.5}, {0, -0.25}, {0, 2});
+  check_sequence(pose_csv("# my drive\n\n 0.1 , 0.2 , 0.3 # first\n+4e-1,-5E-1,.6\n"), {0.1, 0.4}, {0.2, -0.5}, {0.3, 0.6});
+  check_sequence(pose_csv("0.1 0.2\t0.3\n 1  2  3 \n"), {0.1, 1}, {0.2, 2}, {0.3, 3});
+  check_sequence(pose_csv("\xEF\xBB\xBFX, Y, Yaw\r\n1,2,3\r\n"), {1}, {2}, {3});
+  check_sequence(pose_csv("yaw,x,y\n3,1,2\n"), {1}, {2}, {3});
+  check_sequence(pose_csv("1,2,3"), {1}, {2}, {3});  // no final newline
+  const auto s = pose_csv("1,2,3\n4,5,6\n");
   const auto p = s.pose_tensor(), y = s.yaw_tensor();
   CHECK(p.shape() == Shape{1, 2, 2});
   CHECK(y.shape() == Shape{1, 2, 1});
@@ -107,14 +95,14 @@ TEST_CASE("CSV: malformed files name the file and line") {
   };
   for (const auto& c : cases) {
     CAPTURE(c.text);
-    CHECK_THROWS_WITH_AS(csv(c.text), doctest::Contains(c.expect.c_str()), Error);
+    CHECK_THROWS_WITH_AS(pose_csv(c.text), doctest::Contains(c.expect.c_str()), Error);
   }
 }
 
 TEST_CASE("JSON: the three relative forms") {
-  check_sequence(js(R"({"poses": [[0, 0, 0], [1.25, -0.5, 3]]})"), {0, 1.25}, {0, -0.5}, {0, 3});
-  check_sequence(js(R"([[0.1, 0.2, 0.3]])"), {0.1}, {0.2}, {0.3});
-  check_sequence(js(R"([{"x": 1, "y": 2, "yaw": 3}, {"yaw": -6, "y": 5, "x": 4}])"), {1, 4}, {2, 5}, {3, -6});
+  check_sequence(pose_json(R"({"poses": [[0, 0, 0], [1.25, -0.5, 3]]})"), {0, 1.25}, {0, -0.5}, {0, 3});
+  check_sequence(pose_json(R"([[0.1, 0.2, 0.3]])"), {0.1}, {0.2}, {0.3});
+  check_sequence(pose_json(R"([{"x": 1, "y": 2, "yaw": 3}, {"yaw": -6, "y": 5, "x": 4}])"), {1, 4}, {2, 5}, {3, -6});
 }
 
 TEST_CASE("JSON: malformed files name the file and entry") {
@@ -142,7 +130,7 @@ TEST_CASE("JSON: malformed files name the file and entry") {
   };
   for (const auto& c : cases) {
     CAPTURE(c.text);
-    CHECK_THROWS_WITH_AS(js(c.text), doctest::Contains(c.expect.c_str()), Error);
+    CHECK_THROWS_WITH_AS(pose_json(c.text), doctest::Contains(c.expect.c_str()), Error);
   }
 }
 
@@ -171,20 +159,20 @@ TEST_CASE("absolute poses: malformed input is a named error") {
   json transposed = json::array({{1, 0, 0, 0}, {0, 1, 0, 0}, {0, 0, 1, 0}, {5, 6, 7, 1}});
   json singular = json::array({{1, 0, 0, 5}, {0, 0, 0, 6}, {0, 0, 1, 7}, {0, 0, 0, 1}});
   auto abs = [](json list) { return json{{"absolute", std::move(list)}}.dump(); };
-  CHECK_THROWS_WITH_AS(js(abs(json::array({eye, transposed}))),
+  CHECK_THROWS_WITH_AS(pose_json(abs(json::array({eye, transposed}))),
                        doctest::Contains("p.json: absolute pose 1: bottom row must be [0, 0, 0, 1], got [5, 6, 7, 1]"),
                        Error);
-  CHECK_THROWS_WITH_AS(js(abs(json::array({eye, singular, eye}))), doctest::Contains("singular"), Error);
-  CHECK_THROWS_WITH_AS(js(abs(json::array({eye, singular, eye}))),
+  CHECK_THROWS_WITH_AS(pose_json(abs(json::array({eye, singular, eye}))), doctest::Contains("singular"), Error);
+  CHECK_THROWS_WITH_AS(pose_json(abs(json::array({eye, singular, eye}))),
                        doctest::Contains("p.json: get_rel_pose: from pose 1 to pose 2"), Error);
-  CHECK_THROWS_WITH_AS(js(abs(json::array({eye, json::array({{1, 0, 0}, {0, 1, 0}, {0, 0, 1}})}))),
+  CHECK_THROWS_WITH_AS(pose_json(abs(json::array({eye, json::array({{1, 0, 0}, {0, 1, 0}, {0, 0, 1}})}))),
                        doctest::Contains("absolute pose 1: expected a 4x4 matrix"), Error);
   json bad_entry = eye;
   bad_entry[2][3] = "7";
-  CHECK_THROWS_WITH_AS(js(abs(json::array({bad_entry}))),
+  CHECK_THROWS_WITH_AS(pose_json(abs(json::array({bad_entry}))),
                        doctest::Contains("absolute pose 0: every matrix entry must be a number"), Error);
-  CHECK_THROWS_WITH_AS(js(abs(json::array())), doctest::Contains("p.json: no poses"), Error);
-  CHECK_THROWS_WITH_AS(js(abs(json::object())), doctest::Contains("list of 4x4 matrices"), Error);
+  CHECK_THROWS_WITH_AS(pose_json(abs(json::array())), doctest::Contains("p.json: no poses"), Error);
+  CHECK_THROWS_WITH_AS(pose_json(abs(json::object())), doctest::Contains("list of 4x4 matrices"), Error);
   CHECK_THROWS_WITH_AS(io::poses_from_absolute(Tensor<float>::zeros({2, 3, 4, 4}), "m.npy"),
                        doctest::Contains("m.npy: absolute poses must have shape (N, 4, 4) or (1, N, 4, 4)"), Error);
 }

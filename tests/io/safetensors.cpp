@@ -14,17 +14,16 @@
 #include <unistd.h>
 
 #include "epona/io/safetensors.hpp"
+#include "../golden_dir.hpp"
+#include "../temp_dir.hpp"
 
 using namespace epona;
+using epona::test::TempDir;
+using epona::test::golden_dir;
 using nlohmann::json;
 namespace fs = std::filesystem;
 
 namespace {
-
-std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
-}
 
 const json& manifest() {
   static const json j = [] {
@@ -79,21 +78,6 @@ void check_against_manifest(const std::string& file, const json& listing) {
   CHECK(f.metadata.at("set") == manifest().at("set").get<std::string>());
 }
 
-// A fresh temp directory per test, removed afterwards.
-struct TempDir {
-  fs::path path;
-  TempDir() {
-    path = fs::temp_directory_path() / ("epona_st_" + std::to_string(::getpid()) + "_" +
-                                        std::to_string(std::random_device{}()));
-    fs::create_directories(path);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
-  std::string file(const std::string& name) const { return (path / name).string(); }
-};
-
 void write_bytes(const std::string& path, const std::string& bytes) {
   std::ofstream out(path, std::ios::binary);
   out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
@@ -121,7 +105,7 @@ std::string read_error(const std::string& path) {
 }
 
 void check_refused(const TempDir& dir, const std::string& name, const std::string& bytes, const std::string& problem) {
-  const std::string path = dir.file(name);
+  const std::string path = dir / name;
   write_bytes(path, bytes);
   const std::string msg = read_error(path);
   CAPTURE(name);
@@ -170,7 +154,7 @@ TEST_CASE("write then read back: every dtype, scalars, empty tensors, metadata")
   m.add("e.f16", io::RawTensor{DType::F16, {2, 2},
                                std::span<const std::byte>(reinterpret_cast<const std::byte*>(half.data()), 8)});
   const io::SafetensorsMetadata meta = {{"producer", "epona test"}, {"seed", "7"}};
-  const auto path = dir.file("round.safetensors");
+  const auto path = dir / "round.safetensors";
   io::save_safetensors(path, m, meta);
   CHECK_FALSE(fs::exists(path + ".tmp-" + std::to_string(::getpid())));
 
@@ -200,8 +184,8 @@ TEST_CASE("write then read back: every dtype, scalars, empty tensors, metadata")
 
   // A golden file re-saved reads back identical.
   const auto world = io::read_safetensors(golden_dir() + "/weights_world.safetensors");
-  io::save_safetensors(dir.file("world.safetensors"), world.tensors, world.metadata);
-  const auto again = io::read_safetensors(dir.file("world.safetensors"));
+  io::save_safetensors(dir / "world.safetensors", world.tensors, world.metadata);
+  const auto again = io::read_safetensors(dir / "world.safetensors");
   CHECK(again.metadata == world.metadata);
   REQUIRE(again.tensors.size() == world.tensors.size());
   for (const auto& [name, t] : world.tensors.entries()) {
@@ -212,8 +196,8 @@ TEST_CASE("write then read back: every dtype, scalars, empty tensors, metadata")
   // Overwriting an existing file replaces it.
   io::TensorMap one;
   one.add("x", io::raw_view(f32));
-  io::save_safetensors(dir.file("world.safetensors"), one);
-  CHECK(io::load_safetensors(dir.file("world.safetensors")).size() == 1);
+  io::save_safetensors(dir / "world.safetensors", one);
+  CHECK(io::load_safetensors(dir / "world.safetensors").size() == 1);
 }
 
 TEST_CASE("writer refuses what it cannot write") {
@@ -221,11 +205,11 @@ TEST_CASE("writer refuses what it cannot write") {
   auto t = Tensor<float>({1});
   io::TensorMap m;
   m.add("__metadata__", io::raw_view(t));
-  CHECK_THROWS_WITH_AS(io::save_safetensors(dir.file("meta.safetensors"), m),
+  CHECK_THROWS_WITH_AS(io::save_safetensors(dir / "meta.safetensors", m),
                        doctest::Contains("may not be named __metadata__"), Error);
   io::TensorMap ok;
   ok.add("x", io::raw_view(t));
-  CHECK_THROWS_WITH_AS(io::save_safetensors(dir.file("no/such/dir/x.safetensors"), ok),
+  CHECK_THROWS_WITH_AS(io::save_safetensors(dir / "no/such/dir/x.safetensors", ok),
                        doctest::Contains("cannot create"), Error);
 }
 
@@ -234,7 +218,7 @@ TEST_CASE("hostile files: each refused with the file and the problem named") {
   const std::string f32_1 = R"("a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]})";
 
   SUBCASE("missing file") {
-    const auto path = dir.file("absent.safetensors");
+    const auto path = dir / "absent.safetensors";
     const auto msg = read_error(path);
     CHECK(msg.find(path) != std::string::npos);
     CHECK(msg.find("does not exist") != std::string::npos);
@@ -324,7 +308,7 @@ TEST_CASE("hostile files: each refused with the file and the problem named") {
     check_refused(dir, "cut_header.safetensors", bytes.substr(0, 500), "runs past the end of the file");
   }
   SUBCASE("accepted: zero-size tensors may share an offset, metadata exposed") {
-    const auto path = dir.file("ok.safetensors");
+    const auto path = dir / "ok.safetensors";
     write_bytes(path, image(R"({"__metadata__":{"k":"v"},"z1":{"dtype":"BF16","shape":[0],"data_offsets":[0,0]},)"
                             R"("z2":{"dtype":"I64","shape":[3,0],"data_offsets":[0,0]},)" + f32_1 + "}", 4));
     const auto f = io::read_safetensors(path);

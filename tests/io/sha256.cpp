@@ -10,8 +10,10 @@
 
 #include "epona/io/sha256.hpp"
 #include "../temp_dir.hpp"
+#include "../bytes.hpp"
 
 using namespace epona;
+using epona::test::as_bytes;
 
 namespace {
 
@@ -19,10 +21,6 @@ std::string digest_of(const std::string& text) {
   io::Sha256 h;
   h.update(text);
   return io::hex(h.finish());
-}
-
-std::span<const std::byte> as_bytes(const std::string& s) {
-  return {reinterpret_cast<const std::byte*>(s.data()), s.size()};
 }
 
 }  // namespace

@@ -21,8 +21,10 @@
 #include "epona/io/pickle.hpp"
 #include "epona/io/safetensors.hpp"
 #include "zip_builder.hpp"
+#include "../bytes.hpp"
 
 using namespace epona;
+using epona::test::floats;
 using namespace epona::io;
 using zip_test::put;
 using namespace std::string_literals;
@@ -34,16 +36,16 @@ const std::string kGoldenDir = std::string(EPONA_TEST_DATA_DIR) + "/golden/";
 
 // ---- expected.txt: file, key, dtype, [shape], element bits ------------------------------------
 
-struct Expected {
+struct ExpectedTensor {
   std::string dtype;
   Shape shape;
   std::vector<std::string> values;  // hex bits (floats) or decimal (int64)
 };
 
-std::map<std::string, std::map<std::string, Expected>> read_expected() {
+std::map<std::string, std::map<std::string, ExpectedTensor>> read_expected() {
   std::ifstream in(kPklDir + "expected.txt");
   REQUIRE(in.good());
-  std::map<std::string, std::map<std::string, Expected>> out;
+  std::map<std::string, std::map<std::string, ExpectedTensor>> out;
   std::string line;
   while (std::getline(in, line)) {
     if (line.empty()) continue;
@@ -51,7 +53,7 @@ std::map<std::string, std::map<std::string, Expected>> read_expected() {
     std::stringstream ss(line);
     for (std::string field; std::getline(ss, field, '\t');) f.push_back(field);
     REQUIRE(f.size() >= 4);
-    Expected e;
+    ExpectedTensor e;
     e.dtype = f[2];
     std::string dims = f[3].substr(1, f[3].size() - 2);
     std::stringstream ds(dims);
@@ -91,7 +93,7 @@ std::vector<std::string> element_bits(const RawTensor& t) {
   return v;
 }
 
-void check_against_expected(const TensorMap& map, const std::map<std::string, Expected>& expected,
+void check_against_expected(const TensorMap& map, const std::map<std::string, ExpectedTensor>& expected,
                             const std::string& file) {
   CHECK_MESSAGE(map.size() == expected.size(), file);
   for (const auto& [key, e] : expected) {
@@ -197,12 +199,6 @@ std::string archive(const std::string& pickle, const std::map<std::string, std::
   s.entries.push_back({prefix + "version", "3\n"});
   for (auto& e : s.entries) e.descriptor = true;
   return zip_test::layout_zip(s).bytes();
-}
-
-std::string floats(std::initializer_list<float> v) {
-  std::string s;
-  for (float x : v) put<float>(s, x);
-  return s;
 }
 
 TensorMap load_bytes(const std::string& bytes, const TorchLoadOptions& options = {}) {

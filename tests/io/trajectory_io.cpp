@@ -12,21 +12,13 @@
 #include <string>
 
 #include "epona/domain/trajectory_io.hpp"
+#include "../temp_dir.hpp"
 
 using namespace epona;
+using epona::test::TempDir;
 namespace fs = std::filesystem;
 
 namespace {
-
-struct TempDir {
-  fs::path path = fs::temp_directory_path() / ("epona_traj_test_" + std::to_string(std::random_device{}()));
-  TempDir() { fs::create_directories(path); }
-  ~TempDir() { fs::remove_all(path); }
-  fs::path write(const std::string& name, const std::string& text) const {
-    std::ofstream(path / name, std::ios::binary) << text;
-    return path / name;
-  }
-};
 
 Tensor<float> random_trajectory(std::int64_t S, std::int64_t W, unsigned seed) {
   std::mt19937 gen(seed);
@@ -40,8 +32,8 @@ bool bit_equal(const Tensor<float>& a, const Tensor<float>& b) {
   return a.shape() == b.shape() && std::memcmp(a.data(), b.data(), a.nbytes()) == 0;
 }
 
-Tensor<float> csv(const std::string& text) { return io::parse_trajectory_csv(text, "t.csv"); }
-Tensor<float> js(const std::string& text) { return io::parse_trajectory_json(text, "t.json"); }
+Tensor<float> trajectory_csv(const std::string& text) { return io::parse_trajectory_csv(text, "t.csv"); }
+Tensor<float> trajectory_json(const std::string& text) { return io::parse_trajectory_json(text, "t.json"); }
 
 }  // namespace
 
@@ -65,8 +57,8 @@ TEST_CASE("trajectories round-trip bit-exactly through CSV, JSON and .npy") {
     std::memcpy(&r.data()[i], &bits, 4);
     if (!std::isfinite(r.data()[i])) r.data()[i] = float(i);
   }
-  CHECK(bit_equal(csv(io::trajectory_to_csv(r)), r));
-  CHECK(bit_equal(js(io::trajectory_to_json(r)), r));
+  CHECK(bit_equal(trajectory_csv(io::trajectory_to_csv(r)), r));
+  CHECK(bit_equal(trajectory_json(io::trajectory_to_json(r)), r));
 }
 
 TEST_CASE("a single (W, 3) trajectory is one step; the files say what the numbers mean") {
@@ -78,14 +70,14 @@ TEST_CASE("a single (W, 3) trajectory is one step; the files say what the number
   const std::string j = io::trajectory_to_json(w);
   CHECK(j.find("\"format\": \"epona-trajectory\"") != std::string::npos);
   CHECK(j.find("[[0, 0.5, 1], [1.5, 2, 2.5]]") != std::string::npos);
-  const auto back = js(j);
+  const auto back = trajectory_json(j);
   CHECK(back.shape() == Shape{1, 2, 3});
   CHECK(back.at(0, 1, 2) == 2.5f);
   // Hand-written files: spaces, comments, CRLF, no format/units keys.
-  const auto h = csv("# mine\r\nstep, waypoint, x, y, yaw\r\n0, 0, 1, 2, 3 # first\r\n1,0,4,5,6\r\n");
+  const auto h = trajectory_csv("# mine\r\nstep, waypoint, x, y, yaw\r\n0, 0, 1, 2, 3 # first\r\n1,0,4,5,6\r\n");
   CHECK(h.shape() == Shape{2, 1, 3});
   CHECK(h.at(1, 0, 0) == 4.f);
-  CHECK(js(R"({"steps": [[[1, 2, 3]]]})").at(0, 0, 2) == 3.f);
+  CHECK(trajectory_json(R"({"steps": [[[1, 2, 3]]]})").at(0, 0, 2) == 3.f);
 }
 
 TEST_CASE("a plan written with its hypotheses reads back as the plan; the fan's keys are in the file") {
@@ -160,7 +152,7 @@ TEST_CASE("malformed trajectory files name the file and line or step") {
   };
   for (const auto& c : csv_cases) {
     CAPTURE(c.text);
-    CHECK_THROWS_WITH_AS(csv(c.text), doctest::Contains(c.expect.c_str()), Error);
+    CHECK_THROWS_WITH_AS(trajectory_csv(c.text), doctest::Contains(c.expect.c_str()), Error);
   }
   const Case json_cases[] = {
       {"[", "t.json: invalid JSON"},
@@ -177,7 +169,7 @@ TEST_CASE("malformed trajectory files name the file and line or step") {
   };
   for (const auto& c : json_cases) {
     CAPTURE(c.text);
-    CHECK_THROWS_WITH_AS(js(c.text), doctest::Contains(c.expect.c_str()), Error);
+    CHECK_THROWS_WITH_AS(trajectory_json(c.text), doctest::Contains(c.expect.c_str()), Error);
   }
 }
 
@@ -214,7 +206,7 @@ TEST_CASE("random corruption of trajectory files: a (S, W, 3) tensor or an epona
       else text.erase(at, 1);
     }
     try {
-      const auto r = trial % 2 ? js(text) : csv(text);
+      const auto r = trial % 2 ? trajectory_json(text) : trajectory_csv(text);
       CHECK((r.dim() == 3 && r.size(0) >= 1 && r.size(1) >= 1 && r.size(2) == 3));
       ++ok;
     } catch (const Error& e) {

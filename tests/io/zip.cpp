@@ -23,7 +23,7 @@ using zip_test::ZipSpec;
 
 namespace {
 
-const std::string kPklDir = std::string(EPONA_TEST_DATA_DIR) + "/pkl/";
+const std::string kPklFiles = std::string(EPONA_TEST_DATA_DIR) + "/pkl/";
 
 std::string read_file(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
@@ -67,7 +67,7 @@ TEST_CASE("crc32 matches the standard check value") {
 
 TEST_CASE("torch.save archives: entries, data descriptors, CRCs agree with miniz") {
   for (const char* f : {"fp32_plain.pkl", "bf16_world.pkl", "views.pkl", "weights_dcae.pkl"}) {
-    const auto zip = ZipArchive::open(kPklDir + f);
+    const auto zip = ZipArchive::open(kPklFiles + f);
     REQUIRE(!zip.entries().empty());
     const std::string stem = std::string(f).substr(0, std::string(f).size() - 4);
     CHECK(zip.entries().front().name == stem + "/data.pkl");
@@ -83,9 +83,9 @@ TEST_CASE("torch.save archives: entries, data descriptors, CRCs agree with miniz
 }
 
 TEST_CASE("ZIP64 archives from Python's zipfile (force_zip64) and hand-built full ZIP64") {
-  const auto plain = ZipArchive::open(kPklDir + "bf16_world.pkl");
+  const auto plain = ZipArchive::open(kPklFiles + "bf16_world.pkl");
   for (const char* f : {"zip64_local.pkl", "zip64_full.pkl"}) {
-    const auto zip = ZipArchive::open(kPklDir + f);
+    const auto zip = ZipArchive::open(kPklFiles + f);
     REQUIRE(zip.entries().size() == plain.entries().size());
     for (std::size_t i = 0; i < zip.entries().size(); ++i) {
       const auto& a = plain.entries()[i];
@@ -277,8 +277,8 @@ TEST_CASE("the end record is searched for only in the last 64 KiB + 22 bytes") {
 }
 
 TEST_CASE("every truncation of real and builder archives fails cleanly") {
-  for (const std::string& bytes : {read_file(kPklDir + "bf16_world.pkl"), read_file(kPklDir + "zip64_full.pkl"),
-                                   read_file(kPklDir + "zip64_local.pkl")}) {
+  for (const std::string& bytes : {read_file(kPklFiles + "bf16_world.pkl"), read_file(kPklFiles + "zip64_full.pkl"),
+                                   read_file(kPklFiles + "zip64_local.pkl")}) {
     std::size_t refused = 0;
     for (std::size_t n = 0; n < bytes.size(); ++n) {
       const std::string cut = bytes.substr(0, n);
@@ -295,7 +295,7 @@ TEST_CASE("every truncation of real and builder archives fails cleanly") {
 
 TEST_CASE("single-byte corruption anywhere: an error or a consistent archive, never a crash") {
   for (const char* f : {"bf16_world.pkl", "zip64_full.pkl", "zip64_local.pkl"}) {
-    const std::string bytes = read_file(kPklDir + f);
+    const std::string bytes = read_file(kPklFiles + f);
     std::size_t opened = 0, refused = 0;
     for (std::size_t i = 0; i < bytes.size(); ++i)
       for (unsigned char x : {0x01, 0x80, 0xff}) {

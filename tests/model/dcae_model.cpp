@@ -16,18 +16,15 @@
 #include "epona/io/safetensors.hpp"
 #include "epona/model/dcae.hpp"
 #include "epona/model/latent_layout.hpp"
+#include "../golden_dir.hpp"
 
 using namespace epona;
+using epona::test::golden_dir;
 using epona::test::rel_max;
 using HostTensor = Tensor<float, Cpu>;
 using Model = Dcae<Cpu, float>;
 
 namespace {
-
-std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
-}
 
 const io::TensorMap& weights() {
   static const io::TensorMap w = io::load_safetensors(golden_dir() + "/weights_dcae.safetensors");

@@ -13,24 +13,23 @@
 #include <string>
 
 #include "../metrics.hpp"
+#include "../cpu_context.hpp"
 #include "epona/cpu/context.hpp"
 #include "epona/domain/config_json.hpp"
 #include "epona/io/load_weights.hpp"
 #include "epona/io/safetensors.hpp"
 #include "epona/model/dcae.hpp"
+#include "../golden_dir.hpp"
 
 using namespace epona;
+using epona::test::cpu_context;
+using epona::test::golden_dir;
 using epona::test::rel_max;
 using HostTensor = Tensor<float, Cpu>;
 
 namespace {
 
-constexpr double kTolerance = 1e-4;
-
-std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
-}
+constexpr double kParityTolerance = 1e-4;
 
 // $EPONA_DCAE_WEIGHTS (.safetensors or official-format .pkl) overrides the golden weights file.
 std::string dcae_weights_path() {
@@ -50,14 +49,9 @@ const Golden& golden() {
   return g;
 }
 
-const Dcae<Cpu, float>& shared_dcae() {
+const Dcae<Cpu, float>& golden_dcae() {
   static const Dcae<Cpu, float> m = Dcae<Cpu, float>::load(golden().weights, golden().config);
   return m;
-}
-
-cpu::Context& context() {
-  static cpu::Context ctx;
-  return ctx;
 }
 
 // Names checked so far; the last test case verifies that every dcae.* output is among them.
@@ -74,7 +68,7 @@ void compare(const std::string& name, const HostTensor& ours) {
                   "shape " << shape_str(ours.shape()) << " vs golden " << shape_str(ref.shape()));
   const double rel = rel_max(ours, ref);
   std::printf("  %-30s %-18s rel_max = %.3e\n", name.c_str(), shape_str(ref.shape()).c_str(), rel);
-  CHECK_MESSAGE(rel <= kTolerance, name << ": rel_max " << rel << " > " << kTolerance);
+  CHECK_MESSAGE(rel <= kParityTolerance, name << ": rel_max " << rel << " > " << kParityTolerance);
   checked().insert(name);
 }
 
@@ -119,13 +113,13 @@ TEST_CASE("dcae parity: config and weights bind strictly") {
   std::printf("  image %lldx%lld, widths [%lld..%lld], clip %lld frames\n", (long long)c.image_h,
               (long long)c.image_w, (long long)c.encoder_width_list.front(), (long long)c.encoder_width_list.back(),
               (long long)c.condition_frames);
-  CHECK_NOTHROW(shared_dcae());
+  CHECK_NOTHROW(golden_dcae());
 }
 
 TEST_CASE("dcae parity: single-frame decode (is_video = false) with its intermediates") {
   Recorder rec;
   const HostTensor latent = golden().input("dcae.decode.latent_in");
-  const HostTensor image = shared_dcae().decode(context(), latent, false, rec.observer("dcae.decode"));
+  const HostTensor image = golden_dcae().decode(cpu_context(), latent, false, rec.observer("dcae.decode"));
   rec.compare_all();
   compare("dcae.image", image);
 }
@@ -133,7 +127,7 @@ TEST_CASE("dcae parity: single-frame decode (is_video = false) with its intermed
 TEST_CASE("dcae parity: encode of the stored image with its intermediates") {
   Recorder rec;
   const HostTensor image = golden().input("dcae.image");
-  const HostTensor latent = shared_dcae().encode(context(), image, rec.observer("dcae.encode"));
+  const HostTensor latent = golden_dcae().encode(cpu_context(), image, rec.observer("dcae.encode"));
   rec.compare_all();
   compare("dcae.encode.latent_out", latent);
 }
@@ -142,7 +136,7 @@ TEST_CASE("dcae parity: clip decode (is_video = true) through the causal tempora
   Recorder rec;
   const HostTensor clip = golden().input("dcae.clip.latent_in");
   REQUIRE(clip.size(0) % golden().config.condition_frames == 0);
-  const HostTensor images = shared_dcae().decode(context(), clip, true, rec.observer("dcae.clip"));
+  const HostTensor images = golden_dcae().decode(cpu_context(), clip, true, rec.observer("dcae.clip"));
   CHECK(images.size(0) == clip.size(0));
   rec.compare_all();
 }

@@ -17,16 +17,13 @@
 #include "epona/io/safetensors.hpp"
 #include "epona/io/stb_implementation.hpp"
 #include "epona/model/dcae.hpp"
+#include "../golden_dir.hpp"
 
 using namespace epona;
+using epona::test::golden_dir;
 using HostTensor = Tensor<float, Cpu>;
 
 namespace {
-
-std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
-}
 
 bool all_finite(const HostTensor& t) {
   for (std::int64_t i = 0; i < t.numel(); ++i)

@@ -8,6 +8,7 @@
 #include <random>
 #include <string>
 
+#include "../cpu_context.hpp"
 #include "epona/core/arena.hpp"
 #include "epona/flow/schedule.hpp"
 #include "epona/model/flux_dit.hpp"
@@ -16,10 +17,7 @@ namespace epona::test::dit {
 
 using Dit = model::FluxDiT<Cpu, float>;
 
-inline cpu::Context& ctx() {
-  static cpu::Context c;
-  return c;
-}
+inline cpu::Context& ctx() { return cpu_context(); }
 
 inline Tensor<float> random(const Shape& shape, std::uint32_t seed, float scale = 1.f) {
   std::mt19937 gen(seed);

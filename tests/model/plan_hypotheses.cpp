@@ -10,11 +10,10 @@
 #include "golden_world_model.hpp"
 
 using namespace epona;
+using epona::test::golden_world_model;
 using epona::test::rel_max;
 
 namespace {
-
-WorldModel<Cpu, float>& world() { return epona::test::golden_world_model(); }
 
 // Scene 0 of the golden window, alone (Bt = 1).
 History one_scene() {
@@ -38,13 +37,13 @@ TEST_CASE("hypothesis k is the plan of seed + k*step alone") {
   opt.steps = 6;
   opt.seed = 11;
   const std::int64_t K = 5;
-  const auto fan = world().plan_hypotheses(h, K, opt);
-  REQUIRE(fan.shape() == Shape{K, world().config().traj_len, 3});
+  const auto fan = golden_world_model().plan_hypotheses(h, K, opt);
+  REQUIRE(fan.shape() == Shape{K, golden_world_model().config().traj_len, 3});
   double worst = 0;
   for (std::int64_t k = 0; k < K; ++k) {
     SampleOptions alone = opt;
     alone.seed = WorldModel<Cpu, float>::hypothesis_seed(opt.seed, k);
-    const auto plan = world().plan(h, alone);  // (1, traj_len, 3)
+    const auto plan = golden_world_model().plan(h, alone);  // (1, traj_len, 3)
     worst = std::max(worst, rel_max(fan.slice(k, k + 1), plan));
   }
   MESSAGE("hypotheses vs plans alone: worst rel ", worst);
@@ -59,18 +58,18 @@ TEST_CASE("one hypothesis is plan()") {
   SampleOptions opt;
   opt.steps = 4;
   opt.seed = 3;
-  CHECK(rel_max(world().plan_hypotheses(h, 1, opt), world().plan(h, opt)) == 0.0);
+  CHECK(rel_max(golden_world_model().plan_hypotheses(h, 1, opt), golden_world_model().plan(h, opt)) == 0.0);
 }
 
 TEST_CASE("plan_hypotheses refuses what it cannot do, naming it") {
   const History h = one_scene();
   SampleOptions opt;
   opt.steps = 2;
-  CHECK(contains(error_of([&] { world().plan_hypotheses(h, 0, opt); }), "number of plan hypotheses must be in [1, "));
-  CHECK(contains(error_of([&] { world().plan_hypotheses(h, constants::max_hypotheses + 1, opt); }), "hypotheses"));
+  CHECK(contains(error_of([&] { golden_world_model().plan_hypotheses(h, 0, opt); }), "number of plan hypotheses must be in [1, "));
+  CHECK(contains(error_of([&] { golden_world_model().plan_hypotheses(h, constants::max_hypotheses + 1, opt); }), "hypotheses"));
   SampleOptions supplied = opt;
   supplied.noise = NoiseSource::seeded(1);
-  CHECK(contains(error_of([&] { world().plan_hypotheses(h, 2, supplied); }), "takes no supplied noise"));
+  CHECK(contains(error_of([&] { golden_world_model().plan_hypotheses(h, 2, supplied); }), "takes no supplied noise"));
   History two = h;
   const auto twice = [](const Tensor<float, Cpu>& t) {
     Shape s = t.shape();
@@ -81,9 +80,9 @@ TEST_CASE("plan_hypotheses refuses what it cannot do, naming it") {
     return out;
   };
   two = {twice(h.latents), twice(h.rel_pose), twice(h.rel_yaw)};
-  CHECK(contains(error_of([&] { world().plan_hypotheses(two, 2, opt); }), "plans one scene; the window holds 2"));
+  CHECK(contains(error_of([&] { golden_world_model().plan_hypotheses(two, 2, opt); }), "plans one scene; the window holds 2"));
   History bad = h;
   bad.rel_yaw = h.rel_yaw.clone();
   bad.rel_yaw.data()[0] = std::numeric_limits<float>::quiet_NaN();
-  CHECK(contains(error_of([&] { world().plan_hypotheses(bad, 2, opt); }), "non-finite"));
+  CHECK(contains(error_of([&] { golden_world_model().plan_hypotheses(bad, 2, opt); }), "non-finite"));
 }

@@ -16,12 +16,12 @@
 #include "golden_world_model.hpp"
 
 using namespace epona;
+using epona::test::golden_world_model;
 using epona::test::rel_max;
 using epona::test::world_golden;
 
 namespace {
 
-WorldModel<Cpu, float>& world() { return epona::test::golden_world_model(); }
 using epona::test::golden_history;
 
 // Step 0 of a supplied per-step noise tensor as a one-step (1, ...) tensor.
@@ -40,7 +40,7 @@ using epona::test::error_of;
 TEST_CASE("plan() reproduces the golden first planned trajectory") {
   SampleOptions opt;
   opt.noise = NoiseSource::supplied(step0("rollout.noise_traj"), {});
-  const auto traj = world().plan(golden_history(), opt);
+  const auto traj = golden_world_model().plan(golden_history(), opt);
   const auto golden = world_golden().tensor("rollout.predict_traj")[0];
   const double rel = rel_max(traj, golden);
   MESSAGE("plan vs rollout.predict_traj[0]: rel ", rel);
@@ -59,7 +59,7 @@ TEST_CASE("predict_next() with the action given equals the self-predicted step")
   }
   SampleOptions opt;
   opt.noise = NoiseSource::supplied({}, step0("rollout.noise_img"));  // a given action draws no trajectory noise
-  const auto r = world().predict_next(golden_history(), action, opt);
+  const auto r = golden_world_model().predict_next(golden_history(), action, opt);
   CHECK(r.trajectory.empty());
   const auto golden = world_golden().tensor("rollout.predict_latents")[0];
   const double rel = rel_max(r.latent, golden.reshape(r.latent.shape()));
@@ -74,8 +74,8 @@ TEST_CASE("seeded noise: trajectory noise then latent noise from one torch gener
   SampleOptions seeded;
   seeded.seed = 1234;
   seeded.steps = 3;
-  const auto a = world().predict_next(h, std::nullopt, seeded);
-  const auto b = world().predict_next(h, std::nullopt, seeded);
+  const auto a = golden_world_model().predict_next(h, std::nullopt, seeded);
+  const auto b = golden_world_model().predict_next(h, std::nullopt, seeded);
   CHECK(rel_max(a.latent, b.latent) == 0);
   TorchGenerator gen(1234);
   auto traj_noise = gen.randn({1, B, w.traj_len, 3});
@@ -83,7 +83,7 @@ TEST_CASE("seeded noise: trajectory noise then latent noise from one torch gener
   SampleOptions supplied;
   supplied.steps = 3;
   supplied.noise = NoiseSource::supplied(traj_noise, latent_noise);
-  const auto c = world().predict_next(h, std::nullopt, supplied);
+  const auto c = golden_world_model().predict_next(h, std::nullopt, supplied);
   CHECK(rel_max(a.trajectory, c.trajectory) == 0);
   CHECK(rel_max(a.latent, c.latent) == 0);
 }
@@ -111,8 +111,8 @@ TEST_CASE("batch items are independent") {
   o1.noise = NoiseSource::supplied(traj_noise.reshape({2, w.traj_len, 3}).slice(0, 1).clone().reshape({1, 1, w.traj_len, 3}),
                                    latent_noise.reshape({2, w.img_tokens(), w.token_dim()}).slice(0, 1).clone().reshape(
                                        {1, 1, w.img_tokens(), w.token_dim()}));
-  const auto two = world().predict_next(h2, std::nullopt, o2);
-  const auto one = world().predict_next(h1, std::nullopt, o1);
+  const auto two = golden_world_model().predict_next(h2, std::nullopt, o2);
+  const auto one = golden_world_model().predict_next(h1, std::nullopt, o1);
   // Equal up to GEMM accumulation order (batched projections see more rows).
   const double rel_traj = rel_max(two.trajectory.slice(0, 1), one.trajectory);
   const double rel_latent = rel_max(two.latent.slice(0, 1), one.latent);
@@ -126,7 +126,7 @@ TEST_CASE("batch items are independent") {
 
 TEST_CASE("bad input is refused before any work, with the problem named") {
   const auto& w = world_golden().configs.world;
-  auto& m = world();
+  auto& m = golden_world_model();
   const auto good = golden_history();
   SampleOptions opt;
   opt.steps = 2;

@@ -8,9 +8,11 @@
 
 #include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
+#include "../error_text.hpp"
 #include "world_golden.hpp"
 
 using namespace epona;
+using epona::test::contains;
 using epona::test::world_golden;
 
 namespace {
@@ -38,8 +40,6 @@ std::string load_error(const io::TensorMap& w) {
   }
   return "";
 }
-
-bool contains(const std::string& s, const std::string& part) { return s.find(part) != std::string::npos; }
 
 }  // namespace
 

@@ -10,6 +10,7 @@
 #include <cstdlib>
 #include <string>
 
+#include "../golden_dir.hpp"
 #include "../metrics.hpp"
 #include "epona/core/tensor.hpp"
 #include "epona/domain/config_json.hpp"
@@ -18,11 +19,6 @@
 #include "epona/io/tensor_map.hpp"
 
 namespace epona::test {
-
-inline std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? std::string(env) : std::string(EPONA_GOLDEN_DEFAULT_DIR);
-}
 
 struct WorldGolden {
   io::TensorMap weights, cases;

@@ -15,16 +15,15 @@
 #include "golden_world_model.hpp"
 
 using namespace epona;
+using epona::test::golden_world_model;
 using epona::test::contains;
 using epona::test::error_of;
 using epona::test::rel_max;
 
 namespace {
 
-WorldModel<Cpu, float>& world() { return epona::test::golden_world_model(); }
-
 const std::vector<std::uint64_t> kSeeds{11, 2026, 0x9E3779B9u};
-constexpr double kTolerance = 1e-6;  // relative; batch and single runs differ only in GEMM row counts
+constexpr double kBatchTolerance = 1e-6;  // relative; batch and single runs differ only in GEMM row counts
 
 // Item b of the batch is the golden window with its values reversed and scaled by a per-item
 // factor (item 0 the golden window itself), so the three scenes differ.
@@ -71,19 +70,19 @@ TEST_CASE("per-item seeds: predict_next of a batch of 3 equals each item alone w
   SampleOptions batched;
   batched.steps = 3;
   batched.item_seeds = kSeeds;
-  const auto together = world().predict_next(batch, std::nullopt, batched);
+  const auto together = golden_world_model().predict_next(batch, std::nullopt, batched);
   double worst_traj = 0, worst_latent = 0;
   for (std::int64_t b = 0; b < batch.latents.size(0); ++b) {
     SampleOptions single;
     single.steps = 3;
     single.seed = kSeeds[static_cast<std::size_t>(b)];
-    const auto alone = world().predict_next(item_of(batch, b), std::nullopt, single);
+    const auto alone = golden_world_model().predict_next(item_of(batch, b), std::nullopt, single);
     worst_traj = std::max(worst_traj, rel_max(together.trajectory.slice(b, b + 1), alone.trajectory));
     worst_latent = std::max(worst_latent, rel_max(together.latent.slice(b, b + 1), alone.latent));
   }
   MESSAGE("predict_next, batch of 3 vs alone: worst trajectory rel ", worst_traj, ", worst latent rel ", worst_latent);
-  CHECK(worst_traj <= kTolerance);
-  CHECK(worst_latent <= kTolerance);
+  CHECK(worst_traj <= kBatchTolerance);
+  CHECK(worst_latent <= kBatchTolerance);
 }
 
 TEST_CASE("per-item seeds: a 2-frame rollout of a batch of 3 equals each item's rollout alone") {
@@ -92,14 +91,14 @@ TEST_CASE("per-item seeds: a 2-frame rollout of a batch of 3 equals each item's 
   batched.frames = 2;
   batched.sample.steps = 2;
   batched.sample.item_seeds = kSeeds;
-  const auto together = rollout(world(), batch, batched);
+  const auto together = rollout(golden_world_model(), batch, batched);
   double worst_traj = 0, worst_latent = 0;
   for (std::int64_t b = 0; b < batch.latents.size(0); ++b) {
     RolloutOptions single;
     single.frames = 2;
     single.sample.steps = 2;
     single.sample.seed = kSeeds[static_cast<std::size_t>(b)];
-    const auto alone = rollout(world(), item_of(batch, b), single);
+    const auto alone = rollout(golden_world_model(), item_of(batch, b), single);
     for (std::int64_t f = 0; f < 2; ++f) {
       worst_traj = std::max(worst_traj, rel_max(together.trajectories[f].slice(b, b + 1), alone.trajectories[f]));
       worst_latent = std::max(worst_latent, rel_max(together.latents[f].slice(b, b + 1), alone.latents[f]));
@@ -107,8 +106,8 @@ TEST_CASE("per-item seeds: a 2-frame rollout of a batch of 3 equals each item's 
   }
   MESSAGE("rollout of 2 frames, batch of 3 vs alone: worst trajectory rel ", worst_traj, ", worst latent rel ",
           worst_latent);
-  CHECK(worst_traj <= kTolerance);
-  CHECK(worst_latent <= kTolerance);
+  CHECK(worst_traj <= kBatchTolerance);
+  CHECK(worst_latent <= kBatchTolerance);
 }
 
 TEST_CASE("per-item seeds: a seed count other than the batch is refused, naming both") {
@@ -116,16 +115,16 @@ TEST_CASE("per-item seeds: a seed count other than the batch is refused, naming 
   SampleOptions two_seeds;
   two_seeds.steps = 2;
   two_seeds.item_seeds = {1, 2};
-  const std::string step_error = error_of([&] { (void)world().predict_next(batch, std::nullopt, two_seeds); });
+  const std::string step_error = error_of([&] { (void)golden_world_model().predict_next(batch, std::nullopt, two_seeds); });
   MESSAGE(step_error);
   CHECK(contains(step_error, "batch of 3"));
   CHECK(contains(step_error, "2 per-item seed(s)"));
-  CHECK(contains(error_of([&] { (void)world().plan(batch, two_seeds); }), "2 per-item seed(s)"));
+  CHECK(contains(error_of([&] { (void)golden_world_model().plan(batch, two_seeds); }), "2 per-item seed(s)"));
 
   RolloutOptions ro;
   ro.frames = 2;
   ro.sample = two_seeds;
-  CHECK(contains(error_of([&] { (void)rollout(world(), batch, ro); }), "batch of 3"));
+  CHECK(contains(error_of([&] { (void)rollout(golden_world_model(), batch, ro); }), "batch of 3"));
 
   auto direct = NoiseSource::seeded_per_item({5, 6});
   CHECK(contains(error_of([&] { (void)direct.latent({4, 2, 2}); }), "batch of 4 but 2 per-item seed(s)"));
@@ -133,8 +132,8 @@ TEST_CASE("per-item seeds: a seed count other than the batch is refused, naming 
   SampleOptions both;
   both.item_seeds = {1};
   both.noise = NoiseSource::seeded(1);
-  CHECK(contains(error_of([&] { (void)world().plan(item_of(batch, 0), both); }), "give one"));
+  CHECK(contains(error_of([&] { (void)golden_world_model().plan(item_of(batch, 0), both); }), "give one"));
   SampleOptions hyp;
   hyp.item_seeds = {1};
-  CHECK(contains(error_of([&] { (void)world().plan_hypotheses(item_of(batch, 0), 2, hyp); }), "per-item seeds"));
+  CHECK(contains(error_of([&] { (void)golden_world_model().plan_hypotheses(item_of(batch, 0), 2, hyp); }), "per-item seeds"));
 }

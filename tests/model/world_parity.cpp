@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "../cpu_context.hpp"
 #include "epona/core/arena.hpp"
 #include "epona/cpu/thread_shard_sum.hpp"
 #include "epona/flow/schedule.hpp"
@@ -21,17 +22,13 @@
 #include "world_golden.hpp"
 
 using namespace epona;
+using epona::test::cpu_context;
 using epona::test::expect_golden;
 using epona::test::first_entries;
 using epona::test::Stack;
 using epona::test::world_golden;
 
 namespace {
-
-cpu::Context& context() {
-  static cpu::Context ctx;
-  return ctx;
-}
 
 template <class Model>
 void bind_checked(Model& m, const std::string& prefix) {
@@ -131,7 +128,7 @@ TEST_CASE("MST evaluate (mst.*), every block's output") {
   Tensor<float, Cpu> stt({B, c.tokens_per_frame(), c.n_embd}), pose_emb({B, 3 * c.n_embd});
   Arena<Cpu> arena(m.evaluate_workspace_bytes());
   int observed_blocks = 0;
-  m.evaluate(context(), arena, latents, g.tensor("mst.pose_idx"), g.tensor("mst.yaw_idx"), stt, pose_emb,
+  m.evaluate(cpu_context(), arena, latents, g.tensor("mst.pose_idx"), g.tensor("mst.yaw_idx"), stt, pose_emb,
              [&](std::int64_t b, const std::string& stage, const Tensor<float, Cpu>& x) {
                const std::string name = "mst." + stage;
                if (!g.has(name)) return;
@@ -146,7 +143,7 @@ TEST_CASE("MST evaluate (mst.*), every block's output") {
   expect_golden("mst.pose_emb", pose_emb);
   // Without an observer the last block computes the last frame only (compute-budget.md §5.4).
   arena.reset();
-  m.evaluate(context(), arena, latents, g.tensor("mst.pose_idx"), g.tensor("mst.yaw_idx"), stt, pose_emb);
+  m.evaluate(cpu_context(), arena, latents, g.tensor("mst.pose_idx"), g.tensor("mst.yaw_idx"), stt, pose_emb);
   expect_golden("mst.stt_features", stt, " (pruned last block)");
   expect_golden("mst.pose_emb", pose_emb, " (pruned last block)");
   // Every mst.block{i}_out present in the set was checked.
@@ -171,15 +168,15 @@ TEST_CASE("TrajDiT and VisDiT: one velocity and a full sample (traj.*, vis.*)") 
     Arena<Cpu> arena(std::max(d.forward_bytes(x.size(0), rows),
                               d.conditioning_bytes(x.size(0), rows) + d.sample_bytes(x.size(0), rows, steps)));
     Tensor<float, Cpu> v(x.shape());
-    d.forward(context(), arena, x, target_ids, cond, ids.cond, g.tensor(name + ".t"), y, v);
+    d.forward(cpu_context(), arena, x, target_ids, cond, ids.cond, g.tensor(name + ".t"), y, v);
     expect_golden(name + ".velocity", v);
 
     const auto grid = flow::get_schedule(steps, vis ? w.img_tokens() : w.traj_len);
     auto state = g.tensor(name + ".sample.noise");
     {
       ArenaScope<Cpu> scope(arena);
-      const auto c = d.prepare(context(), arena, cond, ids.cond, target_ids, y);
-      d.sample(context(), arena, c, grid, state);
+      const auto c = d.prepare(cpu_context(), arena, cond, ids.cond, target_ids, y);
+      d.sample(cpu_context(), arena, c, grid, state);
     }
     CHECK(arena.high_water() <= arena.capacity());
     expect_golden(name + ".sample.out", state);
@@ -189,7 +186,6 @@ TEST_CASE("TrajDiT and VisDiT: one velocity and a full sample (traj.*, vis.*)") 
     }
   }
 }
-
 
 namespace {
 

@@ -23,13 +23,13 @@
 
 #include "../apps/cli_testing.hpp"
 #include "../temp_dir.hpp"
+#include "bundled_model.hpp"
 
 using namespace epona;
+using epona::test::kBundledModel;
 using nlohmann::json;
 
 namespace {
-
-const std::string kModel = std::string(EPONA_MODELS_DIR) + "/small-synthetic";
 
 double mean_of(const json& values) {
   const std::vector<double> v = values.get<std::vector<double>>();
@@ -42,8 +42,8 @@ double mean_of(const json& values) {
 TEST_CASE("demo clip: the bundled model beats repeat-last on video and constant velocity on planning") {
   const test::TempDir t("epona_quality_demo");
   const std::string report = t / "eval.json";
-  const test::CliResult r = test::cli({"eval", "--clips", kModel + "/demo", "--weights", kModel + "/weights_world.safetensors",
-                                       "--dcae", kModel + "/weights_dcae.safetensors", "--config", kModel + "/configs.json",
+  const test::CliResult r = test::cli({"eval", "--clips", kBundledModel + "/demo", "--weights", kBundledModel + "/weights_world.safetensors",
+                                       "--dcae", kBundledModel + "/weights_dcae.safetensors", "--config", kBundledModel + "/configs.json",
                                        "--steps", "100", "--horizon", "5", "--seed", "0", "--json", report, "-q"});
   REQUIRE_MESSAGE(r.rc == 0, r.out, r.err);
   std::ifstream in(report);

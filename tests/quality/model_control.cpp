@@ -17,12 +17,13 @@
 
 #include "../apps/cli_testing.hpp"
 #include "../temp_dir.hpp"
+#include "bundled_model.hpp"
 
 using namespace epona;
+using epona::test::kBundledModel;
 using nlohmann::json;
 
 namespace {
-const std::string kModel = std::string(EPONA_MODELS_DIR) + "/small-synthetic";
 }  // namespace
 
 TEST_CASE("control: the bundled model's frames turn with the action in at least 90 % of 50 held-out scenes") {
@@ -31,8 +32,8 @@ TEST_CASE("control: the bundled model's frames turn with the action in at least 
                                        "--out", t / "scenes", "-q"});
   REQUIRE_MESSAGE(s.rc == 0, s.out, s.err);
   const std::string report = t / "eval.json";
-  const test::CliResult r = test::cli({"eval", "--clips", t / "scenes", "--weights", kModel + "/weights_world.safetensors",
-                                       "--dcae", kModel + "/weights_dcae.safetensors", "--config", kModel + "/configs.json",
+  const test::CliResult r = test::cli({"eval", "--clips", t / "scenes", "--weights", kBundledModel + "/weights_world.safetensors",
+                                       "--dcae", kBundledModel + "/weights_dcae.safetensors", "--config", kBundledModel + "/configs.json",
                                        "--control", "--no-video", "--no-plan", "--control-yaw", "5", "--steps", "100",
                                        "--seed", "0", "--json", report, "-q"});
   REQUIRE_MESSAGE(r.rc == 0, r.out, r.err);

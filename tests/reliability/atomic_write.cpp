@@ -24,37 +24,23 @@
 #include "epona/io/atomic_file.hpp"
 #include "epona/io/npy.hpp"
 #include "epona/io/safetensors.hpp"
+#include "../temp_dir.hpp"
+#include "../files.hpp"
 
 using namespace epona;
+using epona::test::write_file;
+using epona::test::read_file;
+using epona::test::TempDir;
 namespace fs = std::filesystem;
 
 namespace {
 
-// A fresh empty folder, removed with its contents at the end of the test.
-struct TempDir {
-  fs::path path;
-  TempDir() {
-    static int n = 0;
-    path = fs::temp_directory_path() / ("epona-atomic-" + std::to_string(::getpid()) + "-" + std::to_string(n++));
-    fs::remove_all(path);
-    fs::create_directories(path);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
-  std::set<std::string> names() const {
-    std::set<std::string> out;
-    for (const auto& e : fs::directory_iterator(path)) out.insert(e.path().filename().string());
-    return out;
-  }
-};
-
-std::string slurp(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  return {std::istreambuf_iterator<char>(in), {}};
+// The names in a folder.
+std::set<std::string> names_in(const fs::path& folder) {
+  std::set<std::string> out;
+  for (const auto& e : fs::directory_iterator(folder)) out.insert(e.path().filename().string());
+  return out;
 }
-void put(const fs::path& p, const std::string& bytes) { std::ofstream(p, std::ios::binary) << bytes; }
 
 struct Interrupted {};  // thrown from inside a fill function
 
@@ -96,19 +82,19 @@ void check_interrupted_writer(const std::string& file_name, Write&& write) {
     FileSizeLimit limit(kLimit);
     CHECK_THROWS_AS(write(dest), Error);
   }
-  CHECK_MESSAGE(dir.names().empty(), "left behind: " << *dir.names().begin());
+  CHECK_MESSAGE(names_in(dir.path).empty(), "left behind: " << *names_in(dir.path).begin());
 
-  put(dest, "the previous, complete output");
+  write_file(dest, "the previous, complete output");
   {
     FileSizeLimit limit(kLimit);
     CHECK_THROWS_AS(write(dest), Error);
   }
-  CHECK(slurp(dest) == "the previous, complete output");
-  CHECK(dir.names() == std::set<std::string>{file_name});
+  CHECK(read_file(dest) == "the previous, complete output");
+  CHECK(names_in(dir.path) == std::set<std::string>{file_name});
 
   write(dest);  // without the limit the same writer succeeds, with the same single file
   CHECK(fs::file_size(dest) > kLimit);
-  CHECK(dir.names() == std::set<std::string>{file_name});
+  CHECK(names_in(dir.path) == std::set<std::string>{file_name});
 }
 
 }  // namespace
@@ -124,12 +110,12 @@ TEST_CASE("write_atomically writes the bytes, leaving only the destination") {
     out.write(std::string_view("tail"));
     CHECK(out.bytes_written() == 8 + big.size());
   });
-  CHECK(slurp(dest) == "head" + big + "tail");
+  CHECK(read_file(dest) == "head" + big + "tail");
   io::write_atomically(dest, std::string_view("replaced"));
-  CHECK(slurp(dest) == "replaced");
+  CHECK(read_file(dest) == "replaced");
   io::write_atomically(dir.path / "empty", std::string_view());
   CHECK(fs::file_size(dir.path / "empty") == 0);
-  CHECK(dir.names() == std::set<std::string>{"out.bin", "empty"});
+  CHECK(names_in(dir.path) == std::set<std::string>{"out.bin", "empty"});
 }
 
 TEST_CASE("an exception from the fill function leaves no file and no temporary file") {
@@ -141,21 +127,21 @@ TEST_CASE("an exception from the fill function leaves no file and no temporary f
   auto interrupted = [&](io::AtomicFileSink& out) {
     out.write(chunk);
     out.write(chunk);
-    CHECK(dir.names().size() == files_before + 1);  // the temporary file exists while writing ...
-    CHECK((fs::exists(dest) ? slurp(dest) : "(none)") == old_content);  // ... the destination is untouched
+    CHECK(names_in(dir.path).size() == files_before + 1);  // the temporary file exists while writing ...
+    CHECK((fs::exists(dest) ? read_file(dest) : "(none)") == old_content);  // ... the destination is untouched
     throw Interrupted{};
   };
   files_before = 0;
   old_content = "(none)";
   CHECK_THROWS_AS(io::write_atomically(dest, interrupted), Interrupted);
-  CHECK(dir.names().empty());
+  CHECK(names_in(dir.path).empty());
 
-  put(dest, "old");
+  write_file(dest, "old");
   files_before = 1;
   old_content = "old";
   CHECK_THROWS_AS(io::write_atomically(dest, interrupted), Interrupted);
-  CHECK(slurp(dest) == "old");
-  CHECK(dir.names() == std::set<std::string>{"out.bin"});
+  CHECK(read_file(dest) == "old");
+  CHECK(names_in(dir.path) == std::set<std::string>{"out.bin"});
 }
 
 TEST_CASE("write_atomically names the destination when it cannot write there") {
@@ -173,7 +159,7 @@ TEST_CASE("write_atomically names the destination when it cannot write there") {
     CHECK_THROWS_WITH_AS(io::write_atomically(dir.path / "big", std::string(3 * kLimit, 'y')),
                          doctest::Contains(write_error.c_str()), Error);
   }
-  CHECK(dir.names() == std::set<std::string>{"a-folder"});
+  CHECK(names_in(dir.path) == std::set<std::string>{"a-folder"});
 }
 
 TEST_CASE("concurrent writers of one path leave one complete version") {
@@ -188,10 +174,10 @@ TEST_CASE("concurrent writers of one path leave one complete version") {
       for (int r = 0; r < kRounds; ++r) io::write_atomically(dest, std::string_view(bytes));
     });
   for (auto& th : threads) th.join();
-  const std::string got = slurp(dest);
+  const std::string got = read_file(dest);
   REQUIRE(got.size() == kBytes);
   CHECK(std::count(got.begin(), got.end(), got[0]) == static_cast<std::ptrdiff_t>(kBytes));
-  CHECK(dir.names() == std::set<std::string>{"shared.bin"});
+  CHECK(names_in(dir.path) == std::set<std::string>{"shared.bin"});
 }
 
 // Threads of one process writing one path with a writer: the file left is one thread's complete output.
@@ -218,7 +204,7 @@ void check_concurrent_writer(const std::string& file_name, Write&& write, Read&&
   const float first = got.data()[0];
   CHECK((first >= 1 && first <= kThreads));
   CHECK(std::all_of(got.data(), got.data() + got.numel(), [&](float v) { return v == first; }));
-  CHECK(dir.names() == std::set<std::string>{file_name});
+  CHECK(names_in(dir.path) == std::set<std::string>{file_name});
 }
 
 TEST_CASE("concurrent writers through save_safetensors and write_npy leave one complete file") {

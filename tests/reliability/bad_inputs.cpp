@@ -21,8 +21,10 @@
 #include "epona/domain/config_json.hpp"
 #include "epona/domain/poses.hpp"
 #include "epona/io/npy.hpp"
+#include "../temp_dir.hpp"
 
 using namespace epona;
+using epona::test::TempDir;
 using nlohmann::json;
 namespace fs = std::filesystem;
 
@@ -96,15 +98,6 @@ const json& golden_configs() {
   }();
   return j;
 }
-
-struct TempDir {
-  fs::path path = fs::temp_directory_path() / ("epona-bad-inputs-" + std::to_string(::getpid()));
-  TempDir() { fs::create_directories(path); }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
-};
 
 constexpr std::size_t kSmallAllocation = 1 << 20;  // parsing a config needs far less than 1 MB at once
 

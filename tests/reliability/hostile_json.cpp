@@ -16,8 +16,10 @@
 #include "epona/eval/clip_set.hpp"
 #include "epona/io/json_reader.hpp"
 #include "epona/io/safetensors.hpp"
+#include "../error_text.hpp"
 
 using namespace epona;
+using epona::test::contains;
 
 namespace {
 
@@ -39,8 +41,6 @@ std::string error_of(F&& f) {
   return "(no error)";
 }
 
-bool has(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
-
 // The deep value at the top, under the key each reader reads, and closed or left open.
 std::vector<std::string> deep_documents(const std::string& key) {
   std::vector<std::string> out;
@@ -56,7 +56,7 @@ std::vector<std::string> deep_documents(const std::string& key) {
 TEST_CASE("parse_json refuses nesting beyond the limit, counting linearly") {
   io::JsonWork work;
   const std::string e = error_of([&] { io::parse_json(deep_list(kDeep, true), "deep.json", {}, &work); });
-  CHECK(has(e, "deep.json: nests deeper than 64 levels"));
+  CHECK(contains(e, "deep.json: nests deeper than 64 levels"));
   CHECK(work.events <= 2 * std::uint64_t(io::limits::kJsonDepth));  // stopped at the limit, not at the end
   // Nesting at the limit is accepted.
   CHECK_NOTHROW(io::parse_json(deep_list(io::limits::kJsonDepth, true), "ok.json"));
@@ -68,13 +68,13 @@ TEST_CASE("parse_json: value count, string length, duplicate keys") {
   std::string many = "[";
   for (int i = 0; i < 200; ++i) many += i ? ",1" : "1";
   many += "]";
-  CHECK(has(error_of([&] { io::parse_json(many, "many.json", lim); }), "more than 100 values"));
+  CHECK(contains(error_of([&] { io::parse_json(many, "many.json", lim); }), "more than 100 values"));
   lim = {};
   lim.max_string_bytes = 10;
-  CHECK(has(error_of([&] { io::parse_json("[\"" + std::string(50, 'a') + "\"]", "s.json", lim); }),
+  CHECK(contains(error_of([&] { io::parse_json("[\"" + std::string(50, 'a') + "\"]", "s.json", lim); }),
             "longer than the limit of 10 bytes"));
-  CHECK(has(error_of([&] { io::parse_json("{\"a\": 1, \"a\": 2}", "dup.json"); }), "duplicate key 'a'"));
-  CHECK(has(error_of([&] { io::parse_json("{\"a\": ", "cut.json"); }), "cut.json: invalid JSON"));
+  CHECK(contains(error_of([&] { io::parse_json("{\"a\": 1, \"a\": 2}", "dup.json"); }), "duplicate key 'a'"));
+  CHECK(contains(error_of([&] { io::parse_json("{\"a\": ", "cut.json"); }), "cut.json: invalid JSON"));
 }
 
 TEST_CASE("json_brief describes containers by size and escapes strings") {
@@ -88,31 +88,31 @@ TEST_CASE("json_brief describes containers by size and escapes strings") {
 
 TEST_CASE("config JSON: deep nesting is refused, not a stack overflow") {
   for (const auto& doc : deep_documents("world_model_config"))
-    CHECK(has(error_of([&] { io::parse_configs(doc, "configs.json"); }), "nests deeper than"));
+    CHECK(contains(error_of([&] { io::parse_configs(doc, "configs.json"); }), "nests deeper than"));
   // Within the limit, an error about a deep value describes it by size (dump() would walk it).
   const std::string e = error_of([&] { io::parse_configs("{\"world_model_config\": " + deep_list(50, true) + "}", "c.json"); });
-  CHECK(has(e, "must be a JSON object, got array a list of 1 value(s)"));
+  CHECK(contains(e, "must be a JSON object, got array a list of 1 value(s)"));
 }
 
 TEST_CASE("pose JSON: deep nesting is refused, not a stack overflow") {
   for (const auto& doc : deep_documents("poses"))
-    CHECK(has(error_of([&] { io::parse_pose_json(doc, "poses.json"); }), "poses.json: nests deeper than"));
+    CHECK(contains(error_of([&] { io::parse_pose_json(doc, "poses.json"); }), "poses.json: nests deeper than"));
   for (const auto& doc : deep_documents("absolute"))
-    CHECK(has(error_of([&] { io::parse_pose_json(doc, "poses.json"); }), "poses.json: nests deeper than"));
+    CHECK(contains(error_of([&] { io::parse_pose_json(doc, "poses.json"); }), "poses.json: nests deeper than"));
   const std::string e = error_of([&] { io::parse_pose_json("[[1, 2, " + deep_list(50, true) + "]]", "p.json"); });
-  CHECK(has(e, "yaw must be a number, got a list of 1 value(s)"));
+  CHECK(contains(e, "yaw must be a number, got a list of 1 value(s)"));
 }
 
 TEST_CASE("trajectory JSON: deep nesting is refused, not a stack overflow") {
   for (const auto& doc : deep_documents("steps"))
-    CHECK(has(error_of([&] { io::parse_trajectory_json(doc, "traj.json"); }), "traj.json: nests deeper than"));
+    CHECK(contains(error_of([&] { io::parse_trajectory_json(doc, "traj.json"); }), "traj.json: nests deeper than"));
   const std::string e = error_of([&] { io::parse_trajectory_json("{\"steps\": [[" + deep_list(50, true) + "]]}", "t.json"); });
-  CHECK(has(e, "expected [x, y, yaw], got a list of 1 value(s)"));
+  CHECK(contains(e, "expected [x, y, yaw], got a list of 1 value(s)"));
   // read_actions sniffs a .json file with the same reader.
   test::TempDir dir;
   const auto path = dir.path / "actions.json";
   std::ofstream(path) << deep_list(kDeep, false);
-  CHECK(has(error_of([&] { io::read_actions(path); }), "nests deeper than"));
+  CHECK(contains(error_of([&] { io::read_actions(path); }), "nests deeper than"));
 }
 
 TEST_CASE("safetensors header: deep nesting is refused, not a stack overflow") {
@@ -122,7 +122,7 @@ TEST_CASE("safetensors header: deep nesting is refused, not a stack overflow") {
     std::memcpy(file.data(), &n, 8);  // little-endian hosts only, as the format
     file += doc;
     const std::span<const std::byte> bytes(reinterpret_cast<const std::byte*>(file.data()), file.size());
-    CHECK(has(error_of([&] { io::parse_safetensors(bytes, "m.safetensors", nullptr); }), "nests deeper than 3 levels"));
+    CHECK(contains(error_of([&] { io::parse_safetensors(bytes, "m.safetensors", nullptr); }), "nests deeper than 3 levels"));
   }
 }
 
@@ -130,5 +130,5 @@ TEST_CASE("boxes.json of an eval clip: deep nesting is refused, not a stack over
   test::TempDir dir;
   const auto path = dir.path / "boxes.json";
   std::ofstream(path) << "{\"ego\": " << deep_list(kDeep, true) << "}";
-  CHECK(has(error_of([&] { eval::read_boxes(path); }), "nests deeper than"));
+  CHECK(contains(error_of([&] { eval::read_boxes(path); }), "nests deeper than"));
 }
