@@ -187,6 +187,8 @@ __device__ __forceinline__ void load_tile(float* dst, const float* src, std::int
   }
 }
 
+// A template so that several translation units of one program can include it (docs/cuda.md).
+template <int = 0>
 __global__ void __launch_bounds__(kThreads) flash_f32_kernel(const FlashParams<float> p, int heads, int seqs) {
   extern __shared__ __align__(16) unsigned char smem[];
   float* sQ = reinterpret_cast<float*>(smem);
@@ -447,8 +449,8 @@ void attention(Context& ctx, const T* q, const T* k, const T* v, T* o, const Att
   } else {
     namespace fa32 = detail::fa32;
     const std::int64_t blocks = (a.lq + fa32::kRows - 1) / fa32::kRows * a.heads * a.seqs;
-    allow_dynamic_smem<fa32::flash_f32_kernel>(fa32::kSmemBytes);
-    fa32::flash_f32_kernel<<<static_cast<unsigned>(blocks), fa32::kThreads, fa32::kSmemBytes, ctx.stream()>>>(
+    allow_dynamic_smem<fa32::flash_f32_kernel<>>(fa32::kSmemBytes);
+    fa32::flash_f32_kernel<><<<static_cast<unsigned>(blocks), fa32::kThreads, fa32::kSmemBytes, ctx.stream()>>>(
         p, static_cast<int>(a.heads), static_cast<int>(a.seqs));
   }
   EPONA_CUDA_CHECK_LAUNCH();

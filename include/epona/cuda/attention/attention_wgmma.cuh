@@ -446,6 +446,8 @@ __global__ void __launch_bounds__(Tile::threads, 1)
 // Split row blocks: one warp per query row folds the rows' partial results over the key ranges
 // (as online softmax would) and stores the normalised output, rounded to bf16 once.
 constexpr int kCombineWarps = 4;
+// A template so that several translation units of one program can include it (docs/cuda.md).
+template <int = 0>
 __global__ void __launch_bounds__(32 * kCombineWarps) combine_splits_kernel(const FlashParams<bf16> p, const TmaGrid g) {
   wait_for_producer();  // may start before its producer ends (launch_after)
   const int lane = threadIdx.x % 32;
@@ -593,7 +595,7 @@ bool launch_flash_tma(Context& ctx, const FlashParams<bf16>& p, std::int64_t seq
                q_map, k_map, v_map, p, g);
   if (bytes > 0) {
     const std::int64_t rows = heads * seqs * (p.lq - g.split_row0);
-    launch_after(fa::combine_splits_kernel, static_cast<unsigned>((rows + fa::kCombineWarps - 1) / fa::kCombineWarps),
+    launch_after(fa::combine_splits_kernel<>, static_cast<unsigned>((rows + fa::kCombineWarps - 1) / fa::kCombineWarps),
                  32 * fa::kCombineWarps, 0, ctx, p, g);
   }
   return true;

@@ -100,6 +100,8 @@ __global__ void __launch_bounds__(kThreads) partial_kernel(const T* __restrict__
 }
 
 // m[(img, head)][e] = Σ_chunk partial[(img, head, chunk)][e], chunks in order.
+// A template so that several translation units of one program can include it (docs/cuda.md).
+template <int = 0>
 __global__ void reduce_kernel(const float* __restrict__ partial, float* __restrict__ m, std::int64_t matrices,
                               int chunks, int entries) {
   const std::int64_t total = matrices * entries;
@@ -229,7 +231,7 @@ void relu_linear_attention(Context& ctx, const T* qkv, T* out, std::int64_t N, s
     partial_kernel<T, kPacked><<<grid(chunks, heads, N), kThreads, 0, ctx.stream()>>>(qkv, partial.data(), g,
                                                                                       chunk_pixels);
     EPONA_CUDA_CHECK_LAUNCH();
-    reduce_kernel<<<detail::grid_for(N * heads * entries, kThreads), kThreads, 0, ctx.stream()>>>(
+    reduce_kernel<><<<detail::grid_for(N * heads * entries, kThreads), kThreads, 0, ctx.stream()>>>(
         partial.data(), m.data(), N * heads, static_cast<int>(chunks), entries);
     EPONA_CUDA_CHECK_LAUNCH();
     apply_kernel<T, kPacked><<<grid((HW + kThreads - 1) / kThreads, heads, N), kThreads, 0, ctx.stream()>>>(

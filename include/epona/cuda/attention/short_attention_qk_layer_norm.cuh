@@ -109,6 +109,8 @@ __device__ __forceinline__ void row_statistics(RowStats& st, const bf16* sQ, int
 // rows (cp.async loads).
 // Six blocks per multiprocessor (at most 80 registers; 34 KB of shared memory at 10 x 10): the
 // 2060 blocks of an MST time layer then take 2.6 waves instead of 3.1.
+// A template so that several translation units of one program can include it (docs/cuda.md).
+template <int = 0>
 __global__ void __launch_bounds__(kShortThreads, 6) flash_short_qk_norm_kernel(const FlashParams<bf16> p,
                                                                              const QkLayerNorm n, int groups) {
   wait_for_producer();  // may start before its producer ends (launch_after)
@@ -191,8 +193,8 @@ bool attention_qk_layer_norm(Context& ctx, const T* q, const T* k, const T* v, T
     const int groups = static_cast<int>(a.heads / fa::kShortWarps);
     const detail::QkLayerNorm n{q_weight, q_bias, k_weight, k_bias, q_eps, k_eps};
     const int smem = fa::qk_norm_smem_bytes(static_cast<int>(a.lq), static_cast<int>(a.lk));
-    detail::allow_dynamic_smem<fa::flash_short_qk_norm_kernel>(fa::qk_norm_smem_bytes(fa::kShortLen, fa::kShortLen));
-    detail::launch_in_clusters(fa::flash_short_qk_norm_kernel, dim3(static_cast<unsigned>(a.seqs * groups)),
+    detail::allow_dynamic_smem<fa::flash_short_qk_norm_kernel<>>(fa::qk_norm_smem_bytes(fa::kShortLen, fa::kShortLen));
+    detail::launch_in_clusters(fa::flash_short_qk_norm_kernel<>, dim3(static_cast<unsigned>(a.seqs * groups)),
                                static_cast<unsigned>(groups), fa::kShortThreads, smem, ctx, p, n, groups);
     return true;
   }

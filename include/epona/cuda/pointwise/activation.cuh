@@ -82,6 +82,8 @@ __device__ __forceinline__ unsigned look_up_pair(const std::uint16_t* lut, unsig
 // the H200, this 50-52; a copy of the same bytes takes 46.5). x and y may be the same buffer:
 // a pack is read before it is written, by the same thread. reverse: pack i is pack
 // packs - 1 - i (KernelPolicy::reversed_passes).
+// A template so that several translation units of one program can include it (docs/cuda.md).
+template <int = 0>
 __global__ void __launch_bounds__(kTableThreads, 1)
     table_map_kernel(const uint4* __restrict__ table, const uint4* x, uint4* y, std::int64_t packs, bool reverse) {
   extern __shared__ uint4 lut_packs[];
@@ -144,10 +146,10 @@ void map_bf16(Context& ctx, const bf16* x, bf16* y, std::int64_t n, Op op) {
   const bool large = ctx.policy().activation_tables && n >= kTableMinElements && packable(x, n, n) && packable(y, n, n);
   const std::uint16_t* table = large ? bf16_table(ctx, op) : nullptr;
   if (!table) return map(ctx, x, y, n, op);
-  allow_dynamic_smem<table_map_kernel>(kTableBytes);
+  allow_dynamic_smem<table_map_kernel<>>(kTableBytes);
   const std::int64_t packs = n / kPack;
   const auto blocks = std::min<std::int64_t>(ctx.info().multiprocessors, (packs + kTableThreads - 1) / kTableThreads);
-  table_map_kernel<<<static_cast<unsigned>(blocks), kTableThreads, kTableBytes, ctx.stream()>>>(
+  table_map_kernel<><<<static_cast<unsigned>(blocks), kTableThreads, kTableBytes, ctx.stream()>>>(
       reinterpret_cast<const uint4*>(table), reinterpret_cast<const uint4*>(x), reinterpret_cast<uint4*>(y), packs,
       ctx.policy().reversed_passes);
   EPONA_CUDA_CHECK_LAUNCH();

@@ -16,6 +16,8 @@
 namespace epona::cuda::detail {
 
 // Marks sm_90a code (mark_build), which has the wgmma kernels.
+// A template so that several translation units of one program can include it (docs/cuda.md).
+template <int = 0>
 __global__ void wgmma_marker_kernel(int* flag) {
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL)
   mark_build(flag);
@@ -27,7 +29,7 @@ __global__ void wgmma_marker_kernel(int* flag) {
 // Whether this GPU runs sm_90a code from this binary (the wgmma / TMA kernels).
 inline bool sm90a_available(const Context& ctx) {
   if (ctx.info().major != 9 || ctx.info().minor != 0) return false;  // sm_90a code runs on 9.0 only
-  static const bool built = build_marked(wgmma_marker_kernel);
+  static const bool built = build_marked(wgmma_marker_kernel<>);
   return built;
 }
 

@@ -51,6 +51,8 @@ __device__ __forceinline__ const T* cluster_peer(T* local, int rank) {
 }
 
 // Marks device code with clusters (mark_build).
+// A template so that several translation units of one program can include it (docs/cuda.md).
+template <int = 0>
 __global__ void cluster_marker_kernel(int* flag) {
 #if EPONA_CUDA_CLUSTERS
   mark_build(flag);
@@ -61,7 +63,7 @@ __global__ void cluster_marker_kernel(int* flag) {
 // A GPU with clusters (compute capability 9.0 or newer) running code built with them.
 inline bool clusters_available(const Context& ctx) {
   if (ctx.info().major < 9) return false;
-  static const bool built = build_marked(cluster_marker_kernel);
+  static const bool built = build_marked(cluster_marker_kernel<>);
   return built;
 }
 
