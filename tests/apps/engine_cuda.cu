@@ -10,7 +10,6 @@
 #include <string>
 
 #include "../metrics.hpp"
-#include "../../apps/epona/cuda_engine.cuh"
 #include "../../apps/epona/engine.hpp"
 #include "../../apps/epona/frames.hpp"
 #include "../../apps/epona/rollout_common.hpp"
@@ -20,16 +19,13 @@
 #include "epona/cuda/runtime/scratch.hpp"
 #include "epona/domain/world_session.hpp"
 #include "epona/model/rollout.hpp"
+#include "../golden_dir.hpp"
 
 using namespace epona;
+using epona::test::golden_dir;
 using epona::test::rel_max;
 
 namespace {
-
-std::string golden_dir() {
-  const char* env = std::getenv("EPONA_GOLDEN_DIR");
-  return env && *env ? env : EPONA_GOLDEN_DEFAULT_DIR;
-}
 
 app::ModelFiles golden_files() {
   app::ModelFiles f;
@@ -52,8 +48,9 @@ std::unique_ptr<app::Engine> loaded(const std::string& backend, bool bf16_weight
   app::ComputeOptions c;
   c.backend = backend;
   c.bf16_weights = bf16_weights;
-  // the CUDA engine exactly as apps/epona/cuda_engine.cu's make_cuda_engine builds it
-  std::unique_ptr<app::Engine> e = backend == "cuda" ? app::build_cuda_engine(c) : app::make_engine(c);
+  // the program's own engines: this test links its build of the commands (epona_commands), whose
+  // make_cuda_engine (apps/epona/cuda_engine.cu) builds the CUDA one
+  std::unique_ptr<app::Engine> e = app::make_engine(c);
   e->load_dcae(f, quiet);
   e->load_world(f, quiet);
   return e;
