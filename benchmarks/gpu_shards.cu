@@ -12,7 +12,19 @@
 // Each row: median milliseconds over the repeats (CUDA events, after a warm-up call that records
 // the graphs), the same per step, and the whole model's time over it. *_ncclN - *_shardN_alone is
 // the time the collectives add (none of it overlaps yet). Prints one JSON line per row.
-//   bench_gpu_shards [--steps S] [--repeats N] [--gpus N] [--only vis|step]
+// block_* and attention_* rows: tensor against sequence parallelism on one block (issue #40 asks for
+// both on at least one block). One VisDiT block (bf16, one item, S = 1027 joint rows), 50 calls in
+// a recorded graph, milliseconds per call:
+//   block_{double,single}_whole      the whole block over the S rows
+//   block_..._tp{N}_alone            a tensor-parallel shard (heads/N, MLP columns/N), sums left out
+//   block_..._rows{N}                the whole-width block over S/N rows: a sequence shard's products,
+//                                    norms and residual passes, with attention over its own rows only
+//   attention_rows{N}                the joint attention of S/N rows, every head (inside rows{N})
+//   attention_heads{N}               the joint attention of all S rows, heads/N: what a sequence shard
+//                                    attends after Ulysses' all-to-all (and a tensor-parallel shard)
+//   block_..._sp{N}_alone            rows{N} - attention_rows{N} + attention_heads{N}: an estimate
+//                                    of a Ulysses sequence shard's compute, without its all-to-alls
+//   bench_gpu_shards [--steps S] [--repeats N] [--gpus N] [--only vis|step|block]
 // Keep NVLink multicast off (NCCL_NVLS_ENABLE=0): the NCCL rows refuse to run with it on.
 #include <algorithm>
 #include <cstdio>
@@ -44,7 +56,7 @@ using Dit = model::FluxDiT<Cuda, bf16>;
 struct Options {
   std::int64_t steps = 100;
   int repeats = 5, gpus = 0;  // gpus 0: every GPU present
-  std::string only;           // vis or step; empty: both
+  std::string only;           // vis, step or block; empty: all
   bool want(const std::string& kind) const { return only.empty() || only == kind; }
 };
 
@@ -52,10 +64,11 @@ Options parse(int argc, char** argv) {
   Options o;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
-    EPONA_CHECK(i + 1 < argc, a, " needs a value (--steps S, --repeats N, --gpus N, --only vis|step)");
+    EPONA_CHECK(i + 1 < argc, a, " needs a value (--steps S, --repeats N, --gpus N, --only vis|step|block)");
     if (a == "--only") {
       o.only = argv[++i];
-      EPONA_CHECK(o.only == "vis" || o.only == "step", "--only takes vis or step, got '", o.only, "'");
+      EPONA_CHECK(o.only == "vis" || o.only == "step" || o.only == "block", "--only takes vis, step or block, got '",
+                  o.only, "'");
       continue;
     }
     char* end = nullptr;
@@ -64,7 +77,7 @@ Options parse(int argc, char** argv) {
     if (a == "--steps") o.steps = v;
     else if (a == "--repeats") o.repeats = int(v);
     else if (a == "--gpus") o.gpus = int(v);
-    else fail("unknown option '", a, "' (--steps S, --repeats N, --gpus N, --only vis|step)");
+    else fail("unknown option '", a, "' (--steps S, --repeats N, --gpus N, --only vis|step|block)");
   }
   return o;
 }
@@ -176,6 +189,94 @@ double step_rows(const Options& o, const WorldModelConfig& cfg, const io::Tensor
   return whole_ms;
 }
 
+// ---- one block, tensor against sequence parallelism ------------------------------------------
+
+constexpr int kBlockCalls = 50;
+using A = Activation<Cuda, bf16>;
+
+// A VisDiT block of `widths` over `rows` with random weights, inputs and RoPE table, timed per call.
+template <class Block>
+struct BlockRun {
+  nn::DitWidths widths;
+  nn::JointRows rows;
+  Block block;
+  NoSum none;
+  Arena<Cuda> arena;
+  nn::DitScratch<Cuda, A> s;
+  nn::RopeTable<Cuda> rope;
+  Tensor<A, Cuda> mods;
+  nn::SideQueue<Cuda> queue;
+  cuda::GraphCache graph;
+
+  BlockRun(cuda::Context& ctx, const nn::DitWidths& w, const nn::JointRows& r, std::int64_t mod_width)
+      : widths(w), rows(r), block(w), none(w.shards), arena(scratch_bytes(w, r)),
+        s(nn::DitScratch<Cuda, A>::plan(arena, r, w)) {
+    block.randomize(3);
+    if (w.shards > 1) block.shard_sum = &none;
+    TorchGenerator gen(4);
+    const auto upload = [](const Tensor<float, Cpu>& t) { return BackendTraits<Cuda>::upload(host_as<A>(t)); };
+    cuda::copy(ctx, upload(gen.randn({r.total(), w.hidden})).data(), s.z.data(), r.total() * w.hidden);
+    rope = {BackendTraits<Cuda>::upload(gen.randn({r.total(), w.head_dim() / 2})),
+            BackendTraits<Cuda>::upload(gen.randn({r.total(), w.head_dim() / 2}))};
+    Tensor<float, Cpu> m = gen.randn({mod_width});
+    for (std::int64_t i = 0; i < m.numel(); ++i) m.data()[i] *= 0.1f;
+    mods = upload(m);
+  }
+  static std::size_t scratch_bytes(const nn::DitWidths& w, const nn::JointRows& r) {
+    ArenaCounter<Cuda> counter;
+    nn::DitScratch<Cuda, A>::plan(counter, r, w);
+    return counter.bytes();
+  }
+  void call(cuda::Context& ctx) { block(ctx, queue, s, rows, rope, mods.data()); }
+  void attend(cuda::Context& ctx) {
+    const std::int64_t I = widths.attention_width();
+    nn::detail::joint_attention<Cuda>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), I, 3 * I);
+  }
+  // Median milliseconds per call of `work`, kBlockCalls of them in one recorded graph.
+  template <class Work>
+  double ms_per_call(cuda::Context& ctx, int repeats, Work work) {
+    const auto many = [&] {
+      for (int i = 0; i < kBlockCalls; ++i) work(ctx);
+    };
+    const auto runs = bench::event_times_ms(ctx, repeats, 1, [&] { graph.run(ctx, {1}, many); });
+    return bench::median(runs) / kBlockCalls;
+  }
+};
+
+void emit_block(const std::string& name, double ms, double whole_ms) {
+  std::printf("{\"name\": \"%s\", \"ms\": %.4f, \"whole_over_this\": %.3f}\n", name.c_str(), ms, whole_ms / ms);
+  std::fflush(stdout);
+}
+
+// Both kinds of block: whole, tensor-parallel shards, and the parts of a sequence shard's estimate.
+template <class Block>
+void block_rows(cuda::Context& ctx, const Options& o, const WorldModelConfig& cfg, const std::string& kind,
+                std::int64_t mod_blocks) {
+  const nn::DitWidths whole = model::FluxDitConfig::vis(cfg).widths();
+  const nn::JointRows all{cfg.tokens_per_frame(), cfg.img_tokens()};
+  const auto time = [&](const nn::DitWidths& w, const nn::JointRows& r, bool attention_only) {
+    BlockRun<Block> run(ctx, w, r, mod_blocks * w.hidden);
+    run.call(ctx);  // fills the qkv rows the attention-only timing reads
+    return attention_only ? run.ms_per_call(ctx, o.repeats, [&](cuda::Context& c) { run.attend(c); })
+                          : run.ms_per_call(ctx, o.repeats, [&](cuda::Context& c) { run.call(c); });
+  };
+  const double whole_ms = time(whole, all, false);
+  emit_block("block_" + kind + "_whole", whole_ms, whole_ms);
+  for (const std::int64_t n : {2, 4}) {
+    nn::DitWidths shard = whole;
+    shard.shards = n;
+    const nn::JointRows part{(all.cond + n - 1) / n, (all.target + n - 1) / n};
+    const double tp = time(shard, all, false), rows = time(whole, part, false);
+    const double attention_rows = time(whole, part, true), attention_heads = time(shard, all, true);
+    const std::string N = std::to_string(n);
+    emit_block("block_" + kind + "_tp" + N + "_alone", tp, whole_ms);
+    emit_block("block_" + kind + "_rows" + N, rows, whole_ms);
+    emit_block("attention_rows" + N + "_" + kind, attention_rows, whole_ms);
+    emit_block("attention_heads" + N + "_" + kind, attention_heads, whole_ms);
+    emit_block("block_" + kind + "_sp" + N + "_alone", rows - attention_rows + attention_heads, whole_ms);
+  }
+}
+
 #if defined(EPONA_BENCH_NCCL)
 // The N-way split over GPUs 0..N-1 through NCCL, each rank's work made by make(rank, sum) in its
 // thread (on its GPU): rank 0's times, every rank starting each repeat together.
@@ -229,6 +330,11 @@ int main(int argc, char** argv) try {
         return s;
       });
 #endif
+  }
+  if (o.want("block")) {
+    cuda::Context ctx;
+    block_rows<nn::DoubleStreamBlock<Cuda, bf16>>(ctx, o, cfg, "double", 12);
+    block_rows<nn::SingleStreamBlock<Cuda, bf16>>(ctx, o, cfg, "single", 3);
   }
   if (o.want("step")) {
     const io::TensorMap weights = model::random_world_weights(cfg, 1);
