@@ -19,6 +19,7 @@
 //   block_..._tp{N}_alone            a tensor-parallel shard (heads/N, MLP columns/N), sums left out
 //   block_..._rows{N}                the whole-width block over S/N rows: a sequence shard's products,
 //                                    norms and residual passes, with attention over its own rows only
+//   attention_whole                  the joint attention of the whole block (inside block_..._whole)
 //   attention_rows{N}                the joint attention of S/N rows, every head (inside rows{N})
 //   attention_heads{N}               the joint attention of all S rows, heads/N: what a sequence shard
 //                                    attends after Ulysses' all-to-all (and a tensor-parallel shard)
@@ -232,13 +233,23 @@ struct BlockRun {
     const std::int64_t I = widths.attention_width();
     nn::detail::joint_attention<Cuda>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), I, 3 * I);
   }
-  // Median milliseconds per call of `work`, kBlockCalls of them in one recorded graph.
+  // Median milliseconds per call of the block and of its joint attention alone (on the qkv rows the
+  // block left), each kBlockCalls calls in one recorded graph.
+  struct Times {
+    double block, attention;
+  };
+  Times times(cuda::Context& ctx, int repeats) {
+    const double block_ms = ms_per_call(ctx, repeats, 1, [&] { call(ctx); });
+    return {block_ms, ms_per_call(ctx, repeats, 2, [&] { attend(ctx); })};
+  }
+
+ private:
   template <class Work>
-  double ms_per_call(cuda::Context& ctx, int repeats, Work work) {
+  double ms_per_call(cuda::Context& ctx, int repeats, std::uint64_t key, Work work) {
     const auto many = [&] {
-      for (int i = 0; i < kBlockCalls; ++i) work(ctx);
+      for (int i = 0; i < kBlockCalls; ++i) work();
     };
-    const auto runs = bench::event_times_ms(ctx, repeats, 1, [&] { graph.run(ctx, {1}, many); });
+    const auto runs = bench::event_times_ms(ctx, repeats, 1, [&] { graph.run(ctx, {key}, many); });
     return bench::median(runs) / kBlockCalls;
   }
 };
@@ -254,26 +265,24 @@ void block_rows(cuda::Context& ctx, const Options& o, const WorldModelConfig& cf
                 std::int64_t mod_blocks) {
   const nn::DitWidths whole = model::FluxDitConfig::vis(cfg).widths();
   const nn::JointRows all{cfg.tokens_per_frame(), cfg.img_tokens()};
-  const auto time = [&](const nn::DitWidths& w, const nn::JointRows& r, bool attention_only) {
-    BlockRun<Block> run(ctx, w, r, mod_blocks * w.hidden);
-    run.call(ctx);  // fills the qkv rows the attention-only timing reads
-    return attention_only ? run.ms_per_call(ctx, o.repeats, [&](cuda::Context& c) { run.attend(c); })
-                          : run.ms_per_call(ctx, o.repeats, [&](cuda::Context& c) { run.call(c); });
+  const auto time = [&](const nn::DitWidths& w, const nn::JointRows& r) {
+    return BlockRun<Block>(ctx, w, r, mod_blocks * w.hidden).times(ctx, o.repeats);
   };
-  const double whole_ms = time(whole, all, false);
+  const auto whole_times = time(whole, all);
+  const double whole_ms = whole_times.block;
   emit_block("block_" + kind + "_whole", whole_ms, whole_ms);
+  emit_block("attention_whole_" + kind, whole_times.attention, whole_ms);
   for (const std::int64_t n : {2, 4}) {
     nn::DitWidths shard = whole;
     shard.shards = n;
     const nn::JointRows part{(all.cond + n - 1) / n, (all.target + n - 1) / n};
-    const double tp = time(shard, all, false), rows = time(whole, part, false);
-    const double attention_rows = time(whole, part, true), attention_heads = time(shard, all, true);
+    const auto tp = time(shard, all), rows = time(whole, part);  // tp.attention: all rows, heads/N
     const std::string N = std::to_string(n);
-    emit_block("block_" + kind + "_tp" + N + "_alone", tp, whole_ms);
-    emit_block("block_" + kind + "_rows" + N, rows, whole_ms);
-    emit_block("attention_rows" + N + "_" + kind, attention_rows, whole_ms);
-    emit_block("attention_heads" + N + "_" + kind, attention_heads, whole_ms);
-    emit_block("block_" + kind + "_sp" + N + "_alone", rows - attention_rows + attention_heads, whole_ms);
+    emit_block("block_" + kind + "_tp" + N + "_alone", tp.block, whole_ms);
+    emit_block("block_" + kind + "_rows" + N, rows.block, whole_ms);
+    emit_block("attention_rows" + N + "_" + kind, rows.attention, whole_ms);
+    emit_block("attention_heads" + N + "_" + kind, tp.attention, whole_ms);
+    emit_block("block_" + kind + "_sp" + N + "_alone", rows.block - rows.attention + tp.attention, whole_ms);
   }
 }
 
