@@ -12,8 +12,13 @@
 // every shard the same bits.
 #include "cuda_test_util.cuh"
 
+#include <chrono>
+#include <condition_variable>
+#include <cstdio>
 #include <cstdlib>
+#include <mutex>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "../metrics.hpp"
@@ -130,6 +135,66 @@ void sharded_like_whole(bool nccl) {
   }
 }
 
+#if defined(EPONA_TEST_NCCL)
+// True where two GPUs can hold an NCCL group (else the case skips with a message); NVLink
+// multicast must be off, as on the lent machines (docs/parallel.md).
+bool two_gpus_for_nccl() {
+  int gpus = 0;
+  EPONA_CUDA_CHECK(cudaGetDeviceCount(&gpus));
+  if (gpus < 2) {
+    MESSAGE("one GPU: the NCCL group needs two, skipping");
+    return false;
+  }
+  const char* nvls = std::getenv("NCCL_NVLS_ENABLE");
+  REQUIRE_MESSAGE((nvls && std::string(nvls) == "0"), "set NCCL_NVLS_ENABLE=0 (docs/parallel.md)");
+  return true;
+}
+
+// Ends the program with a message if `seconds` pass before it is destroyed: a deadlocked group
+// never returns, and this names the case instead of leaving it to ctest's timeout.
+class Watchdog {
+ public:
+  Watchdog(std::string what, int seconds) : what_(std::move(what)) {
+    thread_ = std::thread([this, seconds] {
+      std::unique_lock lock(mutex_);
+      if (!done_.wait_for(lock, std::chrono::seconds(seconds), [this] { return finished_; })) {
+        std::fprintf(stderr, "%s: no progress in %d s (a deadlocked NCCL group)\n", what_.c_str(), seconds);
+        std::_Exit(3);
+      }
+    });
+  }
+  ~Watchdog() {
+    {
+      std::lock_guard lock(mutex_);
+      finished_ = true;
+    }
+    done_.notify_all();
+    thread_.join();
+  }
+
+ private:
+  std::string what_;
+  std::mutex mutex_;
+  std::condition_variable done_;
+  bool finished_ = false;
+  std::thread thread_;
+};
+
+// CUDA calls that can wait on a device while they hold the driver's locks: cudaMalloc, pageable
+// copies, cudaFree.
+void busy_with_memory(cuda::Context& ctx) {
+  std::vector<float> host(1 << 22, 1.f);
+  for (int i = 0; i < 8; ++i) {
+    void* p = nullptr;
+    EPONA_CUDA_CHECK(cudaMalloc(&p, host.size() * sizeof(float)));
+    EPONA_CUDA_CHECK(cudaMemcpy(p, host.data(), host.size() * sizeof(float), cudaMemcpyHostToDevice));
+    EPONA_CUDA_CHECK(cudaMemcpy(host.data(), p, host.size() * sizeof(float), cudaMemcpyDeviceToHost));
+    EPONA_CUDA_CHECK(cudaFree(p));
+  }
+  ctx.synchronize();
+}
+#endif
+
 }  // namespace
 
 TEST_CASE_TEMPLATE("a DiT split over shards sharing one GPU samples what the whole DiT samples", W, float, bf16) {
@@ -140,14 +205,8 @@ TEST_CASE_TEMPLATE("a DiT split over shards sharing one GPU samples what the who
 TEST_CASE_TEMPLATE("a DiT split over two GPUs through NCCL samples what the whole DiT samples", W, float, bf16) {
   EPONA_REQUIRE_GPU();
 #if defined(EPONA_TEST_NCCL)
-  int gpus = 0;
-  EPONA_CUDA_CHECK(cudaGetDeviceCount(&gpus));
-  if (gpus < 2) {
-    MESSAGE("one GPU: the NCCL group needs two, skipping");
-    return;
-  }
-  const char* nvls = std::getenv("NCCL_NVLS_ENABLE");
-  REQUIRE_MESSAGE((nvls && std::string(nvls) == "0"), "set NCCL_NVLS_ENABLE=0 (docs/parallel.md)");
+  if (!two_gpus_for_nccl()) return;
+  Watchdog watchdog("a DiT over two GPUs through NCCL", 300);
   sharded_like_whole<W>(true);
 #else
   MESSAGE("built without NCCL: skipping");
@@ -172,12 +231,79 @@ TEST_CASE("the NCCL group of one GPU: its sum runs, directly and inside a record
     cuda::GraphCache graph;
     for (int i = 0; i < 2; ++i) graph.run(ctx, {1}, [&] { sum.sum(ctx, d.data(), d.numel()); });
     CHECK(graph.captures() == 1);
+    CHECK_FALSE(graph.holds_collectives());  // a group of one has no peer to fence with
     CHECK(count_bit_differences(download(ctx, d), values) == 0);
   });
 #else
   MESSAGE("built without NCCL: skipping");
 #endif
 }
+
+TEST_CASE("a recorded graph holding a collective calls its group's fence before and after every launch") {
+  EPONA_REQUIRE_GPU();
+  cuda::Context ctx;
+  ctx.policy().graphs = true;
+  Dev<float> d({4});
+  int fences = 0;
+  cuda::GraphCache graph;
+  const auto work = [&](bool collective) {
+    return [&, collective] {
+      EPONA_CUDA_CHECK(cudaMemsetAsync(d.data(), 0, d.nbytes(), ctx.stream()));
+      if (collective) ctx.note_captured_collective([&] { ++fences; });
+    };
+  };
+  graph.run(ctx, {1}, work(true));
+  CHECK(graph.holds_collectives());
+  CHECK(fences == 2);  // the recording calls nothing; its first launch two
+  graph.run(ctx, {1}, work(true));
+  CHECK(fences == 4);
+  graph.run(ctx, {2}, work(false));  // a new recording without one forgets the fence
+  CHECK_FALSE(graph.holds_collectives());
+  graph.run(ctx, {2}, work(false));
+  CHECK(fences == 4);
+  CHECK_FALSE(static_cast<bool>(ctx.take_captured_collective()));
+  ctx.synchronize();
+}
+
+#if defined(EPONA_TEST_NCCL)
+TEST_CASE("the NCCL group over two GPUs: a rank busy with memory calls while the other sums does not stall it") {
+  EPONA_REQUIRE_GPU();
+  if (!two_gpus_for_nccl()) return;
+  // Rank 1 makes those calls after rank 0 reached its sum, and rank 0 after its sum: without the
+  // group's fences rank 0's all-reduce would wait for rank 1, whose calls wait for GPU 0.
+  Watchdog watchdog("NCCL group with memory calls beside its sums", 120);
+  cuda::NcclShardGroup<float> group({0, 1});
+  const HostF a = random_tensor({4096}, 5), b = random_tensor({4096}, 6);
+  for (const bool graphs : {false, true}) {
+    std::vector<HostF> out(2);
+    group.run([&](std::int64_t r) {
+      cuda::Context ctx;
+      ctx.policy().graphs = graphs;
+      Dev<float> d = upload<float>(ctx, r == 0 ? a : b);
+      const auto sum = group.shard(r);
+      cuda::GraphCache graph;
+      for (int round = 0; round < 3; ++round) {
+        if (r == 1) {
+          std::this_thread::sleep_for(std::chrono::milliseconds(100));
+          busy_with_memory(ctx);
+        }
+        // Three sums: each round doubles the first round's sum (a + b, then 2(a + b), 4(a + b)).
+        graph.run(ctx, {1}, [&] { sum.sum(ctx, d.data(), d.numel()); });
+        if (r == 0) busy_with_memory(ctx);
+      }
+      CHECK(graph.holds_collectives() == graphs);
+      out[static_cast<std::size_t>(r)] = download(ctx, d);
+    });
+    std::int64_t wrong = 0;
+    for (std::int64_t i = 0; i < a.numel(); ++i) {
+      // a + b rounded once, then doubled twice (exact): 2 ranks sum in one addition.
+      const float expected = 4.f * (a.data()[i] + b.data()[i]);
+      wrong += out[0].data()[i] != expected || out[1].data()[i] != expected;
+    }
+    CHECK_MESSAGE(wrong == 0, (graphs ? "graphs" : "eager"), ": ", wrong, " of ", a.numel(), " sums wrong");
+  }
+}
+#endif
 
 TEST_CASE("the one-GPU group refuses graphs, and sums of different sizes") {
   EPONA_REQUIRE_GPU();

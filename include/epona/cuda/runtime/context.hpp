@@ -10,9 +10,11 @@
 #include <array>
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <string>
+#include <utility>
 
 #include "epona/core/error.hpp"
 #include "epona/cuda/runtime/check.hpp"
@@ -133,6 +135,15 @@ class Context {
 
   std::map<detail::LtPlanKey, std::unique_ptr<detail::LtPlan>>& gemm_plans() { return gemm_plans_; }
 
+  // A collective between GPUs that threads of this process drive (nccl_shard_sum.hpp) must be
+  // launched by every rank before any rank makes a CUDA call that can wait on a device
+  // (cudaMalloc, cudaFree, a pageable copy): that call waits for its GPU's collective, which
+  // waits for a rank stuck behind the call (docs/parallel.md, "Deadlocks"). A collective enqueued
+  // while the stream records a graph leaves its group's `fence` (a barrier of the ranks) here,
+  // and the graph then calls it before and after every launch (graph.hpp).
+  void note_captured_collective(std::function<void()> fence) { captured_fence_ = std::move(fence); }
+  std::function<void()> take_captured_collective() { return std::exchange(captured_fence_, {}); }
+
   // Host -> device on the stream without waiting for it, through the context's pinned ring
   // (host_staging.hpp); src may be reused on return. False, with nothing done, where the ring
   // cannot take the copy (too large, the stream capturing a graph, no pinned memory).
@@ -182,6 +193,7 @@ class Context {
     std::size_t bytes = 0;
   };
   std::map<std::string, Table> tables_;
+  std::function<void()> captured_fence_;
   // Declared last so plans are destroyed before the handle they were made with.
   std::map<detail::LtPlanKey, std::unique_ptr<detail::LtPlan>> gemm_plans_;
 };

@@ -10,6 +10,7 @@
 
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <utility>
 #include <vector>
 
@@ -31,7 +32,7 @@ class GraphCache {
   }
   GraphCache(GraphCache&& o) noexcept
       : exec_(std::exchange(o.exec_, nullptr)), key_(std::move(o.key_)), captures_(o.captures_),
-        capture_ms_(o.capture_ms_), counts_(o.counts_) {}
+        capture_ms_(o.capture_ms_), counts_(o.counts_), fence_(std::move(o.fence_)) {}
   GraphCache& operator=(GraphCache&& o) noexcept {
     if (this != &o) {
       reset();
@@ -40,6 +41,7 @@ class GraphCache {
       captures_ = o.captures_;
       capture_ms_ = o.capture_ms_;
       counts_ = o.counts_;
+      fence_ = std::move(o.fence_);
     }
     return *this;
   }
@@ -55,7 +57,9 @@ class GraphCache {
       return;
     }
     if (!exec_ || key != key_) record(ctx, key, work);
+    if (fence_) fence_();  // a graph holding collectives: every rank launches between two fences
     EPONA_CUDA_CHECK(cudaGraphLaunch(exec_, ctx.stream()));
+    if (fence_) fence_();
   }
 
   // What the last recorded graph holds: all nodes, kernels (cuBLASLt's included), memory
@@ -70,7 +74,9 @@ class GraphCache {
     if (exec_) cudaGraphExecDestroy(exec_);
     exec_ = nullptr;
     key_.clear();
+    fence_ = {};
   }
+  bool holds_collectives() const { return static_cast<bool>(fence_); }
 
  private:
   template <class Work>
@@ -79,6 +85,7 @@ class GraphCache {
     const auto start = std::chrono::steady_clock::now();
     cudaGraph_t graph = nullptr;
     // Relaxed: first calls inside the capture may build cuBLASLt plans or set kernel attributes.
+    (void)ctx.take_captured_collective();
     EPONA_CUDA_CHECK(cudaStreamBeginCapture(ctx.stream(), cudaStreamCaptureModeRelaxed));
     try {
       work();
@@ -89,11 +96,15 @@ class GraphCache {
       throw;
     }
     EPONA_CUDA_CHECK(cudaStreamEndCapture(ctx.stream(), &graph));
+    std::function<void()> fence = ctx.take_captured_collective();
     count_nodes(graph);
     const cudaError_t status = cudaGraphInstantiate(&exec_, graph, 0);
     cudaGraphDestroy(graph);
     if (status != cudaSuccess) exec_ = nullptr;
     EPONA_CUDA_CHECK(status);
+    // Uploaded here, so the first launch between the fences does no more than later ones.
+    EPONA_CUDA_CHECK(cudaGraphUpload(exec_, ctx.stream()));
+    fence_ = std::move(fence);
     key_ = key;
     ++captures_;
     capture_ms_ = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
@@ -118,6 +129,7 @@ class GraphCache {
   int captures_ = 0;
   double capture_ms_ = 0;
   NodeCounts counts_;
+  std::function<void()> fence_;  // set when the recorded graph holds a collective between GPUs
 };
 
 }  // namespace epona::cuda

@@ -1,21 +1,25 @@
 // epona/cuda/runtime/nccl_shard_sum.hpp — a tensor-parallel group over the GPUs of one host through
 // NCCL: one process drives them (ncclCommInitAll), shard r runs in host thread r with a
 // cuda::Context on devices[r], and ShardSum is ncclAllReduce on that context's stream, so a
-// recorded sampler graph holds it. Keep NVLink multicast off (NCCL_NVLS_ENABLE=0) on the lent
-// machines (docs/parallel.md). The one header that includes <nccl.h>: link NCCL (CMake target
-// epona_nccl) where it is used.
+// recorded sampler graph holds it. Every rank launches a collective (or a graph holding one)
+// between two barriers of the group, so no rank's CUDA call can wait on a GPU whose collective
+// waits for that rank (context.hpp; docs/parallel.md, "Deadlocks"). Keep NVLink multicast off
+// (NCCL_NVLS_ENABLE=0) on the lent machines. The one header that includes <nccl.h>: link NCCL
+// (CMake target epona_nccl) where it is used.
 #pragma once
 
 #include <nccl.h>
 
 #include <cstdint>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "epona/core/dtype.hpp"
 #include "epona/core/error.hpp"
 #include "epona/core/tensor_parallel.hpp"
 #include "epona/cuda/runtime/context.hpp"
+#include "epona/cuda/runtime/memory.hpp"
 
 #define EPONA_NCCL_CHECK(expr)                                                                    \
   do {                                                                                            \
@@ -45,11 +49,14 @@ class NcclShardGroup {
     }
     comms_.resize(devices_.size());
     EPONA_NCCL_CHECK(ncclCommInitAll(comms_.data(), static_cast<int>(devices_.size()), devices_.data()));
+    try {
+      connect();
+    } catch (...) {
+      destroy();
+      throw;
+    }
   }
-  ~NcclShardGroup() {
-    for (auto c : comms_)
-      if (c) (void)ncclCommDestroy(c);
-  }
+  ~NcclShardGroup() { destroy(); }
   NcclShardGroup(const NcclShardGroup&) = delete;
   NcclShardGroup& operator=(const NcclShardGroup&) = delete;
 
@@ -69,14 +76,52 @@ class NcclShardGroup {
     });
   }
 
-  // Shard `rank`'s all-reduce on its context's stream (its ShardSum's call).
+  // Shard `rank`'s all-reduce on its context's stream (its ShardSum's call): launched between two
+  // barriers, or, while the stream records a graph, left to the graph's launches to fence.
   void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count) {
-    constexpr ncclDataType_t type = std::is_same_v<A, float> ? ncclFloat32 : ncclBfloat16;
-    EPONA_NCCL_CHECK(ncclAllReduce(data, data, static_cast<std::size_t>(count), type, ncclSum,
-                                   comms_[static_cast<std::size_t>(rank)], ctx.stream()));
+    if (size() == 1) return all_reduce(ctx.stream(), rank, data, count);
+    cudaStreamCaptureStatus capture = cudaStreamCaptureStatusNone;
+    EPONA_CUDA_CHECK(cudaStreamIsCapturing(ctx.stream(), &capture));
+    if (capture == cudaStreamCaptureStatusActive) {
+      ctx.note_captured_collective([this] { fence(); });
+      return all_reduce(ctx.stream(), rank, data, count);
+    }
+    fence();
+    all_reduce(ctx.stream(), rank, data, count);
+    fence();
   }
 
+  // Every rank arrives before any goes on (a failed rank breaks it: the others throw).
+  void fence() { barrier_.arrive_and_wait(); }
+
  private:
+  void all_reduce(cudaStream_t stream, std::int64_t rank, A* data, std::int64_t count) {
+    constexpr ncclDataType_t type = std::is_same_v<A, float> ? ncclFloat32 : ncclBfloat16;
+    EPONA_NCCL_CHECK(ncclAllReduce(data, data, static_cast<std::size_t>(count), type, ncclSum,
+                                   comms_[static_cast<std::size_t>(rank)], stream));
+  }
+
+  // One all-reduce of one element on every rank: NCCL connects the ranks at their first
+  // collective, so a group that cannot talk fails here, at its construction, and the models'
+  // first sums (often inside a graph's recording) find the connections made.
+  void connect() {
+    if (size() == 1) return;
+    run([&](std::int64_t r) {
+      Context ctx(device(r), 0);
+      const auto one = BackendMemory<Cuda>::allocate(sizeof(A));
+      EPONA_CUDA_CHECK(cudaMemsetAsync(one.get(), 0, sizeof(A), ctx.stream()));
+      fence();
+      all_reduce(ctx.stream(), r, static_cast<A*>(one.get()), 1);
+      fence();
+      ctx.synchronize();
+    });
+  }
+
+  void destroy() {
+    for (auto& c : comms_)
+      if (c) (void)ncclCommDestroy(std::exchange(c, nullptr));
+  }
+
   std::vector<int> devices_;
   std::vector<ncclComm_t> comms_;
   BreakableBarrier barrier_;
