@@ -84,8 +84,8 @@ class GraphCache {
     reset();
     const auto start = std::chrono::steady_clock::now();
     cudaGraph_t graph = nullptr;
-    // Relaxed: first calls inside the capture may build cuBLASLt plans or set kernel attributes.
     (void)ctx.take_captured_collective();
+    // Relaxed: first calls inside the capture may build cuBLASLt plans or set kernel attributes.
     EPONA_CUDA_CHECK(cudaStreamBeginCapture(ctx.stream(), cudaStreamCaptureModeRelaxed));
     try {
       work();
