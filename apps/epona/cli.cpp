@@ -19,6 +19,7 @@
 #include "cmd_synth.hpp"
 #include "cli.hpp"
 #include "console.hpp"
+#include "engine.hpp"
 #include "processes.hpp"
 #include "epona/domain/poses.hpp"
 #include "epona/domain/trajectory_io.hpp"
@@ -66,6 +67,14 @@ std::string main_help() {
 }
 
 }  // namespace
+
+std::unique_ptr<Engine> make_engine(const ComputeOptions& c) {
+#if defined(EPONA_APP_CUDA)
+  if (c.backend == "cuda") return make_cuda_engine(c);
+#endif
+  check_backend(c.backend);
+  return c.bf16_weights ? make_cpu_engine<bf16>(c) : make_cpu_engine<float>(c);
+}
 
 int run(const std::vector<std::string>& args, std::ostream& out, std::ostream& err, bool interactive) {
   try {
