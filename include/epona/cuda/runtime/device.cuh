@@ -8,6 +8,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <mutex>
 #include <type_traits>
 
 #include "epona/core/dtype.hpp"
@@ -244,14 +245,20 @@ __device__ __forceinline__ void named_barrier(int id, int threads) {
   asm volatile("bar.sync %0, %1;\n" ::"r"(id), "r"(threads) : "memory");
 }
 
-// Lets `Kernel` use `bytes` (> 48 KiB) of dynamic shared memory; set once per kernel.
+// Lets `Kernel` use `bytes` (> 48 KiB) of dynamic shared memory on the current device; set once
+// per kernel and device. The attribute is the device's: a tensor-parallel group's threads launch
+// the same kernels on several GPUs, and a launch on a GPU that never had it set is refused.
+inline constexpr int kMaxDevices = 64;
 template <auto Kernel>
 void allow_dynamic_smem(int bytes) {
-  static const bool done = [bytes] {
+  static std::once_flag done[kMaxDevices];
+  int device = 0;
+  EPONA_CUDA_CHECK(cudaGetDevice(&device));
+  EPONA_CHECK(device >= 0 && device < kMaxDevices, "CUDA device ", device, " out of range (at most ", kMaxDevices,
+              " devices)");
+  std::call_once(done[device], [bytes] {
     EPONA_CUDA_CHECK(cudaFuncSetAttribute(Kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, bytes));
-    return true;
-  }();
-  (void)done;
+  });
 }
 
 }  // namespace detail
