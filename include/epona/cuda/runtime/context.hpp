@@ -138,10 +138,10 @@ class Context {
   // A collective between GPUs that threads of this process drive (nccl_shard_sum.hpp) must be
   // launched by every rank before any rank makes a CUDA call that can wait on a device
   // (cudaMalloc, cudaFree, a pageable copy): that call waits for its GPU's collective, which
-  // waits for a rank stuck behind the call (docs/parallel.md, "Deadlocks"). A collective enqueued
-  // while the stream records a graph leaves its group's `fence` (a barrier of the ranks) here,
-  // and the graph then calls it before and after every launch (graph.hpp). A graph recorded by
-  // other code must take it here after its capture and do the same.
+  // waits for a rank stuck behind the call (docs/parallel.md, "the group's fences"). A
+  // collective enqueued while the stream records a graph leaves its group's `fence` (a barrier
+  // of the ranks) here, and the graph then calls it before and after every launch (graph.hpp).
+  // A graph recorded by other code must take it here after its capture and do the same.
   void note_captured_collective(std::function<void()> fence) { captured_fence_ = std::move(fence); }
   std::function<void()> take_captured_collective() { return std::exchange(captured_fence_, {}); }
 

@@ -3,9 +3,10 @@
 // cuda::Context on devices[r], and ShardSum is ncclAllReduce on that context's stream, so a
 // recorded sampler graph holds it. Every rank launches a collective (or a graph holding one)
 // between two barriers of the group, so no rank's CUDA call can wait on a GPU whose collective
-// waits for that rank (context.hpp; docs/parallel.md, "Deadlocks"). Keep NVLink multicast off
-// (NCCL_NVLS_ENABLE=0) on the lent machines. The one header that includes <nccl.h>: link NCCL
-// (CMake target epona_nccl) where it is used.
+// waits for that rank, and a failed rank stops the others before they launch (context.hpp;
+// docs/parallel.md, "the group's fences"). Keep NVLink multicast off (NCCL_NVLS_ENABLE=0) on the
+// lent machines. The one header that includes <nccl.h>: link NCCL (CMake target epona_nccl)
+// where it is used.
 #pragma once
 
 #include <nccl.h>
