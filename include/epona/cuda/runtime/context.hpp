@@ -23,6 +23,10 @@
 
 namespace epona::cuda {
 
+// The most devices that per-device tables hold (the scratch pools, the kernels' shared memory
+// attribute).
+inline constexpr int kMaxDevices = 64;
+
 // True when the CUDA runtime sees at least one device (false without a driver, too).
 inline bool has_gpu() {
   static const bool present = [] {

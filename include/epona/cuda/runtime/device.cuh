@@ -248,7 +248,6 @@ __device__ __forceinline__ void named_barrier(int id, int threads) {
 // Lets `Kernel` use `bytes` (> 48 KiB) of dynamic shared memory on the current device; set once
 // per kernel and device. The attribute is the device's: a tensor-parallel group's threads launch
 // the same kernels on several GPUs, and a launch on a GPU that never had it set is refused.
-inline constexpr int kMaxDevices = 64;
 template <auto Kernel>
 void allow_dynamic_smem(int bytes) {
   static std::once_flag done[kMaxDevices];

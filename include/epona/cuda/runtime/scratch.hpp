@@ -28,9 +28,9 @@ namespace scratch_detail {
 // no memory pools (then scratch tensors are plain allocations).
 inline cudaMemPool_t pool_of(int device) {
   static std::mutex m;
-  static cudaMemPool_t pools[64] = {};
-  static bool checked[64] = {};
-  EPONA_CHECK(device >= 0 && device < 64, "scratch memory: device ", device, " out of range");
+  static cudaMemPool_t pools[kMaxDevices] = {};
+  static bool checked[kMaxDevices] = {};
+  EPONA_CHECK(device >= 0 && device < kMaxDevices, "scratch memory: device ", device, " out of range");
   std::lock_guard<std::mutex> lock(m);
   if (!checked[device]) {
     checked[device] = true;
