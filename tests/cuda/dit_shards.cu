@@ -1,9 +1,9 @@
 // Tensor parallelism of the DiTs on the GPU (core/tensor_parallel.hpp, docs/parallel.md): a DiT split
 // over 2 and 4 shards, each shard a host thread with its own context and its weights cut from
 // the whole model's map, samples (Heun, 4 steps) what the whole DiT samples. On one GPU the shards
-// share it (cuda::StreamShardGroup, graphs off); with two GPUs and NCCL the shards are GPUs
-// (cuda::NcclShardGroup, the sampler's graph holding the all-reduce), else that case skips with a
-// message. A VisDiT-like DiT (an action, paired streams at one item) and a TrajDiT-like one (the
+// share it (cuda::StreamShardGroup with graphs off, and cuda::PeerShardGroup with the sampler's graph
+// holding its sums); with two GPUs the shards are GPUs (cuda::PeerShardGroup, and
+// cuda::NcclShardGroup where the build has NCCL), else those cases skip with a message. A VisDiT-like DiT (an action, paired streams at one item) and a TrajDiT-like one (the
 // pipelined condition front), head dim 128 as the real model's, one item and a batch of two.
 // (The world model with its VisDiT split: tests/cuda/world_parity.cu.)
 // Scratch is poisoned (NaN) and every output checked finite.
@@ -11,6 +11,7 @@
 // DiT on the GPU, bf16 within 1.5x the whole bf16 DiT's own distance from float32 plus 4e-3, and
 // every shard the same bits.
 #include "cuda_test_util.cuh"
+#include "watchdog.hpp"
 
 #include <chrono>
 #include <condition_variable>
@@ -25,6 +26,7 @@
 #include "../model/dit_cases.hpp"
 #include "epona/cuda/backend.cuh"
 #include "epona/cuda/runtime/graph.hpp"
+#include "epona/cuda/runtime/peer_shard_sum.cuh"
 #include "epona/cuda/runtime/stream_shard_sum.cuh"
 #include "epona/model/flux_dit.hpp"
 #if defined(EPONA_TEST_NCCL)
@@ -98,8 +100,16 @@ std::vector<HostF> shard_samples(Group& group, const Case& k, const io::TensorMa
   return out;
 }
 
+// Where the shards of sharded_like_whole run, and which group sums for them.
+enum class Layout {
+  streams_one_gpu,  // StreamShardGroup: 2 and 4 shards sharing GPU 0, graphs off
+  peer_one_gpu,     // PeerShardGroup: 2 and 4 shards sharing GPU 0, graphs on
+  nccl_two_gpus,    // NcclShardGroup over GPUs 0 and 1, graphs on
+  peer_two_gpus,    // PeerShardGroup over GPUs 0 and 1, graphs on
+};
+
 template <class W>
-void sharded_like_whole(bool nccl) {
+void sharded_like_whole(Layout layout) {
   for (const Case& base : {test::dit::vis_like(), test::dit::traj_like()}) {
     const Case k = gpu_case(base);
     const io::TensorMap weights =
@@ -117,68 +127,55 @@ void sharded_like_whole(bool nccl) {
         f32 = gpu_sample(ctx, dit32, in);
       }
       const std::string what = std::string(k.name) + ", " + type_name<W>() + ", " + std::to_string(items) + " item(s)";
-      if (!nccl) {
-        for (const std::int64_t shards : {2, 4}) {
+      const auto on_gpu0 = [](std::int64_t) { return 0; };
+      const auto own_gpu = [](std::int64_t r) { return int(r); };
+      for (const std::int64_t shards : {2, 4}) {
+        const std::string on_one = what + ", " + std::to_string(shards) + " shards on one GPU";
+        if (layout == Layout::streams_one_gpu) {
           cuda::StreamShardGroup<W> group(shards);
-          check_shard_results<W>(shard_samples<W>(group, k, weights, in, [](std::int64_t) { return 0; }, false), whole, f32,
-                          what + ", " + std::to_string(shards) + " shards on one GPU");
+          check_shard_results<W>(shard_samples<W>(group, k, weights, in, on_gpu0, false), whole, f32, on_one);
+        }
+        if (layout == Layout::peer_one_gpu) {
+          // Few blocks: a shard's waiting sum must leave the others' products room on the GPU.
+          cuda::PeerShardGroup<W> group(std::vector<int>(static_cast<std::size_t>(shards), 0),
+                                        {.blocks = 8, .share_devices = true});
+          check_shard_results<W>(shard_samples<W>(group, k, weights, in, on_gpu0, true), whole, f32,
+                                 on_one + " through the peer group (graphs on)");
         }
       }
+      if (layout == Layout::peer_two_gpus) {
+        cuda::PeerShardGroup<W> group({0, 1});
+        check_shard_results<W>(shard_samples<W>(group, k, weights, in, own_gpu, true), whole, f32,
+                               what + ", 2 GPUs through the peer group (graphs on)");
+      }
 #if defined(EPONA_TEST_NCCL)
-      if (nccl) {
+      if (layout == Layout::nccl_two_gpus) {
         cuda::NcclShardGroup<W> group({0, 1});
-        check_shard_results<W>(shard_samples<W>(group, k, weights, in, [](std::int64_t r) { return int(r); }, true), whole,
-                        f32, what + ", 2 GPUs through NCCL (graphs on)");
+        check_shard_results<W>(shard_samples<W>(group, k, weights, in, own_gpu, true), whole, f32,
+                               what + ", 2 GPUs through NCCL (graphs on)");
       }
 #endif
     }
   }
 }
 
+// True where the machine has two GPUs (else the case skips with a message).
+bool two_gpus(const char* what) {
+  int gpus = 0;
+  EPONA_CUDA_CHECK(cudaGetDeviceCount(&gpus));
+  if (gpus < 2) MESSAGE("one GPU: ", what, " needs two, skipping");
+  return gpus >= 2;
+}
+
 #if defined(EPONA_TEST_NCCL)
 // True where two GPUs can hold an NCCL group (else the case skips with a message); NVLink
 // multicast must be off, as on the lent machines (docs/parallel.md).
 bool two_gpus_for_nccl() {
-  int gpus = 0;
-  EPONA_CUDA_CHECK(cudaGetDeviceCount(&gpus));
-  if (gpus < 2) {
-    MESSAGE("one GPU: the NCCL group needs two, skipping");
-    return false;
-  }
+  if (!two_gpus("the NCCL group")) return false;
   const char* nvls = std::getenv("NCCL_NVLS_ENABLE");
   REQUIRE_MESSAGE((nvls && std::string(nvls) == "0"), "set NCCL_NVLS_ENABLE=0 (docs/parallel.md)");
   return true;
 }
-
-// Ends the program with a message if `seconds` pass before it is destroyed: a deadlocked group
-// never returns, and this names the case instead of leaving it to ctest's timeout.
-class Watchdog {
- public:
-  Watchdog(std::string what, int seconds) : what_(std::move(what)) {
-    thread_ = std::thread([this, seconds] {
-      std::unique_lock lock(mutex_);
-      if (!done_.wait_for(lock, std::chrono::seconds(seconds), [this] { return finished_; })) {
-        std::fprintf(stderr, "%s: no progress in %d s (a deadlocked NCCL group)\n", what_.c_str(), seconds);
-        std::_Exit(3);
-      }
-    });
-  }
-  ~Watchdog() {
-    {
-      std::lock_guard lock(mutex_);
-      finished_ = true;
-    }
-    done_.notify_all();
-    thread_.join();
-  }
-
- private:
-  std::string what_;
-  std::mutex mutex_;
-  std::condition_variable done_;
-  bool finished_ = false;
-  std::thread thread_;
-};
 
 // CUDA calls that can wait on a device while they hold the driver's locks: cudaMalloc, pageable
 // copies, cudaFree.
@@ -199,7 +196,7 @@ void busy_with_memory(cuda::Context& ctx) {
 
 TEST_CASE_TEMPLATE("a DiT split over shards sharing one GPU samples what the whole DiT samples", W, float, bf16) {
   EPONA_REQUIRE_GPU();
-  sharded_like_whole<W>(false);
+  sharded_like_whole<W>(Layout::streams_one_gpu);
 }
 
 TEST_CASE_TEMPLATE("a DiT split over two GPUs through NCCL samples what the whole DiT samples", W, float, bf16) {
@@ -207,10 +204,25 @@ TEST_CASE_TEMPLATE("a DiT split over two GPUs through NCCL samples what the whol
 #if defined(EPONA_TEST_NCCL)
   if (!two_gpus_for_nccl()) return;
   Watchdog watchdog("a DiT over two GPUs through NCCL", 300);
-  sharded_like_whole<W>(true);
+  sharded_like_whole<W>(Layout::nccl_two_gpus);
 #else
   MESSAGE("built without NCCL: skipping");
 #endif
+}
+
+TEST_CASE_TEMPLATE("a DiT split over shards sharing one GPU through the peer group samples what the whole DiT samples",
+                   W, float, bf16) {
+  EPONA_REQUIRE_GPU();
+  Watchdog watchdog("a DiT over shards sharing one GPU through the peer group", 300);
+  sharded_like_whole<W>(Layout::peer_one_gpu);
+}
+
+TEST_CASE_TEMPLATE("a DiT split over two GPUs through the peer group samples what the whole DiT samples", W, float,
+                   bf16) {
+  EPONA_REQUIRE_GPU();
+  if (!two_gpus("the peer group over GPUs")) return;
+  Watchdog watchdog("a DiT over two GPUs through the peer group", 300);
+  sharded_like_whole<W>(Layout::peer_two_gpus);
 }
 
 TEST_CASE("the NCCL group of one GPU: its sum runs, directly and inside a recorded graph") {

@@ -20,6 +20,7 @@
 #include "epona/core/error.hpp"
 #include "epona/core/tensor_parallel.hpp"
 #include "epona/cuda/runtime/context.hpp"
+#include "epona/cuda/runtime/device_shard_threads.hpp"
 #include "epona/cuda/runtime/memory.hpp"
 
 #define EPONA_NCCL_CHECK(expr)                                                                    \
@@ -32,24 +33,15 @@
 namespace epona::cuda {
 
 template <class A>
-class NcclShardGroup {
+class NcclShardGroup : public DeviceShardThreads {
   static_assert(std::is_same_v<A, float> || std::is_same_v<A, bf16>, "NcclShardGroup: float or bf16 activations");
 
  public:
   // Shard r on GPU devices[r]; every device once (NCCL refuses two ranks on one GPU).
-  explicit NcclShardGroup(std::vector<int> devices) : devices_(std::move(devices)), barrier_(devices_.size()) {
-    int present = 0;
-    EPONA_CUDA_CHECK(cudaGetDeviceCount(&present));
-    EPONA_CHECK(!devices_.empty(), "NcclShardGroup: no devices");
-    for (std::size_t i = 0; i < devices_.size(); ++i) {
-      EPONA_CHECK(devices_[i] >= 0 && devices_[i] < present, "NcclShardGroup: device ", devices_[i], " does not exist (",
-                  present, " present)");
-      for (std::size_t j = 0; j < i; ++j)
-        EPONA_CHECK(devices_[i] != devices_[j], "NcclShardGroup: device ", devices_[i],
-                    " twice (a group needs one GPU per shard)");
-    }
-    comms_.resize(devices_.size());
-    EPONA_NCCL_CHECK(ncclCommInitAll(comms_.data(), static_cast<int>(devices_.size()), devices_.data()));
+  explicit NcclShardGroup(std::vector<int> devices)
+      : DeviceShardThreads(std::move(devices), "NcclShardGroup", kMaxDevices) {
+    comms_.resize(static_cast<std::size_t>(size()));
+    EPONA_NCCL_CHECK(ncclCommInitAll(comms_.data(), static_cast<int>(size()), DeviceShardThreads::devices().data()));
     try {
       connect();
     } catch (...) {
@@ -61,21 +53,8 @@ class NcclShardGroup {
   NcclShardGroup(const NcclShardGroup&) = delete;
   NcclShardGroup& operator=(const NcclShardGroup&) = delete;
 
-  std::int64_t size() const { return static_cast<std::int64_t>(devices_.size()); }
-  int device(std::int64_t rank) const { return devices_.at(static_cast<std::size_t>(rank)); }
-
   using Sum = GroupShardSum<NcclShardGroup, Context, A>;
   Sum shard(std::int64_t rank) { return Sum(*this, rank); }
-
-  // Runs f(rank) in one thread per shard and waits for all (run_shard_threads), thread r's
-  // current device device(r): the Contexts (and world models) it makes live there.
-  template <class F>
-  void run(F&& f) {
-    run_shard_threads(size(), barrier_, [&](std::int64_t r) {
-      EPONA_CUDA_CHECK(cudaSetDevice(device(r)));
-      f(r);
-    });
-  }
 
   // Shard `rank`'s all-reduce on its context's stream (its ShardSum's call): launched between two
   // barriers, or, while the stream records a graph, left to the graph's launches to fence.
@@ -91,9 +70,6 @@ class NcclShardGroup {
     all_reduce(ctx.stream(), rank, data, count);
     fence();
   }
-
-  // Every rank arrives before any goes on (a failed rank breaks it: the others throw).
-  void fence() { barrier_.arrive_and_wait(); }
 
  private:
   void all_reduce(cudaStream_t stream, std::int64_t rank, A* data, std::int64_t count) {
@@ -123,9 +99,7 @@ class NcclShardGroup {
       if (c) (void)ncclCommDestroy(std::exchange(c, nullptr));
   }
 
-  std::vector<int> devices_;
   std::vector<ncclComm_t> comms_;
-  BreakableBarrier barrier_;
 };
 
 }  // namespace epona::cuda
