@@ -6,12 +6,16 @@
 //   *_whole          the whole model on GPU 0
 //   *_shardN_alone   one shard of an N-way split (N = 2, 4) on GPU 0, its sums left out: the
 //                    products, attention and row passes one of N GPUs would run, without collectives
-//   *_ncclN          (N GPUs present and the program built with NCCL) the N-way split over GPUs
-//                    0..N-1 through NCCL, one host thread per GPU; every rank starts each repeat
-//                    together and the row is rank 0's time
+//   *_peerN          (N GPUs present) the N-way split over GPUs 0..N-1 through the peer group
+//                    (cuda/runtime/peer_shard_sum.cuh; --peer-blocks B its kernel's blocks), one host
+//                    thread per GPU; every rank starts each repeat together and the row is rank 0's time
+//   *_ncclN          (and the program built with NCCL) the same through NCCL
 // Each row: median milliseconds over the repeats (CUDA events, after a warm-up call that records
 // the graphs), the same per step, and the whole model's time over it. *_ncclN - *_shardN_alone is
 // the time the collectives add (none of it overlaps yet). Prints one JSON line per row.
+// sum_* rows: one sum of a VisDiT block's output (1027 x 2048 bf16, 4.2 MB) over N GPUs, 50 in a
+// recorded graph, microseconds per sum: sum_peerN_blocksB (the peer group's kernel in B blocks)
+// and sum_ncclN (NCCL's all-reduce).
 // block_* and attention_* rows: tensor against sequence parallelism on one block (issue #40 asks for
 // both on at least one block). One VisDiT block (bf16, one item, S = 1027 joint rows), 50 calls in
 // a recorded graph, milliseconds per call:
@@ -25,7 +29,7 @@
 //                                    attends after Ulysses' all-to-all (and a tensor-parallel shard)
 //   block_..._sp{N}_alone            rows{N} - attention_rows{N} + attention_heads{N}: an estimate
 //                                    of a Ulysses sequence shard's compute, without its all-to-alls
-//   bench_gpu_shards [--steps S] [--repeats N] [--gpus N] [--only vis|step|block]
+//   bench_gpu_shards [--steps S] [--repeats N] [--gpus N] [--peer-blocks B] [--only vis|step|block|sum]
 // Keep NVLink multicast off (NCCL_NVLS_ENABLE=0): the NCCL rows refuse to run with it on.
 #include <algorithm>
 #include <cstdio>
@@ -44,6 +48,8 @@
 #include "epona/model/world_model.hpp"
 #include "bench_stats.hpp"
 #include "gpu_event_timer.cuh"
+#include "epona/cuda/runtime/graph.hpp"
+#include "epona/cuda/runtime/peer_shard_sum.cuh"
 #if defined(EPONA_BENCH_NCCL)
 #include "epona/cuda/runtime/nccl_shard_sum.hpp"
 #endif
@@ -57,19 +63,22 @@ using Dit = model::FluxDiT<Cuda, bf16>;
 struct Options {
   std::int64_t steps = 100;
   int repeats = 5, gpus = 0;  // gpus 0: every GPU present
-  std::string only;           // vis, step or block; empty: all
+  int peer_blocks = cuda::PeerGroupOptions{}.blocks;
+  std::string only;           // vis, step, block or sum; empty: all
   bool want(const std::string& kind) const { return only.empty() || only == kind; }
 };
+
+constexpr const char* kUsage = "--steps S, --repeats N, --gpus N, --peer-blocks B, --only vis|step|block|sum";
 
 Options parse(int argc, char** argv) {
   Options o;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
-    EPONA_CHECK(i + 1 < argc, a, " needs a value (--steps S, --repeats N, --gpus N, --only vis|step|block)");
+    EPONA_CHECK(i + 1 < argc, a, " needs a value (", kUsage, ")");
     if (a == "--only") {
       o.only = argv[++i];
-      EPONA_CHECK(o.only == "vis" || o.only == "step" || o.only == "block", "--only takes vis, step or block, got '",
-                  o.only, "'");
+      EPONA_CHECK(o.only == "vis" || o.only == "step" || o.only == "block" || o.only == "sum",
+                  "--only takes vis, step, block or sum, got '", o.only, "'");
       continue;
     }
     char* end = nullptr;
@@ -78,7 +87,8 @@ Options parse(int argc, char** argv) {
     if (a == "--steps") o.steps = v;
     else if (a == "--repeats") o.repeats = int(v);
     else if (a == "--gpus") o.gpus = int(v);
-    else fail("unknown option '", a, "' (--steps S, --repeats N, --gpus N, --only vis|step|block)");
+    else if (a == "--peer-blocks") o.peer_blocks = int(v);
+    else fail("unknown option '", a, "' (", kUsage, ")");
   }
   return o;
 }
@@ -286,15 +296,12 @@ void block_rows(cuda::Context& ctx, const Options& o, const WorldModelConfig& cf
   }
 }
 
-#if defined(EPONA_BENCH_NCCL)
-// The N-way split over GPUs 0..N-1 through NCCL, each rank's work made by make(rank, sum) in its
-// thread (on its GPU): rank 0's times, every rank starting each repeat together.
-template <class Make>
-void nccl_row(const Options& o, const std::string& name, int gpus, double whole_ms, const Make& make) {
-  std::vector<int> devices;
-  for (int d = 0; d < gpus; ++d) devices.push_back(d);
-  cuda::NcclShardGroup<bf16> group(devices);
-  BreakableBarrier together(gpus);
+// The N-way split over GPUs 0..N-1 through `group` (one GPU per rank), each rank's work made by
+// make(rank, sum) in its thread (on its GPU): rank 0's times, every rank starting each repeat
+// together.
+template <class Group, class Make>
+void group_row(const Options& o, Group& group, const std::string& row, double whole_ms, const Make& make) {
+  BreakableBarrier together(group.size());
   std::vector<double> rank0;
   group.run([&](std::int64_t r) {
     const auto sum = group.shard(r);
@@ -309,9 +316,73 @@ void nccl_row(const Options& o, const std::string& name, int gpus, double whole_
     }
     if (r == 0) rank0 = runs;
   });
-  emit(name + "_nccl" + std::to_string(gpus), rank0, o.steps, whole_ms);
+  emit(row, rank0, o.steps, whole_ms);
 }
+
+std::vector<int> first_gpus(int n) {
+  std::vector<int> devices(static_cast<std::size_t>(n));
+  for (int d = 0; d < n; ++d) devices[static_cast<std::size_t>(d)] = d;
+  return devices;
+}
+
+// The N-way split through each group this build has: *_peerN (ours) and *_ncclN.
+template <class Make>
+void group_rows(const Options& o, const std::string& name, int gpus, double whole_ms, const Make& make) {
+  const std::string n = std::to_string(gpus);
+  {
+    cuda::PeerShardGroup<bf16> peer(first_gpus(gpus), {.blocks = o.peer_blocks});
+    group_row(o, peer, name + "_peer" + n, whole_ms, make);
+  }
+#if defined(EPONA_BENCH_NCCL)
+  cuda::NcclShardGroup<bf16> nccl(first_gpus(gpus));
+  group_row(o, nccl, name + "_nccl" + n, whole_ms, make);
 #endif
+}
+
+// One sum of a VisDiT block's output (1027 x 2048 bf16, 4.2 MB) over `group`: 50 in a recorded
+// graph on every rank, rank 0's median microseconds per sum.
+template <class Group>
+void sum_row(const Options& o, Group& group, const std::string& row) {
+  constexpr int kSums = 50;
+  const std::int64_t count = 1027 * 2048;
+  BreakableBarrier together(group.size());
+  std::vector<double> rank0;
+  group.run([&](std::int64_t r) {
+    cuda::Context ctx;
+    Tensor<bf16, Cuda> data({count});
+    EPONA_CUDA_CHECK(cudaMemsetAsync(data.data(), 0, data.nbytes(), ctx.stream()));
+    const auto sum = group.shard(r);
+    cuda::GraphCache graph;
+    const auto sums = [&] {
+      graph.run(ctx, {1}, [&] {
+        for (int i = 0; i < kSums; ++i) sum.sum(ctx, data.data(), count);
+      });
+    };
+    sums();
+    ctx.synchronize();
+    std::vector<double> runs;
+    for (int i = 0; i < std::max(o.repeats, 5); ++i) {
+      together.arrive_and_wait();
+      runs.push_back(bench::event_times_ms(ctx, 1, 0, sums).front() * 1000.0 / kSums);
+    }
+    if (r == 0) rank0 = runs;
+  });
+  std::sort(rank0.begin(), rank0.end());
+  std::printf("{\"row\": \"%s\", \"bytes\": %lld, \"us_per_sum\": %.2f}\n", row.c_str(),
+              static_cast<long long>(count * 2), rank0[rank0.size() / 2]);
+}
+
+void sum_rows(const Options& o, int gpus) {
+  const std::string n = std::to_string(gpus);
+  for (const int blocks : {16, 32, 64, 128, 256}) {
+    cuda::PeerShardGroup<bf16> peer(first_gpus(gpus), {.blocks = blocks});
+    sum_row(o, peer, "sum_peer" + n + "_blocks" + std::to_string(blocks));
+  }
+#if defined(EPONA_BENCH_NCCL)
+  cuda::NcclShardGroup<bf16> nccl(first_gpus(gpus));
+  sum_row(o, nccl, "sum_nccl" + n);
+#endif
+}
 
 }  // namespace
 
@@ -327,19 +398,19 @@ int main(int argc, char** argv) try {
   const char* nvls = std::getenv("NCCL_NVLS_ENABLE");
   EPONA_CHECK(gpus < 2 || (nvls && std::string(nvls) == "0"), "set NCCL_NVLS_ENABLE=0 (docs/parallel.md)");
 #else
-  if (gpus >= 2) std::printf("# built without NCCL: no rows over several GPUs\n");
+  if (gpus >= 2) std::printf("# built without NCCL: the rows over several GPUs through the peer group only\n");
 #endif
   if (o.want("vis")) {
     const double whole_ms = vis_rows(o, cfg);
-#if defined(EPONA_BENCH_NCCL)
     for (int n = 2; n <= gpus; n *= 2)
-      nccl_row(o, "vis", n, whole_ms, [&](std::int64_t r, const auto& sum) {
+      group_rows(o, "vis", n, whole_ms, [&](std::int64_t r, const auto& sum) {
         auto s = std::make_unique<VisSample>(cfg, TensorShard{r, n}, o.steps);
         s->dit.set_shard_sum(&sum);
         return s;
       });
-#endif
   }
+  if (o.want("sum"))
+    for (int n = 2; n <= gpus; n *= 2) sum_rows(o, n);
   if (o.want("block")) {
     cuda::Context ctx;
     block_rows<nn::DoubleStreamBlock<Cuda, bf16>>(ctx, o, cfg, "double", 12);
@@ -348,12 +419,10 @@ int main(int argc, char** argv) try {
   if (o.want("step")) {
     const io::TensorMap weights = model::random_world_weights(cfg, 1);
     const double whole_ms = step_rows(o, cfg, weights);
-#if defined(EPONA_BENCH_NCCL)
     for (int n = 2; n <= gpus; n *= 2)
-      nccl_row(o, "step", n, whole_ms, [&](std::int64_t r, const auto& sum) {
+      group_rows(o, "step", n, whole_ms, [&](std::int64_t r, const auto& sum) {
         return std::make_unique<WorldStep>(weights, cfg, TensorShard{r, n}, &sum, o.steps);
       });
-#endif
   }
   return 0;
 } catch (const std::exception& e) {
