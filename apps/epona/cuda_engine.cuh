@@ -11,6 +11,7 @@
 
 #include "epona/cuda/backend.cuh"
 #include "epona/cuda/dcae_ops.cuh"
+#include "epona/cuda/runtime/peer_shard_sum.cuh"
 #if defined(EPONA_APP_NCCL)
 #include "epona/cuda/runtime/nccl_shard_sum.hpp"
 #endif
@@ -31,24 +32,43 @@ void configure(ModelEngine<Cuda, W>& engine, const ComputeOptions& c, bool relea
     engine.configure_contexts([](cuda::Context& ctx) { ctx.policy().gemm_tuning = cuda::GemmTuning::Off; });
 }
 
-// --tensor-parallel N: the VisDiT over GPUs 0..N-1 through NCCL (shard 0, on GPU 0, also holds the
-// DC-AE and releases cuDNN).
+// The sharded engine over `group`'s GPUs (shard 0, on GPU 0, also holds the DC-AE and releases cuDNN).
+template <class W, class Group>
+std::unique_ptr<Engine> sharded_over(const ComputeOptions& c, std::unique_ptr<Group> group) {
+  auto engine = std::make_unique<ShardedEngine<Cuda, W, Group>>(c, std::move(group));
+  engine->each_shard([&](std::int64_t r, ModelEngine<Cuda, W>& e) { configure(e, c, r == 0); });
+  return engine;
+}
+
+// True where every pair of `devices` reaches each other's memory (what the peer group needs).
+inline bool peers_reach(const std::vector<int>& devices) {
+  for (int a : devices)
+    for (int b : devices) {
+      int can = 1;
+      if (a != b) EPONA_CUDA_CHECK(cudaDeviceCanAccessPeer(&can, a, b));
+      if (!can) return false;
+    }
+  return true;
+}
+
+// --tensor-parallel N: the VisDiT over GPUs 0..N-1, its sums through the peer group or NCCL
+// (--shard-sum; docs/parallel.md).
 template <class W>
 std::unique_ptr<Engine> build_sharded(const ComputeOptions& c) {
-#if defined(EPONA_APP_NCCL)
   int gpus = 0;
   EPONA_CUDA_CHECK(cudaGetDeviceCount(&gpus));
   EPONA_CHECK(c.shards <= gpus, "--tensor-parallel ", c.shards, " needs ", c.shards, " GPUs (one per shard); ", gpus,
               " visible");
   std::vector<int> devices(static_cast<std::size_t>(c.shards));
   std::iota(devices.begin(), devices.end(), 0);
-  using Group = cuda::NcclShardGroup<W>;
-  auto engine = std::make_unique<ShardedEngine<Cuda, W, Group>>(c, std::make_unique<Group>(devices));
-  engine->each_shard([&](std::int64_t r, ModelEngine<Cuda, W>& e) { configure(e, c, r == 0); });
-  return engine;
+  const bool peer = c.shard_sum == "peer" || (c.shard_sum == "auto" && peers_reach(devices));
+  if (peer) return sharded_over<W>(c, std::make_unique<cuda::PeerShardGroup<W>>(devices));
+#if defined(EPONA_APP_NCCL)
+  return sharded_over<W>(c, std::make_unique<cuda::NcclShardGroup<W>>(devices));
 #else
-  fail("--tensor-parallel ", c.shards, " with --backend cuda needs NCCL, which this build of the program lacks "
-       "(CMake finds it beside the CUDA toolkit; docs/parallel.md)");
+  fail("--tensor-parallel ", c.shards, " with --backend cuda: ",
+       c.shard_sum == "nccl" ? "--shard-sum nccl needs NCCL" : "these GPUs do not reach each other's memory, and NCCL",
+       ", which this build of the program lacks (CMake finds it beside the CUDA toolkit; docs/parallel.md)");
 #endif
 }
 

@@ -39,6 +39,10 @@ struct ComputeOptions {
   // --tensor-parallel: the VisDiT split over this many shards (GPUs with --backend cuda, threads
   // on the CPU; docs/parallel.md). Every shard runs the rest of the model whole.
   int shards = 1;
+  // --shard-sum: how the GPUs of --tensor-parallel add up their partial sums. "peer": our kernel
+  // over NVLink/PCIe peer access (cuda/runtime/peer_shard_sum.cuh); "nccl": NCCL's all-reduce;
+  // "auto": peer where every pair of the GPUs reaches each other's memory, else NCCL.
+  std::string shard_sum = "auto";
 };
 
 // --threads beyond a few per hardware thread only slows the work (4096 on 2 cores ran 50x slower).
@@ -61,8 +65,12 @@ inline void add_compute_options(ArgParser& p) {
       .option("dtype", "TYPE", "weight precision: float32 (exact) or bfloat16 (half the memory)", "float32")
       .option("threads", "N", "CPU threads; 0 or all: every hardware thread", "all")
       .option("tensor-parallel", "N",
-              "split the VisDiT's heads over N shards: N GPUs with --backend cuda (NCCL), N threads on the CPU",
-              "1");
+              "split the VisDiT's heads over N shards: N GPUs with --backend cuda, N threads on the CPU",
+              "1")
+      .option("shard-sum", "HOW",
+              "how --tensor-parallel's GPUs add up their parts: peer (our kernel over NVLink), nccl, or auto "
+              "(peer where the GPUs reach each other's memory, else nccl)",
+              "auto");
 }
 
 // Refuses a backend this program cannot run, naming why. The epona program gets its CUDA engine
@@ -86,6 +94,9 @@ inline ComputeOptions compute_options(const ParsedArgs& a) {
   c.bf16_weights = dtype == "bfloat16" || dtype == "bf16";
   if (a.get("threads") != std::optional<std::string>("all")) c.threads = static_cast<int>(a.integer("threads", 0, 0, max_threads()));
   c.shards = static_cast<int>(a.integer("tensor-parallel", 1, 1, kMaxShards));
+  c.shard_sum = a.choice("shard-sum", {"auto", "peer", "nccl"}, "auto");
+  EPONA_CHECK(c.shard_sum == "auto" || (c.backend == "cuda" && c.shards > 1), "--shard-sum ", c.shard_sum,
+              " applies to --backend cuda with --tensor-parallel 2 or more (the CPU's shards are threads)");
   check_backend(c.backend);
   return c;
 }

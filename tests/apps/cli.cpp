@@ -512,6 +512,9 @@ TEST_CASE("--tensor-parallel 2: plan and generate as the whole model; splits tha
   check_cli_error(run(t / "three", {"--tensor-parallel", "3"}), "do not split evenly over 3 shards");
   check_cli_error(run(t / "none", {"--tensor-parallel", "0"}), "--tensor-parallel");
   check_cli_error(run(t / "many", {"--tensor-parallel", "9"}), "--tensor-parallel");
+  // How GPUs add up their parts means nothing to the CPU's threads.
+  check_cli_error(run(t / "peer", {"--tensor-parallel", "2", "--shard-sum", "peer"}), "applies to --backend cuda");
+  check_cli_error(run(t / "bogus", {"--tensor-parallel", "2", "--shard-sum", "mpi"}), "--shard-sum");
   CHECK_FALSE(fs::exists(t / "three/frames/frame_0000.png"));
 }
 
