@@ -296,27 +296,33 @@ void block_rows(cuda::Context& ctx, const Options& o, const WorldModelConfig& cf
   }
 }
 
-// The N-way split over GPUs 0..N-1 through `group` (one GPU per rank), each rank's work made by
-// make(rank, sum) in its thread (on its GPU): rank 0's times, every rank starting each repeat
-// together.
+// Rank 0's milliseconds for `repeats` calls of work->sample(ctx) over `group` (one GPU per rank),
+// each rank's work made by make(rank, sum) in its thread (on its GPU), after a warm-up call that
+// records the graphs; every rank starts each call together.
 template <class Group, class Make>
-void group_row(const Options& o, Group& group, const std::string& row, double whole_ms, const Make& make) {
+std::vector<double> rank0_times(Group& group, int repeats, const Make& make) {
   BreakableBarrier together(group.size());
   std::vector<double> rank0;
   group.run([&](std::int64_t r) {
     const auto sum = group.shard(r);
     auto work = make(r, sum);
     auto& ctx = work->context();
-    work->sample(ctx);  // records the graphs
+    work->sample(ctx);
     ctx.synchronize();
     std::vector<double> runs;
-    for (int i = 0; i < o.repeats; ++i) {
+    for (int i = 0; i < repeats; ++i) {
       together.arrive_and_wait();
       runs.push_back(bench::event_times_ms(ctx, 1, 0, [&] { work->sample(ctx); }).front());
     }
     if (r == 0) rank0 = runs;
   });
-  emit(row, rank0, o.steps, whole_ms);
+  return rank0;
+}
+
+// The N-way split over GPUs 0..N-1 through `group`: rank 0's times.
+template <class Group, class Make>
+void group_row(const Options& o, Group& group, const std::string& row, double whole_ms, const Make& make) {
+  emit(row, rank0_times(group, o.repeats, make), o.steps, whole_ms);
 }
 
 std::vector<int> first_gpus(int n) {
@@ -339,37 +345,35 @@ void group_rows(const Options& o, const std::string& name, int gpus, double whol
 #endif
 }
 
-// One sum of a VisDiT block's output (1027 x 2048 bf16, 4.2 MB) over `group`: 50 in a recorded
-// graph on every rank, rank 0's median microseconds per sum.
+// One sum of a VisDiT block's output (1027 x 2048 bf16, 4.2 MB), 50 of them in a recorded graph
+// on one rank's GPU.
+struct BlockSums {
+  static constexpr int kSums = 50;
+  static constexpr std::int64_t kCount = 1027 * 2048;
+  cuda::Context ctx;
+  Tensor<bf16, Cuda> data{Shape{kCount}};
+  const ShardSum<cuda::Context, bf16>& sum;
+  cuda::GraphCache graph;
+
+  explicit BlockSums(const ShardSum<cuda::Context, bf16>& s) : sum(s) {
+    EPONA_CUDA_CHECK(cudaMemsetAsync(data.data(), 0, data.nbytes(), ctx.stream()));
+  }
+  cuda::Context& context() { return ctx; }
+  void sample(cuda::Context& c) {
+    graph.run(c, {1}, [&] {
+      for (int i = 0; i < kSums; ++i) sum.sum(c, data.data(), kCount);
+    });
+  }
+};
+
+// One sum over `group`: rank 0's median microseconds per sum.
 template <class Group>
 void sum_row(const Options& o, Group& group, const std::string& row) {
-  constexpr int kSums = 50;
-  const std::int64_t count = 1027 * 2048;
-  BreakableBarrier together(group.size());
-  std::vector<double> rank0;
-  group.run([&](std::int64_t r) {
-    cuda::Context ctx;
-    Tensor<bf16, Cuda> data({count});
-    EPONA_CUDA_CHECK(cudaMemsetAsync(data.data(), 0, data.nbytes(), ctx.stream()));
-    const auto sum = group.shard(r);
-    cuda::GraphCache graph;
-    const auto sums = [&] {
-      graph.run(ctx, {1}, [&] {
-        for (int i = 0; i < kSums; ++i) sum.sum(ctx, data.data(), count);
-      });
-    };
-    sums();
-    ctx.synchronize();
-    std::vector<double> runs;
-    for (int i = 0; i < std::max(o.repeats, 5); ++i) {
-      together.arrive_and_wait();
-      runs.push_back(bench::event_times_ms(ctx, 1, 0, sums).front() * 1000.0 / kSums);
-    }
-    if (r == 0) rank0 = runs;
+  const auto runs = rank0_times(group, std::max(o.repeats, 5), [](std::int64_t, const auto& sum) {
+    return std::make_unique<BlockSums>(sum);
   });
-  std::sort(rank0.begin(), rank0.end());
   std::printf("{\"row\": \"%s\", \"bytes\": %lld, \"us_per_sum\": %.2f}\n", row.c_str(),
-              static_cast<long long>(count * 2), rank0[rank0.size() / 2]);
+              static_cast<long long>(BlockSums::kCount * sizeof(bf16)), bench::median(runs) * 1000.0 / BlockSums::kSums);
 }
 
 void sum_rows(const Options& o, int gpus) {

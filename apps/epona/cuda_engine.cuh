@@ -40,17 +40,6 @@ std::unique_ptr<Engine> sharded_over(const ComputeOptions& c, std::unique_ptr<Gr
   return engine;
 }
 
-// True where every pair of `devices` reaches each other's memory (what the peer group needs).
-inline bool peers_reach(const std::vector<int>& devices) {
-  for (int a : devices)
-    for (int b : devices) {
-      int can = 1;
-      if (a != b) EPONA_CUDA_CHECK(cudaDeviceCanAccessPeer(&can, a, b));
-      if (!can) return false;
-    }
-  return true;
-}
-
 // --tensor-parallel N: the VisDiT over GPUs 0..N-1, its sums through the peer group or NCCL
 // (--shard-sum; docs/parallel.md).
 template <class W>
@@ -61,7 +50,7 @@ std::unique_ptr<Engine> build_sharded(const ComputeOptions& c) {
               " visible");
   std::vector<int> devices(static_cast<std::size_t>(c.shards));
   std::iota(devices.begin(), devices.end(), 0);
-  const bool peer = c.shard_sum == "peer" || (c.shard_sum == "auto" && peers_reach(devices));
+  const bool peer = c.shard_sum == "peer" || (c.shard_sum == "auto" && !cuda::unreachable_peers(devices));
   if (peer) return sharded_over<W>(c, std::make_unique<cuda::PeerShardGroup<W>>(devices));
 #if defined(EPONA_APP_NCCL)
   return sharded_over<W>(c, std::make_unique<cuda::NcclShardGroup<W>>(devices));

@@ -1,8 +1,8 @@
 // apps/epona/sharded_engine.hpp — `--tensor-parallel N`: the world model's VisDiT split over N
 // shards (docs/parallel.md). One ModelEngine per shard, each made and run in a thread of the
-// shards' group (GPU r with --backend cuda: cuda::PeerShardGroup or NcclShardGroup;
-// threads on the CPU: cpu::ThreadShardGroup); every world-model call runs on all shards with the same inputs and
-// draws, and shard 0's result is returned (they are the same). The DC-AE is shard 0's alone.
+// shards' group (GPU r with --backend cuda: cuda::PeerShardGroup or NcclShardGroup; threads on
+// the CPU: cpu::ThreadShardGroup); every world-model call runs on all shards with the same inputs
+// and draws, and shard 0's result is returned (they are the same). The DC-AE is shard 0's alone.
 #pragma once
 
 #include <algorithm>

@@ -29,6 +29,14 @@
 
 namespace epona::test {
 
+// True where the machine has two GPUs; else the case skips with a message naming `what` needs them.
+inline bool two_gpus(const char* what) {
+  int gpus = 0;
+  EPONA_CUDA_CHECK(cudaGetDeviceCount(&gpus));
+  if (gpus < 2) MESSAGE("one GPU: ", what, " needs two, skipping");
+  return gpus >= 2;
+}
+
 // Sets one field of a context's kernel policy (ctx.policy().field) while alive, then restores
 // its previous value.
 template <class Value>

@@ -159,14 +159,6 @@ void sharded_like_whole(Layout layout) {
   }
 }
 
-// True where the machine has two GPUs (else the case skips with a message).
-bool two_gpus(const char* what) {
-  int gpus = 0;
-  EPONA_CUDA_CHECK(cudaGetDeviceCount(&gpus));
-  if (gpus < 2) MESSAGE("one GPU: ", what, " needs two, skipping");
-  return gpus >= 2;
-}
-
 #if defined(EPONA_TEST_NCCL)
 // True where two GPUs can hold an NCCL group (else the case skips with a message); NVLink
 // multicast must be off, as on the lent machines (docs/parallel.md).

@@ -98,12 +98,7 @@ TEST_CASE_TEMPLATE("the peer group sums in rank order, rounded once, the same bi
 
 TEST_CASE_TEMPLATE("the peer group sums over two GPUs", A, float, bf16) {
   EPONA_REQUIRE_GPU();
-  int gpus = 0;
-  EPONA_CUDA_CHECK(cudaGetDeviceCount(&gpus));
-  if (gpus < 2) {
-    MESSAGE("one GPU: the peer group over GPUs needs two, skipping");
-    return;
-  }
+  if (!two_gpus("the peer group over GPUs")) return;
   Watchdog watchdog("the peer group's sums over two GPUs", 300);
   cuda::PeerShardGroup<A> small({0, 1}, {.capacity = 4096, .blocks = 64});
   check_group(small, "2 GPUs");

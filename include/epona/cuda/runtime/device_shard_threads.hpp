@@ -43,6 +43,16 @@ class DeviceShardThreads {
   // Every rank arrives before any goes on (a failed rank breaks it: the others throw).
   void fence() { barrier_.arrive_and_wait(); }
 
+  // True while ctx's stream records a graph: the group's fence is then left on the context, and
+  // the graph calls it before and after every launch (Context::note_captured_collective).
+  bool fence_recorded_graph(Context& ctx) {
+    cudaStreamCaptureStatus capture = cudaStreamCaptureStatusNone;
+    EPONA_CUDA_CHECK(cudaStreamIsCapturing(ctx.stream(), &capture));
+    if (capture != cudaStreamCaptureStatusActive) return false;
+    ctx.note_captured_collective([this] { fence(); });
+    return true;
+  }
+
  private:
   static std::vector<int> checked(std::vector<int> devices, const std::string& who, int max_shards,
                                   bool share_devices) {

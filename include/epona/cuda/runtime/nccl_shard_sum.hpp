@@ -59,13 +59,7 @@ class NcclShardGroup : public DeviceShardThreads {
   // Shard `rank`'s all-reduce on its context's stream (its ShardSum's call): launched between two
   // barriers, or, while the stream records a graph, left to the graph's launches to fence.
   void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count) {
-    if (size() == 1) return all_reduce(ctx.stream(), rank, data, count);
-    cudaStreamCaptureStatus capture = cudaStreamCaptureStatusNone;
-    EPONA_CUDA_CHECK(cudaStreamIsCapturing(ctx.stream(), &capture));
-    if (capture == cudaStreamCaptureStatusActive) {
-      ctx.note_captured_collective([this] { fence(); });
-      return all_reduce(ctx.stream(), rank, data, count);
-    }
+    if (size() == 1 || fence_recorded_graph(ctx)) return all_reduce(ctx.stream(), rank, data, count);
     fence();
     all_reduce(ctx.stream(), rank, data, count);
     fence();

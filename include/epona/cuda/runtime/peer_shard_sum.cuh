@@ -24,6 +24,7 @@
 #include <cstdint>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <type_traits>
 #include <utility>
 #include <vector>
@@ -181,6 +182,18 @@ inline void map_peer_memory(int a, int b) {
 }
 }  // namespace detail
 
+// The first pair (a, b) of `devices` where GPU a cannot reach GPU b's memory; none where the peer
+// group can run on them.
+inline std::optional<std::pair<int, int>> unreachable_peers(const std::vector<int>& devices) {
+  for (int a : devices)
+    for (int b : devices) {
+      int can = 1;
+      if (a != b) EPONA_CUDA_CHECK(cudaDeviceCanAccessPeer(&can, a, b));
+      if (!can) return std::pair{a, b};
+    }
+  return std::nullopt;
+}
+
 template <class A>
 class PeerShardGroup : public DeviceShardThreads {
   static_assert(std::is_same_v<A, float> || std::is_same_v<A, bf16>, "PeerShardGroup: float or bf16 activations");
@@ -224,9 +237,7 @@ class PeerShardGroup : public DeviceShardThreads {
     fence();  // every rank's count is in; none changes before the fence after the launch
     EPONA_CHECK(std::all_of(counts_.begin(), counts_.end(), [&](std::int64_t c) { return c == count; }),
                 "PeerShardGroup: the shards summed buffers of different sizes");
-    cudaStreamCaptureStatus capture = cudaStreamCaptureStatusNone;
-    EPONA_CUDA_CHECK(cudaStreamIsCapturing(ctx.stream(), &capture));
-    if (capture == cudaStreamCaptureStatusActive) ctx.note_captured_collective([this] { fence(); });
+    (void)fence_recorded_graph(ctx);  // the launches below then only record
     for (std::int64_t done = 0; done < count; done += options_.capacity)
       launch(ctx, rank, data + done, std::min(options_.capacity, count - done));
     fence();
@@ -235,15 +246,12 @@ class PeerShardGroup : public DeviceShardThreads {
  private:
   // Every GPU of the group maps every other's memory (a pair that cannot is refused by name).
   void enable_peer_access() {
+    if (const auto pair = unreachable_peers(devices()))
+      fail("PeerShardGroup: GPU ", pair->first, " cannot reach GPU ", pair->second,
+           "'s memory (no NVLink or PCIe peer access); use the NCCL group (--shard-sum nccl)");
     for (int a : devices())
-      for (int b : devices()) {
-        if (a == b) continue;
-        int can = 0;
-        EPONA_CUDA_CHECK(cudaDeviceCanAccessPeer(&can, a, b));
-        EPONA_CHECK(can, "PeerShardGroup: GPU ", a, " cannot reach GPU ", b,
-                    "'s memory (no NVLink or PCIe peer access); use the NCCL group (--shard-sum nccl)");
-        detail::map_peer_memory(a, b);
-      }
+      for (int b : devices())
+        if (a != b) detail::map_peer_memory(a, b);
   }
 
   void allocate() {
