@@ -40,6 +40,17 @@ std::unique_ptr<Engine> sharded_over(const ComputeOptions& c, std::unique_ptr<Gr
   return engine;
 }
 
+// --shard-sum auto: the peer group over two GPUs that reach each other's memory, where it measured
+// faster (two H200s: VisDiT sample 190.8 against 230.6 ms through NCCL), and wherever this build
+// has no NCCL; NCCL over more GPUs, where each GPU's part crosses NVLink once per other GPU (four
+// H200s: 229.7 against 190.6 ms; docs/parallel.md).
+inline bool peer_by_default(const std::vector<int>& devices) {
+#if defined(EPONA_APP_NCCL)
+  if (devices.size() > 2) return false;
+#endif
+  return !cuda::unreachable_peers(devices);
+}
+
 // --tensor-parallel N: the VisDiT over GPUs 0..N-1, its sums through the peer group or NCCL
 // (--shard-sum; docs/parallel.md).
 template <class W>
@@ -50,7 +61,7 @@ std::unique_ptr<Engine> build_sharded(const ComputeOptions& c) {
               " visible");
   std::vector<int> devices(static_cast<std::size_t>(c.shards));
   std::iota(devices.begin(), devices.end(), 0);
-  const bool peer = c.shard_sum == "peer" || (c.shard_sum == "auto" && !cuda::unreachable_peers(devices));
+  const bool peer = c.shard_sum == "peer" || (c.shard_sum == "auto" && peer_by_default(devices));
   if (peer) return sharded_over<W>(c, std::make_unique<cuda::PeerShardGroup<W>>(devices));
 #if defined(EPONA_APP_NCCL)
   return sharded_over<W>(c, std::make_unique<cuda::NcclShardGroup<W>>(devices));

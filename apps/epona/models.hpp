@@ -41,7 +41,7 @@ struct ComputeOptions {
   int shards = 1;
   // --shard-sum: how the GPUs of --tensor-parallel add up their partial sums. "peer": our kernel
   // over NVLink/PCIe peer access (cuda/runtime/peer_shard_sum.cuh); "nccl": NCCL's all-reduce;
-  // "auto": peer where every pair of the GPUs reaches each other's memory, else NCCL.
+  // "auto": peer over two GPUs that reach each other's memory (or without NCCL), else NCCL.
   std::string shard_sum = "auto";
 };
 
@@ -69,7 +69,7 @@ inline void add_compute_options(ArgParser& p) {
               "1")
       .option("shard-sum", "HOW",
               "how --tensor-parallel's GPUs add up their parts: peer (our kernel over NVLink), nccl, or auto "
-              "(peer where the GPUs reach each other's memory, else nccl)",
+              "(peer over two GPUs that reach each other's memory, nccl over more)",
               "auto");
 }
 
