@@ -6,13 +6,21 @@
 //   *_whole          the whole model on GPU 0
 //   *_shardN_alone   one shard of an N-way split (N = 2, 4) on GPU 0, its sums left out: the
 //                    products, attention and row passes one of N GPUs would run, without collectives
+//                    (vis_shardN_alone_hidden: in the order of blocks that hide their sums)
 //   *_peerN          (N GPUs present) the N-way split over GPUs 0..N-1 through the peer group
 //                    (cuda/runtime/peer_shard_sum.cuh; --peer-blocks B its kernel's blocks), one host
 //                    thread per GPU; every rank starts each repeat together and the row is rank 0's time
 //   *_ncclN          (and the program built with NCCL) the same through NCCL
+//   *_hidden         the same with the group's two channels: the blocks sum one part of their rows
+//                    while they compute another (docs/parallel.md, "Hiding the sums")
 // Each row: median milliseconds over the repeats (CUDA events, after a warm-up call that records
-// the graphs), the same per step, and the whole model's time over it. *_ncclN - *_shardN_alone is
-// the time the collectives add (none of it overlaps yet). Prints one JSON line per row.
+// the graphs), the same per step, and the whole model's time over it. *_peerN - *_shardN_alone is
+// the time the collectives add in the open, *_peerN_hidden - *_shardN_alone what is left of it once
+// hidden. Prints one JSON line per row.
+// rollout_* rows: issue #40's AR step + decode. Rollouts of 5 frames, each frame's DC-AE decode (the
+// real DC-AE, random weights, bf16) on a stream and host thread of its own on GPU 0 while the next
+// step samples (as the epona program's FrameDecoder runs it); milliseconds per frame: whole (one
+// GPU) and the split over N GPUs (*_peerN, *_ncclN, *_hidden as above).
 // sum_* rows: one sum of a VisDiT block's output (1027 x 2048 bf16, 4.2 MB) over N GPUs, 50 in a
 // recorded graph, microseconds per sum: sum_peerN_blocksB (the peer group's kernel in B blocks)
 // and sum_ncclN (NCCL's all-reduce).
@@ -29,12 +37,13 @@
 //                                    attends after Ulysses' all-to-all (and a tensor-parallel shard)
 //   block_..._sp{N}_alone            rows{N} - attention_rows{N} + attention_heads{N}: an estimate
 //                                    of a Ulysses sequence shard's compute, without its all-to-alls
-//   bench_gpu_shards [--steps S] [--repeats N] [--gpus N] [--peer-blocks B] [--only vis|step|block|sum]
+//   bench_gpu_shards [--steps S] [--repeats N] [--gpus N] [--peer-blocks B] [--only vis|step|rollout|block|sum]
 // Keep NVLink multicast off (NCCL_NVLS_ENABLE=0): the NCCL rows refuse to run with it on.
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>
 #include <functional>
+#include <future>
 #include <memory>
 #include <string>
 #include <vector>
@@ -44,6 +53,9 @@
 #include "epona/core/tensor_parallel.hpp"
 #include "epona/cuda/backend.cuh"
 #include "epona/flow/schedule.hpp"
+#include "epona/cuda/dcae_ops.cuh"
+#include "epona/model/dcae.hpp"
+#include "epona/model/latent_layout.hpp"
 #include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
 #include "bench_stats.hpp"
@@ -64,11 +76,11 @@ struct Options {
   std::int64_t steps = 100;
   int repeats = 5, gpus = 0;  // gpus 0: every GPU present
   int peer_blocks = cuda::PeerGroupOptions{}.blocks;
-  std::string only;           // vis, step, block or sum; empty: all
+  std::string only;           // vis, step, rollout, block or sum; empty: all
   bool want(const std::string& kind) const { return only.empty() || only == kind; }
 };
 
-constexpr const char* kUsage = "--steps S, --repeats N, --gpus N, --peer-blocks B, --only vis|step|block|sum";
+constexpr const char* kUsage = "--steps S, --repeats N, --gpus N, --peer-blocks B, --only vis|step|rollout|block|sum";
 
 Options parse(int argc, char** argv) {
   Options o;
@@ -77,8 +89,8 @@ Options parse(int argc, char** argv) {
     EPONA_CHECK(i + 1 < argc, a, " needs a value (", kUsage, ")");
     if (a == "--only") {
       o.only = argv[++i];
-      EPONA_CHECK(o.only == "vis" || o.only == "step" || o.only == "block" || o.only == "sum",
-                  "--only takes vis, step, block or sum, got '", o.only, "'");
+      EPONA_CHECK(o.only == "vis" || o.only == "step" || o.only == "rollout" || o.only == "block" || o.only == "sum",
+                  "--only takes vis, step, rollout, block or sum, got '", o.only, "'");
       continue;
     }
     char* end = nullptr;
@@ -93,15 +105,18 @@ Options parse(int argc, char** argv) {
   return o;
 }
 
-// A shard's sums left out: what its GPU computes, without the collectives.
+// A shard's sums left out: what its GPU computes, without the collectives (with two channels, in
+// the order of blocks that hide their sums).
 class NoSum final : public ShardSum<cuda::Context, bf16> {
  public:
-  explicit NoSum(std::int64_t size) : size_(size) {}
+  explicit NoSum(std::int64_t size, int channels = 1) : size_(size), channels_(channels) {}
   std::int64_t size() const override { return size_; }
-  void sum(cuda::Context&, bf16*, std::int64_t) const override {}
+  int channels() const override { return channels_; }
+  void sum(cuda::Context&, bf16*, std::int64_t, int) const override {}
 
  private:
   std::int64_t size_;
+  int channels_;
 };
 
 // One VisDiT shard (rank of size; size 1: the whole VisDiT) with random weights, its conditioning
@@ -164,6 +179,44 @@ struct WorldStep {
   }
 };
 
+// kFrames AR steps, each frame's DC-AE decode (the real DC-AE, random weights, bf16, a context and
+// stream of its own on this GPU) on a worker thread while the next step samples, as the epona
+// program's FrameDecoder runs it; `decodes` false: the steps alone (the other shards').
+struct Rollout {
+  static constexpr int kFrames = 5;
+  WorldStep step;
+  std::unique_ptr<Dcae<Cuda, bf16>> dcae;
+  std::unique_ptr<cuda::Context> decode_ctx;
+  cpu::Context host;
+
+  Rollout(const io::TensorMap& weights, const WorldModelConfig& cfg, TensorShard shard,
+          const WorldModel<Cuda, bf16>::VisShardSum* sum, std::int64_t steps, bool decodes)
+      : step(weights, cfg, shard, sum, steps) {
+    if (!decodes) return;
+    dcae = std::make_unique<Dcae<Cuda, bf16>>(DcaeConfig{});
+    dcae->randomize(1);
+    decode_ctx = std::make_unique<cuda::Context>();
+  }
+  cuda::Context& context() { return step.context(); }
+  void decode(const Tensor<float>& tokens) {
+    const WorldModelConfig& w = step.wm.config();
+    EPONA_CUDA_CHECK(cudaSetDevice(decode_ctx->info().device));
+    const Tensor<float> z = tokens_to_latent(host, tokens, w.latent_h(), w.latent_w());
+    const Tensor<float, Cuda> images = dcae->decode(*decode_ctx, BackendTraits<Cuda>::upload(z), false);
+    Tensor<float> out(images.shape());
+    BackendTraits<Cuda>::download_into(*decode_ctx, images, out);
+  }
+  void sample(cuda::Context&) {
+    std::future<void> running;
+    for (int f = 0; f < kFrames; ++f) {
+      const StepResult r = step.wm.predict_next(step.h, std::nullopt, step.opt);
+      if (running.valid()) running.get();
+      if (dcae) running = std::async(std::launch::async, [this, latent = r.latent] { decode(latent); });
+    }
+    if (running.valid()) running.get();
+  }
+};
+
 void emit(const std::string& name, const std::vector<double>& runs, std::int64_t steps, double whole_ms) {
   const double ms = bench::median(runs);
   std::printf("{\"name\": \"%s\", \"ms\": %.3f, \"ms_per_step\": %.4f, \"whole_over_this\": %.3f}\n", name.c_str(), ms,
@@ -171,18 +224,28 @@ void emit(const std::string& name, const std::vector<double>& runs, std::int64_t
   std::fflush(stdout);
 }
 
+// Each run's time over n (milliseconds per frame of a rollout).
+std::vector<double> per(std::vector<double> runs, int n) {
+  for (double& r : runs) r /= n;
+  return runs;
+}
+
 // The whole VisDiT and one shard of each split, one after another on GPU 0.
 double vis_rows(const Options& o, const WorldModelConfig& cfg) {
   double whole_ms = 0;
-  for (const std::int64_t shards : {1, 2, 4}) {
-    VisSample s(cfg, {0, shards}, o.steps);
-    const NoSum none(shards);
-    if (shards > 1) s.dit.set_shard_sum(&none);
-    auto& ctx = s.context();
-    const auto runs = bench::event_times_ms(ctx, o.repeats, 1, [&] { s.sample(ctx); });
-    if (shards == 1) whole_ms = bench::median(runs);
-    emit(shards == 1 ? "vis_whole" : "vis_shard" + std::to_string(shards) + "_alone", runs, o.steps, whole_ms);
-  }
+  for (const std::int64_t shards : {1, 2, 4})
+    for (const int channels : {1, 2}) {
+      if (shards == 1 && channels == 2) continue;
+      VisSample s(cfg, {0, shards}, o.steps);
+      const NoSum none(shards, channels);
+      if (shards > 1) s.dit.set_shard_sum(&none);
+      auto& ctx = s.context();
+      const auto runs = bench::event_times_ms(ctx, o.repeats, 1, [&] { s.sample(ctx); });
+      if (shards == 1) whole_ms = bench::median(runs);
+      emit(shards == 1 ? "vis_whole"
+                       : "vis_shard" + std::to_string(shards) + "_alone" + (channels == 2 ? "_hidden" : ""),
+           runs, o.steps, whole_ms);
+    }
   return whole_ms;
 }
 
@@ -319,10 +382,11 @@ std::vector<double> rank0_times(Group& group, int repeats, const Make& make) {
   return rank0;
 }
 
-// The N-way split over GPUs 0..N-1 through `group`: rank 0's times.
+// The N-way split over GPUs 0..N-1 through `group`: rank 0's times, over `per_call` (frames a call).
 template <class Group, class Make>
-void group_row(const Options& o, Group& group, const std::string& row, double whole_ms, const Make& make) {
-  emit(row, rank0_times(group, o.repeats, make), o.steps, whole_ms);
+void group_row(const Options& o, Group& group, const std::string& row, double whole_ms, const Make& make,
+               int per_call) {
+  emit(row, per(rank0_times(group, o.repeats, make), per_call), o.steps, whole_ms);
 }
 
 std::vector<int> first_gpus(int n) {
@@ -331,18 +395,23 @@ std::vector<int> first_gpus(int n) {
   return devices;
 }
 
-// The N-way split through each group this build has: *_peerN (ours) and *_ncclN.
+// The N-way split through each group this build has: *_peerN (ours) and *_ncclN, each with its sums
+// in the open (one channel) and hidden (two: *_hidden).
 template <class Make>
-void group_rows(const Options& o, const std::string& name, int gpus, double whole_ms, const Make& make) {
+void group_rows(const Options& o, const std::string& name, int gpus, double whole_ms, const Make& make,
+                int per_call = 1) {
   const std::string n = std::to_string(gpus);
-  {
-    cuda::PeerShardGroup<bf16> peer(first_gpus(gpus), {.blocks = o.peer_blocks});
-    group_row(o, peer, name + "_peer" + n, whole_ms, make);
-  }
+  for (const int channels : {1, 2}) {
+    const std::string hidden = channels == 2 ? "_hidden" : "";
+    {
+      cuda::PeerShardGroup<bf16> peer(first_gpus(gpus), {.blocks = o.peer_blocks, .channels = channels});
+      group_row(o, peer, name + "_peer" + n + hidden, whole_ms, make, per_call);
+    }
 #if defined(EPONA_BENCH_NCCL)
-  cuda::NcclShardGroup<bf16> nccl(first_gpus(gpus));
-  group_row(o, nccl, name + "_nccl" + n, whole_ms, make);
+    cuda::NcclShardGroup<bf16> nccl(first_gpus(gpus), channels);
+    group_row(o, nccl, name + "_nccl" + n + hidden, whole_ms, make, per_call);
 #endif
+  }
 }
 
 // One sum of a VisDiT block's output (1027 x 2048 bf16, 4.2 MB), 50 of them in a recorded graph
@@ -419,6 +488,24 @@ int main(int argc, char** argv) try {
     cuda::Context ctx;
     block_rows<nn::DoubleStreamBlock<Cuda, bf16>>(ctx, o, cfg, "double", 12);
     block_rows<nn::SingleStreamBlock<Cuda, bf16>>(ctx, o, cfg, "single", 3);
+  }
+  if (o.want("rollout")) {
+    const io::TensorMap weights = model::random_world_weights(cfg, 1);
+    double whole_ms = 0;
+    {
+      Rollout whole(weights, cfg, {0, 1}, nullptr, o.steps, true);
+      auto& ctx = whole.context();
+      const auto runs = per(bench::event_times_ms(ctx, o.repeats, 1, [&] { whole.sample(ctx); }), Rollout::kFrames);
+      whole_ms = bench::median(runs);
+      emit("rollout_whole", runs, o.steps, whole_ms);
+    }
+    for (int n = 2; n <= gpus; n *= 2)
+      group_rows(
+          o, "rollout", n, whole_ms,
+          [&](std::int64_t r, const auto& sum) {
+            return std::make_unique<Rollout>(weights, cfg, TensorShard{r, n}, &sum, o.steps, r == 0);
+          },
+          Rollout::kFrames);
   }
   if (o.want("step")) {
     const io::TensorMap weights = model::random_world_weights(cfg, 1);

@@ -21,8 +21,8 @@ std::unique_ptr<Engine> make_cuda_engine(const ComputeOptions& c);
 template <class W>
 std::unique_ptr<Engine> make_cpu_engine(const ComputeOptions& c) {
   if (c.shards == 1) return std::make_unique<ModelEngine<Cpu, W>>(c);
-  return std::make_unique<ShardedEngine<Cpu, W, cpu::ThreadShardGroup>>(c,
-                                                                         std::make_unique<cpu::ThreadShardGroup>(c.shards));
+  return std::make_unique<ShardedEngine<Cpu, W, cpu::ThreadShardGroup>>(
+      c, std::make_unique<cpu::ThreadShardGroup>(c.shards), "");
 }
 
 // The engine for --backend/--dtype/--tensor-parallel (check_backend has refused what this

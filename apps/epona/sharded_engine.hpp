@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <memory>
 #include <sstream>
+#include <string>
 #include <thread>
 #include <type_traits>
 #include <vector>
@@ -21,8 +22,10 @@ class ShardedEngine final : public Engine {
  public:
   using Model = ModelEngine<B, W>;
 
-  ShardedEngine(const ComputeOptions& c, std::unique_ptr<Group> group)
-      : group_(std::move(group)), engines_(static_cast<std::size_t>(group_->size())) {
+  // `sums` says how the group adds up the shards' parts (the program's note when it loads; empty:
+  // none, as for the CPU's threads, which announce_compute names).
+  ShardedEngine(const ComputeOptions& c, std::unique_ptr<Group> group, std::string sums)
+      : group_(std::move(group)), engines_(static_cast<std::size_t>(group_->size())), sums_note_(std::move(sums)) {
     const std::int64_t n = group_->size();
     for (std::int64_t r = 0; r < n; ++r) sums_.push_back(group_->shard(r));
     ComputeOptions mine = c;
@@ -53,6 +56,7 @@ class ShardedEngine final : public Engine {
   void load_dcae(const ModelFiles& f, const Console& con) override { first().load_dcae(f, con); }
   // Shard 0 says what it loads; the others load quietly.
   void load_world(const ModelFiles& f, const Console& con) override {
+    if (!sums_note_.empty()) con.note("tensor parallel: the VisDiT over ", group_->size(), " shards, ", sums_note_);
     on_shards([&](std::int64_t r) {
       std::ostringstream sink;
       engines_[r]->load_world(f, r == 0 ? con : Console{sink, sink, true, false});
@@ -104,6 +108,7 @@ class ShardedEngine final : public Engine {
   std::vector<typename Group::Sum> sums_;
   std::vector<std::unique_ptr<Model>> engines_;
   int threads_per_shard_ = 1;
+  std::string sums_note_;
 };
 
 }  // namespace epona::app

@@ -37,12 +37,18 @@ class NcclShardGroup : public DeviceShardThreads {
   static_assert(std::is_same_v<A, float> || std::is_same_v<A, bf16>, "NcclShardGroup: float or bf16 activations");
 
  public:
-  // Shard r on GPU devices[r]; every device once (NCCL refuses two ranks on one GPU).
-  explicit NcclShardGroup(std::vector<int> devices)
+  // Shard r on GPU devices[r]; every device once (NCCL refuses two ranks on one GPU). Each of the
+  // `channels` (ShardSum::channels) is a communicator of its own, so two sums may run side by
+  // side, each in its communicator's order.
+  explicit NcclShardGroup(std::vector<int> devices, int channels = 1)
       : DeviceShardThreads(std::move(devices), "NcclShardGroup", kMaxDevices) {
-    comms_.resize(static_cast<std::size_t>(size()));
-    EPONA_NCCL_CHECK(ncclCommInitAll(comms_.data(), static_cast<int>(size()), DeviceShardThreads::devices().data()));
+    EPONA_CHECK(channels >= 1 && channels <= 2, "NcclShardGroup: ", channels, " channels (1 or 2)");
+    comms_.resize(static_cast<std::size_t>(channels));
     try {
+      for (auto& c : comms_) {
+        c.resize(static_cast<std::size_t>(size()));
+        EPONA_NCCL_CHECK(ncclCommInitAll(c.data(), static_cast<int>(size()), DeviceShardThreads::devices().data()));
+      }
       connect();
     } catch (...) {
       destroy();
@@ -55,21 +61,23 @@ class NcclShardGroup : public DeviceShardThreads {
 
   using Sum = GroupShardSum<NcclShardGroup, Context, A>;
   Sum shard(std::int64_t rank) { return Sum(*this, rank); }
+  int channels() const { return static_cast<int>(comms_.size()); }
 
   // Shard `rank`'s all-reduce on its context's stream (its ShardSum's call): launched between two
   // barriers, or, while the stream records a graph, left to the graph's launches to fence.
-  void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count) {
-    if (size() == 1 || fence_recorded_graph(ctx)) return all_reduce(ctx.stream(), rank, data, count);
+  void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count, int channel) {
+    check_channel("NcclShardGroup", channel, channels());
+    if (size() == 1 || fence_recorded_graph(ctx)) return all_reduce(ctx.stream(), rank, data, count, channel);
     fence();
-    all_reduce(ctx.stream(), rank, data, count);
+    all_reduce(ctx.stream(), rank, data, count, channel);
     fence();
   }
 
  private:
-  void all_reduce(cudaStream_t stream, std::int64_t rank, A* data, std::int64_t count) {
+  void all_reduce(cudaStream_t stream, std::int64_t rank, A* data, std::int64_t count, int channel) {
     constexpr ncclDataType_t type = std::is_same_v<A, float> ? ncclFloat32 : ncclBfloat16;
     EPONA_NCCL_CHECK(ncclAllReduce(data, data, static_cast<std::size_t>(count), type, ncclSum,
-                                   comms_[static_cast<std::size_t>(rank)], stream));
+                                   comms_[static_cast<std::size_t>(channel)][static_cast<std::size_t>(rank)], stream));
   }
 
   // One all-reduce of one element on every rank: NCCL connects the ranks at their first
@@ -81,19 +89,22 @@ class NcclShardGroup : public DeviceShardThreads {
       Context ctx(device(r), 0);
       const auto one = BackendMemory<Cuda>::allocate(sizeof(A));
       EPONA_CUDA_CHECK(cudaMemsetAsync(one.get(), 0, sizeof(A), ctx.stream()));
-      fence();
-      all_reduce(ctx.stream(), r, static_cast<A*>(one.get()), 1);
-      fence();
+      for (int c = 0; c < channels(); ++c) {
+        fence();
+        all_reduce(ctx.stream(), r, static_cast<A*>(one.get()), 1, c);
+        fence();
+      }
       ctx.synchronize();
     });
   }
 
   void destroy() {
-    for (auto& c : comms_)
-      if (c) (void)ncclCommDestroy(std::exchange(c, nullptr));
+    for (auto& channel : comms_)
+      for (auto& c : channel)
+        if (c) (void)ncclCommDestroy(std::exchange(c, nullptr));
   }
 
-  std::vector<ncclComm_t> comms_;
+  std::vector<std::vector<ncclComm_t>> comms_;  // [channel][rank]
 };
 
 }  // namespace epona::cuda
