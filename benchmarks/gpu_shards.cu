@@ -6,21 +6,18 @@
 //   *_whole          the whole model on GPU 0
 //   *_shardN_alone   one shard of an N-way split (N = 2, 4) on GPU 0, its sums left out: the
 //                    products, attention and row passes one of N GPUs would run, without collectives
-//                    (vis_shardN_alone_hidden: in the order of blocks that hide their sums)
 //   *_peerN          (N GPUs present) the N-way split over GPUs 0..N-1 through the peer group
 //                    (cuda/runtime/peer_shard_sum.cuh; --peer-blocks B its kernel's blocks), one host
 //                    thread per GPU; every rank starts each repeat together and the row is rank 0's time
 //   *_ncclN          (and the program built with NCCL) the same through NCCL
-//   *_hidden         the same with the group's two channels: the blocks sum one part of their rows
-//                    while they compute another (docs/parallel.md, "Hiding the sums")
 // Each row: median milliseconds over the repeats (CUDA events, after a warm-up call that records
 // the graphs), the same per step, and the whole model's time over it. *_peerN - *_shardN_alone is
-// the time the collectives add in the open, *_peerN_hidden - *_shardN_alone what is left of it once
-// hidden. Prints one JSON line per row.
+// the time the collectives add (none of it is hidden: docs/parallel.md, "Hiding the sums"). Prints
+// one JSON line per row.
 // rollout_* rows: issue #40's AR step + decode. Rollouts of 5 frames, each frame's DC-AE decode (the
 // real DC-AE, random weights, bf16) on a stream and host thread of its own on GPU 0 while the next
 // step samples (as the epona program's FrameDecoder runs it); milliseconds per frame: whole (one
-// GPU) and the split over N GPUs (*_peerN, *_ncclN, *_hidden as above).
+// GPU) and the split over N GPUs (*_peerN, *_ncclN as above).
 // sum_* rows: one sum of a VisDiT block's output (1027 x 2048 bf16, 4.2 MB) over N GPUs, 50 in a
 // recorded graph, microseconds per sum: sum_peerN_blocksB (the peer group's kernel in B blocks)
 // and sum_ncclN (NCCL's all-reduce).
@@ -105,18 +102,15 @@ Options parse(int argc, char** argv) {
   return o;
 }
 
-// A shard's sums left out: what its GPU computes, without the collectives (with two channels, in
-// the order of blocks that hide their sums).
+// A shard's sums left out: what its GPU computes, without the collectives.
 class NoSum final : public ShardSum<cuda::Context, bf16> {
  public:
-  explicit NoSum(std::int64_t size, int channels = 1) : size_(size), channels_(channels) {}
+  explicit NoSum(std::int64_t size) : size_(size) {}
   std::int64_t size() const override { return size_; }
-  int channels() const override { return channels_; }
-  void sum(cuda::Context&, bf16*, std::int64_t, int) const override {}
+  void sum(cuda::Context&, bf16*, std::int64_t) const override {}
 
  private:
   std::int64_t size_;
-  int channels_;
 };
 
 // One VisDiT shard (rank of size; size 1: the whole VisDiT) with random weights, its conditioning
@@ -233,19 +227,15 @@ std::vector<double> per(std::vector<double> runs, int n) {
 // The whole VisDiT and one shard of each split, one after another on GPU 0.
 double vis_rows(const Options& o, const WorldModelConfig& cfg) {
   double whole_ms = 0;
-  for (const std::int64_t shards : {1, 2, 4})
-    for (const int channels : {1, 2}) {
-      if (shards == 1 && channels == 2) continue;
-      VisSample s(cfg, {0, shards}, o.steps);
-      const NoSum none(shards, channels);
-      if (shards > 1) s.dit.set_shard_sum(&none);
-      auto& ctx = s.context();
-      const auto runs = bench::event_times_ms(ctx, o.repeats, 1, [&] { s.sample(ctx); });
-      if (shards == 1) whole_ms = bench::median(runs);
-      emit(shards == 1 ? "vis_whole"
-                       : "vis_shard" + std::to_string(shards) + "_alone" + (channels == 2 ? "_hidden" : ""),
-           runs, o.steps, whole_ms);
-    }
+  for (const std::int64_t shards : {1, 2, 4}) {
+    VisSample s(cfg, {0, shards}, o.steps);
+    const NoSum none(shards);
+    if (shards > 1) s.dit.set_shard_sum(&none);
+    auto& ctx = s.context();
+    const auto runs = bench::event_times_ms(ctx, o.repeats, 1, [&] { s.sample(ctx); });
+    if (shards == 1) whole_ms = bench::median(runs);
+    emit(shards == 1 ? "vis_whole" : "vis_shard" + std::to_string(shards) + "_alone", runs, o.steps, whole_ms);
+  }
   return whole_ms;
 }
 
@@ -395,23 +385,19 @@ std::vector<int> first_gpus(int n) {
   return devices;
 }
 
-// The N-way split through each group this build has: *_peerN (ours) and *_ncclN, each with its sums
-// in the open (one channel) and hidden (two: *_hidden).
+// The N-way split through each group this build has: *_peerN (ours) and *_ncclN.
 template <class Make>
 void group_rows(const Options& o, const std::string& name, int gpus, double whole_ms, const Make& make,
                 int per_call = 1) {
   const std::string n = std::to_string(gpus);
-  for (const int channels : {1, 2}) {
-    const std::string hidden = channels == 2 ? "_hidden" : "";
-    {
-      cuda::PeerShardGroup<bf16> peer(first_gpus(gpus), {.blocks = o.peer_blocks, .channels = channels});
-      group_row(o, peer, name + "_peer" + n + hidden, whole_ms, make, per_call);
-    }
-#if defined(EPONA_BENCH_NCCL)
-    cuda::NcclShardGroup<bf16> nccl(first_gpus(gpus), channels);
-    group_row(o, nccl, name + "_nccl" + n + hidden, whole_ms, make, per_call);
-#endif
+  {
+    cuda::PeerShardGroup<bf16> peer(first_gpus(gpus), {.blocks = o.peer_blocks});
+    group_row(o, peer, name + "_peer" + n, whole_ms, make, per_call);
   }
+#if defined(EPONA_BENCH_NCCL)
+  cuda::NcclShardGroup<bf16> nccl(first_gpus(gpus));
+  group_row(o, nccl, name + "_nccl" + n, whole_ms, make, per_call);
+#endif
 }
 
 // One sum of a VisDiT block's output (1027 x 2048 bf16, 4.2 MB), 50 of them in a recorded graph

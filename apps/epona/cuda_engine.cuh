@@ -35,8 +35,7 @@ void configure(ModelEngine<Cuda, W>& engine, const ComputeOptions& c, bool relea
 // The sharded engine over `group`'s GPUs (shard 0, on GPU 0, also holds the DC-AE and releases cuDNN).
 template <class W, class Group>
 std::unique_ptr<Engine> sharded_over(const ComputeOptions& c, std::unique_ptr<Group> group, const std::string& how) {
-  const std::string note = "one per GPU, their sums through " + how + (c.hide_sums ? ", hidden (--hide-sums)" : "");
-  auto engine = std::make_unique<ShardedEngine<Cuda, W, Group>>(c, std::move(group), note);
+  auto engine = std::make_unique<ShardedEngine<Cuda, W, Group>>(c, std::move(group), "one per GPU, their sums through " + how);
   engine->each_shard([&](std::int64_t r, ModelEngine<Cuda, W>& e) { configure(e, c, r == 0); });
   return engine;
 }
@@ -63,13 +62,10 @@ std::unique_ptr<Engine> build_sharded(const ComputeOptions& c) {
   std::vector<int> devices(static_cast<std::size_t>(c.shards));
   std::iota(devices.begin(), devices.end(), 0);
   const bool peer = c.shard_sum == "peer" || (c.shard_sum == "auto" && peer_by_default(devices));
-  const int channels = c.hide_sums ? 2 : 1;
   const std::string picked = c.shard_sum == "auto" ? " (--shard-sum auto)" : "";
-  if (peer)
-    return sharded_over<W>(c, std::make_unique<cuda::PeerShardGroup<W>>(devices, cuda::PeerGroupOptions{.channels = channels}),
-                           "our peer kernel" + picked);
+  if (peer) return sharded_over<W>(c, std::make_unique<cuda::PeerShardGroup<W>>(devices), "our peer kernel" + picked);
 #if defined(EPONA_APP_NCCL)
-  return sharded_over<W>(c, std::make_unique<cuda::NcclShardGroup<W>>(devices, channels), "NCCL" + picked);
+  return sharded_over<W>(c, std::make_unique<cuda::NcclShardGroup<W>>(devices), "NCCL" + picked);
 #else
   fail("--tensor-parallel ", c.shards, " with --backend cuda: ",
        c.shard_sum == "nccl" ? "--shard-sum nccl needs NCCL" : "these GPUs do not reach each other's memory, and NCCL",

@@ -43,9 +43,6 @@ struct ComputeOptions {
   // over NVLink/PCIe peer access (cuda/runtime/peer_shard_sum.cuh); "nccl": NCCL's all-reduce;
   // "auto": peer over two GPUs that reach each other's memory (or without NCCL), else NCCL.
   std::string shard_sum = "auto";
-  // --hide-sums: the split blocks sum one part of their rows while they compute another (the
-  // groups' two channels). Off: over NVLink on two H200s it measured slower (docs/parallel.md).
-  bool hide_sums = false;
 };
 
 // --threads beyond a few per hardware thread only slows the work (4096 on 2 cores ran 50x slower).
@@ -73,10 +70,7 @@ inline void add_compute_options(ArgParser& p) {
       .option("shard-sum", "HOW",
               "how --tensor-parallel's GPUs add up their parts: peer (our kernel over NVLink), nccl, or auto "
               "(peer over two GPUs that reach each other's memory, nccl over more)",
-              "auto")
-      .flag("hide-sums",
-            "with --tensor-parallel on GPUs: sum parts of each block's rows while computing the others (slower "
-            "over NVLink on H200s; for slower links)");
+              "auto");
 }
 
 // Refuses a backend this program cannot run, naming why. The epona program gets its CUDA engine
@@ -103,9 +97,6 @@ inline ComputeOptions compute_options(const ParsedArgs& a) {
   c.shard_sum = a.choice("shard-sum", {"auto", "peer", "nccl"}, "auto");
   EPONA_CHECK(c.shard_sum == "auto" || (c.backend == "cuda" && c.shards > 1), "--shard-sum ", c.shard_sum,
               " applies to --backend cuda with --tensor-parallel 2 or more (the CPU's shards are threads)");
-  c.hide_sums = a.has("hide-sums");
-  EPONA_CHECK(!c.hide_sums || (c.backend == "cuda" && c.shards > 1),
-              "--hide-sums applies to --backend cuda with --tensor-parallel 2 or more (the CPU's shards are threads)");
   check_backend(c.backend);
   return c;
 }

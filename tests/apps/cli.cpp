@@ -515,7 +515,6 @@ TEST_CASE("--tensor-parallel 2: plan and generate as the whole model; splits tha
   // How GPUs add up their parts means nothing to the CPU's threads.
   check_cli_error(run(t / "peer", {"--tensor-parallel", "2", "--shard-sum", "peer"}), "applies to --backend cuda");
   check_cli_error(run(t / "bogus", {"--tensor-parallel", "2", "--shard-sum", "mpi"}), "--shard-sum");
-  check_cli_error(run(t / "hide", {"--tensor-parallel", "2", "--hide-sums"}), "--hide-sums applies to --backend cuda");
   CHECK_FALSE(fs::exists(t / "three/frames/frame_0000.png"));
 }
 

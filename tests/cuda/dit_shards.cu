@@ -100,8 +100,6 @@ std::vector<HostF> shard_samples(Group& group, const Case& k, const io::TensorMa
   return out;
 }
 
-std::string channel_note(int channels) { return channels == 2 ? "sums hidden (2 channels)" : "1 channel"; }
-
 // Where the shards of sharded_like_whole run, and which group sums for them.
 enum class Layout {
   streams_one_gpu,  // StreamShardGroup: 2 and 4 shards sharing GPU 0, graphs off
@@ -137,30 +135,26 @@ void sharded_like_whole(Layout layout) {
           cuda::StreamShardGroup<W> group(shards);
           check_shard_results<W>(shard_samples<W>(group, k, weights, in, on_gpu0, false), whole, f32, on_one);
         }
-        // Few blocks: a shard's waiting sums must leave the others' products room on the GPU.
-        for (const int channels : {1, 2})
-          if (layout == Layout::peer_one_gpu) {
-            cuda::PeerShardGroup<W> group(std::vector<int>(static_cast<std::size_t>(shards), 0),
-                                          {.blocks = 8, .channels = channels, .share_devices = true});
-            check_shard_results<W>(shard_samples<W>(group, k, weights, in, on_gpu0, true), whole, f32,
-                                   on_one + " through the peer group (graphs on), " + channel_note(channels));
-          }
-      }
-      // Two channels: the blocks hide their sums behind their products (docs/parallel.md).
-      for (const int channels : {1, 2}) {
-        if (layout == Layout::peer_two_gpus) {
-          cuda::PeerShardGroup<W> group({0, 1}, {.channels = channels});
-          check_shard_results<W>(shard_samples<W>(group, k, weights, in, own_gpu, true), whole, f32,
-                                 what + ", 2 GPUs through the peer group (graphs on), " + channel_note(channels));
+        if (layout == Layout::peer_one_gpu) {
+          // Few blocks: a shard's waiting sum must leave the others' products room on the GPU.
+          cuda::PeerShardGroup<W> group(std::vector<int>(static_cast<std::size_t>(shards), 0),
+                                        {.blocks = 8, .share_devices = true});
+          check_shard_results<W>(shard_samples<W>(group, k, weights, in, on_gpu0, true), whole, f32,
+                                 on_one + " through the peer group (graphs on)");
         }
+      }
+      if (layout == Layout::peer_two_gpus) {
+        cuda::PeerShardGroup<W> group({0, 1});
+        check_shard_results<W>(shard_samples<W>(group, k, weights, in, own_gpu, true), whole, f32,
+                               what + ", 2 GPUs through the peer group (graphs on)");
+      }
 #if defined(EPONA_TEST_NCCL)
-        if (layout == Layout::nccl_two_gpus) {
-          cuda::NcclShardGroup<W> group({0, 1}, channels);
-          check_shard_results<W>(shard_samples<W>(group, k, weights, in, own_gpu, true), whole, f32,
-                                 what + ", 2 GPUs through NCCL (graphs on), " + channel_note(channels));
-        }
-#endif
+      if (layout == Layout::nccl_two_gpus) {
+        cuda::NcclShardGroup<W> group({0, 1});
+        check_shard_results<W>(shard_samples<W>(group, k, weights, in, own_gpu, true), whole, f32,
+                               what + ", 2 GPUs through NCCL (graphs on)");
       }
+#endif
     }
   }
 }

@@ -2,9 +2,8 @@
 // as the parts added in rank order in float32 and rounded once to the activation type, the same
 // bits on every rank (checked against that sum computed here), for sizes that fill whole packs and
 // those that do not, a misaligned buffer, sums larger than the inboxes (in pieces), directly and
-// replayed from recorded graphs (the epochs and inbox slots go on counting across launches), two
-// channels' sums at once on two streams (as a block that hides its sums runs them), over shards
-// sharing one GPU and over two GPUs where the machine has them. Misuse is refused by name.
+// replayed from recorded graphs (the epochs and inbox slots go on counting across launches), over
+// shards sharing one GPU and over two GPUs where the machine has them. Misuse is refused by name.
 // (The DiT split over the group: tests/cuda/dit_shards.cu.)
 #include "cuda_test_util.cuh"
 #include "watchdog.hpp"
@@ -14,7 +13,6 @@
 
 #include "epona/cuda/runtime/graph.hpp"
 #include "epona/cuda/runtime/peer_shard_sum.cuh"
-#include "epona/cuda/runtime/side_stream.hpp"
 
 using namespace epona;
 using namespace epona::test;
@@ -74,47 +72,6 @@ void check_sums(cuda::PeerShardGroup<A>& group, std::int64_t n, std::int64_t off
   }
 }
 
-// Two sums at once each round, `n` elements on channel 0 (the main stream) and n + 8 on channel 1
-// (a side stream forked from it), directly or through a recorded graph; both checked on every rank.
-template <class A>
-void check_channels(cuda::PeerShardGroup<A>& group, std::int64_t n, bool graphs, int rounds, const std::string& what) {
-  const auto size = static_cast<std::size_t>(group.size());
-  const std::int64_t counts[2] = {n, n + 8};
-  std::vector<std::vector<HostF>> got(size);  // per rank: round 0's channels 0 and 1, round 1's, ...
-  const auto part = [&](std::int64_t r, int round, int channel) {
-    return part_of<A>(counts[channel], r, 100 * channel + round);
-  };
-  group.run([&](std::int64_t r) {
-    cuda::Context ctx;
-    ctx.policy().graphs = graphs;
-    cuda::SideStream queue;
-    cuda::Context& side = queue.side(ctx);  // made before any capture
-    Dev<A> data[2] = {Dev<A>({counts[0]}), Dev<A>({counts[1]})};
-    const auto sum = group.shard(r);
-    cuda::GraphCache graph;
-    for (int round = 0; round < rounds; ++round) {
-      for (int c = 0; c < 2; ++c) cuda::copy(ctx, data[c], upload<A>(ctx, part(r, round, c)));
-      graph.run(ctx, {static_cast<std::uint64_t>(n)}, [&] {
-        queue.fork(ctx);
-        sum.sum(side, data[1].data(), counts[1], 1);
-        sum.sum(ctx, data[0].data(), counts[0], 0);
-        queue.join(ctx);
-      });
-      for (int c = 0; c < 2; ++c) got[static_cast<std::size_t>(r)].push_back(download(ctx, data[c]));
-    }
-  });
-  for (int round = 0; round < rounds; ++round)
-    for (int c = 0; c < 2; ++c) {
-      std::vector<HostF> parts;
-      for (std::size_t r = 0; r < size; ++r) parts.push_back(part(static_cast<std::int64_t>(r), round, c));
-      const HostF want = expected_sum<A>(parts);
-      for (std::size_t r = 0; r < size; ++r)
-        CHECK_MESSAGE(count_bit_differences(got[r][static_cast<std::size_t>(2 * round + c)], want) == 0, what,
-                      ": channel ", c, ", ", counts[c], " elements", std::string(graphs ? ", graph" : ", direct"),
-                      ", round ", round, ", rank ", r);
-    }
-}
-
 template <class A>
 void check_group(cuda::PeerShardGroup<A>& group, const std::string& what) {
   // Whole packs, a remainder, fewer elements than blocks, more than the inboxes hold (capacity 4096).
@@ -122,8 +79,6 @@ void check_group(cuda::PeerShardGroup<A>& group, const std::string& what) {
                                std::int64_t{3 * 4096 + 8}, std::int64_t{65536}})
     for (const bool graphs : {false, true}) check_sums<A>(group, n, 0, graphs, 3, what);
   check_sums<A>(group, 4104, 1, true, 3, what + ", misaligned");
-  for (const std::int64_t n : {std::int64_t{1000}, std::int64_t{2 * 4096 + 16}})
-    for (const bool graphs : {false, true}) check_channels<A>(group, n, graphs, 3, what + ", two channels");
 }
 
 }  // namespace
@@ -134,7 +89,7 @@ TEST_CASE_TEMPLATE("the peer group sums in rank order, rounded once, the same bi
   Watchdog watchdog("the peer group's sums on one GPU", 300);
   for (const int shards : {2, 3, 4}) {
     cuda::PeerShardGroup<A> group(std::vector<int>(static_cast<std::size_t>(shards), 0),
-                                  {.capacity = 4096, .blocks = 16, .channels = 2, .share_devices = true});
+                                  {.capacity = 4096, .blocks = 16, .share_devices = true});
     check_group(group, std::to_string(shards) + " shards on one GPU");
   }
   cuda::PeerShardGroup<A> one({0});  // a group of one leaves the buffer as it is
@@ -145,7 +100,7 @@ TEST_CASE_TEMPLATE("the peer group sums over two GPUs", A, float, bf16) {
   EPONA_REQUIRE_GPU();
   if (!two_gpus("the peer group over GPUs")) return;
   Watchdog watchdog("the peer group's sums over two GPUs", 300);
-  cuda::PeerShardGroup<A> small({0, 1}, {.capacity = 4096, .blocks = 64, .channels = 2});
+  cuda::PeerShardGroup<A> small({0, 1}, {.capacity = 4096, .blocks = 64});
   check_group(small, "2 GPUs");
   cuda::PeerShardGroup<A> real({0, 1});  // the default inboxes: a VisDiT block's output in one piece
   check_sums<A>(real, 1027 * 2048, 0, true, 3, "2 GPUs, one block's output");
@@ -161,15 +116,6 @@ TEST_CASE("the peer group refuses what it cannot do, by name") {
   CHECK_THROWS_WITH_AS(Group({}), doctest::Contains("0 devices"), Error);
   CHECK_THROWS_WITH_AS(Group({0}, {.capacity = 12}), doctest::Contains("capacity 12"), Error);
   CHECK_THROWS_WITH_AS(Group({0}, {.blocks = 0}), doctest::Contains("0 blocks"), Error);
-  CHECK_THROWS_WITH_AS(Group({0}, {.channels = 3}), doctest::Contains("3 channels"), Error);
-  // A channel the group does not have.
-  Group one_channel({0, 0}, {.channels = 1, .share_devices = true});
-  Dev<float> data({8});
-  CHECK_THROWS_WITH_AS(one_channel.run([&](std::int64_t r) {
-                         cuda::Context ctx;
-                         one_channel.shard(r).sum(ctx, data.data(), 8, 1);
-                       }),
-                       doctest::Contains("channel 1 of 1"), Error);
   // Sums of different sizes: every rank stops with the error, none waits.
   Group uneven({0, 0}, {.share_devices = true});
   Dev<float> a({8}), b({8});

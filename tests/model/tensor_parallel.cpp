@@ -37,14 +37,13 @@ bool same_bits(const Tensor<float>& a, const Tensor<float>& b) {
 }
 
 // The velocity and a 4-step Heun sample of `in` from every shard of a `shards`-way split of the
-// DiT whose whole weights are `weights`, its group of `channels` (2: the blocks hide their sums,
-// summing parts of their rows in another order).
+// DiT whose whole weights are `weights`.
 struct ShardResults {
   std::vector<Tensor<float>> velocity, sample;
 };
 ShardResults run_shards(const Case& k, const io::TensorMap& weights, std::int64_t shards, const Inputs& in,
-                        const Tensor<float>& t, int channels) {
-  cpu::ThreadShardGroup group(shards, channels);
+                        const Tensor<float>& t) {
+  cpu::ThreadShardGroup group(shards);
   ShardResults out{std::vector<Tensor<float>>(shards), std::vector<Tensor<float>>(shards)};
   group.run([&](std::int64_t r) {
     model::FluxDitConfig config = k.config;
@@ -101,25 +100,17 @@ TEST_CASE("a DiT split over 2 and 4 shards gives the whole DiT's velocity and sa
         CAPTURE(std::string(k.name));
         CAPTURE(items);
         CAPTURE(shards);
-        ShardResults one_channel;
-        for (const int channels : {1, 2}) {
-          CAPTURE(channels);
-          const ShardResults parts = run_shards(k, weights, shards, in, t, channels);
-          double worst = 0;
-          for (std::int64_t r = 0; r < shards; ++r) {
-            worst = std::max({worst, rel_max(parts.velocity[r], v), rel_max(parts.sample[r], x)});
-            CHECK(same_bits(parts.velocity[r], parts.velocity[0]));
-            CHECK(same_bits(parts.sample[r], parts.sample[0]));
-          }
-          MESSAGE(std::string(k.name), ", ", items, " item(s), ", shards, " shards, ", channels,
-                  " channel(s): worst rel against the whole DiT (velocity, Heun x 4) ", worst);
-          CHECK(worst <= 1e-6);
-          CHECK(rel_max(parts.sample[0], in.x) > 1e-2);  // the sample moved: the comparison is not of inputs
-          // Hiding the sums splits products and sums by rows, which leaves each row's value as it
-          // was; it also unpairs paired streams (another product on the CPU: the bound above).
-          if (channels == 1) one_channel = parts;
-          else if (!nn::streams_pairable(k.rows)) CHECK(same_bits(parts.sample[0], one_channel.sample[0]));
+        const ShardResults parts = run_shards(k, weights, shards, in, t);
+        double worst = 0;
+        for (std::int64_t r = 0; r < shards; ++r) {
+          worst = std::max({worst, rel_max(parts.velocity[r], v), rel_max(parts.sample[r], x)});
+          CHECK(same_bits(parts.velocity[r], parts.velocity[0]));
+          CHECK(same_bits(parts.sample[r], parts.sample[0]));
         }
+        MESSAGE(std::string(k.name), ", ", items, " item(s), ", shards,
+                " shards: worst rel against the whole DiT (velocity, Heun x 4) ", worst);
+        CHECK(worst <= 1e-6);
+        CHECK(rel_max(parts.sample[0], in.x) > 1e-2);  // the sample moved: the comparison is not of inputs
       }
     }
   }
@@ -167,13 +158,6 @@ TEST_CASE("tensor-parallel misuse is refused with a message") {
   const auto sum = four.shard(0);
   CHECK_THROWS_WITH_AS(part.set_shard_sum(&sum), doctest::Contains("a group of 4 shards for a trunk sharded 2 ways"),
                        Error);
-  // A channel the group does not have, or a group of an absurd number of them.
-  cpu::ThreadShardGroup one_channel(1, 1);
-  std::vector<float> data(8, 1.f);
-  cpu::Context ctx(1);
-  CHECK_THROWS_WITH_AS(one_channel.shard(0).sum(ctx, data.data(), 8, 1),
-                       doctest::Contains("ThreadShardGroup: channel 1 of 1"), Error);
-  CHECK_THROWS_WITH_AS(cpu::ThreadShardGroup(2, 3), doctest::Contains("3 channels (1 or 2)"), Error);
 
   // Weights that do not fit the split.
   const auto split = std::vector<nn::LinearSplit>{{"qkv.", nn::LinearSplit::outputs, {3, 3}}};

@@ -35,39 +35,25 @@ struct TensorShard {
 };
 
 // Sums `count` elements of A at `data` over the group's shards, in place, on every shard alike
-// (an all-reduce). Every shard calls it with the same count, in the same order. A group with
-// several channels lets that many sums run at once, each on the queue it is called on: a block
-// then sums one part of its rows while it computes another (docs/parallel.md, "Hiding the
-// sums"). Sums on one channel run in call order; every shard uses the channels alike.
+// (an all-reduce). Every shard calls it with the same count, in the same order.
 template <class Context, class A>
 class ShardSum {
  public:
   virtual ~ShardSum() = default;
   virtual std::int64_t size() const = 0;
-  virtual int channels() const { return 1; }
-  virtual void sum(Context& ctx, A* data, std::int64_t count, int channel) const = 0;
-  void sum(Context& ctx, A* data, std::int64_t count) const { sum(ctx, data, count, 0); }
+  virtual void sum(Context& ctx, A* data, std::int64_t count) const = 0;
 };
 
-// Refuses a channel outside [0, channels); `who` names the group.
-inline void check_channel(const char* who, int channel, int channels) {
-  EPONA_CHECK(channel >= 0 && channel < channels, who, ": channel ", channel, " of ", channels);
-}
-
-// One shard's ShardSum of a group that sums for every rank: group.sum(ctx, rank, data, count,
-// channel) (cpu::ThreadShardGroup, cuda::StreamShardGroup, cuda::NcclShardGroup, cuda::PeerShardGroup).
+// One shard's ShardSum of a group that sums for every rank: group.sum(ctx, rank, data, count)
+// (cpu::ThreadShardGroup, cuda::StreamShardGroup, cuda::NcclShardGroup).
 template <class Group, class Context, class A>
 class GroupShardSum final : public ShardSum<Context, A> {
  public:
   GroupShardSum(Group& group, std::int64_t rank) : group_(&group), rank_(rank) {
     TensorShard{rank, group.size()}.check("tensor-parallel group");
   }
-  using ShardSum<Context, A>::sum;
   std::int64_t size() const override { return group_->size(); }
-  int channels() const override { return group_->channels(); }
-  void sum(Context& ctx, A* data, std::int64_t count, int channel) const override {
-    group_->sum(ctx, rank_, data, count, channel);
-  }
+  void sum(Context& ctx, A* data, std::int64_t count) const override { group_->sum(ctx, rank_, data, count); }
 
  private:
   Group* group_;

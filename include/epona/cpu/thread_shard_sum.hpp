@@ -17,16 +17,10 @@ namespace epona::cpu {
 
 class ThreadShardGroup {
  public:
-  // `channels`: how many the blocks may use (ShardSum::channels). The CPU runs every sum when it
-  // is called, so channels change only the order the blocks call them in (tests of both orders).
-  explicit ThreadShardGroup(std::int64_t size, int channels = 1)
-      : size_(size), channels_(channels), barrier_(size), buffers_(static_cast<std::size_t>(size)),
-        counts_(buffers_.size()) {
-    EPONA_CHECK(channels >= 1 && channels <= 2, "ThreadShardGroup: ", channels, " channels (1 or 2)");
-  }
+  explicit ThreadShardGroup(std::int64_t size)
+      : size_(size), barrier_(size), buffers_(static_cast<std::size_t>(size)), counts_(buffers_.size()) {}
 
   std::int64_t size() const { return size_; }
-  int channels() const { return channels_; }
 
   using Sum = GroupShardSum<ThreadShardGroup, Context, float>;
   Sum shard(std::int64_t rank) { return Sum(*this, rank); }
@@ -38,8 +32,7 @@ class ThreadShardGroup {
   }
 
   // Shard `rank`'s part of a sum (its ShardSum's call).
-  void sum(Context&, std::int64_t rank, float* data, std::int64_t count, int channel) {
-    check_channel("ThreadShardGroup", channel, channels_);
+  void sum(Context&, std::int64_t rank, float* data, std::int64_t count) {
     const auto r = static_cast<std::size_t>(rank);
     buffers_[r] = data;
     counts_[r] = count;
@@ -62,7 +55,6 @@ class ThreadShardGroup {
 
  private:
   std::int64_t size_;
-  int channels_;
   BreakableBarrier barrier_;
   std::vector<float*> buffers_;
   std::vector<std::int64_t> counts_;

@@ -37,18 +37,12 @@ class NcclShardGroup : public DeviceShardThreads {
   static_assert(std::is_same_v<A, float> || std::is_same_v<A, bf16>, "NcclShardGroup: float or bf16 activations");
 
  public:
-  // Shard r on GPU devices[r]; every device once (NCCL refuses two ranks on one GPU). Each of the
-  // `channels` (ShardSum::channels) is a communicator of its own, so two sums may run side by
-  // side, each in its communicator's order.
-  explicit NcclShardGroup(std::vector<int> devices, int channels = 1)
+  // Shard r on GPU devices[r]; every device once (NCCL refuses two ranks on one GPU).
+  explicit NcclShardGroup(std::vector<int> devices)
       : DeviceShardThreads(std::move(devices), "NcclShardGroup", kMaxDevices) {
-    EPONA_CHECK(channels >= 1 && channels <= 2, "NcclShardGroup: ", channels, " channels (1 or 2)");
-    comms_.resize(static_cast<std::size_t>(channels));
+    comms_.resize(static_cast<std::size_t>(size()));
+    EPONA_NCCL_CHECK(ncclCommInitAll(comms_.data(), static_cast<int>(size()), DeviceShardThreads::devices().data()));
     try {
-      for (auto& c : comms_) {
-        c.resize(static_cast<std::size_t>(size()));
-        EPONA_NCCL_CHECK(ncclCommInitAll(c.data(), static_cast<int>(size()), DeviceShardThreads::devices().data()));
-      }
       connect();
     } catch (...) {
       destroy();
@@ -61,23 +55,21 @@ class NcclShardGroup : public DeviceShardThreads {
 
   using Sum = GroupShardSum<NcclShardGroup, Context, A>;
   Sum shard(std::int64_t rank) { return Sum(*this, rank); }
-  int channels() const { return static_cast<int>(comms_.size()); }
 
   // Shard `rank`'s all-reduce on its context's stream (its ShardSum's call): launched between two
   // barriers, or, while the stream records a graph, left to the graph's launches to fence.
-  void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count, int channel) {
-    check_channel("NcclShardGroup", channel, channels());
-    if (size() == 1 || fence_recorded_graph(ctx)) return all_reduce(ctx.stream(), rank, data, count, channel);
+  void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count) {
+    if (size() == 1 || fence_recorded_graph(ctx)) return all_reduce(ctx.stream(), rank, data, count);
     fence();
-    all_reduce(ctx.stream(), rank, data, count, channel);
+    all_reduce(ctx.stream(), rank, data, count);
     fence();
   }
 
  private:
-  void all_reduce(cudaStream_t stream, std::int64_t rank, A* data, std::int64_t count, int channel) {
+  void all_reduce(cudaStream_t stream, std::int64_t rank, A* data, std::int64_t count) {
     constexpr ncclDataType_t type = std::is_same_v<A, float> ? ncclFloat32 : ncclBfloat16;
     EPONA_NCCL_CHECK(ncclAllReduce(data, data, static_cast<std::size_t>(count), type, ncclSum,
-                                   comms_[static_cast<std::size_t>(channel)][static_cast<std::size_t>(rank)], stream));
+                                   comms_[static_cast<std::size_t>(rank)], stream));
   }
 
   // One all-reduce of one element on every rank: NCCL connects the ranks at their first
@@ -89,22 +81,19 @@ class NcclShardGroup : public DeviceShardThreads {
       Context ctx(device(r), 0);
       const auto one = BackendMemory<Cuda>::allocate(sizeof(A));
       EPONA_CUDA_CHECK(cudaMemsetAsync(one.get(), 0, sizeof(A), ctx.stream()));
-      for (int c = 0; c < channels(); ++c) {
-        fence();
-        all_reduce(ctx.stream(), r, static_cast<A*>(one.get()), 1, c);
-        fence();
-      }
+      fence();
+      all_reduce(ctx.stream(), r, static_cast<A*>(one.get()), 1);
+      fence();
       ctx.synchronize();
     });
   }
 
   void destroy() {
-    for (auto& channel : comms_)
-      for (auto& c : channel)
-        if (c) (void)ncclCommDestroy(std::exchange(c, nullptr));
+    for (auto& c : comms_)
+      if (c) (void)ncclCommDestroy(std::exchange(c, nullptr));
   }
 
-  std::vector<std::vector<ncclComm_t>> comms_;  // [channel][rank]
+  std::vector<ncclComm_t> comms_;
 };
 
 }  // namespace epona::cuda

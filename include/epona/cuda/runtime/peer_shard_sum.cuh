@@ -42,16 +42,12 @@ namespace epona::cuda {
 struct PeerGroupOptions {
   // Elements of A one sum moves at a time: each rank holds two inbox slots of this many per rank
   // of the group (a larger sum goes in pieces of it). 4 Mi elements: a VisDiT block's output at
-  // one item (1027 x 2048) in one piece, 32 MiB of bf16 inboxes per channel and GPU of a pair.
+  // one item (1027 x 2048) in one piece, 32 MiB of bf16 inboxes per GPU of a pair.
   std::int64_t capacity = std::int64_t{1} << 22;
   // Blocks of the sum kernel; every rank uses the same (each block pairs with its namesakes). On two
   // H200s one sum of 4.2 MB took 36.2, 27.4, 22.8, 21.1 and 23.6 us at 16 to 256 blocks, and the
   // VisDiT's sample 194.1 ms at 64 and 190.8 ms at 128 (docs/parallel.md, "The peer group").
   int blocks = 128;
-  // Sums that may run at once (ShardSum::channels), each with inboxes, flags and epochs of its own.
-  // Two let the blocks hide their sums, which measured slower over NVLink on two H200s
-  // (docs/parallel.md, "Hiding the sums").
-  int channels = 1;
   // Several shards on one GPU (tests on a machine with one): their kernels must then run side by
   // side on it. A shard's sum holds its blocks' multiprocessors while it waits for the others, so
   // keep shards x blocks well under the GPU's multiprocessors, or the others' products never start.
@@ -62,7 +58,6 @@ namespace detail {
 inline constexpr int kMaxPeerShards = 8;
 inline constexpr int kMaxPeerBlocks = 256;
 inline constexpr int kPeerSumThreads = 512;
-inline constexpr int kMaxPeerChannels = 2;
 
 // What rank `rank` of a group needs to reach the others: every pointer into another GPU's memory is
 // a peer mapping (cudaDeviceEnablePeerAccess).
@@ -212,8 +207,6 @@ class PeerShardGroup : public DeviceShardThreads {
                 "PeerShardGroup: capacity ", options_.capacity, " (a positive multiple of ", detail::kPack, ")");
     EPONA_CHECK(options_.blocks >= 1 && options_.blocks <= detail::kMaxPeerBlocks, "PeerShardGroup: ", options_.blocks,
                 " blocks (1 to ", detail::kMaxPeerBlocks, ")");
-    EPONA_CHECK(options_.channels >= 1 && options_.channels <= detail::kMaxPeerChannels, "PeerShardGroup: ",
-                options_.channels, " channels (1 to ", detail::kMaxPeerChannels, ")");
     int current = 0;
     EPONA_CUDA_CHECK(cudaGetDevice(&current));
     try {
@@ -229,7 +222,6 @@ class PeerShardGroup : public DeviceShardThreads {
   PeerShardGroup& operator=(const PeerShardGroup&) = delete;
 
   const PeerGroupOptions& options() const { return options_; }
-  int channels() const { return options_.channels; }
 
   using Sum = GroupShardSum<PeerShardGroup, Context, A>;
   Sum shard(std::int64_t rank) { return Sum(*this, rank); }
@@ -237,8 +229,7 @@ class PeerShardGroup : public DeviceShardThreads {
   // Shard `rank`'s sum on its context's stream (its ShardSum's call). The ranks' threads meet
   // before (the sizes must agree) and after the launch; while the stream records a graph, the
   // graph's launches are fenced instead.
-  void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count, int channel) {
-    check_channel("PeerShardGroup", channel, channels());
+  void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count) {
     if (size() == 1) return;
     EPONA_CHECK(ctx.info().device == device(rank), "PeerShardGroup: shard ", rank, " summed on GPU ",
                 ctx.info().device, ", but its GPU is ", device(rank));
@@ -248,7 +239,7 @@ class PeerShardGroup : public DeviceShardThreads {
                 "PeerShardGroup: the shards summed buffers of different sizes");
     (void)fence_recorded_graph(ctx);  // the launches below then only record
     for (std::int64_t done = 0; done < count; done += options_.capacity)
-      launch(ctx, rank, data + done, std::min(options_.capacity, count - done), channel);
+      launch(ctx, rank, data + done, std::min(options_.capacity, count - done));
     fence();
   }
 
@@ -263,41 +254,35 @@ class PeerShardGroup : public DeviceShardThreads {
         if (a != b) detail::map_peer_memory(a, b);
   }
 
-  // Each rank's memory holds, per channel: its inbox (two slots of every rank's part), its flags
-  // and its epochs.
   void allocate() {
     const std::size_t n = devices().size(), flags = sizeof(unsigned) * detail::kMaxPeerBlocks * detail::kMaxPeerShards;
     const std::size_t epochs = sizeof(unsigned) * detail::kMaxPeerBlocks;
     capacity_bytes_ = options_.capacity * static_cast<std::int64_t>(sizeof(A));
-    const std::size_t inbox = 2 * n * static_cast<std::size_t>(capacity_bytes_), channel = inbox + flags + epochs;
-    const auto channels = static_cast<std::size_t>(options_.channels);
+    const std::size_t inbox = 2 * n * static_cast<std::size_t>(capacity_bytes_);
     for (std::size_t r = 0; r < n; ++r) {
       EPONA_CUDA_CHECK(cudaSetDevice(devices()[r]));
-      memory_.push_back(BackendMemory<Cuda>::allocate(channels * channel));
-      EPONA_CUDA_CHECK(cudaMemset(memory_.back().get(), 0, channels * channel));
+      memory_.push_back(BackendMemory<Cuda>::allocate(inbox + flags + epochs));
+      EPONA_CUDA_CHECK(cudaMemset(memory_.back().get(), 0, inbox + flags + epochs));
     }
-    channel_memory_.resize(channels);
-    for (std::size_t c = 0; c < channels; ++c)
-      for (std::size_t r = 0; r < n; ++r) {
-        auto* base = static_cast<unsigned char*>(memory_[r].get()) + c * channel;
-        channel_memory_[c].inboxes.push_back(base);
-        channel_memory_[c].flags.push_back(reinterpret_cast<unsigned*>(base + inbox));
-        channel_memory_[c].epochs.push_back(reinterpret_cast<unsigned*>(base + inbox + flags));
-      }
+    for (std::size_t r = 0; r < n; ++r) {
+      auto* base = static_cast<unsigned char*>(memory_[r].get());
+      inboxes_.push_back(base);
+      flags_.push_back(reinterpret_cast<unsigned*>(base + inbox));
+      epochs_.push_back(reinterpret_cast<unsigned*>(base + inbox + flags));
+    }
     for (const int d : devices()) {
       EPONA_CUDA_CHECK(cudaSetDevice(d));
       EPONA_CUDA_CHECK(cudaDeviceSynchronize());
     }
   }
 
-  void launch(Context& ctx, std::int64_t rank, A* data, std::int64_t count, int channel) {
-    const ChannelMemory& memory = channel_memory_[static_cast<std::size_t>(channel)];
+  void launch(Context& ctx, std::int64_t rank, A* data, std::int64_t count) {
     detail::PeerLinks links{};
     for (std::size_t j = 0; j < devices().size(); ++j) {
-      links.inbox_of[j] = memory.inboxes[j];
-      links.flags_of[j] = memory.flags[j];
+      links.inbox_of[j] = inboxes_[j];
+      links.flags_of[j] = flags_[j];
     }
-    links.epochs = memory.epochs[static_cast<std::size_t>(rank)];
+    links.epochs = epochs_[static_cast<std::size_t>(rank)];
     links.rank = static_cast<int>(rank);
     links.size = static_cast<int>(size());
     links.capacity_bytes = capacity_bytes_;
@@ -308,13 +293,9 @@ class PeerShardGroup : public DeviceShardThreads {
 
   PeerGroupOptions options_;
   std::vector<std::int64_t> counts_;
-  std::vector<std::shared_ptr<void>> memory_;  // per rank
-  // One channel's part of every rank's memory.
-  struct ChannelMemory {
-    std::vector<unsigned char*> inboxes;
-    std::vector<unsigned*> flags, epochs;
-  };
-  std::vector<ChannelMemory> channel_memory_;  // per channel
+  std::vector<std::shared_ptr<void>> memory_;
+  std::vector<unsigned char*> inboxes_;
+  std::vector<unsigned*> flags_, epochs_;
   std::int64_t capacity_bytes_ = 0;
 };
 

@@ -78,7 +78,6 @@ class StreamShardGroup {
 
   std::int64_t size() const { return size_; }
   int device() const { return device_; }
-  int channels() const { return 1; }  // one result buffer, one sum at a time
 
   using Sum = GroupShardSum<StreamShardGroup, Context, A>;
   Sum shard(std::int64_t rank) { return Sum(*this, rank); }
@@ -94,8 +93,7 @@ class StreamShardGroup {
   }
 
   // Shard `rank`'s part of a sum (its ShardSum's call).
-  void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count, int channel) {
-    check_channel("StreamShardGroup", channel, channels());
+  void sum(Context& ctx, std::int64_t rank, A* data, std::int64_t count) {
     EPONA_CHECK(!ctx.policy().graphs, "StreamShardGroup: its shards' contexts must run with graphs off "
                                       "(policy().graphs = false): a graph cannot wait on another thread's stream");
     const auto r = static_cast<std::size_t>(rank);

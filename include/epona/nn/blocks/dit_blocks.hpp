@@ -294,23 +294,14 @@ void items_linear(const Layer& layer, Context& ctx, const A* x, std::int64_t ldx
   layer.items(ctx, x + x_first * ldx, ldx, R * ldx, rows, y + y_first * ldy, ldy, R * ldy, items.count, epilogue);
 }
 
-// Adds up a shard's partial outputs (`count` elements at `data`) over its tensor-parallel group,
-// on `channel` of its sum: nothing where the block is whole.
+// Adds up a shard's partial outputs (`count` elements at `data`) over its tensor-parallel group:
+// nothing where the block is whole.
 template <class Context, class A>
-void sum_over_shards(Context& ctx, const ShardSum<Context, A>* sum, const DitWidths& w, A* data, std::int64_t count,
-                     int channel = 0) {
+void sum_over_shards(Context& ctx, const ShardSum<Context, A>* sum, const DitWidths& w, A* data, std::int64_t count) {
   if (w.shards == 1) return;
   EPONA_CHECK(sum && sum->size() == w.shards, "DiT block: a shard of a group of ", w.shards,
               " needs the group's sum (DitTrunk::set_shard_sum)");
-  sum->sum(ctx, data, count, channel);
-}
-
-// Whether a shard's block hides its sums: it sums one part of its rows on one channel while it
-// computes another part on the other queue (docs/parallel.md, "Hiding the sums"). It needs a group
-// of two channels, and one item (a batch folds its items into the rows of one sum instead).
-template <class Context, class A>
-bool hides_sums(const ShardSum<Context, A>* sum, const DitWidths& w, const DitItems& items) {
-  return w.shards > 1 && sum && sum->channels() >= 2 && items.count == 1;
+  sum->sum(ctx, data, count);
 }
 
 inline double joint_attention_flops(const DitWidths& w, std::int64_t q_rows, std::int64_t rows) {
@@ -412,8 +403,6 @@ class StreamPair {
     f(*cond_.ctx, cond_);
     f(*img_.ctx, img_);
   }
-  const Part& cond() const { return cond_; }
-  const Part& target() const { return img_; }
 
   // y = layer(x) on each stream's rows of x and y; `layer` picks a stream's Linear.
   template <class Layer>
@@ -425,14 +414,9 @@ class StreamPair {
                                 y.data() + cond_.first * ldy, ldy, apart * ldy, epilogue);
       return;
     }
-    for (const Part* p : {&cond_, &img_}) linear(layer, *p, x, y, epilogue);
-  }
-  // The same on one stream's rows (unpaired), on its queue.
-  template <class Layer>
-  void linear(Layer layer, const Part& p, const Tensor<A, B>& x, Tensor<A, B>& y,
-              Epilogue epilogue = Epilogue::None) const {
-    items_linear(layer(*p.layers), *p.ctx, x.data(), x.size(-1), p.first, p.rows, y.data(), y.size(-1), p.first,
-                 items_, false, epilogue);
+    for (const Part* p : {&cond_, &img_})
+      items_linear(layer(*p->layers), *p->ctx, x.data(), ldx, p->first, p->rows, y.data(), ldy, p->first, items_,
+                   false, epilogue);
   }
 
  private:
@@ -520,8 +504,7 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
     using Stream = DoubleStream<B, W>;
     const std::int64_t D = widths.hidden, I = widths.attention_width();
     const float eps = widths.ln_eps;
-    const bool hidden_sums = detail::hides_sums(shard_sum, widths, s.items) && rows.cond > 0 && rows.target > 0;
-    const bool paired = !hidden_sums && Pair::pairs(ctx, s, rows);
+    const bool paired = Pair::pairs(ctx, s, rows);
     EPONA_CHECK(!(paired && entry.cond_qkv), "DoubleStreamBlock: a condition front run ahead needs unpaired streams");
     const StreamMods mc = cond_mods(mods), mi = img_mods(mods);
     const DitItems& items = s.items;
@@ -548,51 +531,20 @@ struct DoubleStreamBlock : Bindable<DoubleStreamBlock<B, W>> {
     }
     detail::joint_attention<B>(ctx, s.qkv.data(), rows.total(), 0, rows.total(), widths, s.attn.data(), I, 3 * I,
                                items);
-    // The gated residual adds after the attention and after the MLP, each fused with the next norm.
-    const auto attention_add = [&](Context& c, const Part& p) {
+    pair.fork();
+    pair.linear(Stream::proj_of, s.attn, s.sub);
+    sum_partial(ctx, pair, s);
+    pair.each([&](Context& c, const Part& p) {
       detail::add_gated_norm_items(c, p.src ? p.src : at(s.z, p), at(s.z, p), at(s.sub, p), p.attn.gate,
                                    at(s.modulated, p), p.rows, D, p.mlp, eps, items, p.src ? p.rows : items.rows);
-    };
-    const auto mlp_add = [&](Context& c, const Part& p) {
+    });
+    pair.linear(Stream::fc1_of, s.modulated, s.mlp, img.mlp.fc1_epilogue());
+    pair.linear(Stream::fc2_of, s.mlp, s.sub);
+    sum_partial(ctx, pair, s);
+    pair.each([&](Context& c, const Part& p) {
       detail::add_gated_norm_items(c, at(s.z, p), at(s.z, p), at(s.sub, p), p.mlp.gate, at(s.modulated, p), p.rows, D,
                                    p.next, eps, items, items.rows);
-    };
-    const auto mlp = [&](const Part& p) {
-      pair.linear(Stream::fc1_of, p, s.modulated, s.mlp, img.mlp.fc1_epilogue());
-      pair.linear(Stream::fc2_of, p, s.mlp, s.sub);
-    };
-    pair.fork();
-    if (hidden_sums) {
-      // Each stream sums its rows on a channel of its own, on its own queue (the condition's on the
-      // side one), while the other stream computes: the target's projection waits for the
-      // condition's, and its MLP for the condition's MLP, so no two sums run at once.
-      const Part &c = pair.cond(), &t = pair.target();
-      const auto sum = [&](const Part& p, int channel) {
-        detail::sum_over_shards(*p.ctx, shard_sum, widths, at(s.sub, p), p.rows * D, channel);
-      };
-      pair.linear(Stream::proj_of, c, s.attn, s.sub);
-      queue.join(ctx);
-      sum(c, 1);
-      pair.linear(Stream::proj_of, t, s.attn, s.sub);
-      sum(t, 0);
-      attention_add(*c.ctx, c);
-      mlp(c);
-      queue.join(ctx);
-      sum(c, 1);
-      attention_add(*t.ctx, t);
-      mlp(t);
-      sum(t, 0);
-      mlp_add(*c.ctx, c);
-      mlp_add(*t.ctx, t);
-    } else {
-      pair.linear(Stream::proj_of, s.attn, s.sub);
-      sum_partial(ctx, pair, s);
-      pair.each(attention_add);
-      pair.linear(Stream::fc1_of, s.modulated, s.mlp, img.mlp.fc1_epilogue());
-      pair.linear(Stream::fc2_of, s.mlp, s.sub);
-      sum_partial(ctx, pair, s);
-      pair.each(mlp_add);
-    }
+    });
     pair.join();
   }
 
@@ -701,32 +653,11 @@ struct SingleStreamBlock : Bindable<SingleStreamBlock<B, W>> {
     detail::qk_norm_rope_items<B>(ctx, qkv, widths, rope, std::array{detail::QkRows<B>(0, first_out, n, norm)}, items);
     detail::joint_attention<B>(ctx, qkv, n, first_out, m, widths, s.cat.data(), I + Dm, 3 * I, items);
     queue.join(ctx);
-    // Rows [from, from + count) of the updated ones (of every item): the output product; then their
-    // sum (on `channel`) and the gated residual add fused with the next norm.
-    const auto output = [&](Context& c, std::int64_t from, std::int64_t count) {
-      product(c, linear2, s.cat, from, count, s.sub.data(), D, from);
-    };
-    const auto sum_and_add = [&](Context& c, std::int64_t from, std::int64_t count, int channel) {
-      A* sub = s.sub.data() + from * D;
-      detail::sum_over_shards(c, shard_sum, widths, sub, ((items.count - 1) * R + count) * D, channel);
-      A* updated = s.z.data() + (first_out + from) * D;
-      detail::add_gated_norm_items(c, updated, updated, sub, mv.gate, s.modulated.data() + (first_out + from) * D, count,
-                                   D, next, widths.ln_eps, items, R);
-    };
-    if (detail::hides_sums(shard_sum, widths, items) && m >= 2) {
-      // Two halves, the second on the side queue once the first's product is done: each half's sum
-      // runs beside the other half's product or add.
-      const std::int64_t half = m / 2;
-      output(ctx, 0, half);
-      queue.fork(ctx);
-      sum_and_add(ctx, 0, half, 0);
-      output(side, half, m - half);
-      sum_and_add(side, half, m - half, 1);
-      queue.join(ctx);
-    } else {
-      output(ctx, 0, m);
-      sum_and_add(ctx, 0, m, 0);
-    }
+    product(ctx, linear2, s.cat, 0, m, s.sub.data(), D, 0);
+    detail::sum_over_shards(ctx, shard_sum, widths, s.sub.data(), ((items.count - 1) * R + m) * D);
+    A* updated = s.z.data() + first_out * D;
+    detail::add_gated_norm_items(ctx, updated, updated, s.sub.data(), mv.gate, s.modulated.data() + first_out * D, m, D,
+                                 next, widths.ln_eps, items, R);
   }
 
   Flops flops(const JointRows& rows, std::int64_t first_out = 0) const {
