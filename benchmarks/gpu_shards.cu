@@ -50,13 +50,11 @@
 #include "epona/core/tensor_parallel.hpp"
 #include "epona/cuda/backend.cuh"
 #include "epona/flow/schedule.hpp"
-#include "epona/cuda/dcae_ops.cuh"
-#include "epona/model/dcae.hpp"
-#include "epona/model/latent_layout.hpp"
 #include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
 #include "bench_stats.hpp"
 #include "gpu_event_timer.cuh"
+#include "gpu_frame_decode.cuh"
 #include "epona/cuda/runtime/graph.hpp"
 #include "epona/cuda/runtime/peer_shard_sum.cuh"
 #if defined(EPONA_BENCH_NCCL)
@@ -173,39 +171,25 @@ struct WorldStep {
   }
 };
 
-// kFrames AR steps, each frame's DC-AE decode (the real DC-AE, random weights, bf16, a context and
-// stream of its own on this GPU) on a worker thread while the next step samples, as the epona
-// program's FrameDecoder runs it; `decodes` false: the steps alone (the other shards').
+// kFrames AR steps, each frame's DC-AE decode (bench::FrameDecode, on this GPU) on a worker thread
+// while the next step samples, as the epona program's FrameDecoder runs it; `decodes` false: the
+// steps alone (the other shards').
 struct Rollout {
   static constexpr int kFrames = 5;
   WorldStep step;
-  std::unique_ptr<Dcae<Cuda, bf16>> dcae;
-  std::unique_ptr<cuda::Context> decode_ctx;
-  cpu::Context host;
+  std::unique_ptr<bench::FrameDecode<bf16>> decode;
 
   Rollout(const io::TensorMap& weights, const WorldModelConfig& cfg, TensorShard shard,
           const WorldModel<Cuda, bf16>::VisShardSum* sum, std::int64_t steps, bool decodes)
-      : step(weights, cfg, shard, sum, steps) {
-    if (!decodes) return;
-    dcae = std::make_unique<Dcae<Cuda, bf16>>(DcaeConfig{});
-    dcae->randomize(1);
-    decode_ctx = std::make_unique<cuda::Context>();
-  }
+      : step(weights, cfg, shard, sum, steps),
+        decode(decodes ? std::make_unique<bench::FrameDecode<bf16>>(cfg) : nullptr) {}
   cuda::Context& context() { return step.context(); }
-  void decode(const Tensor<float>& tokens) {
-    const WorldModelConfig& w = step.wm.config();
-    EPONA_CUDA_CHECK(cudaSetDevice(decode_ctx->info().device));
-    const Tensor<float> z = tokens_to_latent(host, tokens, w.latent_h(), w.latent_w());
-    const Tensor<float, Cuda> images = dcae->decode(*decode_ctx, BackendTraits<Cuda>::upload(z), false);
-    Tensor<float> out(images.shape());
-    BackendTraits<Cuda>::download_into(*decode_ctx, images, out);
-  }
   void sample(cuda::Context&) {
-    std::future<void> running;
+    std::future<Tensor<float>> running;
     for (int f = 0; f < kFrames; ++f) {
       const StepResult r = step.wm.predict_next(step.h, std::nullopt, step.opt);
       if (running.valid()) running.get();
-      if (dcae) running = std::async(std::launch::async, [this, latent = r.latent] { decode(latent); });
+      if (decode) running = std::async(std::launch::async, [this, latent = r.latent] { return (*decode)(latent); });
     }
     if (running.valid()) running.get();
   }

@@ -53,14 +53,12 @@
 #include "epona/cuda/backend.cuh"
 #include "epona/flow/schedule.hpp"
 #include "epona/flow/solvers.hpp"
-#include "epona/cuda/dcae_ops.cuh"
-#include "epona/model/dcae.hpp"
-#include "epona/model/latent_layout.hpp"
 #include "epona/model/pose_tokenizer.hpp"
 #include "epona/model/random_weights.hpp"
 #include "epona/model/world_model.hpp"
 #include "bench_stats.hpp"
 #include "gpu_event_timer.cuh"
+#include "gpu_frame_decode.cuh"
 
 using namespace epona;
 
@@ -316,19 +314,8 @@ void time_stream_gemms(cuda::Context& ctx, int repeats) {
 // thread while the next step samples (`beside`). Milliseconds per frame of host wall time.
 template <class W>
 void time_rollouts(const Options& o, WorldModel<Cuda, W>& wm, const History& h) {
-  DcaeConfig dcfg;
-  Dcae<Cuda, W> dcae(dcfg);
-  dcae.randomize(1);
-  cuda::Context dctx;
-  const WorldModelConfig& w = wm.config();
-  cpu::Context host;
-  const auto decode = [&](const Tensor<float>& tokens) {
-    const Tensor<float> z = tokens_to_latent(host, tokens, w.latent_h(), w.latent_w());
-    const Tensor<float, Cuda> images = dcae.decode(dctx, BackendTraits<Cuda>::upload(z), false);
-    Tensor<float> out(images.shape());
-    BackendTraits<Cuda>::download_into(dctx, images, out);
-    return out;
-  };
+  bench::FrameDecode<W> frame_decode(wm.config());
+  const auto decode = [&](const Tensor<float>& tokens) { return frame_decode(tokens); };
   const auto rollout_ms = [&](const SampleOptions& opt, bool beside) {
     const auto t0 = std::chrono::steady_clock::now();
     std::future<Tensor<float>> running;
