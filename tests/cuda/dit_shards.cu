@@ -14,10 +14,7 @@
 #include "watchdog.hpp"
 
 #include <chrono>
-#include <condition_variable>
-#include <cstdio>
 #include <cstdlib>
-#include <mutex>
 #include <string>
 #include <thread>
 #include <vector>
